@@ -1,0 +1,338 @@
+//! Pinhole cameras and rigid poses, in f64.
+//!
+//! # Conventions (stated once, used everywhere)
+//! - Camera axes are OpenCV's: x right, y down, z forward. Every reader converts its
+//!   file's convention into this one; nothing downstream converts again.
+//! - Pixel `(i, j)` (column `i`, row `j`) covers `[i, i+1) x [j, j+1)`; its centre is
+//!   `(i + 0.5, j + 0.5)`. A pixel coordinate `u` therefore scales exactly with the image:
+//!   at a level downsampled by `s`, the same point has coordinate `u / s`.
+//! - Intrinsics map normalized camera coordinates to pixels: `u = fx * x + cx`,
+//!   `v = fy * y + cy`, with `(x, y) = (X / Z, Y / Z)` after distortion.
+//! - Distortion (OpenCV radial-tangential k1, k2, p1, p2) is modelled in projection, not
+//!   removed from the images: [`Intrinsics::project_normalized`] applies it and
+//!   [`Intrinsics::unproject_pixel`] inverts it iteratively.
+
+use glam::{DMat3, DVec2, DVec3};
+use serde::{Deserialize, Serialize};
+
+/// Largest tolerated deviation of `R^T R` from identity before a pose is rejected.
+pub const ROTATION_TOLERANCE: f64 = 1e-3;
+/// Fixed-point iterations used to invert lens distortion.
+const UNDISTORT_ITERATIONS: usize = 20;
+
+/// OpenCV radial-tangential distortion of normalized coordinates.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Distortion {
+    pub k1: f64,
+    pub k2: f64,
+    pub p1: f64,
+    pub p2: f64,
+}
+
+impl Distortion {
+    /// Distorts ideal normalized coordinates `(x, y)`.
+    #[inline]
+    pub fn apply(&self, p: DVec2) -> DVec2 {
+        let (x, y) = (p.x, p.y);
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (self.k1 + r2 * self.k2);
+        DVec2::new(
+            x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
+            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y,
+        )
+    }
+
+    /// Inverts [`Distortion::apply`] by fixed-point iteration (exact for zero distortion).
+    pub fn remove(&self, distorted: DVec2) -> DVec2 {
+        let mut p = distorted;
+        for _ in 0..UNDISTORT_ITERATIONS {
+            let err = self.apply(p) - distorted;
+            p -= err;
+        }
+        p
+    }
+
+    pub fn is_zero(&self) -> bool {
+        self.k1 == 0.0 && self.k2 == 0.0 && self.p1 == 0.0 && self.p2 == 0.0
+    }
+}
+
+/// Pinhole intrinsics of an image of `width x height` pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub width: u32,
+    pub height: u32,
+    /// `None` for an ideal pinhole.
+    pub distortion: Option<Distortion>,
+}
+
+impl Intrinsics {
+    pub fn pinhole(fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32) -> Self {
+        Self {
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+            distortion: None,
+        }
+    }
+
+    /// The same camera for an image resampled by `1 / factor` (pixel centres follow the
+    /// `[i, i+1)` convention, so all four parameters divide by `factor`).
+    pub fn downscaled(&self, factor: f64, width: u32, height: u32) -> Self {
+        Self {
+            fx: self.fx / factor,
+            fy: self.fy / factor,
+            cx: self.cx / factor,
+            cy: self.cy / factor,
+            width,
+            height,
+            distortion: self.distortion,
+        }
+    }
+
+    /// `K` as a matrix (ignores distortion).
+    pub fn k(&self) -> DMat3 {
+        DMat3::from_cols(
+            DVec3::new(self.fx, 0.0, 0.0),
+            DVec3::new(0.0, self.fy, 0.0),
+            DVec3::new(self.cx, self.cy, 1.0),
+        )
+    }
+
+    /// Pixel of ideal (undistorted) normalized coordinates, applying distortion if any.
+    #[inline]
+    pub fn project_normalized(&self, p: DVec2) -> DVec2 {
+        let d = match &self.distortion {
+            Some(d) => d.apply(p),
+            None => p,
+        };
+        DVec2::new(self.fx * d.x + self.cx, self.fy * d.y + self.cy)
+    }
+
+    /// Ideal normalized coordinates `(X/Z, Y/Z)` of the ray through pixel coordinate `uv`.
+    #[inline]
+    pub fn unproject_pixel(&self, uv: DVec2) -> DVec2 {
+        let d = DVec2::new((uv.x - self.cx) / self.fx, (uv.y - self.cy) / self.fy);
+        match &self.distortion {
+            Some(dist) => dist.remove(d),
+            None => d,
+        }
+    }
+
+    /// Checks that every parameter is finite and the focal lengths and size are positive.
+    pub fn validate(&self) -> Result<(), String> {
+        let all = [self.fx, self.fy, self.cx, self.cy];
+        if all.iter().any(|v| !v.is_finite()) {
+            return Err(format!("non-finite intrinsics {all:?}"));
+        }
+        if self.fx <= 0.0 || self.fy <= 0.0 {
+            return Err(format!(
+                "focal lengths must be positive, got fx={} fy={}",
+                self.fx, self.fy
+            ));
+        }
+        if self.width == 0 || self.height == 0 {
+            return Err(format!(
+                "image size must be positive, got {}x{}",
+                self.width, self.height
+            ));
+        }
+        if let Some(d) = &self.distortion {
+            if [d.k1, d.k2, d.p1, d.p2].iter().any(|v| !v.is_finite()) {
+                return Err("non-finite distortion coefficients".into());
+            }
+        }
+        Ok(())
+    }
+}
+
+/// World-to-camera rigid transform in OpenCV axes: `p_cam = R * p_world + t`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WorldToCamera {
+    pub rotation: DMat3,
+    pub translation: DVec3,
+}
+
+/// Camera-to-world rigid transform in OpenCV axes: `p_world = R * p_cam + t`;
+/// `t` is the camera centre in world coordinates.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraToWorld {
+    pub rotation: DMat3,
+    pub translation: DVec3,
+}
+
+impl WorldToCamera {
+    /// Builds a pose after checking that it is finite and `R` is a proper rotation
+    /// (within [`ROTATION_TOLERANCE`]); the rotation is then re-orthonormalized exactly.
+    pub fn new_checked(rotation: DMat3, translation: DVec3) -> Result<Self, String> {
+        let r = check_rotation(rotation)?;
+        if !translation.is_finite() {
+            return Err(format!("non-finite translation {translation:?}"));
+        }
+        Ok(Self {
+            rotation: r,
+            translation,
+        })
+    }
+
+    pub fn identity() -> Self {
+        Self {
+            rotation: DMat3::IDENTITY,
+            translation: DVec3::ZERO,
+        }
+    }
+
+    #[inline]
+    pub fn transform_point(&self, p_world: DVec3) -> DVec3 {
+        self.rotation * p_world + self.translation
+    }
+
+    pub fn inverse(&self) -> CameraToWorld {
+        let rt = self.rotation.transpose();
+        CameraToWorld {
+            rotation: rt,
+            translation: -(rt * self.translation),
+        }
+    }
+
+    /// Camera centre in world coordinates, `-R^T t`.
+    pub fn centre(&self) -> DVec3 {
+        -(self.rotation.transpose() * self.translation)
+    }
+
+    /// The pose of camera `other` relative to this one: maps this camera's coordinates to
+    /// `other`'s, `p_other = R_rel * p_self + t_rel`.
+    pub fn relative_to(&self, other: &WorldToCamera) -> WorldToCamera {
+        let rt = self.rotation.transpose();
+        let r = other.rotation * rt;
+        WorldToCamera {
+            rotation: r,
+            translation: other.translation - r * self.translation,
+        }
+    }
+}
+
+impl CameraToWorld {
+    /// Builds a pose after the same checks as [`WorldToCamera::new_checked`].
+    pub fn new_checked(rotation: DMat3, translation: DVec3) -> Result<Self, String> {
+        let r = check_rotation(rotation)?;
+        if !translation.is_finite() {
+            return Err(format!("non-finite camera centre {translation:?}"));
+        }
+        Ok(Self {
+            rotation: r,
+            translation,
+        })
+    }
+
+    pub fn inverse(&self) -> WorldToCamera {
+        let rt = self.rotation.transpose();
+        WorldToCamera {
+            rotation: rt,
+            translation: -(rt * self.translation),
+        }
+    }
+}
+
+/// Validates a rotation and returns it re-orthonormalized (Gram-Schmidt on its columns).
+fn check_rotation(r: DMat3) -> Result<DMat3, String> {
+    let cols = [r.x_axis, r.y_axis, r.z_axis];
+    if cols.iter().any(|c| !c.is_finite()) {
+        return Err(format!("non-finite rotation {r:?}"));
+    }
+    let err = (r.transpose() * r - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    if err > ROTATION_TOLERANCE {
+        return Err(format!(
+            "rotation is not orthonormal (max |R^T R - I| = {err:.3e} > {ROTATION_TOLERANCE:e})"
+        ));
+    }
+    if r.determinant() <= 0.0 {
+        return Err("rotation has negative determinant (a reflection, not a rotation)".into());
+    }
+    let x = r.x_axis.normalize();
+    let y = (r.y_axis - x * x.dot(r.y_axis)).normalize();
+    let z = x.cross(y);
+    Ok(DMat3::from_cols(x, y, z))
+}
+
+/// A posed camera: intrinsics plus world-to-camera pose.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Camera {
+    pub intrinsics: Intrinsics,
+    pub pose: WorldToCamera,
+}
+
+impl Camera {
+    /// Projects a world point to a pixel coordinate and its depth (camera z).
+    pub fn project(&self, p_world: DVec3) -> (DVec2, f64) {
+        let pc = self.pose.transform_point(p_world);
+        let uv = self
+            .intrinsics
+            .project_normalized(DVec2::new(pc.x / pc.z, pc.y / pc.z));
+        (uv, pc.z)
+    }
+
+    /// World point at camera depth `depth` along the ray through pixel `uv`.
+    pub fn unproject(&self, uv: DVec2, depth: f64) -> DVec3 {
+        let n = self.intrinsics.unproject_pixel(uv);
+        let pc = DVec3::new(n.x * depth, n.y * depth, depth);
+        let c2w = self.pose.inverse();
+        c2w.rotation * pc + c2w.translation
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn distortion_round_trip() {
+        let d = Distortion {
+            k1: 0.058,
+            k2: -0.081,
+            p1: 0.001,
+            p2: -0.002,
+        };
+        for &(x, y) in &[(0.0, 0.0), (0.3, -0.2), (-0.4, 0.5)] {
+            let p = DVec2::new(x, y);
+            let back = d.remove(d.apply(p));
+            assert!((back - p).length() < 1e-10, "{p:?} -> {back:?}");
+        }
+    }
+
+    #[test]
+    fn project_unproject_round_trip() {
+        let r = DMat3::from_rotation_y(0.3) * DMat3::from_rotation_x(-0.2);
+        let pose = WorldToCamera::new_checked(r, DVec3::new(0.1, -0.2, 0.5)).unwrap();
+        let cam = Camera {
+            intrinsics: Intrinsics::pinhole(500.0, 510.0, 320.5, 240.25, 640, 480),
+            pose,
+        };
+        let uv = DVec2::new(100.5, 300.5);
+        let p = cam.unproject(uv, 3.7);
+        let (uv2, z) = cam.project(p);
+        assert!((uv2 - uv).length() < 1e-9);
+        assert!((z - 3.7).abs() < 1e-12);
+        assert!((pose.inverse().inverse().translation - pose.translation).length() < 1e-12);
+    }
+
+    #[test]
+    fn rejects_bad_rotations() {
+        assert!(WorldToCamera::new_checked(DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0)), DVec3::ZERO).is_err());
+        assert!(WorldToCamera::new_checked(DMat3::from_diagonal(DVec3::splat(2.0)), DVec3::ZERO).is_err());
+        let mut nan = DMat3::IDENTITY;
+        nan.x_axis.x = f64::NAN;
+        assert!(WorldToCamera::new_checked(nan, DVec3::ZERO).is_err());
+        assert!(WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::new(f64::INFINITY, 0.0, 0.0)).is_err());
+    }
+}

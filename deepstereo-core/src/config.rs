@@ -1,0 +1,338 @@
+//! Network configuration, presets, and the tile geometry derived from it.
+//!
+//! # Tile geometry
+//! The network is fully convolutional with valid (unpadded) convolutions. For an output
+//! tile of `th x tw` pixels whose top-left corner `(x0, y0)` is a multiple of
+//! [`Config::tile_align`] (`2^(L-1)`), level `l` of a tower reads level-`l` pixels (image
+//! downsampled by `2^l`) starting at `x0 / 2^l - pad_l`, where
+//! `pad_l = ceil(rf / 2^(l+1)) + r0 / 2`, `r0` = the reduction of the tower's per-level
+//! convolutions and `rf` that of its merge convolutions. After the per-level convolutions,
+//! level `l`'s features are upsampled by `2^l` (nearest) and cropped at offset
+//! `2^l * ceil(rf / 2^(l+1)) - rf / 2` to `th + rf`. Because every level's pixel grid is
+//! aligned with the same global grid, tiles rendered separately give exactly the image
+//! rendered whole.
+
+use serde::{Deserialize, Serialize};
+
+/// One convolution: a square `kernel x kernel` 2D convolution across planes' pixels, or
+/// a `kernel`-tap convolution along depth in the selection tower's depth stack.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Conv {
+    pub kernel: usize,
+    pub channels: usize,
+}
+
+const fn c(kernel: usize, channels: usize) -> Conv {
+    Conv { kernel, channels }
+}
+
+/// The 2D part of a tower: per-level convolutions (own weights per level, shared across
+/// planes), then, after nearest upsampling and concatenation, the merge convolutions.
+/// All are followed by ReLU.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TowerConfig {
+    /// Number of resolution levels this tower reads (1..=`Config::levels`).
+    pub levels: usize,
+    pub level_convs: Vec<Conv>,
+    pub merge_convs: Vec<Conv>,
+}
+
+impl TowerConfig {
+    /// Pixels lost by the per-level convolutions (`r0`).
+    pub fn level_reduction(&self) -> usize {
+        self.level_convs.iter().map(|c| c.kernel - 1).sum()
+    }
+    /// Pixels lost by the merge convolutions (`rf`).
+    pub fn merge_reduction(&self) -> usize {
+        self.merge_convs.iter().map(|c| c.kernel - 1).sum()
+    }
+    /// Channels after the per-level convolutions of one level.
+    pub fn level_channels(&self, in_channels: usize) -> usize {
+        self.level_convs.last().map_or(in_channels, |c| c.channels)
+    }
+    /// Channels of the tower's output features.
+    pub fn out_channels(&self, in_channels: usize) -> usize {
+        self.merge_convs
+            .last()
+            .map_or(self.level_channels(in_channels) * self.levels, |c| c.channels)
+    }
+    /// Level-`l` border (in level-`l` pixels) read on each side of the tile's footprint.
+    pub fn pad(&self, l: usize) -> usize {
+        let rf = self.merge_reduction();
+        rf.div_ceil(1 << (l + 1)) + self.level_reduction() / 2
+    }
+    /// Offset of the tile's `th + rf` window in level `l`'s upsampled features.
+    pub fn upsample_crop(&self, l: usize) -> usize {
+        let rf = self.merge_reduction();
+        (1 << l) * rf.div_ceil(1 << (l + 1)) - rf / 2
+    }
+}
+
+/// The whole network's configuration. Serialized as JSON into the weights' metadata.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Config {
+    pub name: String,
+    /// Source views `V` per target.
+    pub views: usize,
+    /// Depth planes `D` used in training and by default when rendering.
+    pub planes: usize,
+    /// Resolution levels `L` of the input (level `l` at `1 / 2^l` resolution).
+    pub levels: usize,
+    /// Output tile side used for training samples.
+    pub tile: usize,
+    pub select: TowerConfig,
+    /// Selection layers connected across depth: convolutions along the plane axis
+    /// (zero-padded to keep `D`), ReLU between them; the last has 1 channel and is
+    /// followed by `tanh`, a learned scale `exp(log_scale)`, and softmax over depth.
+    pub depth_convs: Vec<Conv>,
+    pub colour: TowerConfig,
+    /// Feed the raw centre RGBA of the sources to the colour tower's linear layer.
+    pub colour_skip: bool,
+}
+
+impl Config {
+    /// As close to the paper as its text allows: 5 views, 96 planes, 4 levels, 8x8 output
+    /// tiles from 26x26 level-0 inputs. The paper's figure with layer widths is not in the
+    /// text; widths here follow its description (2D ReLU convs shared across planes,
+    /// layers across depth, tanh, softmax; colour tower of 2D convs + linear RGB).
+    pub fn paper() -> Self {
+        Self {
+            name: "paper".into(),
+            views: 5,
+            planes: 96,
+            levels: 4,
+            tile: 8,
+            select: TowerConfig {
+                levels: 4,
+                level_convs: vec![c(5, 96), c(3, 48), c(3, 16)],
+                merge_convs: vec![c(5, 96), c(5, 64), c(3, 32)],
+            },
+            depth_convs: vec![c(3, 32), c(3, 16), c(3, 1)],
+            colour: TowerConfig {
+                levels: 4,
+                level_convs: vec![c(5, 96), c(3, 48), c(3, 16)],
+                merge_convs: vec![c(5, 96), c(5, 64), c(3, 32)],
+            },
+            colour_skip: false,
+        }
+    }
+
+    /// Sized to train usefully on 2 CPU cores: 4 views, 32 planes, 2 levels, narrow
+    /// layers, and 24x24 output tiles (large tiles share the border work).
+    pub fn tiny() -> Self {
+        Self {
+            name: "tiny".into(),
+            views: 4,
+            planes: 32,
+            levels: 2,
+            tile: 24,
+            select: TowerConfig {
+                levels: 2,
+                level_convs: vec![c(3, 12), c(3, 12)],
+                merge_convs: vec![c(3, 16), c(3, 12)],
+            },
+            depth_convs: vec![c(3, 12), c(3, 8), c(3, 1)],
+            colour: TowerConfig {
+                levels: 1,
+                level_convs: vec![c(1, 12)],
+                merge_convs: vec![c(1, 12)],
+            },
+            colour_skip: true,
+        }
+    }
+
+    /// A preset by name.
+    pub fn preset(name: &str) -> Option<Self> {
+        match name {
+            "paper" => Some(Self::paper()),
+            "tiny" => Some(Self::tiny()),
+            _ => None,
+        }
+    }
+
+    /// Input channels per plane: RGBA of every source view.
+    pub fn in_channels(&self) -> usize {
+        4 * self.views
+    }
+
+    /// Tile origins and sizes must be multiples of this (`2^(L-1)`).
+    pub fn tile_align(&self) -> usize {
+        1 << (self.levels - 1)
+    }
+
+    fn towers(&self) -> [&TowerConfig; 2] {
+        [&self.select, &self.colour]
+    }
+
+    /// Level-`l` border read on each side of the tile's footprint: the larger of the
+    /// towers' needs (0 if no tower reads level `l`).
+    pub fn pad(&self, l: usize) -> usize {
+        self.towers()
+            .iter()
+            .filter(|t| l < t.levels)
+            .map(|t| t.pad(l))
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// Size of the level-`l` input for an output side of `t` pixels.
+    pub fn input_size(&self, l: usize, t: usize) -> usize {
+        (t >> l) + 2 * self.pad(l)
+    }
+
+    /// First level-`l` input pixel for an output tile starting at level-0 pixel `x0`.
+    pub fn input_origin(&self, l: usize, x0: i64) -> i64 {
+        x0.div_euclid(1 << l) - self.pad(l) as i64
+    }
+
+    /// Receptive field of one output pixel at level 0 (largest over towers and levels).
+    pub fn receptive_field(&self) -> usize {
+        (0..self.levels)
+            .map(|l| (2 * self.pad(l) + 1) << l)
+            .max()
+            .unwrap_or(1)
+    }
+
+    /// Checks internal consistency; returns a message naming the problem.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.views == 0 || self.planes == 0 {
+            return Err("views and planes must be positive".into());
+        }
+        if self.levels == 0 || self.levels > 6 {
+            return Err(format!("levels must be 1..=6, got {}", self.levels));
+        }
+        for (name, t) in [("select", &self.select), ("colour", &self.colour)] {
+            if t.levels == 0 || t.levels > self.levels {
+                return Err(format!("{name}.levels must be 1..={}, got {}", self.levels, t.levels));
+            }
+            let convs = t.level_convs.iter().chain(&t.merge_convs);
+            for conv in convs.chain(if name == "select" { self.depth_convs.iter() } else { [].iter() }) {
+                if conv.kernel % 2 == 0 || conv.channels == 0 {
+                    return Err(format!("{name}: kernels must be odd and channels positive, got {conv:?}"));
+                }
+            }
+        }
+        if self.depth_convs.last().map(|c| c.channels) != Some(1) {
+            return Err("the last depth conv must have 1 channel".into());
+        }
+        if self.tile == 0 || self.tile % self.tile_align() != 0 {
+            return Err(format!("tile {} must be a positive multiple of {}", self.tile, self.tile_align()));
+        }
+        Ok(())
+    }
+
+    /// Parameter count.
+    pub fn parameters(&self) -> usize {
+        self.layers().iter().map(|l| l.params).sum::<usize>() + 1
+    }
+
+    /// Multiply-adds per output pixel, for a training tile, with `self.planes` planes.
+    pub fn macs_per_pixel(&self) -> f64 {
+        self.layers().iter().map(|l| l.macs_per_pixel).sum()
+    }
+
+    /// Every layer with its shapes, parameters and cost, in order (for the README table).
+    pub fn layers(&self) -> Vec<LayerInfo> {
+        let t = self.tile;
+        let d = self.planes as f64;
+        let area = (t * t) as f64;
+        let mut out = Vec::new();
+        let cin = self.in_channels();
+        for (name, tower) in [("select", &self.select), ("colour", &self.colour)] {
+            let rf = tower.merge_reduction();
+            for l in 0..tower.levels {
+                let mut size = (t >> l) + 2 * tower.pad(l);
+                let mut ch = cin;
+                for (i, conv) in tower.level_convs.iter().enumerate() {
+                    size -= conv.kernel - 1;
+                    let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
+                    out.push(LayerInfo::new(format!("{name}.levels.{l}.{i}"), *conv, ch, size, macs * d / area));
+                    ch = conv.channels;
+                }
+            }
+            let mut ch = tower.level_channels(cin) * tower.levels;
+            let mut size = t + rf;
+            for (i, conv) in tower.merge_convs.iter().enumerate() {
+                size -= conv.kernel - 1;
+                let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
+                out.push(LayerInfo::new(format!("{name}.merge.{i}"), *conv, ch, size, macs * d / area));
+                ch = conv.channels;
+            }
+            if name == "select" {
+                for (i, conv) in self.depth_convs.iter().enumerate() {
+                    let macs = (conv.kernel * ch * conv.channels) as f64 * d;
+                    let mut info = LayerInfo::new(format!("select.depth.{i}"), *conv, ch, t, macs);
+                    info.params = conv.kernel * ch * conv.channels + conv.channels;
+                    out.push(info);
+                    ch = conv.channels;
+                }
+            } else {
+                let cin_out = ch + if self.colour_skip { cin } else { 0 };
+                let conv = Conv { kernel: 1, channels: 3 };
+                out.push(LayerInfo::new("colour.out".into(), conv, cin_out, t, (cin_out * 3) as f64 * d));
+            }
+        }
+        out
+    }
+}
+
+/// One row of the layer table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerInfo {
+    pub name: String,
+    pub kernel: usize,
+    pub in_channels: usize,
+    pub out_channels: usize,
+    /// Output side for a training tile.
+    pub out_size: usize,
+    pub params: usize,
+    pub macs_per_pixel: f64,
+}
+
+impl LayerInfo {
+    fn new(name: String, conv: Conv, cin: usize, out_size: usize, macs_per_pixel: f64) -> Self {
+        Self {
+            name,
+            kernel: conv.kernel,
+            in_channels: cin,
+            out_channels: conv.channels,
+            out_size,
+            params: conv.kernel * conv.kernel * cin * conv.channels + conv.channels,
+            macs_per_pixel,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paper_reads_26_from_8() {
+        let p = Config::paper();
+        p.validate().unwrap();
+        assert_eq!(p.input_size(0, 8), 26);
+        for l in 0..4 {
+            // Every level covers at least the level-0 footprint.
+            assert!((p.input_size(l, 8) << l) >= 26, "level {l}");
+        }
+    }
+
+    #[test]
+    fn tiny_is_valid() {
+        let t = Config::tiny();
+        t.validate().unwrap();
+        assert!(t.parameters() > 1000);
+        assert!(t.macs_per_pixel() > 0.0);
+    }
+
+    #[test]
+    fn origins_are_consistent_with_sizes() {
+        let p = Config::paper();
+        for l in 0..p.levels {
+            let a = p.input_origin(l, 64);
+            let b = p.input_origin(l, 72);
+            assert_eq!(b - a, (8 >> l) as i64);
+        }
+    }
+}

@@ -1,0 +1,107 @@
+//! Multi-resolution plane-sweep inputs of the network for one output tile.
+//!
+//! Level `l` is the plane sweep of the sources' level-`l` pyramid images into the target
+//! camera downsampled by `2^l`, over the region [`Config::input_origin`] /
+//! [`Config::input_size`] give (see `config.rs` for the tile geometry). Only the pixels a
+//! tile needs are warped.
+
+use crate::camera::Camera;
+use crate::config::Config;
+use crate::error::{Error, Result};
+use crate::imageio::RgbImage;
+use crate::sweep::{sweep_into, Region, Source, CHANNELS};
+
+/// A source view prepared for sampling: its camera at every pyramid level and the images.
+#[derive(Clone, Debug)]
+pub struct PyramidSource {
+    /// `cameras[l]`: the camera of pyramid level `l` (intrinsics divided by `2^l`).
+    pub cameras: Vec<Camera>,
+    pub images: Vec<RgbImage>,
+}
+
+impl PyramidSource {
+    /// Builds `levels` pyramid levels of `image` seen by `camera`.
+    pub fn new(camera: &Camera, image: &RgbImage, levels: usize) -> Self {
+        let images = image.pyramid(levels);
+        let cameras = images
+            .iter()
+            .enumerate()
+            .map(|(l, img)| level_camera(camera, l, img.width, img.height))
+            .collect();
+        Self { cameras, images }
+    }
+}
+
+/// The camera of level `l` (`1 / 2^l` resolution) with the given image size.
+pub fn level_camera(camera: &Camera, l: usize, width: u32, height: u32) -> Camera {
+    Camera {
+        intrinsics: camera
+            .intrinsics
+            .downscaled((1u64 << l) as f64, width, height),
+        pose: camera.pose,
+    }
+}
+
+/// The input tensors' data for one tile: `levels[l]` is `[D, 4V, h_l, w_l]` f32.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TileInputs {
+    pub levels: Vec<Vec<f32>>,
+    /// `(h_l, w_l)` per level.
+    pub sizes: Vec<(usize, usize)>,
+}
+
+/// Checks a tile placement against the config's alignment.
+pub fn check_tile(cfg: &Config, x0: i64, y0: i64, th: usize, tw: usize) -> Result<()> {
+    let a = cfg.tile_align();
+    if x0.rem_euclid(a as i64) != 0 || y0.rem_euclid(a as i64) != 0 || th % a != 0 || tw % a != 0 || th == 0 || tw == 0 {
+        return Err(Error::Invalid(format!(
+            "tile origin ({x0}, {y0}) and size {th}x{tw} must be positive multiples of {a}"
+        )));
+    }
+    Ok(())
+}
+
+/// Builds every level's plane sweep for the output tile at `(x0, y0)` of `th x tw` pixels.
+pub fn tile_inputs(
+    cfg: &Config,
+    target: &Camera,
+    sources: &[&PyramidSource],
+    inv_depths: &[f64],
+    (x0, y0): (i64, i64),
+    (th, tw): (usize, usize),
+) -> Result<TileInputs> {
+    check_tile(cfg, x0, y0, th, tw)?;
+    if sources.len() != cfg.views {
+        return Err(Error::Invalid(format!(
+            "the model takes {} source views, got {}",
+            cfg.views,
+            sources.len()
+        )));
+    }
+    let mut levels = Vec::with_capacity(cfg.levels);
+    let mut sizes = Vec::with_capacity(cfg.levels);
+    for l in 0..cfg.levels {
+        if sources.iter().any(|s| s.images.len() <= l) {
+            return Err(Error::Invalid(format!("source pyramids have fewer than {} levels", l + 1)));
+        }
+        let region = Region {
+            x0: cfg.input_origin(l, x0),
+            y0: cfg.input_origin(l, y0),
+            width: cfg.input_size(l, tw),
+            height: cfg.input_size(l, th),
+        };
+        let tcam = level_camera(target, l, target.intrinsics.width >> l, target.intrinsics.height >> l);
+        let srcs: Vec<Source> = sources
+            .iter()
+            .map(|s| Source {
+                camera: &s.cameras[l],
+                image: &s.images[l],
+            })
+            .collect();
+        let mut buf = vec![0.0f32; inv_depths.len() * sources.len() * CHANNELS * region.len()];
+        sweep_into(&tcam, region, &srcs, inv_depths, &mut buf);
+        levels.push(buf);
+        sizes.push((region.height, region.width));
+    }
+    Ok(TileInputs { levels, sizes })
+}

@@ -1,0 +1,232 @@
+//! The DeepStereo network (Flynn et al. 2016) in candle.
+//!
+//! Shape letters, used everywhere: `B` batch, `D` planes, `V` source views, `C` channels,
+//! `H`, `W` spatial. Input level `l` is a plane-sweep tensor `[B, D, 4V, H_l, W_l]`.
+//!
+//! Parameter names equal the PyTorch reference's attribute names (`python/deepstereo_ref.py`),
+//! so one safetensors file loads in both:
+//! `select.levels.{l}.{i}.{weight,bias}`, `select.merge.{i}.*`, `select.depth.{i}.*`
+//! (weights `[C_out, C_in, k, 1]`: convolutions along depth), `select.log_scale` `[1]`,
+//! `colour.levels.{l}.{i}.*`, `colour.merge.{i}.*`, `colour.out.*`.
+
+use crate::config::{Config, TowerConfig};
+use crate::conv::Conv2d;
+use candle_core::Module;
+use candle_core::{DType, Result, Tensor, D};
+use candle_nn::VarBuilder;
+
+/// The 2D part of a tower (see [`TowerConfig`]).
+#[derive(Debug, Clone)]
+pub struct Tower {
+    cfg: TowerConfig,
+    levels: Vec<Vec<Conv2d>>,
+    merge: Vec<Conv2d>,
+}
+
+impl Tower {
+    fn new(cfg: &TowerConfig, in_channels: usize, vb: VarBuilder) -> Result<Self> {
+        let mut levels = Vec::with_capacity(cfg.levels);
+        for l in 0..cfg.levels {
+            let vbl = vb.pp("levels").pp(l);
+            let mut ch = in_channels;
+            let mut convs = Vec::new();
+            for (i, c) in cfg.level_convs.iter().enumerate() {
+                convs.push(Conv2d::new(ch, c.channels, (c.kernel, c.kernel), vbl.pp(i))?);
+                ch = c.channels;
+            }
+            levels.push(convs);
+        }
+        let mut ch = cfg.level_channels(in_channels) * cfg.levels;
+        let mut merge = Vec::new();
+        for (i, c) in cfg.merge_convs.iter().enumerate() {
+            merge.push(Conv2d::new(ch, c.channels, (c.kernel, c.kernel), vb.pp("merge").pp(i))?);
+            ch = c.channels;
+        }
+        Ok(Self {
+            cfg: cfg.clone(),
+            levels,
+            merge,
+        })
+    }
+
+    /// `inputs[l]`: `[N, C_in, H_l, W_l]` (N = B*D planes folded into the batch), each
+    /// already cropped to this tower's footprint. Returns `[N, C, th, tw]`.
+    fn forward(&self, inputs: &[Tensor], th: usize, tw: usize) -> Result<Tensor> {
+        let rf = self.cfg.merge_reduction();
+        let mut feats = Vec::with_capacity(self.levels.len());
+        for (l, convs) in self.levels.iter().enumerate() {
+            let mut x = inputs[l].clone();
+            for conv in convs {
+                x = conv.forward(&x)?.relu()?;
+            }
+            if l > 0 {
+                x = upsample_nearest(&x, 1 << l)?;
+            }
+            let off = self.cfg.upsample_crop(l);
+            x = x.narrow(2, off, th + rf)?.narrow(3, off, tw + rf)?; // [N, C, th+rf, tw+rf]
+            feats.push(x);
+        }
+        let mut x = Tensor::cat(&feats, 1)?; // [N, sum C, th+rf, tw+rf]
+        for conv in &self.merge {
+            x = conv.forward(&x)?.relu()?;
+        }
+        Ok(x) // [N, C, th, tw]
+    }
+}
+
+/// Exact nearest upsampling by an integer factor through reshape and broadcast (candle's
+/// `upsample_nearest2d` backward overwrites accumulated gradients). `[N, C, H, W]` ->
+/// `[N, C, sH, sW]`.
+pub fn upsample_nearest(x: &Tensor, s: usize) -> Result<Tensor> {
+    let (n, c, h, w) = x.dims4()?;
+    x.reshape((n, c, h, 1, w, 1))? // [N, C, H, 1, W, 1]
+        .broadcast_as((n, c, h, s, w, s))? // [N, C, H, s, W, s]
+        .contiguous()?
+        .reshape((n, c, h * s, w * s)) // [N, C, sH, sW]
+}
+
+/// What the network returns for a batch of tiles.
+#[derive(Debug)]
+pub struct Output {
+    /// `[B, 3, th, tw]`, the rendered colour `sum_z s_z * c_z`.
+    pub image: Tensor,
+    /// `[B, D, th, tw]`, selection probabilities (sum to 1 over D).
+    pub selection: Tensor,
+}
+
+/// The two-tower DeepStereo network.
+#[derive(Debug, Clone)]
+pub struct DeepStereo {
+    cfg: Config,
+    select: Tower,
+    depth: Vec<Conv2d>,
+    log_scale: Tensor,
+    colour: Tower,
+    colour_out: Conv2d,
+}
+
+/// Initial value of the selection scale's logarithm: `exp(2.3) ~ 10` lets the softmax
+/// over tanh-bounded logits reach near one-hot selections from the start of training.
+pub const INIT_LOG_SCALE: f64 = 2.3;
+
+impl DeepStereo {
+    pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {
+        cfg.validate().map_err(candle_core::Error::msg)?;
+        let cin = cfg.in_channels();
+        let select = Tower::new(&cfg.select, cin, vb.pp("select"))?;
+        let mut ch = cfg.select.out_channels(cin);
+        let mut depth = Vec::new();
+        for (i, c) in cfg.depth_convs.iter().enumerate() {
+            depth.push(Conv2d::new(ch, c.channels, (c.kernel, 1), vb.pp("select").pp("depth").pp(i))?);
+            ch = c.channels;
+        }
+        let log_scale = vb.pp("select").get_with_hints(
+            1,
+            "log_scale",
+            candle_nn::Init::Const(INIT_LOG_SCALE),
+        )?;
+        let colour = Tower::new(&cfg.colour, cin, vb.pp("colour"))?;
+        let cout_in = cfg.colour.out_channels(cin) + if cfg.colour_skip { cin } else { 0 };
+        let colour_out = Conv2d::new(cout_in, 3, (1, 1), vb.pp("colour").pp("out"))?;
+        Ok(Self {
+            cfg: cfg.clone(),
+            select,
+            depth,
+            log_scale,
+            colour,
+            colour_out,
+        })
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.cfg
+    }
+
+    /// `inputs[l]`: `[B, D, 4V, H_l, W_l]` with `H_l = Config::input_size(l, th)`, for
+    /// `l < Config::levels`. `th`, `tw` multiples of `Config::tile_align()`.
+    pub fn forward(&self, inputs: &[Tensor]) -> Result<Output> {
+        let cfg = &self.cfg;
+        if inputs.len() != cfg.levels {
+            candle_core::bail!("expected {} input levels, got {}", cfg.levels, inputs.len());
+        }
+        let (b, d, cin, h0, w0) = inputs[0].dims5()?;
+        if cin != cfg.in_channels() {
+            candle_core::bail!("expected {} input channels (4 x {} views), got {cin}", cfg.in_channels(), cfg.views);
+        }
+        let (th, tw) = (h0 - 2 * cfg.pad(0), w0 - 2 * cfg.pad(0));
+        let folded = |t: &TowerConfig| -> Result<Vec<Tensor>> {
+            (0..t.levels)
+                .map(|l| {
+                    let x = &inputs[l];
+                    let (_, _, _, h, w) = x.dims5()?;
+                    let off = cfg.pad(l) - t.pad(l);
+                    x.narrow(3, off, h - 2 * off)?
+                        .narrow(4, off, w - 2 * off)?
+                        .reshape((b * d, cin, h - 2 * off, w - 2 * off)) // [B*D, 4V, H_l, W_l]
+                })
+                .collect()
+        };
+        // Selection tower.
+        let s = self.select.forward(&folded(&cfg.select)?, th, tw)?; // [B*D, C, th, tw]
+        let c = s.dim(1)?;
+        let mut x = s
+            .reshape((b, d, c, th * tw))? // [B, D, C, th*tw]
+            .transpose(1, 2)?
+            .contiguous()?; // [B, C, D, th*tw]
+        let last = self.depth.len() - 1;
+        for (i, conv) in self.depth.iter().enumerate() {
+            let p = cfg.depth_convs[i].kernel / 2;
+            x = conv.forward(&x.pad_with_zeros(2, p, p)?)?; // [B, C', D, th*tw]
+            if i < last {
+                x = x.relu()?;
+            }
+        }
+        let logits = x.tanh()?.broadcast_mul(&self.log_scale.exp()?)?; // [B, 1, D, th*tw]
+        let selection = candle_nn::ops::softmax(&logits, 2)?.reshape((b, d, th, tw))?; // [B, D, th, tw]
+        // Colour tower.
+        let mut f = self.colour.forward(&folded(&cfg.colour)?, th, tw)?; // [B*D, C, th, tw]
+        if cfg.colour_skip {
+            let p = cfg.pad(0);
+            let centre = inputs[0]
+                .narrow(3, p, th)?
+                .narrow(4, p, tw)?
+                .reshape((b * d, cin, th, tw))?; // [B*D, 4V, th, tw]
+            f = Tensor::cat(&[f, centre], 1)?;
+        }
+        let colours = self.colour_out.forward(&f)?.reshape((b, d, 3, th, tw))?; // [B, D, 3, th, tw]
+        let image = colours
+            .broadcast_mul(&selection.unsqueeze(2)?)? // [B, D, 3, th, tw]
+            .sum(1)?; // [B, 3, th, tw]
+        Ok(Output { image, selection })
+    }
+}
+
+/// Mean absolute error between two tensors of the same shape (the paper's L1 loss,
+/// averaged instead of summed so the learning rate does not depend on the tile size).
+pub fn l1_loss(pred: &Tensor, target: &Tensor) -> Result<Tensor> {
+    pred.sub(target)?.abs()?.mean_all()
+}
+
+/// Expected depth per pixel from selection probabilities `[B, D, H, W]` and plane depths.
+/// Uses inverse depth for the expectation (planes are uniform in it), returns depth.
+pub fn expected_depth(selection: &Tensor, inv_depths: &[f64]) -> Result<Tensor> {
+    let d = inv_depths.len();
+    let rho = Tensor::from_vec(
+        inv_depths.iter().map(|&r| r as f32).collect::<Vec<_>>(),
+        (1, d, 1, 1),
+        selection.device(),
+    )?
+    .to_dtype(selection.dtype())?;
+    let e = selection.broadcast_mul(&rho)?.sum_keepdim(1)?; // [B, 1, H, W]
+    e.recip()
+}
+
+/// Dtype helper for callers building inputs.
+pub fn dtype_of(vb: &VarBuilder) -> DType {
+    vb.dtype()
+}
+
+/// Sum over depth of the selection, for checks: `[B, D, H, W]` -> `[B, H, W]`.
+pub fn selection_sum(selection: &Tensor) -> Result<Tensor> {
+    selection.sum(D::Minus(3))
+}

@@ -1,0 +1,292 @@
+//! Posed image sets ("scenes") and their readers.
+//!
+//! Every reader converts its file format's conventions into [`crate::camera`]'s (OpenCV
+//! axes, world-to-camera, pixel centres at `i + 0.5`) exactly once; nothing downstream
+//! knows which format a scene came from.
+
+pub mod colmap;
+pub mod llff;
+pub mod middlebury;
+pub mod nerf;
+pub mod npy;
+
+use crate::camera::{Camera, Intrinsics, WorldToCamera};
+use crate::error::{Error, Result};
+use crate::imageio::RgbImage;
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Lower and upper percentiles of sparse-point depths used as near/far bounds.
+pub const POINT_DEPTH_PERCENTILES: (f64, f64) = (0.01, 0.99);
+/// Margin applied to percentile bounds: near is multiplied by `1 - m`, far by `1 + m`.
+pub const POINT_DEPTH_MARGIN: f64 = 0.2;
+
+/// The file formats a scene can be read from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SceneFormat {
+    Llff,
+    Colmap,
+    Nerf,
+    Middlebury,
+}
+
+impl SceneFormat {
+    pub fn name(self) -> &'static str {
+        match self {
+            SceneFormat::Llff => "llff",
+            SceneFormat::Colmap => "colmap",
+            SceneFormat::Nerf => "nerf",
+            SceneFormat::Middlebury => "middlebury",
+        }
+    }
+}
+
+impl std::str::FromStr for SceneFormat {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "llff" => Ok(Self::Llff),
+            "colmap" => Ok(Self::Colmap),
+            "nerf" | "instant-ngp" | "transforms" => Ok(Self::Nerf),
+            "middlebury" => Ok(Self::Middlebury),
+            other => Err(Error::Invalid(format!(
+                "unknown scene format '{other}' (expected llff, colmap, nerf or middlebury)"
+            ))),
+        }
+    }
+}
+
+/// One posed photograph of a scene.
+#[derive(Clone, Debug, PartialEq)]
+pub struct View {
+    pub name: String,
+    pub image_path: PathBuf,
+    pub camera: Camera,
+    /// Per-view depth bounds when the file gives them (LLFF).
+    pub bounds: Option<(f64, f64)>,
+}
+
+/// What a reader returns before bounds are resolved.
+#[derive(Clone, Debug, Default)]
+pub struct RawScene {
+    pub views: Vec<View>,
+    /// Scene-wide bounds from the file (NeRF `near`/`far`, LLFF min/max of its bounds).
+    pub bounds: Option<(f64, f64)>,
+    /// Sparse 3D points (COLMAP `points3D`), used for bounds when the file gives none.
+    pub points: Vec<DVec3>,
+    /// A line for the user, such as which image folder was chosen.
+    pub notes: Vec<String>,
+}
+
+/// Where a scene's near/far came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BoundsSource {
+    File,
+    Points,
+    User,
+}
+
+/// Options that change how a scene is read.
+#[derive(Clone, Debug, Default)]
+pub struct LoadOptions {
+    /// Force a format instead of detecting it.
+    pub format: Option<SceneFormat>,
+    /// LLFF: use `images_<factor>/`.
+    pub factor: Option<u32>,
+    pub near: Option<f64>,
+    pub far: Option<f64>,
+}
+
+/// A posed image set with resolved depth bounds.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub root: PathBuf,
+    pub format: SceneFormat,
+    pub views: Vec<View>,
+    pub near: f64,
+    /// May be `f64::INFINITY`.
+    pub far: f64,
+    pub bounds_source: BoundsSource,
+    pub points: Vec<DVec3>,
+    pub notes: Vec<String>,
+}
+
+impl Scene {
+    /// Reads a scene directory, detecting its format unless `opts.format` forces one.
+    pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
+        if !dir.is_dir() {
+            return Err(Error::format(dir, "not a directory (expected a scene directory)"));
+        }
+        let format = match opts.format {
+            Some(f) => f,
+            None => detect(dir)?,
+        };
+        let raw = match format {
+            SceneFormat::Llff => llff::read(dir, opts.factor)?,
+            SceneFormat::Colmap => colmap::read(dir)?,
+            SceneFormat::Nerf => nerf::read(dir)?,
+            SceneFormat::Middlebury => middlebury::read(dir)?,
+        };
+        let mut raw = raw;
+        if raw.bounds.is_none() && raw.points.is_empty() {
+            if let Some(corners) = middlebury::readme_bbox(&dir.join("README.txt")) {
+                raw.points = corners;
+                raw.notes.push("depth bounds from the bounding box in README.txt".to_string());
+            }
+        }
+        Self::from_raw(dir, format, raw, opts)
+    }
+
+    /// Resolves bounds (user > file > sparse points) and validates every camera.
+    pub fn from_raw(dir: &Path, format: SceneFormat, raw: RawScene, opts: &LoadOptions) -> Result<Scene> {
+        if raw.views.is_empty() {
+            return Err(Error::format(dir, "the scene has no views"));
+        }
+        for v in &raw.views {
+            v.camera.intrinsics.validate().map_err(|msg| Error::Camera {
+                path: v.image_path.clone(),
+                view: v.name.clone(),
+                msg,
+            })?;
+        }
+        let (near, far, bounds_source) = match (opts.near, opts.far) {
+            (Some(n), Some(f)) => (n, f, BoundsSource::User),
+            _ => {
+                let (n, f, src) = if let Some((n, f)) = raw.bounds {
+                    (n, f, BoundsSource::File)
+                } else if let Some((n, f)) = bounds_from_points(&raw.views, &raw.points) {
+                    (n, f, BoundsSource::Points)
+                } else {
+                    return Err(Error::format(
+                        dir,
+                        "the scene gives no depth bounds and has no sparse points: pass --near and --far",
+                    ));
+                };
+                (opts.near.unwrap_or(n), opts.far.unwrap_or(f), src)
+            }
+        };
+        check_bounds(near, far).map_err(|m| Error::format(dir, m))?;
+        Ok(Scene {
+            root: dir.to_path_buf(),
+            format,
+            views: raw.views,
+            near,
+            far,
+            bounds_source,
+            points: raw.points,
+            notes: raw.notes,
+        })
+    }
+
+    /// Loads view `i`'s image, checking it has the size its camera expects.
+    pub fn load_image(&self, i: usize) -> Result<RgbImage> {
+        let v = self
+            .views
+            .get(i)
+            .ok_or_else(|| Error::Invalid(format!("view {i} out of range (scene has {})", self.views.len())))?;
+        RgbImage::load_expecting(&v.image_path, v.camera.intrinsics.width, v.camera.intrinsics.height)
+    }
+
+    /// Indices of the `k` views whose camera centres are nearest to view `target`'s,
+    /// excluding `target` itself, nearest first (ties broken by index).
+    pub fn nearest_views(&self, target: usize, k: usize) -> Vec<usize> {
+        let c = self.views[target].camera.pose.centre();
+        nearest_to_point(&self.views, c, k, Some(target))
+    }
+}
+
+/// The `k` views whose centres are nearest to `c`, optionally excluding one index.
+pub fn nearest_to_point(views: &[View], c: DVec3, k: usize, exclude: Option<usize>) -> Vec<usize> {
+    let mut idx: Vec<(f64, usize)> = views
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| Some(*i) != exclude)
+        .map(|(i, v)| (v.camera.pose.centre().distance_squared(c), i))
+        .collect();
+    idx.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    idx.into_iter().take(k).map(|(_, i)| i).collect()
+}
+
+/// Checks `0 < near < far` (far may be infinite).
+pub fn check_bounds(near: f64, far: f64) -> Result<(), String> {
+    if !near.is_finite() || near <= 0.0 {
+        return Err(format!("near must be finite and positive, got {near}"));
+    }
+    if far.is_nan() || far <= near {
+        return Err(format!("far must be greater than near ({near}), got {far}"));
+    }
+    Ok(())
+}
+
+/// Robust near/far from the depths of sparse points in every view that sees them.
+pub fn bounds_from_points(views: &[View], points: &[DVec3]) -> Option<(f64, f64)> {
+    let mut depths: Vec<f64> = Vec::new();
+    for v in views {
+        for p in points {
+            let z = v.camera.pose.transform_point(*p).z;
+            if z > 0.0 && z.is_finite() {
+                depths.push(z);
+            }
+        }
+    }
+    if depths.len() < 2 {
+        return None;
+    }
+    depths.sort_by(f64::total_cmp);
+    let at = |q: f64| depths[((depths.len() - 1) as f64 * q).round() as usize];
+    let near = at(POINT_DEPTH_PERCENTILES.0) * (1.0 - POINT_DEPTH_MARGIN);
+    let far = at(POINT_DEPTH_PERCENTILES.1) * (1.0 + POINT_DEPTH_MARGIN);
+    (near > 0.0 && far > near).then_some((near, far))
+}
+
+/// Detects the format of a scene directory from the files it holds.
+pub fn detect(dir: &Path) -> Result<SceneFormat> {
+    if dir.join("poses_bounds.npy").is_file() {
+        return Ok(SceneFormat::Llff);
+    }
+    if dir.join("transforms.json").is_file() || dir.join("transforms_train.json").is_file() {
+        return Ok(SceneFormat::Nerf);
+    }
+    if colmap::model_dir(dir).is_some() {
+        return Ok(SceneFormat::Colmap);
+    }
+    if middlebury::par_file(dir).is_some() {
+        return Ok(SceneFormat::Middlebury);
+    }
+    Err(Error::format(
+        dir,
+        "unknown scene format: expected poses_bounds.npy (LLFF), transforms.json (NeRF), \
+         sparse/0/ or sparse/ (COLMAP) or *_par.txt (Middlebury); use --format to force one",
+    ))
+}
+
+/// Helper for readers: a pose error attributed to a file and view.
+pub(crate) fn camera_err(path: &Path, view: &str, msg: String) -> Error {
+    Error::Camera {
+        path: path.to_path_buf(),
+        view: view.to_string(),
+        msg,
+    }
+}
+
+/// Helper for readers: builds a view after validating its pose.
+pub(crate) fn make_view(
+    file: &Path,
+    name: &str,
+    image_path: PathBuf,
+    intrinsics: Intrinsics,
+    pose: Result<WorldToCamera, String>,
+    bounds: Option<(f64, f64)>,
+) -> Result<View> {
+    let pose = pose.map_err(|m| camera_err(file, name, m))?;
+    intrinsics.validate().map_err(|m| camera_err(file, name, m))?;
+    Ok(View {
+        name: name.to_string(),
+        image_path,
+        camera: Camera { intrinsics, pose },
+        bounds,
+    })
+}

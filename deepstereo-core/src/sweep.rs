@@ -1,0 +1,166 @@
+//! Plane-sweep volumes: every source image reprojected into the target camera at each
+//! depth plane, as RGBA.
+//!
+//! Layout of a volume over a region of `h x w` target pixels:
+//! `[D, V, 4, h, w]` f32 (plane-major, then source view, then R, G, B, A).
+//!
+//! Sampling is bilinear with zero padding, in the same convention as PyTorch's
+//! `grid_sample(padding_mode="zeros", align_corners=False)`: a source pixel `(i, j)` has its
+//! centre at `(i + 0.5, j + 0.5)`; taps outside the image contribute nothing. Alpha is the
+//! bilinear weight of the taps inside the image, so it is 1 in the interior, fractional
+//! within half a pixel of the border, and 0 outside; colours are the same zero-padded
+//! bilinear sum, so at the border they are premultiplied by alpha. A plane point that is
+//! not in front of the source camera gets RGBA = 0.
+
+use crate::camera::{Camera, Intrinsics, WorldToCamera};
+use crate::geometry::{apply_h, plane_homography};
+use crate::imageio::RgbImage;
+use glam::DVec2;
+use rayon::prelude::*;
+
+/// A plane point counts as in front of a source camera when its homogeneous `z`
+/// exceeds this fraction of its length (the ray is not behind or exactly sideways).
+pub const IN_FRONT_EPS: f64 = 1e-9;
+/// Channels per source view in a volume: R, G, B, A.
+pub const CHANNELS: usize = 4;
+
+/// A source view: its camera and its image at that camera's resolution.
+#[derive(Clone, Copy)]
+pub struct Source<'a> {
+    pub camera: &'a Camera,
+    pub image: &'a RgbImage,
+}
+
+/// A rectangle of target pixels; `x0`, `y0` may be negative or beyond the image (rays
+/// through pixels outside the target image are as valid as those inside).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Region {
+    pub x0: i64,
+    pub y0: i64,
+    pub width: usize,
+    pub height: usize,
+}
+
+impl Region {
+    pub fn full(intr: &Intrinsics) -> Self {
+        Self {
+            x0: 0,
+            y0: 0,
+            width: intr.width as usize,
+            height: intr.height as usize,
+        }
+    }
+    pub fn len(&self) -> usize {
+        self.width * self.height
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Normalized coordinates of the centres of the region's pixels in the target camera.
+pub fn target_rays(target: &Intrinsics, region: Region) -> Vec<DVec2> {
+    let mut rays = Vec::with_capacity(region.len());
+    for y in 0..region.height {
+        for x in 0..region.width {
+            let uv = DVec2::new(
+                (region.x0 + x as i64) as f64 + 0.5,
+                (region.y0 + y as i64) as f64 + 0.5,
+            );
+            rays.push(target.unproject_pixel(uv));
+        }
+    }
+    rays
+}
+
+/// Fills `out` (`[D, V, 4, h, w]`, length `D * V * 4 * h * w`) with the plane-sweep volume
+/// of `sources` seen from `target` over `region`, for planes at `inv_depths`.
+///
+/// Parallel over (plane, view) slices; no allocation per pixel.
+pub fn sweep_into(
+    target: &Camera,
+    region: Region,
+    sources: &[Source<'_>],
+    inv_depths: &[f64],
+    out: &mut [f32],
+) {
+    let hw = region.len();
+    let v = sources.len();
+    debug_assert_eq!(out.len(), inv_depths.len() * v * CHANNELS * hw);
+    if hw == 0 || v == 0 {
+        return;
+    }
+    let rays = target_rays(&target.intrinsics, region);
+    let rels: Vec<WorldToCamera> = sources
+        .iter()
+        .map(|s| target.pose.relative_to(&s.camera.pose))
+        .collect();
+    out.par_chunks_mut(CHANNELS * hw)
+        .enumerate()
+        .for_each(|(slice, chunk)| {
+            let (d, k) = (slice / v, slice % v);
+            let h = plane_homography(&rels[k], inv_depths[d]);
+            warp_slice(&h, &rays, &sources[k], chunk);
+        });
+}
+
+/// Allocating wrapper of [`sweep_into`].
+pub fn sweep(target: &Camera, region: Region, sources: &[Source<'_>], inv_depths: &[f64]) -> Vec<f32> {
+    let mut out = vec![0.0; inv_depths.len() * sources.len() * CHANNELS * region.len()];
+    sweep_into(target, region, sources, inv_depths, &mut out);
+    out
+}
+
+/// Warps one source through one plane homography into `out` (`[4, h, w]`).
+fn warp_slice(h: &glam::DMat3, rays: &[DVec2], src: &Source<'_>, out: &mut [f32]) {
+    let hw = rays.len();
+    let (r_out, rest) = out.split_at_mut(hw);
+    let (g_out, rest) = rest.split_at_mut(hw);
+    let (b_out, a_out) = rest.split_at_mut(hw);
+    let intr = &src.camera.intrinsics;
+    for (i, ray) in rays.iter().enumerate() {
+        let q = apply_h(h, ray.x, ray.y);
+        let rgba = if q.z > IN_FRONT_EPS * q.length() {
+            let uv = intr.project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
+            sample_bilinear(src.image, uv.x, uv.y)
+        } else {
+            [0.0; 4]
+        };
+        r_out[i] = rgba[0];
+        g_out[i] = rgba[1];
+        b_out[i] = rgba[2];
+        a_out[i] = rgba[3];
+    }
+}
+
+/// Zero-padded bilinear sample at pixel coordinate `(u, v)` (pixel centres at `i + 0.5`);
+/// returns RGB and the coverage alpha.
+#[inline]
+pub fn sample_bilinear(img: &RgbImage, u: f64, v: f64) -> [f32; 4] {
+    let (w, h) = (img.width as i64, img.height as i64);
+    let (sx, sy) = (u - 0.5, v - 0.5);
+    // Also rejects NaN: comparisons with NaN are false.
+    if !(sx > -1.0 && sy > -1.0 && sx < w as f64 && sy < h as f64) {
+        return [0.0; 4];
+    }
+    let (fx, fy) = (sx.floor(), sy.floor());
+    let (x0, y0) = (fx as i64, fy as i64);
+    let (ax, ay) = ((sx - fx) as f32, (sy - fy) as f32);
+    let mut acc = [0.0f32; 4];
+    let taps = [
+        (x0, y0, (1.0 - ax) * (1.0 - ay)),
+        (x0 + 1, y0, ax * (1.0 - ay)),
+        (x0, y0 + 1, (1.0 - ax) * ay),
+        (x0 + 1, y0 + 1, ax * ay),
+    ];
+    for (x, y, wt) in taps {
+        if x >= 0 && y >= 0 && x < w && y < h && wt > 0.0 {
+            let i = (y as usize * img.width as usize + x as usize) * 3;
+            acc[0] += wt * img.data[i];
+            acc[1] += wt * img.data[i + 1];
+            acc[2] += wt * img.data[i + 2];
+            acc[3] += wt;
+        }
+    }
+    acc
+}

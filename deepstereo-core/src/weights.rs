@@ -1,0 +1,158 @@
+//! Model weights as safetensors, with the [`Config`] serialized in the metadata.
+//!
+//! Loading is strict: every tensor the model expects must be present with its exact shape
+//! and finite values, and any tensor the model does not know is an error (the PyTorch
+//! reference applies the same check to the same file).
+
+use crate::config::Config;
+use crate::error::{Error, Result};
+use crate::model::DeepStereo;
+use crate::tensorio::{write_safetensors, NamedArray};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::{VarBuilder, VarMap};
+use safetensors::SafeTensors;
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+
+/// Metadata key holding the config JSON.
+pub const CONFIG_KEY: &str = "deepstereo.config";
+/// Metadata key identifying the file kind.
+pub const FORMAT_KEY: &str = "format";
+/// Value of [`FORMAT_KEY`].
+pub const FORMAT_VALUE: &str = "deepstereo-weights-v1";
+
+/// A model together with the variables that hold its weights (for training).
+pub struct Trainable {
+    pub model: DeepStereo,
+    pub varmap: VarMap,
+}
+
+/// Builds a freshly initialised model in f32 on `device`.
+pub fn init(cfg: &Config, device: &Device) -> Result<Trainable> {
+    init_dtype(cfg, DType::F32, device)
+}
+
+/// Builds a freshly initialised model in `dtype` (f64 for gradient checks).
+pub fn init_dtype(cfg: &Config, dtype: DType, device: &Device) -> Result<Trainable> {
+    let varmap = VarMap::new();
+    let model = DeepStereo::new(cfg, VarBuilder::from_varmap(&varmap, dtype, device))?;
+    Ok(Trainable { model, varmap })
+}
+
+/// The variables of a model, sorted by name.
+pub fn named_vars(varmap: &VarMap) -> Vec<(String, candle_core::Var)> {
+    let data = varmap.data().lock().map(|d| d.clone()).unwrap_or_default();
+    let sorted: BTreeMap<String, candle_core::Var> = data.into_iter().collect();
+    sorted.into_iter().collect()
+}
+
+/// Flattens a tensor to f32 values.
+pub fn tensor_f32(t: &Tensor) -> Result<Vec<f32>> {
+    Ok(t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?)
+}
+
+/// The weights (and extra tensors, such as optimizer state) as named arrays.
+pub fn weight_arrays(varmap: &VarMap) -> Result<Vec<NamedArray>> {
+    named_vars(varmap)
+        .iter()
+        .map(|(name, var)| {
+            let t = var.as_tensor();
+            Ok(NamedArray::f32(name, t.dims(), &tensor_f32(t)?))
+        })
+        .collect()
+}
+
+/// Metadata for a weights file of `cfg`, plus `extra` entries.
+pub fn metadata(cfg: &Config, extra: &[(&str, String)]) -> Result<HashMap<String, String>> {
+    let mut m = HashMap::new();
+    let json = serde_json::to_string(cfg).map_err(|e| Error::Invalid(format!("cannot serialize config: {e}")))?;
+    m.insert(CONFIG_KEY.to_string(), json);
+    m.insert(FORMAT_KEY.to_string(), FORMAT_VALUE.to_string());
+    for (k, v) in extra {
+        m.insert(k.to_string(), v.clone());
+    }
+    Ok(m)
+}
+
+/// Saves the weights of `varmap` (a model of `cfg`) atomically, refusing non-finite values.
+pub fn save(path: &Path, cfg: &Config, varmap: &VarMap) -> Result<()> {
+    let arrays = weight_arrays(varmap)?;
+    check_finite(path, &arrays)?;
+    write_safetensors(path, &arrays, Some(metadata(cfg, &[])?))
+}
+
+/// Errors if any f32 array holds NaN or infinity.
+pub fn check_finite(path: &Path, arrays: &[NamedArray]) -> Result<()> {
+    for a in arrays {
+        if a.bytes.chunks_exact(4).any(|b| !f32::from_le_bytes([b[0], b[1], b[2], b[3]]).is_finite()) {
+            return Err(Error::model(path, format!("tensor '{}' holds non-finite values", a.name)));
+        }
+    }
+    Ok(())
+}
+
+/// Reads the config stored in a weights file's metadata.
+pub fn read_config(path: &Path, bytes: &[u8]) -> Result<Config> {
+    let (_, meta) = SafeTensors::read_metadata(bytes)
+        .map_err(|e| Error::model(path, format!("not a safetensors file: {e}")))?;
+    let json = meta
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get(CONFIG_KEY))
+        .ok_or_else(|| Error::model(path, format!("no '{CONFIG_KEY}' in the metadata: not a deepstereo weights file")))?;
+    let cfg: Config =
+        serde_json::from_str(json).map_err(|e| Error::model(path, format!("invalid config in the metadata: {e}")))?;
+    cfg.validate().map_err(|m| Error::model(path, format!("invalid config: {m}")))?;
+    Ok(cfg)
+}
+
+/// Loads a model from safetensors bytes (`path` names them in errors), strictly.
+pub fn load_bytes(path: &Path, bytes: &[u8], device: &Device) -> Result<Trainable> {
+    let cfg = read_config(path, bytes)?;
+    let st = SafeTensors::deserialize(bytes).map_err(|e| Error::model(path, format!("not a safetensors file: {e}")))?;
+    let t = init(&cfg, device)?;
+    assign(path, &st, &t.varmap, "")?;
+    let expected: Vec<String> = named_vars(&t.varmap).into_iter().map(|(n, _)| n).collect();
+    if let Some(extra) = st.names().into_iter().find(|n| !expected.iter().any(|e| e == *n)) {
+        return Err(Error::model(path, format!("unexpected tensor '{extra}' (not part of a '{}' model)", cfg.name)));
+    }
+    Ok(t)
+}
+
+/// Loads a model from a weights file.
+pub fn load(path: &Path, device: &Device) -> Result<Trainable> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    load_bytes(path, &bytes, device)
+}
+
+/// Sets every variable of `varmap` from tensor `prefix + name` of `st`, checking shapes
+/// and finiteness.
+pub fn assign(path: &Path, st: &SafeTensors<'_>, varmap: &VarMap, prefix: &str) -> Result<()> {
+    for (name, var) in named_vars(varmap) {
+        let key = format!("{prefix}{name}");
+        let view = st
+            .tensor(&key)
+            .map_err(|_| Error::model(path, format!("missing tensor '{key}'")))?;
+        let want = var.as_tensor().dims().to_vec();
+        if view.shape() != want.as_slice() {
+            return Err(Error::model(
+                path,
+                format!("tensor '{key}' has shape {:?}, the model expects {want:?}", view.shape()),
+            ));
+        }
+        if view.dtype() != safetensors::Dtype::F32 {
+            return Err(Error::model(path, format!("tensor '{key}' is {:?}, expected F32", view.dtype())));
+        }
+        let data: Vec<f32> = view
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        if data.iter().any(|v| !v.is_finite()) {
+            return Err(Error::model(path, format!("tensor '{key}' holds non-finite values")));
+        }
+        let t = Tensor::from_vec(data, want.as_slice(), var.device())?.to_dtype(var.dtype())?;
+        var.set(&t)?;
+    }
+    Ok(())
+}

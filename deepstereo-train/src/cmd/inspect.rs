@@ -1,0 +1,57 @@
+//! `deepstereo inspect`: what a scene reader made of a directory.
+
+use super::SceneArgs;
+use serde_json::json;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    /// Print JSON (`format`, `near`, `far`, `views: [{name, width, height, fx, fy, cx, cy,
+    /// R (3x3 row-major, world-to-camera, OpenCV axes), t}]`) instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let scene = args.scene.load()?;
+    let views: Vec<serde_json::Value> = scene
+        .views
+        .iter()
+        .map(|v| {
+            let k = &v.camera.intrinsics;
+            let r = v.camera.pose.rotation;
+            let t = v.camera.pose.translation;
+            let rows: Vec<f64> = (0..3).flat_map(|i| [r.x_axis[i], r.y_axis[i], r.z_axis[i]]).collect();
+            let d = k.distortion;
+            json!({
+                "name": v.name, "width": k.width, "height": k.height,
+                "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
+                "distortion": d.map(|d| [d.k1, d.k2, d.p1, d.p2]),
+                "R": rows, "t": [t.x, t.y, t.z],
+            })
+        })
+        .collect();
+    let far = if scene.far.is_finite() { json!(scene.far) } else { json!("inf") };
+    if args.json {
+        let out = json!({
+            "format": scene.format.name(), "near": scene.near, "far": far,
+            "bounds_source": scene.bounds_source, "views": views,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!("scene   {}", scene.root.display());
+    println!("format  {}", scene.format.name());
+    println!("views   {}", scene.views.len());
+    println!("near    {:.6}  far {}  (from {:?})", scene.near, scene.far, scene.bounds_source);
+    for (i, v) in scene.views.iter().enumerate() {
+        let k = &v.camera.intrinsics;
+        let c = v.camera.pose.centre();
+        println!(
+            "{i:4} {:<24} {}x{}  f=({:.2},{:.2}) c=({:.2},{:.2})  centre=({:.4},{:.4},{:.4})",
+            v.name, k.width, k.height, k.fx, k.fy, k.cx, k.cy, c.x, c.y, c.z
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,90 @@
+//! Subcommands of the `deepstereo` binary, one module each, and the options they share.
+
+pub mod inspect;
+pub mod sweep;
+
+use clap::{Args, Parser, Subcommand};
+use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat};
+use std::path::PathBuf;
+
+/// DeepStereo: learned view synthesis from posed images.
+#[derive(Debug, Parser)]
+#[command(name = "deepstereo", version, about, long_about = None)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Print a scene's detected format, cameras and depth bounds.
+    Inspect(inspect::Args),
+    /// Build the plane-sweep volume of one target view and write it as safetensors.
+    Sweep(sweep::Args),
+}
+
+/// Runs one parsed command line.
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Inspect(a) => inspect::run(a),
+        Command::Sweep(a) => sweep::run(a),
+    }
+}
+
+/// How to read a scene: shared by every command that takes `--scene`.
+#[derive(Debug, Clone, Args)]
+pub struct SceneArgs {
+    /// Scene directory (LLFF, COLMAP, NeRF/instant-ngp or Middlebury; detected).
+    #[arg(long)]
+    pub scene: PathBuf,
+    /// Force the scene format instead of detecting it: llff, colmap, nerf, middlebury.
+    #[arg(long)]
+    pub format: Option<SceneFormat>,
+    /// LLFF: read images from `images_<FACTOR>/` (default: `images/`, else the smallest).
+    #[arg(long)]
+    pub factor: Option<u32>,
+    /// Nearest depth of the planes (overrides the scene's bounds).
+    #[arg(long)]
+    pub near: Option<f64>,
+    /// Farthest depth of the planes; `inf` for a plane at infinity.
+    #[arg(long)]
+    pub far: Option<f64>,
+}
+
+impl SceneArgs {
+    /// Loads the scene, printing the reader's notes to stderr.
+    pub fn load(&self) -> anyhow::Result<Scene> {
+        let opts = LoadOptions {
+            format: self.format,
+            factor: self.factor,
+            near: self.near,
+            far: self.far,
+        };
+        let scene = Scene::load(&self.scene, &opts)?;
+        for n in &scene.notes {
+            eprintln!("note: {n}");
+        }
+        Ok(scene)
+    }
+}
+
+/// Scene directories under `dir`: `dir` itself when it is a scene, else its immediate
+/// subdirectories that are (sorted), e.g. the output of `deepstereo synth`.
+pub fn scene_dirs(dir: &std::path::Path) -> anyhow::Result<Vec<PathBuf>> {
+    if !dir.is_dir() {
+        anyhow::bail!("{}: not a directory", dir.display());
+    }
+    if deepstereo_core::scene::detect(dir).is_ok() {
+        return Ok(vec![dir.to_path_buf()]);
+    }
+    let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_dir() && deepstereo_core::scene::detect(p).is_ok())
+        .collect();
+    out.sort();
+    if out.is_empty() {
+        anyhow::bail!("{}: neither a scene nor a directory of scenes", dir.display());
+    }
+    Ok(out)
+}

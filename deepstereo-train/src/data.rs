@@ -1,0 +1,197 @@
+//! Training data: scenes held in memory and the online sampler that feeds the trainer.
+//!
+//! A sample is the paper's: pick a scene, a target view, its `V` nearest source views
+//! (never the target itself: leave-one-out is strict), an output tile location; build the
+//! multi-resolution plane-sweep input of that tile (only the pixels it needs) and the
+//! target patch. All geometry (tile size, levels, planes, views) comes from the model
+//! [`Config`]. Sample `k` of batch `b` depends only on `(seed, b, k)`, so batches are
+//! identical whatever the number of threads and after a resume.
+
+use anyhow::{bail, Context};
+use deepstereo_core::camera::Camera;
+use deepstereo_core::config::Config;
+use deepstereo_core::geometry::inverse_depths;
+use deepstereo_core::inputs::{tile_inputs, PyramidSource};
+use deepstereo_core::scene::{nearest_to_point, LoadOptions, Scene, View};
+use deepstereo_core::synth::{generate, scene_seed, SynthOptions, SynthScene};
+use rayon::prelude::*;
+use std::path::Path;
+use std::sync::mpsc::{sync_channel, Receiver};
+
+/// Salt mixed into the seed of validation scenes so they never repeat training scenes.
+pub const VALIDATION_SALT: u64 = 0x5eed_0f_7a11_da7e;
+
+/// One scene ready for sampling: cameras and image pyramids of every view.
+pub struct SceneData {
+    pub name: String,
+    pub cameras: Vec<Camera>,
+    pub pyramids: Vec<PyramidSource>,
+    pub near: f64,
+    pub far: f64,
+}
+
+impl SceneData {
+    /// From a procedural scene held in memory.
+    pub fn from_synth(name: String, s: &SynthScene, levels: usize) -> Self {
+        let pyramids = s
+            .cameras
+            .iter()
+            .zip(&s.images)
+            .map(|(c, img)| PyramidSource::new(c, img, levels))
+            .collect();
+        Self {
+            name,
+            cameras: s.cameras.clone(),
+            pyramids,
+            near: s.near,
+            far: s.far,
+        }
+    }
+
+    /// From a scene directory in any format the readers accept.
+    pub fn load(dir: &Path, levels: usize) -> anyhow::Result<Self> {
+        let scene = Scene::load(dir, &LoadOptions::default())?;
+        let pyramids = (0..scene.views.len())
+            .map(|i| Ok(PyramidSource::new(&scene.views[i].camera, &scene.load_image(i)?, levels)))
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        Ok(Self {
+            name: dir.display().to_string(),
+            cameras: scene.views.iter().map(|v| v.camera).collect(),
+            pyramids,
+            near: scene.near,
+            far: scene.far,
+        })
+    }
+
+    /// The `k` views nearest to view `target` (excluding it), nearest first.
+    pub fn sources(&self, target: usize, k: usize) -> Vec<usize> {
+        let views: Vec<View> = self
+            .cameras
+            .iter()
+            .map(|c| View {
+                name: String::new(),
+                image_path: Default::default(),
+                camera: *c,
+                bounds: None,
+            })
+            .collect();
+        nearest_to_point(&views, self.cameras[target].pose.centre(), k, Some(target))
+    }
+}
+
+/// Generates `count` procedural scenes in parallel (scene `i` from `scene_seed(seed, i)`).
+pub fn synth_scenes(count: usize, seed: u64, opts: &SynthOptions, levels: usize) -> anyhow::Result<Vec<SceneData>> {
+    (0..count)
+        .into_par_iter()
+        .map(|i| {
+            let s = generate(scene_seed(seed, i), opts).with_context(|| format!("procedural scene {i}"))?;
+            Ok(SceneData::from_synth(format!("synth-{seed}-{i}"), &s, levels))
+        })
+        .collect()
+}
+
+/// One minibatch: inputs per level `[B, D, 4V, h_l, w_l]` and targets `[B, 3, t, t]`, as
+/// flat f32 data with their shapes.
+pub struct Batch {
+    pub index: u64,
+    pub levels: Vec<Vec<f32>>,
+    pub level_shapes: Vec<[usize; 5]>,
+    pub target: Vec<f32>,
+    pub target_shape: [usize; 4],
+}
+
+/// A deterministic 64-bit mix (splitmix64 finalizer).
+pub fn mix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Builds sample `k` of batch `b`: returns per-level inputs and the target patch.
+fn sample(cfg: &Config, scenes: &[SceneData], seed: u64, b: u64, k: usize) -> anyhow::Result<(Vec<Vec<f32>>, Vec<f32>)> {
+    let mut state = mix(seed ^ mix(b.wrapping_mul(0x1000_0000_01B3) ^ mix(k as u64)));
+    let mut next = || {
+        state = mix(state);
+        state
+    };
+    let s = &scenes[(next() % scenes.len() as u64) as usize];
+    let n = s.cameras.len();
+    if n <= cfg.views {
+        bail!("scene {} has {n} views; the model needs {} sources plus a target", s.name, cfg.views);
+    }
+    let target = (next() % n as u64) as usize;
+    let src = s.sources(target, cfg.views);
+    let t = cfg.tile;
+    let a = cfg.tile_align() as u64;
+    let cam = &s.cameras[target];
+    let (w, h) = (cam.intrinsics.width as u64, cam.intrinsics.height as u64);
+    if w < t as u64 || h < t as u64 {
+        bail!("scene {}: images {w}x{h} are smaller than the {t}px training tile", s.name);
+    }
+    let x0 = (next() % ((w - t as u64) / a + 1)) * a;
+    let y0 = (next() % ((h - t as u64) / a + 1)) * a;
+    let inv = inverse_depths(s.near, s.far, cfg.planes);
+    let srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
+    let inputs = tile_inputs(cfg, cam, &srcs, &inv, (x0 as i64, y0 as i64), (t, t))?;
+    let img = &s.pyramids[target].images[0];
+    let mut patch = vec![0f32; 3 * t * t];
+    for y in 0..t {
+        for x in 0..t {
+            let p = img.pixel(x0 as u32 + x as u32, y0 as u32 + y as u32);
+            for c in 0..3 {
+                patch[(c * t + y) * t + x] = p[c];
+            }
+        }
+    }
+    Ok((inputs.levels, patch))
+}
+
+/// Builds batch `b` of `batch` samples, samples in parallel.
+pub fn make_batch(cfg: &Config, scenes: &[SceneData], seed: u64, b: u64, batch: usize) -> anyhow::Result<Batch> {
+    if scenes.is_empty() {
+        bail!("no scenes to sample from");
+    }
+    let samples: Vec<(Vec<Vec<f32>>, Vec<f32>)> =
+        (0..batch).into_par_iter().map(|k| sample(cfg, scenes, seed, b, k)).collect::<anyhow::Result<_>>()?;
+    let t = cfg.tile;
+    let (d, c) = (cfg.planes, cfg.in_channels());
+    let level_shapes: Vec<[usize; 5]> = (0..cfg.levels)
+        .map(|l| [batch, d, c, cfg.input_size(l, t), cfg.input_size(l, t)])
+        .collect();
+    let levels = (0..cfg.levels)
+        .map(|l| samples.iter().flat_map(|s| s.0[l].iter().copied()).collect())
+        .collect();
+    let target = samples.iter().flat_map(|s| s.1.iter().copied()).collect();
+    Ok(Batch {
+        index: b,
+        levels,
+        level_shapes,
+        target,
+        target_shape: [batch, 3, t, t],
+    })
+}
+
+/// Background producer of batches `start, start + 1, ...`, a few ahead of the trainer.
+pub fn spawn_loader(
+    cfg: Config,
+    scenes: std::sync::Arc<Vec<SceneData>>,
+    seed: u64,
+    start: u64,
+    batch: usize,
+    ahead: usize,
+) -> Receiver<anyhow::Result<Batch>> {
+    let (tx, rx) = sync_channel(ahead.max(1));
+    std::thread::spawn(move || {
+        let mut b = start;
+        loop {
+            let r = make_batch(&cfg, &scenes, seed, b, batch);
+            let failed = r.is_err();
+            if tx.send(r).is_err() || failed {
+                return;
+            }
+            b += 1;
+        }
+    });
+    rx
+}

@@ -1,0 +1,3 @@
+//! DeepStereo training, evaluation and the `deepstereo` command line.
+
+pub mod cmd;

@@ -1,0 +1,290 @@
+//! The training loop: L1 loss, Adagrad or Adam, a JSONL log, validation PSNR, atomic
+//! checkpoints (periodic and on Ctrl-C), exact resume, and a guard against non-finite
+//! losses and gradients.
+//!
+//! Files in the run directory: `model.safetensors` (weights + config, what `render` loads),
+//! `checkpoint.safetensors` (weights, optimizer state, step, run options), `log.jsonl`.
+
+use crate::data::{make_batch, spawn_loader, synth_scenes, Batch, SceneData, VALIDATION_SALT};
+use crate::optim::{Optimizer, OptimizerKind};
+use anyhow::{bail, Context, Result};
+use candle_core::{Device, Tensor};
+use deepstereo_core::config::Config;
+use deepstereo_core::imageio::write_atomic;
+use deepstereo_core::model::l1_loss;
+use deepstereo_core::synth::SynthOptions;
+use deepstereo_core::tensorio::{write_safetensors, NamedArray};
+use deepstereo_core::weights::{self, metadata, named_vars, tensor_f32, Trainable};
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Consecutive non-finite steps after which training stops.
+pub const MAX_CONSECUTIVE_BAD_STEPS: u32 = 5;
+/// Metadata key of the run options in a checkpoint.
+pub const RUN_KEY: &str = "deepstereo.run";
+/// Metadata key of the step count in a checkpoint.
+pub const STEP_KEY: &str = "deepstereo.step";
+
+/// Everything that defines a training run (saved in checkpoints; a resume must match).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunOptions {
+    pub config: Config,
+    pub data: Vec<PathBuf>,
+    pub synthetic: usize,
+    pub synth_width: u32,
+    pub synth_height: u32,
+    pub synth_views: usize,
+    pub batch: usize,
+    pub lr: f64,
+    pub optimizer: OptimizerKind,
+    pub seed: u64,
+    pub val_scenes: usize,
+    pub val_batches: usize,
+}
+
+/// How long and how often.
+#[derive(Clone, Debug)]
+pub struct Schedule {
+    pub steps: u64,
+    pub checkpoint_every: u64,
+    pub validate_every: u64,
+    pub log_every: u64,
+    pub progress: bool,
+}
+
+/// One line of `log.jsonl`.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LogLine {
+    pub step: u64,
+    pub loss: Option<f64>,
+    pub lr: f64,
+    pub samples_per_s: f64,
+    pub grad_norm: Option<f64>,
+    pub val_psnr: Option<f64>,
+    pub skipped: bool,
+    pub seconds: f64,
+}
+
+/// Batch tensors on `device`: inputs per level and the target.
+pub fn batch_tensors(b: &Batch, device: &Device) -> Result<(Vec<Tensor>, Tensor)> {
+    let inputs = b
+        .levels
+        .iter()
+        .zip(&b.level_shapes)
+        .map(|(d, s)| Tensor::from_slice(d, s.as_slice(), device))
+        .collect::<candle_core::Result<Vec<_>>>()?;
+    let target = Tensor::from_slice(&b.target, b.target_shape.as_slice(), device)?;
+    Ok((inputs, target))
+}
+
+/// Mean PSNR (dB, colours in [0, 1]) of the model over validation batches.
+pub fn validate(model: &deepstereo_core::model::DeepStereo, batches: &[Batch], device: &Device) -> Result<f64> {
+    let (mut se, mut n) = (0f64, 0usize);
+    for b in batches {
+        let (x, y) = batch_tensors(b, device)?;
+        let out = model.forward(&x)?;
+        let d = out.image.clamp(0f32, 1f32)?.sub(&y)?;
+        se += d.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
+        n += d.elem_count();
+    }
+    Ok(psnr_from_mse(se / n.max(1) as f64))
+}
+
+/// PSNR in dB of a mean squared error for colours in [0, 1].
+pub fn psnr_from_mse(mse: f64) -> f64 {
+    -10.0 * mse.max(1e-12).log10()
+}
+
+fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<SceneData>)> {
+    let levels = run.config.levels;
+    let synth = SynthOptions {
+        views: run.synth_views,
+        width: run.synth_width,
+        height: run.synth_height,
+        ..SynthOptions::default()
+    };
+    let mut train = Vec::new();
+    for dir in &run.data {
+        for d in crate::cmd::scene_dirs(dir)? {
+            train.push(SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?);
+        }
+    }
+    if run.synthetic > 0 {
+        train.extend(synth_scenes(run.synthetic, run.seed, &synth, levels)?);
+    }
+    if train.is_empty() {
+        bail!("no training scenes: pass --data DIR or --synthetic N");
+    }
+    let val = if run.synthetic > 0 {
+        synth_scenes(run.val_scenes, run.seed ^ VALIDATION_SALT, &synth, levels)?
+    } else {
+        Vec::new()
+    };
+    Ok((train, val))
+}
+
+/// Trains (or resumes) a run in `out`. Returns the log lines written in this call.
+pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop: Arc<AtomicBool>) -> Result<Vec<LogLine>> {
+    run.config.validate().map_err(anyhow::Error::msg)?;
+    if run.batch == 0 {
+        bail!("--batch must be at least 1");
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let device = Device::Cpu;
+    let t = weights::init(&run.config, &device)?;
+    let vars = named_vars(&t.varmap);
+    let mut opt = Optimizer::new(run.optimizer, run.lr, vars)?;
+    let ckpt = out.join("checkpoint.safetensors");
+    let log_path = out.join("log.jsonl");
+    let mut start = 0u64;
+    if resume {
+        start = restore(&ckpt, run, &t, &mut opt)?;
+        truncate_log(&log_path, start)?;
+        eprintln!("resuming {} at step {start}", out.display());
+    } else if ckpt.exists() {
+        bail!("{} already holds a checkpoint: pass --resume to continue it, or choose another --out", out.display());
+    } else {
+        write_atomic(&log_path, b"")?;
+    }
+    let t0 = Instant::now();
+    let (train_scenes, val_scenes) = load_scenes(run)?;
+    eprintln!("{} training scenes, {} validation scenes ({:.1} s)", train_scenes.len(), val_scenes.len(), t0.elapsed().as_secs_f64());
+    let val_src = if val_scenes.is_empty() { &train_scenes } else { &val_scenes };
+    let val_seed = run.seed ^ VALIDATION_SALT;
+    let val: Vec<Batch> = (0..run.val_batches as u64)
+        .map(|b| make_batch(&run.config, val_src, val_seed, b, run.batch))
+        .collect::<Result<_>>()?;
+    let rx = spawn_loader(run.config.clone(), Arc::new(train_scenes), run.seed, start, run.batch, 2);
+    let bar = progress_bar(sched, start);
+    let mut log = std::fs::OpenOptions::new().append(true).create(true).open(&log_path)?;
+    let (mut bad, mut lines) = (0u32, Vec::new());
+    let (mut window_t, mut window_n) = (Instant::now(), 0usize);
+    let mut step = start;
+    while step < sched.steps {
+        let batch = rx.recv().context("the sample loader stopped")??;
+        let (x, y) = batch_tensors(&batch, &device)?;
+        let pred = t.model.forward(&x)?;
+        let loss = l1_loss(&pred.image, &y)?;
+        let loss_v = loss.to_scalar::<f32>()? as f64;
+        let grads = loss.backward()?;
+        let gnorm = opt.grad_norm(&grads)?;
+        step += 1;
+        window_n += run.batch;
+        let skipped = !(loss_v.is_finite() && gnorm.is_finite());
+        if skipped {
+            bad += 1;
+            eprintln!("step {step}: non-finite loss {loss_v} or gradient norm {gnorm}: step skipped");
+            if bad >= MAX_CONSECUTIVE_BAD_STEPS {
+                bail!("{bad} consecutive non-finite steps: training stopped; the last good checkpoint is {}", ckpt.display());
+            }
+        } else {
+            bad = 0;
+            opt.step(&grads)?;
+        }
+        let validate_now = step % sched.validate_every == 0 || step == sched.steps;
+        if step % sched.log_every == 0 || validate_now || skipped {
+            let secs = window_t.elapsed().as_secs_f64();
+            let line = LogLine {
+                step,
+                loss: loss_v.is_finite().then_some(loss_v),
+                lr: run.lr,
+                samples_per_s: window_n as f64 / secs.max(1e-9),
+                grad_norm: gnorm.is_finite().then_some(gnorm),
+                val_psnr: if validate_now { Some(validate(&t.model, &val, &device)?) } else { None },
+                skipped,
+                seconds: t0.elapsed().as_secs_f64(),
+            };
+            writeln!(log, "{}", serde_json::to_string(&line)?)?;
+            log.flush()?;
+            bar.set_message(format!(
+                "loss {loss_v:.4}  {:.1} samples/s{}",
+                line.samples_per_s,
+                line.val_psnr.map(|p| format!("  val {p:.2} dB")).unwrap_or_default()
+            ));
+            if !sched.progress {
+                eprintln!("step {step}: loss {loss_v:.5} ({:.1} samples/s){}", line.samples_per_s, line.val_psnr.map(|p| format!(" val {p:.2} dB")).unwrap_or_default());
+            }
+            lines.push(line);
+            (window_t, window_n) = (Instant::now(), 0);
+        }
+        bar.set_position(step);
+        let stopping = stop.load(Ordering::SeqCst);
+        if step % sched.checkpoint_every == 0 || step == sched.steps || stopping {
+            save_checkpoint(&ckpt, &out.join("model.safetensors"), run, &t, &opt, step)?;
+        }
+        if stopping {
+            eprintln!("interrupted: checkpoint saved at step {step}; continue with --resume");
+            break;
+        }
+    }
+    bar.finish();
+    Ok(lines)
+}
+
+fn progress_bar(sched: &Schedule, start: u64) -> indicatif::ProgressBar {
+    if !sched.progress {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(sched.steps);
+    if let Ok(style) =
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {msg}  eta {eta}")
+    {
+        bar.set_style(style);
+    }
+    bar.set_position(start);
+    bar
+}
+
+/// Writes the checkpoint and the weights-only model, both atomically.
+pub fn save_checkpoint(ckpt: &Path, model: &Path, run: &RunOptions, t: &Trainable, opt: &Optimizer, step: u64) -> Result<()> {
+    let mut arrays = weights::weight_arrays(&t.varmap)?;
+    weights::check_finite(ckpt, &arrays)?;
+    for (name, tensor) in opt.state() {
+        arrays.push(NamedArray::f32(&name, tensor.dims(), &tensor_f32(&tensor)?));
+    }
+    let meta = metadata(
+        &run.config,
+        &[(RUN_KEY, serde_json::to_string(run)?), (STEP_KEY, step.to_string()), ("optimizer.steps", opt.steps.to_string())],
+    )?;
+    write_safetensors(ckpt, &arrays, Some(meta))?;
+    weights::save(model, &run.config, &t.varmap)?;
+    Ok(())
+}
+
+/// Restores weights and optimizer state; returns the step to continue from.
+fn restore(ckpt: &Path, run: &RunOptions, t: &Trainable, opt: &mut Optimizer) -> Result<u64> {
+    let bytes = std::fs::read(ckpt).with_context(|| format!("--resume: cannot read {}", ckpt.display()))?;
+    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", ckpt.display()))?;
+    let m = meta.metadata().clone().unwrap_or_default();
+    let saved: RunOptions = serde_json::from_str(m.get(RUN_KEY).map(String::as_str).unwrap_or(""))
+        .with_context(|| format!("{}: no run options in the checkpoint", ckpt.display()))?;
+    if &saved != run {
+        bail!("{}: the checkpoint was made with different options:\n  saved: {saved:?}\n  now:   {run:?}", ckpt.display());
+    }
+    let step: u64 = m.get(STEP_KEY).and_then(|s| s.parse().ok()).context("checkpoint has no step")?;
+    let osteps: u64 = m.get("optimizer.steps").and_then(|s| s.parse().ok()).unwrap_or(step);
+    let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", ckpt.display()))?;
+    weights::assign(ckpt, &st, &t.varmap, "")?;
+    opt.restore(osteps, |name| {
+        let v = st.tensor(name).map_err(|_| anyhow::anyhow!("{}: missing '{name}'", ckpt.display()))?;
+        let data: Vec<f32> = v.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        Ok(Tensor::from_vec(data, v.shape(), &Device::Cpu)?)
+    })?;
+    Ok(step)
+}
+
+/// Keeps only the log lines up to `step` (a resume repeats the steps after it).
+fn truncate_log(path: &Path, step: u64) -> Result<()> {
+    let text = std::fs::read_to_string(path).unwrap_or_default();
+    let kept: String = text
+        .lines()
+        .filter(|l| serde_json::from_str::<LogLine>(l).map(|x| x.step <= step).unwrap_or(false))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    write_atomic(path, kept.as_bytes())?;
+    Ok(())
+}

@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# The whole test suite, as a fresh machine runs it: Rust tests, then the Python parity
+# checks (PyTorch reference and onnxruntime) in a venv that this script creates itself
+# from the pinned python/requirements.txt.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT="$PWD"
+
+echo "== cargo fmt / clippy"
+cargo fmt --all -- --check
+cargo clippy --release --workspace --all-targets -- -D warnings
+
+echo "== Rust tests"
+cargo test --release --workspace
+
+echo "== Python venv"
+VENV="$ROOT/.venv"
+STAMP="$VENV/.requirements.sha256"
+WANT="$(sha256sum python/requirements.txt | cut -d' ' -f1)"
+if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; then
+  python3 -m venv "$VENV"
+  "$VENV/bin/pip" install --quiet --disable-pip-version-check -r python/requirements.txt
+  echo "$WANT" > "$STAMP"
+fi
+
+if [ -f python/parity.py ]; then
+  echo "== Python parity (candle vs PyTorch vs onnxruntime vs ort)"
+  "$VENV/bin/python" python/parity.py --bin "$ROOT/target/release/deepstereo"
+fi
+echo "== all tests passed"
