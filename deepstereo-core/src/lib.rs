@@ -18,3 +18,8 @@ pub mod inputs;
 pub mod render;
 pub mod tensorio;
 pub mod weights;
+pub mod metrics;
+pub mod baseline;
+pub mod viz;
+pub mod plot;
+pub mod synth;

@@ -164,3 +164,6 @@ pub fn sample_bilinear(img: &RgbImage, u: f64, v: f64) -> [f32; 4] {
     }
     acc
 }
+
+#[cfg(test)]
+mod tests;

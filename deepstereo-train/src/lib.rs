@@ -1,3 +1,10 @@
 //! DeepStereo training, evaluation and the `deepstereo` command line.
+//!
+//! Kept apart as in burn's examples: [`data`] (scenes and the online sampler),
+//! [`optim`] (Adagrad, Adam), [`training`] (the loop), [`cmd`] (the subcommands).
 
 pub mod cmd;
+pub mod data;
+pub mod inference;
+pub mod optim;
+pub mod training;

@@ -221,6 +221,10 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
             break;
         }
     }
+    if step == 0 {
+        // `--steps 0`: write the initial model (used to make weights for tests and parity).
+        save_checkpoint(&ckpt, &out.join("model.safetensors"), run, &t, &opt, 0)?;
+    }
     bar.finish();
     Ok(lines)
 }

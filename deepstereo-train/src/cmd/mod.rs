@@ -2,6 +2,11 @@
 
 pub mod inspect;
 pub mod sweep;
+pub mod train;
+pub mod demo;
+pub mod eval;
+pub mod model_args;
+pub mod render;
 
 use clap::{Args, Parser, Subcommand};
 use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat};
@@ -21,6 +26,14 @@ pub enum Command {
     Inspect(inspect::Args),
     /// Build the plane-sweep volume of one target view and write it as safetensors.
     Sweep(sweep::Args),
+    /// Train a model on procedural and/or real scenes.
+    Train(train::Args),
+    /// Render new views of a scene with a model: a view, a posed camera, or a path.
+    Render(render::Args),
+    /// Score held-out views against the photographs and the classical baselines.
+    Eval(eval::Args),
+    /// Everything with no files: a procedural scene, a held-out view, the embedded model.
+    Demo(demo::Args),
 }
 
 /// Runs one parsed command line.
@@ -28,6 +41,10 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Inspect(a) => inspect::run(a),
         Command::Sweep(a) => sweep::run(a),
+        Command::Train(a) => train::run(a),
+        Command::Render(a) => render::run(a),
+        Command::Eval(a) => eval::run(a),
+        Command::Demo(a) => demo::run(a),
     }
 }
 

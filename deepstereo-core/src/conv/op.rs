@@ -1,0 +1,112 @@
+//! The convolution as a candle `CustomOp3` `(x, weight, bias) -> y`, whose backward calls
+//! the kernels directly.
+
+use super::kernels::{self, Geom};
+use candle_core::{bail, CpuStorage, CustomOp3, DType, Layout, Result, Shape, Storage, Tensor, WithDType};
+
+/// Whether [`conv2d`] runs these inputs (CPU, f32 or f64); otherwise use candle's conv2d.
+pub(crate) fn supported(x: &Tensor, w: &Tensor) -> bool {
+    x.device().is_cpu() && matches!(x.dtype(), DType::F32 | DType::F64) && w.dtype() == x.dtype()
+}
+
+/// `act(conv(x, w) + b)`: x `[N, Cin, H, W]`, w `[Cout, Cin, kh, kw]`, b `[Cout]`, act ReLU
+/// when `relu`, else identity. Valid padding, stride 1.
+pub(crate) fn conv2d(x: &Tensor, w: &Tensor, b: &Tensor, relu: bool) -> Result<Tensor> {
+    let g = geom(x.dims(), w.dims())?;
+    if b.dims() != [g.cout] {
+        bail!("conv2d: bias {:?} does not match weight {:?}", b.dims(), w.dims());
+    }
+    x.contiguous()?
+        .apply_op3(&w.contiguous()?, &b.contiguous()?, ConvOp { relu })
+}
+
+fn geom(x: &[usize], w: &[usize]) -> Result<Geom> {
+    let (&[n, cin, h, wd], &[cout, wcin, kh, kw]) = (x, w) else {
+        bail!("conv2d: expected 4D input and weight, got {x:?} and {w:?}")
+    };
+    if wcin != cin || kh == 0 || kw == 0 || kh > h || kw > wd {
+        bail!("conv2d: input {x:?} does not fit weight {w:?}");
+    }
+    Ok(Geom { n, cin, h, w: wd, cout, kh, kw })
+}
+
+struct ConvOp {
+    relu: bool,
+}
+
+/// The contiguous elements of a CPU tensor's storage.
+fn data<'a, T: WithDType>(s: &'a Storage, l: &Layout) -> Result<&'a [T]> {
+    let (Storage::Cpu(cpu), Some((a, b))) = (s, l.contiguous_offsets()) else {
+        bail!("conv2d: expected a contiguous CPU tensor")
+    };
+    Ok(&cpu.as_slice::<T>()?[a..b])
+}
+
+type Grads = (Option<Tensor>, Option<Tensor>, Option<Tensor>);
+
+impl ConvOp {
+    fn bwd_typed<T: WithDType>(&self, x: &Tensor, w: &Tensor, b: &Tensor, y: &Tensor, dy: &Tensor) -> Result<Grads> {
+        let g = geom(x.dims(), w.dims())?;
+        let (need_dx, need_dw) = (x.track_op(), w.track_op());
+        let grads = {
+            let (xs, xl) = x.storage_and_layout();
+            let (ws, wl) = w.storage_and_layout();
+            let (ys, yl) = y.storage_and_layout();
+            let (ds, dl) = dy.storage_and_layout();
+            let y = if self.relu { data::<T>(&ys, yl)? } else { &[] };
+            let (x, w, dy) = (data::<T>(&xs, xl)?, data::<T>(&ws, wl)?, data::<T>(&ds, dl)?);
+            kernels::backward(&g, x, w, y, dy, self.relu, need_dx, need_dw)
+        };
+        let dev = x.device();
+        let dx = grads.dx.map(|v| Tensor::from_vec(v, x.shape(), dev)).transpose()?;
+        let dw = need_dw.then(|| Tensor::from_vec(grads.dw, w.shape(), dev)).transpose()?;
+        let db = b.track_op().then(|| Tensor::from_vec(grads.db, b.shape(), dev)).transpose()?;
+        Ok((dx, dw, db))
+    }
+}
+
+impl CustomOp3 for ConvOp {
+    fn name(&self) -> &'static str {
+        "deepstereo-conv2d"
+    }
+
+    fn cpu_fwd(
+        &self,
+        xs: &CpuStorage,
+        xl: &Layout,
+        ws: &CpuStorage,
+        wl: &Layout,
+        bs: &CpuStorage,
+        bl: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let g = geom(xl.dims(), wl.dims())?;
+        let shape = Shape::from((g.n, g.cout, g.ho(), g.wo()));
+        fn slice<'a, T: WithDType>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
+            match l.contiguous_offsets() {
+                Some((a, b)) => Ok(&s.as_slice::<T>()?[a..b]),
+                None => bail!("conv2d: expected contiguous tensors"),
+            }
+        }
+        let y = match xs {
+            CpuStorage::F32(_) => {
+                let y = kernels::forward(&g, slice(xs, xl)?, slice(ws, wl)?, slice(bs, bl)?, self.relu);
+                CpuStorage::F32(y)
+            }
+            CpuStorage::F64(_) => {
+                let y = kernels::forward(&g, slice(xs, xl)?, slice(ws, wl)?, slice(bs, bl)?, self.relu);
+                CpuStorage::F64(y)
+            }
+            _ => bail!("conv2d: f32 or f64 only"),
+        };
+        Ok((y, shape))
+    }
+
+    fn bwd(&self, x: &Tensor, w: &Tensor, b: &Tensor, y: &Tensor, dy: &Tensor) -> Result<Grads> {
+        let dy = dy.contiguous()?;
+        match x.dtype() {
+            DType::F32 => self.bwd_typed::<f32>(x, w, b, y, &dy),
+            DType::F64 => self.bwd_typed::<f64>(x, w, b, y, &dy),
+            dt => bail!("conv2d: f32 or f64 only, got {dt:?}"),
+        }
+    }
+}

@@ -1,0 +1,159 @@
+//! Checks the kernels against candle's conv2d and against finite differences.
+
+use super::Conv2d;
+use candle_core::{DType, Device, Module, Result, Tensor, Var};
+
+/// `(n, cin, h, w, cout, kh, kw)`: square and `(k, 1)` kernels, 1x1 grouped and in place,
+/// images grouped into chunks and images cut into row chunks.
+const SHAPES: [(usize, usize, usize, usize, usize, usize, usize); 9] = [
+    (3, 5, 9, 11, 7, 3, 3),
+    (2, 4, 8, 8, 6, 5, 5),
+    (40, 3, 6, 6, 4, 3, 3),
+    (2, 6, 10, 7, 4, 3, 1),
+    (2, 6, 34, 64, 5, 3, 1),
+    (1, 3, 40, 37, 5, 3, 3),
+    (2, 8, 12, 5, 3, 1, 1),
+    (1, 4, 30, 30, 3, 1, 1),
+    (20, 4, 4, 4, 3, 1, 1),
+];
+
+fn conv(shape: (usize, usize, usize, usize, usize, usize, usize), dt: DType) -> Result<(Conv2d, Tensor)> {
+    let (n, cin, h, w, cout, kh, kw) = shape;
+    let dev = &Device::Cpu;
+    let weight = Var::from_tensor(&Tensor::randn(0f64, 1., (cout, cin, kh, kw), dev)?.to_dtype(dt)?)?;
+    let bias = Var::from_tensor(&Tensor::randn(0f64, 1., cout, dev)?.to_dtype(dt)?)?;
+    let x = Tensor::randn(0f64, 1., (n, cin, h, w), dev)?.to_dtype(dt)?;
+    let conv = Conv2d { weight: weight.as_tensor().clone(), bias: bias.as_tensor().clone() };
+    Ok((conv, x))
+}
+
+/// max |a - b| / max(max |b|, 1).
+fn rel_err(a: &Tensor, b: &Tensor) -> Result<f64> {
+    assert_eq!(a.dims(), b.dims());
+    let diff = (a - b)?.abs()?.max_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+    let scale = b.abs()?.max_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+    Ok(diff / scale.max(1.0))
+}
+
+fn tol(dt: DType) -> f64 {
+    if dt == DType::F32 { 1e-4 } else { 1e-10 }
+}
+
+#[test]
+fn forward_matches_candle() -> Result<()> {
+    for dt in [DType::F32, DType::F64] {
+        for shape in SHAPES {
+            let (conv, x) = conv(shape, dt)?;
+            let want = conv.forward_reference(&x)?;
+            let e = rel_err(&conv.forward(&x)?, &want)?;
+            assert!(e < tol(dt), "{shape:?} {dt:?}: {e}");
+            let e = rel_err(&conv.forward_relu(&x)?, &want.relu()?)?;
+            assert!(e < tol(dt), "relu {shape:?} {dt:?}: {e}");
+        }
+    }
+    Ok(())
+}
+
+/// Gradients of `sum(f(x) * r)` for x, weight and bias.
+fn grads(x: &Var, conv: &Conv2d, f: impl Fn(&Tensor) -> Result<Tensor>) -> Result<[Tensor; 3]> {
+    let y = f(x.as_tensor())?;
+    let r = Tensor::ones_like(&y)?.cumsum(3)?.sin()?; // fixed, varied weights
+    let g = (y * r)?.sum_all()?.backward()?;
+    let get = |t: &Tensor| g.get(t).cloned().expect("missing gradient");
+    Ok([get(x.as_tensor()), get(&conv.weight), get(&conv.bias)])
+}
+
+#[test]
+fn gradients_match_candle() -> Result<()> {
+    for dt in [DType::F32, DType::F64] {
+        for shape in SHAPES {
+            let (conv, x) = conv(shape, dt)?;
+            let x = Var::from_tensor(&x)?;
+            let want = grads(&x, &conv, |x| conv.forward_reference(x))?;
+            let got = grads(&x, &conv, |x| conv.forward(x))?;
+            let want_relu = grads(&x, &conv, |x| conv.forward_reference(x)?.relu())?;
+            let got_relu = grads(&x, &conv, |x| conv.forward_relu(x))?;
+            for (i, name) in ["x", "weight", "bias"].iter().enumerate() {
+                let e = rel_err(&got[i], &want[i])?;
+                assert!(e < tol(dt), "{name} {shape:?} {dt:?}: {e}");
+                let e = rel_err(&got_relu[i], &want_relu[i])?;
+                assert!(e < tol(dt), "relu {name} {shape:?} {dt:?}: {e}");
+            }
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn input_without_gradient() -> Result<()> {
+    let (conv, x) = conv((4, 3, 7, 7, 5, 3, 3), DType::F32)?;
+    let w = Var::from_tensor(&conv.weight)?;
+    let conv = Conv2d { weight: w.as_tensor().clone(), bias: conv.bias.clone() };
+    let g = conv.forward_relu(&x)?.sum_all()?.backward()?;
+    assert!(g.get(&x).is_none());
+    let gw = g.get(w.as_tensor()).expect("weight gradient");
+    let want = conv.forward_reference(&x)?.relu()?.sum_all()?.backward()?;
+    let e = rel_err(gw, want.get(w.as_tensor()).unwrap())?;
+    assert!(e < 1e-4, "{e}");
+    Ok(())
+}
+
+#[test]
+fn finite_differences_f64() -> Result<()> {
+    for shape in [(2, 3, 6, 5, 2, 3, 3), (2, 3, 7, 4, 2, 3, 1), (2, 3, 3, 4, 2, 1, 1)] {
+        let (conv, x) = conv(shape, DType::F64)?;
+        let x = Var::from_tensor(&x)?;
+        let r = Tensor::randn(0f64, 1., conv.forward(&x)?.shape(), &Device::Cpu)?;
+        let loss = |x: &Tensor, c: &Conv2d| -> Result<f64> { (c.forward(x)? * &r)?.sum_all()?.to_scalar::<f64>() };
+        let g = (conv.forward(x.as_tensor())? * &r)?.sum_all()?.backward()?;
+        let eps = 1e-4;
+        // Perturbs element i of one of (x, weight, bias).
+        for which in 0..3 {
+            let base = [x.as_tensor(), &conv.weight, &conv.bias][which];
+            let analytic: Vec<f64> = g.get(base).unwrap().flatten_all()?.to_vec1()?;
+            let v: Vec<f64> = base.flatten_all()?.to_vec1()?;
+            for i in 0..v.len() {
+                let at = |d: f64| -> Result<f64> {
+                    let mut p = v.clone();
+                    p[i] += d;
+                    let t = Tensor::from_vec(p, base.shape(), &Device::Cpu)?;
+                    match which {
+                        0 => loss(&t, &conv),
+                        1 => loss(x.as_tensor(), &Conv2d { weight: t, bias: conv.bias.clone() }),
+                        _ => loss(x.as_tensor(), &Conv2d { weight: conv.weight.clone(), bias: t }),
+                    }
+                };
+                let fd = (at(eps)? - at(-eps)?) / (2.0 * eps);
+                let e = (fd - analytic[i]).abs() / analytic[i].abs().max(1.0);
+                assert!(e < 1e-7, "{shape:?} arg {which} element {i}: fd {fd} vs {}", analytic[i]);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A tensor used twice (conv input and skip connection) gets both gradients added.
+#[test]
+fn gradient_accumulates_through_skip() -> Result<()> {
+    let (c1, x) = conv((3, 4, 9, 9, 6, 3, 3), DType::F64)?;
+    let (c2, _) = conv((3, 6, 7, 7, 6, 3, 3), DType::F64)?;
+    let x = Var::from_tensor(&x)?;
+    let run = |reference: bool| -> Result<Vec<Tensor>> {
+        let f = |c: &Conv2d, t: &Tensor| if reference { c.forward_reference(t)?.relu() } else { c.forward_relu(t) };
+        let a = f(&c1, x.as_tensor())?; // [3, 6, 7, 7]
+        let b = (f(&c2, &a)? + a.narrow(2, 1, 5)?.narrow(3, 1, 5)?)?; // [3, 6, 5, 5]
+        let skip = x.as_tensor().narrow(1, 0, 1)?.narrow(2, 0, 1)?.narrow(3, 2, 5)?; // [3, 1, 1, 5]
+        let out = c2.forward(&a)?.narrow(2, 0, 1)?.broadcast_add(&skip)?; // [3, 6, 1, 5]
+        let loss = (b.sqr()?.sum_all()? + out.sin()?.sum_all()?)?;
+        let g = loss.backward()?;
+        Ok([x.as_tensor(), &c1.weight, &c1.bias, &c2.weight, &c2.bias]
+            .iter()
+            .map(|t| g.get(t).unwrap().clone())
+            .collect())
+    };
+    for (got, want) in run(false)?.iter().zip(&run(true)?) {
+        let e = rel_err(got, want)?;
+        assert!(e < 1e-10, "{e}");
+    }
+    Ok(())
+}

@@ -1,0 +1,244 @@
+//! Running an exported model through onnxruntime ([`ort`], loaded at run time).
+//!
+//! The library is found, in order, at `ORT_DYLIB_PATH`, else in the `onnxruntime` Python
+//! package of the project's venv: `.venv/lib/python*/site-packages/onnxruntime/capi/`
+//! `libonnxruntime.so*` in the current directory or one above it, or in a directory above
+//! the running executable (so `target/release/deepstereo` finds the repository's `.venv`).
+
+use crate::error::{Error, Result};
+use crate::export::{config_of, export_trainable, input_name, DEFAULT_OPSET};
+use crate::onnx_proto::ModelProto;
+use deepstereo_core::config::Config;
+use deepstereo_core::inputs::TileInputs;
+use deepstereo_core::render::Backend;
+use deepstereo_core::weights::Trainable;
+use ort::environment::Environment;
+use ort::session::Session;
+use ort::value::TensorRef;
+use prost::Message;
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, OnceLock};
+
+/// What a forward pass returns: shapes and row-major data.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Forward {
+    /// `[B, 3, th, tw]`.
+    pub image_shape: Vec<usize>,
+    pub image: Vec<f32>,
+    /// `[B, D, th, tw]`.
+    pub selection_shape: Vec<usize>,
+    pub selection: Vec<f32>,
+}
+
+/// The network run by onnxruntime on an exported ONNX model.
+pub struct OrtBackend {
+    cfg: Config,
+    session: Mutex<Session>,
+    /// Where libonnxruntime was loaded from.
+    library: PathBuf,
+}
+
+/// The libonnxruntime files of the `onnxruntime` package in `venv`, the versioned name first.
+fn venv_libraries(venv: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    let Ok(libdirs) = std::fs::read_dir(venv.join("lib")) else {
+        return found;
+    };
+    let mut libdirs: Vec<PathBuf> = libdirs.filter_map(|e| e.ok().map(|e| e.path())).collect();
+    libdirs.sort();
+    for py in libdirs {
+        let capi = py.join("site-packages").join("onnxruntime").join("capi");
+        let Ok(entries) = std::fs::read_dir(&capi) else {
+            continue;
+        };
+        let mut libs: Vec<PathBuf> = entries
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.file_name()
+                    .and_then(|n| n.to_str())
+                    .is_some_and(|n| n.starts_with("libonnxruntime.so") || n == "libonnxruntime.dylib")
+            })
+            .collect();
+        // The versioned name (`libonnxruntime.so.1.31.1`) is the real file in the wheel.
+        libs.sort_by_key(|p| std::cmp::Reverse(p.as_os_str().len()));
+        found.extend(libs);
+    }
+    found
+}
+
+/// Directories to look for `.venv` in: the current directory and its ancestors, then the
+/// executable's directory and its ancestors.
+fn search_roots() -> Vec<PathBuf> {
+    let mut roots = Vec::new();
+    if let Ok(cwd) = std::env::current_dir() {
+        roots.extend(cwd.ancestors().map(Path::to_path_buf));
+    }
+    if let Ok(exe) = std::env::current_exe() {
+        let exe = exe.canonicalize().unwrap_or(exe);
+        if let Some(dir) = exe.parent() {
+            roots.extend(dir.ancestors().map(Path::to_path_buf));
+        }
+    }
+    let mut seen = std::collections::HashSet::new();
+    roots.retain(|r| seen.insert(r.clone()));
+    roots
+}
+
+/// Finds libonnxruntime (see the module documentation).
+pub fn find_onnxruntime() -> Result<PathBuf> {
+    if let Some(p) = std::env::var_os("ORT_DYLIB_PATH").filter(|p| !p.is_empty()) {
+        let p = PathBuf::from(p);
+        if p.is_file() {
+            return Ok(p);
+        }
+        return Err(Error::OrtLibrary(format!(
+            "ORT_DYLIB_PATH={} is not a file: point it at libonnxruntime.so (for example the one in \
+             .venv/lib/python3*/site-packages/onnxruntime/capi/)",
+            p.display()
+        )));
+    }
+    let roots = search_roots();
+    for root in &roots {
+        let venv = root.join(".venv");
+        if venv.is_dir() {
+            if let Some(lib) = venv_libraries(&venv).into_iter().next() {
+                return Ok(lib);
+            }
+        }
+    }
+    Err(Error::OrtLibrary(format!(
+        "libonnxruntime not found: set ORT_DYLIB_PATH to libonnxruntime.so, or run `bash tests/run-all.sh` \
+         once in the repository to create .venv with the onnxruntime Python package (searched .venv in {} \
+         and their parents)",
+        roots.first().map(|r| r.display().to_string()).unwrap_or_else(|| "the current directory".into())
+    )))
+}
+
+/// The process's one onnxruntime environment (ort allows one per process) and the library
+/// it was loaded from.
+fn environment() -> Result<&'static (Environment, PathBuf)> {
+    static ENV: OnceLock<std::result::Result<(Environment, PathBuf), String>> = OnceLock::new();
+    ENV.get_or_init(|| {
+        let lib = find_onnxruntime().map_err(|e| e.to_string())?;
+        let builder = ort::init_from(&lib)
+            .map_err(|e| format!("cannot load onnxruntime from {}: {e}", lib.display()))?;
+        let env = builder
+            .with_name("deepstereo")
+            .with_telemetry(false)
+            .build()
+            .map_err(|e| format!("cannot create the onnxruntime environment: {e}"))?;
+        Ok((env, lib))
+    })
+    .as_ref()
+    .map_err(|e| Error::OrtLibrary(e.clone()))
+}
+
+impl OrtBackend {
+    /// Loads an ONNX model written by [`crate::export()`] (its config comes from the metadata).
+    pub fn from_bytes(onnx: &[u8]) -> Result<Self> {
+        let model = ModelProto::decode(onnx).map_err(|e| Error::Onnx {
+            what: "ONNX model".into(),
+            msg: format!("cannot decode: {e}"),
+        })?;
+        let cfg = config_of(&model)?;
+        let (env, lib) = environment()?;
+        let session = Session::builder(env)
+            .map_err(Error::ort)?
+            .commit_from_memory(onnx)
+            .map_err(Error::ort)?;
+        Ok(Self {
+            cfg,
+            session: Mutex::new(session),
+            library: lib.clone(),
+        })
+    }
+
+    /// Loads an ONNX file written by `deepstereo export`.
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).map_err(|source| Error::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_bytes(&bytes).map_err(|e| match e {
+            Error::Onnx { msg, .. } => Error::Onnx {
+                what: path.display().to_string(),
+                msg,
+            },
+            other => other,
+        })
+    }
+
+    /// Exports `model` in memory (opset [`DEFAULT_OPSET`]) and loads it.
+    pub fn from_model(model: &Trainable) -> Result<Self> {
+        Self::from_bytes(&export_trainable(model, DEFAULT_OPSET)?)
+    }
+
+    pub fn library(&self) -> &Path {
+        &self.library
+    }
+
+    /// Runs the network on `levels[l]` = (shape `[B, D, 4V, H_l, W_l]`, data).
+    pub fn forward(&self, levels: &[(&[usize], &[f32])]) -> Result<Forward> {
+        let cfg = &self.cfg;
+        if levels.len() != cfg.levels {
+            return Err(Error::Input(format!("expected {} input levels, got {}", cfg.levels, levels.len())));
+        }
+        let mut inputs = Vec::with_capacity(levels.len());
+        for (l, (shape, data)) in levels.iter().enumerate() {
+            if shape.len() != 5 || shape[2] != cfg.in_channels() {
+                return Err(Error::Input(format!(
+                    "level {l}: expected shape [B, D, {}, H, W], got {shape:?}",
+                    cfg.in_channels()
+                )));
+            }
+            if shape.iter().product::<usize>() != data.len() {
+                return Err(Error::Input(format!(
+                    "level {l}: shape {shape:?} does not match {} values",
+                    data.len()
+                )));
+            }
+            let t = TensorRef::from_array_view((shape.to_vec(), *data)).map_err(Error::ort)?;
+            inputs.push((input_name(l), t));
+        }
+        let mut session = self
+            .session
+            .lock()
+            .map_err(|_| Error::Ort("the session's lock is poisoned (an earlier run panicked)".into()))?;
+        let outputs = session.run(inputs).map_err(Error::ort)?;
+        let get = |name: &str| -> Result<(Vec<usize>, Vec<f32>)> {
+            let v = outputs
+                .get(name)
+                .ok_or_else(|| Error::Ort(format!("the model has no output '{name}'")))?;
+            let (shape, data) = v.try_extract_tensor::<f32>().map_err(Error::ort)?;
+            Ok((shape.iter().map(|&d| d as usize).collect(), data.to_vec()))
+        };
+        let (image_shape, image) = get("image")?;
+        let (selection_shape, selection) = get("selection")?;
+        Ok(Forward {
+            image_shape,
+            image,
+            selection_shape,
+            selection,
+        })
+    }
+}
+
+impl Backend for OrtBackend {
+    fn name(&self) -> &str {
+        "ort"
+    }
+    fn config(&self) -> &Config {
+        &self.cfg
+    }
+    fn run(&self, inputs: &TileInputs, planes: usize) -> deepstereo_core::Result<(Vec<f32>, Vec<f32>)> {
+        let c = self.cfg.in_channels();
+        let shapes: Vec<[usize; 5]> = inputs.sizes.iter().map(|&(h, w)| [1, planes, c, h, w]).collect();
+        let levels: Vec<(&[usize], &[f32])> = shapes
+            .iter()
+            .zip(&inputs.levels)
+            .map(|(s, d)| (s.as_slice(), d.as_slice()))
+            .collect();
+        let out = self.forward(&levels)?;
+        Ok((out.image, out.selection))
+    }
+}

@@ -1,0 +1,130 @@
+//! `deepstereo train`: train a model on procedural and/or real scenes.
+
+use crate::optim::OptimizerKind;
+use crate::training::{train, RunOptions, Schedule};
+use anyhow::{bail, Context};
+use deepstereo_core::config::Config;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Scene directories to train on (any readable format), or directories of scenes
+    /// such as `deepstereo synth` writes. May be repeated and combined with --synthetic.
+    #[arg(long, num_args = 1..)]
+    pub data: Vec<PathBuf>,
+    /// Also generate this many procedural scenes in memory (seeded by --seed).
+    #[arg(long, default_value_t = 0)]
+    pub synthetic: usize,
+    /// Model config: a preset (`tiny`, `paper`) or a JSON file of a Config.
+    #[arg(long, default_value = "tiny")]
+    pub config: String,
+    /// Total optimizer steps (a resumed run continues up to this count).
+    #[arg(long, default_value_t = 1000)]
+    pub steps: u64,
+    /// Samples (tiles) per minibatch, mixed across scenes and views.
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    /// Run directory: model.safetensors, checkpoint.safetensors, log.jsonl.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Continue the run in --out from its checkpoint (same options required).
+    #[arg(long)]
+    pub resume: bool,
+    /// Initial learning rate (the paper's Adagrad rate is 5e-4).
+    #[arg(long, default_value_t = 5e-4)]
+    pub lr: f64,
+    /// Optimizer: adagrad (the paper's) or adam.
+    #[arg(long, value_enum, default_value_t = OptimizerKind::Adagrad)]
+    pub optimizer: OptimizerKind,
+    /// Seed of the data order and the procedural scenes.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Write a checkpoint every this many steps (and at the end, and on Ctrl-C).
+    #[arg(long, default_value_t = 100)]
+    pub checkpoint_every: u64,
+    /// Compute validation PSNR every this many steps.
+    #[arg(long, default_value_t = 100)]
+    pub validate_every: u64,
+    /// Write a log line every this many steps.
+    #[arg(long, default_value_t = 10)]
+    pub log_every: u64,
+    /// Procedural validation scenes (seeds disjoint from training).
+    #[arg(long, default_value_t = 8)]
+    pub val_scenes: usize,
+    /// Validation minibatches (fixed for the whole run).
+    #[arg(long, default_value_t = 4)]
+    pub val_batches: usize,
+    /// Size of procedural scenes' images, WxH.
+    #[arg(long, default_value = "160x120")]
+    pub synth_size: String,
+    /// Views per procedural scene.
+    #[arg(long, default_value_t = 10)]
+    pub synth_views: usize,
+    /// Print log lines instead of a progress bar.
+    #[arg(long)]
+    pub no_progress: bool,
+}
+
+/// Parses `WxH`.
+pub fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
+    let (w, h) = s.split_once(['x', 'X']).with_context(|| format!("size '{s}' is not WxH"))?;
+    let (w, h): (u32, u32) = (w.trim().parse().with_context(|| format!("bad width in '{s}'"))?, h.trim().parse().with_context(|| format!("bad height in '{s}'"))?);
+    if w == 0 || h == 0 {
+        bail!("size '{s}' must be positive");
+    }
+    Ok((w, h))
+}
+
+/// A preset name or a JSON config file.
+pub fn load_config(s: &str) -> anyhow::Result<Config> {
+    if let Some(c) = Config::preset(s) {
+        return Ok(c);
+    }
+    let p = Path::new(s);
+    let text = std::fs::read_to_string(p).with_context(|| format!("--config '{s}' is neither a preset (tiny, paper) nor a readable file"))?;
+    let c: Config = serde_json::from_str(&text).with_context(|| format!("{}: invalid config JSON", p.display()))?;
+    c.validate().map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?;
+    Ok(c)
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    let (w, h) = parse_size(&a.synth_size)?;
+    for (name, v) in [("--checkpoint-every", a.checkpoint_every), ("--validate-every", a.validate_every), ("--log-every", a.log_every)] {
+        if v == 0 {
+            bail!("{name} must be at least 1");
+        }
+    }
+    let run = RunOptions {
+        config: load_config(&a.config)?,
+        data: a.data,
+        synthetic: a.synthetic,
+        synth_width: w,
+        synth_height: h,
+        synth_views: a.synth_views,
+        batch: a.batch,
+        lr: a.lr,
+        optimizer: a.optimizer,
+        seed: a.seed,
+        val_scenes: a.val_scenes,
+        val_batches: a.val_batches,
+    };
+    let sched = Schedule {
+        steps: a.steps,
+        checkpoint_every: a.checkpoint_every,
+        validate_every: a.validate_every,
+        log_every: a.log_every,
+        progress: !a.no_progress,
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    // A second Ctrl-C while saving would be lost: the first one only sets the flag.
+    let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    let lines = train(&run, &sched, &a.out, a.resume, stop)?;
+    if let Some(last) = lines.last() {
+        eprintln!("step {}: loss {:?}, validation PSNR {:?}", last.step, last.loss, last.val_psnr);
+    }
+    eprintln!("model: {}", a.out.join("model.safetensors").display());
+    Ok(())
+}

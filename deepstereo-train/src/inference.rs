@@ -1,0 +1,262 @@
+//! Rendering scene views with a model (candle or onnxruntime) and evaluating them against
+//! the withheld photographs and the classical baselines.
+
+use anyhow::{bail, Context, Result};
+use candle_core::Device;
+use deepstereo_core::baseline::plane_sweep;
+use deepstereo_core::camera::Camera;
+use deepstereo_core::geometry::inverse_depths;
+use deepstereo_core::imageio::RgbImage;
+use deepstereo_core::inputs::PyramidSource;
+use deepstereo_core::metrics::{psnr, ssim};
+use deepstereo_core::render::{render_view, Backend, CandleBackend, Rendered};
+use deepstereo_core::scene::Scene;
+use deepstereo_core::sweep::Source;
+use deepstereo_core::weights;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The default model, trained on procedural scenes only (see the README for the command).
+pub static EMBEDDED_MODEL: &[u8] = include_bytes!("../assets/tiny.safetensors");
+/// The name the embedded model goes by in reports.
+pub const EMBEDDED_NAME: &str = "embedded:tiny";
+
+/// Which runtime runs the network.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendKind {
+    Candle,
+    Ort,
+}
+
+/// Loads the model (`None`: the embedded default) for the candle backend.
+pub fn candle_backend(model: Option<&Path>) -> Result<CandleBackend> {
+    let device = Device::Cpu;
+    let t = match model {
+        Some(p) => weights::load(p, &device)?,
+        None => weights::load_bytes(Path::new(EMBEDDED_NAME), EMBEDDED_MODEL, &device)?,
+    };
+    Ok(CandleBackend { model: t.model, device })
+}
+
+/// How to render: shared by `render`, `eval`, `report` and `demo`.
+#[derive(Clone, Debug, Serialize)]
+pub struct RenderSettings {
+    /// Planes (`None`: the model's default).
+    pub planes: Option<usize>,
+    /// Source views (must equal the model's; `None`: the model's).
+    pub views: Option<usize>,
+    /// Output tile side for rendering (bounded memory).
+    pub tile: usize,
+}
+
+/// A scene's views prepared for rendering (pyramids built once).
+pub struct Prepared {
+    pub pyramids: Vec<Option<PyramidSource>>,
+}
+
+impl Prepared {
+    pub fn new(scene: &Scene) -> Self {
+        Self { pyramids: vec![None; scene.views.len()] }
+    }
+
+    /// The pyramid of view `i`, loading its image on first use.
+    pub fn get(&mut self, scene: &Scene, i: usize, levels: usize) -> Result<&PyramidSource> {
+        if self.pyramids[i].is_none() {
+            let img = scene.load_image(i)?;
+            self.pyramids[i] = Some(PyramidSource::new(&scene.views[i].camera, &img, levels));
+        }
+        self.pyramids[i].as_ref().context("pyramid missing")
+    }
+}
+
+/// Renders `target` (a camera) from the scene's views `sources`.
+pub fn render_camera(
+    backend: &dyn Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    target: &Camera,
+    sources: &[usize],
+    settings: &RenderSettings,
+    progress: &dyn Fn(usize, usize),
+) -> Result<(Rendered, Vec<f64>)> {
+    let cfg = backend.config().clone();
+    if let Some(v) = settings.views {
+        if v != cfg.views {
+            bail!("--views {v}: this model was built for {} source views", cfg.views);
+        }
+    }
+    if sources.len() < cfg.views {
+        bail!("the model needs {} source views, the scene offers {}", cfg.views, sources.len());
+    }
+    let planes = settings.planes.unwrap_or(cfg.planes);
+    if planes == 0 {
+        bail!("--planes must be at least 1");
+    }
+    let inv = inverse_depths(scene.near, scene.far, planes);
+    for &i in sources {
+        prepared.get(scene, i, cfg.levels)?;
+    }
+    let srcs: Vec<&PyramidSource> = sources.iter().filter_map(|&i| prepared.pyramids[i].as_ref()).collect();
+    let r = render_view(backend, target, &srcs, &inv, settings.tile, progress)?;
+    Ok((r, inv))
+}
+
+/// What a held-out view's evaluation produced, for callers that save pictures.
+pub struct ViewImages<'a> {
+    pub truth: &'a RgbImage,
+    pub rendered: &'a Rendered,
+    pub nearest: &'a RgbImage,
+    pub plane_sweep: &'a RgbImage,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Score {
+    pub psnr: f64,
+    pub ssim: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub seconds: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Baselines {
+    pub nearest: Score,
+    pub plane_sweep: Score,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewResult {
+    pub target: usize,
+    pub name: String,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub seconds: f64,
+    pub baselines: Baselines,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Mean {
+    pub psnr: f64,
+    pub ssim: f64,
+    pub seconds: f64,
+    pub baselines: Baselines,
+}
+
+/// `deepstereo eval`'s JSON.
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalReport {
+    pub scene: String,
+    pub model: String,
+    pub backend: String,
+    pub planes: usize,
+    pub views: usize,
+    pub per_view: Vec<ViewResult>,
+    pub mean: Mean,
+}
+
+/// Renders each held-out view with the network and both baselines, and scores them.
+pub fn evaluate(
+    backend: &dyn Backend,
+    model_name: &str,
+    scene: &Scene,
+    targets: &[usize],
+    settings: &RenderSettings,
+    mut on_view: impl FnMut(&ViewResult, &ViewImages<'_>),
+) -> Result<EvalReport> {
+    let cfg = backend.config().clone();
+    let planes = settings.planes.unwrap_or(cfg.planes);
+    let mut prepared = Prepared::new(scene);
+    let mut per_view = Vec::new();
+    for &t in targets {
+        if t >= scene.views.len() {
+            bail!("held-out view {t} is out of range: the scene has {} views", scene.views.len());
+        }
+        let truth = scene.load_image(t)?;
+        let srcs = scene.nearest_views(t, cfg.views);
+        let cam = scene.views[t].camera;
+        let t0 = Instant::now();
+        let (r, inv) = render_camera(backend, scene, &mut prepared, &cam, &srcs, settings, &|_, _| {})?;
+        let seconds = t0.elapsed().as_secs_f64();
+        let nearest = scene.load_image(srcs[0])?;
+        let near_score = if nearest.width == truth.width && nearest.height == truth.height {
+            Score { psnr: psnr(&nearest, &truth), ssim: ssim(&nearest, &truth), seconds: None }
+        } else {
+            Score { psnr: f64::NAN, ssim: f64::NAN, seconds: None }
+        };
+        let t1 = Instant::now();
+        let sources: Vec<Source<'_>> = srcs
+            .iter()
+            .filter_map(|&i| prepared.pyramids[i].as_ref().map(|p| Source { camera: &p.cameras[0], image: &p.images[0] }))
+            .collect();
+        let (ps, _) = plane_sweep(&cam, &sources, &inv);
+        let ps_secs = t1.elapsed().as_secs_f64();
+        let v = ViewResult {
+            target: t,
+            name: scene.views[t].name.clone(),
+            psnr: psnr(&r.image, &truth),
+            ssim: ssim(&r.image, &truth),
+            seconds,
+            baselines: Baselines {
+                nearest: near_score,
+                plane_sweep: Score { psnr: psnr(&ps, &truth), ssim: ssim(&ps, &truth), seconds: Some(ps_secs) },
+            },
+        };
+        on_view(&v, &ViewImages { truth: &truth, rendered: &r, nearest: &nearest, plane_sweep: &ps });
+        per_view.push(v);
+    }
+    if per_view.is_empty() {
+        bail!("no held-out views to evaluate");
+    }
+    let n = per_view.len() as f64;
+    let avg = |f: &dyn Fn(&ViewResult) -> f64| per_view.iter().map(f).sum::<f64>() / n;
+    let mean = Mean {
+        psnr: avg(&|v| v.psnr),
+        ssim: avg(&|v| v.ssim),
+        seconds: avg(&|v| v.seconds),
+        baselines: Baselines {
+            nearest: Score { psnr: avg(&|v| v.baselines.nearest.psnr), ssim: avg(&|v| v.baselines.nearest.ssim), seconds: None },
+            plane_sweep: Score {
+                psnr: avg(&|v| v.baselines.plane_sweep.psnr),
+                ssim: avg(&|v| v.baselines.plane_sweep.ssim),
+                seconds: Some(avg(&|v| v.baselines.plane_sweep.seconds.unwrap_or(0.0))),
+            },
+        },
+    };
+    Ok(EvalReport {
+        scene: scene.root.display().to_string(),
+        model: model_name.to_string(),
+        backend: backend.name().to_string(),
+        planes,
+        views: cfg.views,
+        per_view,
+        mean,
+    })
+}
+
+/// Held-out view indices from `--holdout 0,8,16` or `--llffhold N` (every Nth view).
+pub fn holdout_list(holdout: Option<&str>, llffhold: Option<usize>, n: usize) -> Result<Vec<usize>> {
+    match (holdout, llffhold) {
+        (Some(h), None) => h
+            .split(',')
+            .map(|s| s.trim().parse::<usize>().with_context(|| format!("--holdout: '{s}' is not a view index")))
+            .collect(),
+        (None, Some(0)) => bail!("--llffhold must be at least 1"),
+        (None, Some(k)) => Ok((0..n).step_by(k).collect()),
+        (None, None) => bail!("pass --holdout I,J,... or --llffhold N"),
+        (Some(_), Some(_)) => bail!("pass either --holdout or --llffhold, not both"),
+    }
+}
+
+/// Model name for reports.
+pub fn model_name(model: Option<&PathBuf>) -> String {
+    model.map(|p| p.display().to_string()).unwrap_or_else(|| EMBEDDED_NAME.to_string())
+}
+
+/// The backend of `kind` for `model` (`None`: the embedded default).
+pub fn make_backend(kind: BackendKind, model: Option<&Path>) -> Result<Box<dyn Backend>> {
+    match kind {
+        BackendKind::Candle => Ok(Box::new(candle_backend(model)?)),
+        BackendKind::Ort => bail!("--backend ort is not available in this build yet"),
+    }
+}
