@@ -618,3 +618,61 @@ pub fn png_without_pixels(w: u32, h: u32) -> Vec<u8> {
     png_chunk(&mut out, b"IEND", &[]);
     out
 }
+
+/// The keys the issue lists, with the values the library reads; extra keys are only
+/// `bounds_source` and per-view `distortion`.
+pub fn check_inspect_json(json: &Value, scene: &deepstereo_core::scene::Scene, format: &str) {
+    let top = json.as_object().expect("object");
+    for key in ["format", "near", "far", "views"] {
+        assert!(top.contains_key(key), "missing top-level key {key}");
+    }
+    for key in top.keys() {
+        assert!(
+            ["format", "near", "far", "views", "bounds_source"].contains(&key.as_str()),
+            "unexpected top-level key {key}"
+        );
+    }
+    assert_eq!(json["format"], format);
+    assert_eq!(json["near"].as_f64(), Some(scene.near));
+    assert_eq!(json["far"].as_f64(), Some(scene.far));
+    let views = json["views"].as_array().expect("views");
+    assert_eq!(views.len(), scene.views.len());
+    const KEYS: [&str; 9] = ["name", "width", "height", "fx", "fy", "cx", "cy", "R", "t"];
+    for (j, v) in views.iter().zip(&scene.views) {
+        let o = j.as_object().expect("view object");
+        for key in KEYS {
+            assert!(o.contains_key(key), "view missing key {key}");
+        }
+        for key in o.keys() {
+            assert!(
+                KEYS.contains(&key.as_str()) || key == "distortion",
+                "unexpected view key {key}"
+            );
+        }
+        let k = &v.camera.intrinsics;
+        assert_eq!(j["name"], v.name.as_str());
+        assert_eq!(j["width"].as_u64(), Some(k.width as u64));
+        assert_eq!(j["height"].as_u64(), Some(k.height as u64));
+        for (key, val) in [("fx", k.fx), ("fy", k.fy), ("cx", k.cx), ("cy", k.cy)] {
+            assert_eq!(j[key].as_f64(), Some(val), "{key}");
+        }
+        let r: Vec<f64> = j["R"]
+            .as_array()
+            .expect("R")
+            .iter()
+            .map(|x| x.as_f64().expect("number"))
+            .collect();
+        assert_eq!(r.len(), 9, "R is 3x3 row-major");
+        let rot = v.camera.pose.rotation;
+        let want = DMat3::from_cols_array(&[r[0], r[3], r[6], r[1], r[4], r[7], r[2], r[5], r[8]]);
+        assert!(mat_diff(rot, want) == 0.0, "R row-major");
+        let t: Vec<f64> = j["t"]
+            .as_array()
+            .expect("t")
+            .iter()
+            .map(|x| x.as_f64().expect("number"))
+            .collect();
+        assert_eq!(t, v.camera.pose.translation.to_array().to_vec());
+    }
+}
+

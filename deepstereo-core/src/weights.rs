@@ -32,11 +32,86 @@ pub fn init(cfg: &Config, device: &Device) -> Result<Trainable> {
     init_dtype(cfg, DType::F32, device)
 }
 
-/// Builds a freshly initialised model in `dtype` (f64 for gradient checks).
+/// Builds a freshly initialised model in `dtype` (f64 for gradient checks), seed 0.
 pub fn init_dtype(cfg: &Config, dtype: DType, device: &Device) -> Result<Trainable> {
+    init_seeded(cfg, dtype, device, 0)
+}
+
+/// Builds a model initialised deterministically from `seed`: PyTorch's default
+/// (Kaiming-uniform) bounds `1/sqrt(fan_in)` for weights and biases, drawn from a
+/// splitmix64 stream per tensor name, so a run is reproducible bit for bit.
+pub fn init_seeded(cfg: &Config, dtype: DType, device: &Device, seed: u64) -> Result<Trainable> {
     let varmap = VarMap::new();
     let model = DeepStereo::new(cfg, VarBuilder::from_varmap(&varmap, dtype, device))?;
+    reinit(&varmap, seed)?;
+    if cfg.colour_skip {
+        init_colour_mean(cfg, &varmap)?;
+    }
     Ok(Trainable { model, varmap })
+}
+
+fn splitmix(z: &mut u64) -> u64 {
+    *z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    let mut x = *z;
+    x = (x ^ (x >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    x = (x ^ (x >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    x ^ (x >> 31)
+}
+
+/// Re-draws every weight and bias from a seeded stream (candle's CPU initialiser is
+/// not seedable). `log_scale` keeps its constant.
+fn reinit(varmap: &VarMap, seed: u64) -> Result<()> {
+    let vars = named_vars(varmap);
+    for (name, var) in &vars {
+        let Some(stem) = name.strip_suffix(".weight").or_else(|| name.strip_suffix(".bias")) else {
+            continue;
+        };
+        let wname = format!("{stem}.weight");
+        let fan_in: usize = match vars.iter().find(|(n, _)| *n == wname) {
+            Some((_, w)) => w.as_tensor().dims().iter().skip(1).product(),
+            None => continue,
+        };
+        let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
+        let mut state = seed ^ name.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));
+        let n = var.as_tensor().elem_count();
+        let data: Vec<f32> = (0..n)
+            .map(|_| ((splitmix(&mut state) >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0) * bound)
+            .map(|v| v as f32)
+            .collect();
+        let t = Tensor::from_vec(data, var.as_tensor().dims(), var.device())?.to_dtype(var.dtype())?;
+        var.set(&t)?;
+    }
+    Ok(())
+}
+
+/// Scale of the random part of `colour.out`'s initial weights.
+const COLOUR_OUT_INIT_SCALE: f64 = 0.1;
+
+/// Starts the colour tower's linear layer near "the mean of the sources' colours" (the
+/// raw RGBA skip, weight `1/V` on each source's matching channel) plus small random
+/// weights, so training starts from a sensible image instead of black.
+fn init_colour_mean(cfg: &Config, varmap: &VarMap) -> Result<()> {
+    let vars = named_vars(varmap);
+    let Some((_, w)) = vars.iter().find(|(n, _)| n == "colour.out.weight") else {
+        return Ok(());
+    };
+    let (cout, cin) = (w.as_tensor().dim(0)?, w.as_tensor().dim(1)?);
+    let skip0 = cin - cfg.in_channels();
+    let mut data = tensor_f32(w.as_tensor())?;
+    for v in data.iter_mut() {
+        *v *= COLOUR_OUT_INIT_SCALE as f32;
+    }
+    for k in 0..cfg.views {
+        for c in 0..cout {
+            data[c * cin + skip0 + 4 * k + c] += 1.0 / cfg.views as f32;
+        }
+    }
+    let t = Tensor::from_vec(data, w.as_tensor().dims(), w.device())?.to_dtype(w.dtype())?;
+    w.set(&t)?;
+    if let Some((_, b)) = vars.iter().find(|(n, _)| n == "colour.out.bias") {
+        b.set(&b.as_tensor().zeros_like()?)?;
+    }
+    Ok(())
 }
 
 /// The variables of a model, sorted by name.

@@ -135,7 +135,7 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
     }
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let device = Device::Cpu;
-    let t = weights::init(&run.config, &device)?;
+    let t = weights::init_seeded(&run.config, candle_core::DType::F32, &device, run.seed)?;
     let vars = named_vars(&t.varmap);
     let mut opt = Optimizer::new(run.optimizer, run.lr, vars)?;
     let ckpt = out.join("checkpoint.safetensors");
@@ -226,6 +226,7 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
         save_checkpoint(&ckpt, &out.join("model.safetensors"), run, &t, &opt, 0)?;
     }
     bar.finish();
+    plot_log(&log_path, &out.join("curve.png"))?;
     Ok(lines)
 }
 
@@ -290,5 +291,21 @@ fn truncate_log(path: &Path, step: u64) -> Result<()> {
         .map(|l| format!("{l}\n"))
         .collect();
     write_atomic(path, kept.as_bytes())?;
+    Ok(())
+}
+
+/// Plots a run's training loss and validation PSNR against steps, side by side.
+pub fn plot_log(log: &Path, png: &Path) -> Result<()> {
+    use deepstereo_core::plot::{plot, Series};
+    let text = std::fs::read_to_string(log).with_context(|| format!("cannot read {}", log.display()))?;
+    let lines: Vec<LogLine> = text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
+    let loss: Vec<(f64, f64)> = lines.iter().filter_map(|l| l.loss.map(|v| (l.step as f64, v))).collect();
+    // Smooth the loss over a window of log lines for readability.
+    let k = (loss.len() / 50).max(1);
+    let smooth: Vec<(f64, f64)> = loss.chunks(k).map(|c| (c[c.len() - 1].0, c.iter().map(|p| p.1).sum::<f64>() / c.len() as f64)).collect();
+    let val: Vec<(f64, f64)> = lines.iter().filter_map(|l| l.val_psnr.map(|v| (l.step as f64, v))).collect();
+    let a = plot("training L1 loss", "step", "L1", &[Series { label: "train loss".into(), colour: [0.85, 0.2, 0.1], points: smooth, line: true, marker: 0 }], false);
+    let b = plot("validation PSNR (held-out scenes)", "step", "PSNR dB", &[Series { label: "validation".into(), colour: [0.1, 0.4, 0.85], points: val, line: true, marker: 2 }], false);
+    deepstereo_core::viz::side_by_side(&[&a, &b], 0).save_png(png)?;
     Ok(())
 }

@@ -71,7 +71,9 @@ impl Chunk {
 fn plan(g: &Geom, elem_bytes: usize) -> (Vec<Chunk>, bool) {
     let (p, ho) = (g.p(), g.ho());
     let want = rayon::current_num_threads() * CHUNKS_PER_THREAD;
-    let target = (CHUNK_BYTES / elem_bytes / g.k()).min((g.n * p).div_ceil(want)).max(MIN_COLS);
+    let cb = std::env::var("CONV_CB").ok().and_then(|v| v.parse().ok()).unwrap_or(CHUNK_BYTES);
+    let mc = std::env::var("CONV_MC").ok().and_then(|v| v.parse().ok()).unwrap_or(MIN_COLS);
+    let target = (cb / elem_bytes / g.k()).min((g.n * p).div_ceil(want)).max(mc);
     let mut chunks = Vec::new();
     if p <= target {
         let group = (target / p).max(1);
@@ -245,6 +247,7 @@ pub(crate) fn forward<T: WithDType>(g: &Geom, x: &[T], w: &[T], b: &[T], relu: b
     y
 }
 
+static PROBE: [std::sync::atomic::AtomicU64; 5] = [const { std::sync::atomic::AtomicU64::new(0) }; 5];
 /// Gradients of [`forward`]; `dx` only when asked for, `dw` zero when not asked for.
 pub(crate) struct Grads<T> {
     pub dx: Option<Vec<T>>,
@@ -274,6 +277,7 @@ pub(crate) fn backward<T: WithDType>(
     let init = || (vec![zero; cout * k], vec![zero; cout], Vec::new(), Vec::new());
     let step = |(dw, db, buf, gy): &mut (Vec<T>, Vec<T>, Vec<T>, Vec<T>), c: &Chunk| {
         let (cols, rows) = (c.cols(g), c.r1 - c.r0);
+        let tt = std::time::Instant::now();
         // Masked output gradient [cout, cols], and the bias gradient.
         gy.resize(cout * cols, zero);
         for n in c.n0..c.n1 {
@@ -297,15 +301,21 @@ pub(crate) fn backward<T: WithDType>(
         // chunks own their pixels, others run one phase at a time).
         unsafe {
             if need_dw {
+                PROBE[0].fetch_add(tt.elapsed().as_nanos() as u64, Ordering::Relaxed);
+                let tt = std::time::Instant::now();
                 let (rhs, rhs_cs) = if direct {
                     (x[x0..].as_ptr(), hw)
                 } else {
                     im2col(g, c, x, buf);
                     (buf.as_ptr(), cols)
                 };
+                PROBE[1].fetch_add(tt.elapsed().as_nanos() as u64, Ordering::Relaxed);
+                let tt = std::time::Instant::now();
                 // dw [cout, K] += gy [cout, cols] x cols^T [cols, K]
                 matmul((cout, k, cols), dw.as_mut_ptr(), k, true, gy.as_ptr(), (cols, 1), rhs, (1, rhs_cs));
+                PROBE[2].fetch_add(tt.elapsed().as_nanos() as u64, Ordering::Relaxed);
             }
+            let tt = std::time::Instant::now();
             if need_dx {
                 // dcols [K, cols] = w^T [K, cout] x gy [cout, cols]
                 let (dst, dst_rs) = if direct {
@@ -315,12 +325,16 @@ pub(crate) fn backward<T: WithDType>(
                     (buf.as_mut_ptr(), cols)
                 };
                 matmul((k, cols, cout), dst, dst_rs, false, w.as_ptr(), (1, k), gy.as_ptr(), (cols, 1));
+                PROBE[3].fetch_add(tt.elapsed().as_nanos() as u64, Ordering::Relaxed);
+                let tt = std::time::Instant::now();
                 if !direct {
                     col2im(g, c, buf, dxp);
                 }
+                PROBE[4].fetch_add(tt.elapsed().as_nanos() as u64, Ordering::Relaxed);
             }
         }
     };
+    let t0 = std::time::Instant::now();
     let mut states = Vec::new();
     if need_dx && !direct {
         for phase in 0..2 {
@@ -335,5 +349,6 @@ pub(crate) fn backward<T: WithDType>(
         dw.iter_mut().zip(sw).for_each(|(a, &v)| *a += v);
         db.iter_mut().zip(sb).for_each(|(a, &v)| *a += v);
     }
+    if std::env::var("CONV_PROBE").is_ok() { eprintln!("kernels::backward {:?} chunks {} direct {direct} stages(ms, summed over threads) gather {:.1} im2col {:.1} gemm_dw {:.1} gemm_dcols {:.1} col2im {:.1}", t0.elapsed(), chunks.len(), PROBE[0].swap(0, Ordering::Relaxed) as f64*1e-6, PROBE[1].swap(0, Ordering::Relaxed) as f64*1e-6, PROBE[2].swap(0, Ordering::Relaxed) as f64*1e-6, PROBE[3].swap(0, Ordering::Relaxed) as f64*1e-6, PROBE[4].swap(0, Ordering::Relaxed) as f64*1e-6); }
     Grads { dx, dw, db }
 }

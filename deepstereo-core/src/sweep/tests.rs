@@ -138,8 +138,10 @@ fn textured_plane_is_reproduced_at_its_depth() {
             "source {k}: only {covered} of the target covered"
         );
         println!("source {k}: PSNR {psnr:.2} dB, covered {covered:.2}");
+        // The issue asks for > 40 dB; the sweep gives 56-63 dB here, and a homography
+        // whose depth is off by 2% still gives 41-43 dB, so hold it to 50.
         assert!(
-            psnr > 40.0,
+            psnr > 50.0,
             "source {k}: PSNR {psnr:.2} dB at the plane's depth"
         );
         // The test discriminates: the wrong plane does not reproduce the target.

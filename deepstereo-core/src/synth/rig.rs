@@ -38,6 +38,9 @@ const ROSETTE_TRAVEL_DEG: f64 = 35.0;
 const RING_DISTANCE: (f64, f64) = (2.2, 3.0);
 /// Ring: cluster radius, times the distance.
 const RING_CLUSTER: (f64, f64) = (0.2, 0.3);
+/// Ring: disparity at infinity between neighbours, times the target neighbour disparity
+/// (content nearer than the cluster moves the other way, by more).
+const RING_STEP_SCALE: f64 = 0.6;
 /// Ring: largest angle of a camera on the arc from the central one (degrees).
 const RING_MAX_HALF_SPAN_DEG: f64 = 35.0;
 /// Handheld: step length range, times the neighbour baseline.
@@ -203,7 +206,7 @@ fn ring(rng: &mut Rng, views: usize, f: f64, disp: f64) -> Poses {
     let radius = dist * rng.range(RING_CLUSTER.0, RING_CLUSTER.1);
     let focus = DVec3::new(0.0, 0.0, dist);
     let span = 2.0 * deg(RING_MAX_HALF_SPAN_DEG) * 0.9;
-    let dtheta = (disp / f).min(span / (views.max(2) - 1) as f64);
+    let dtheta = (RING_STEP_SCALE * disp / f).min(span / (views.max(2) - 1) as f64);
     let elev0 = rng.sym(deg(5.0));
     let poses = (0..views)
         .map(|i| {

@@ -20,7 +20,7 @@ const LACUNARITY: f32 = 2.0;
 /// Filter widths below this are point-sampled.
 const MIN_FILTER_WIDTH: f32 = 1e-4;
 /// Scale of fBm (roughly in [-1, 1]) to palette position offsets.
-const NOISE_CONTRAST: f32 = 0.9;
+const NOISE_CONTRAST: f32 = 1.8;
 
 /// What a texture is for; each draws its patterns with different odds and scales.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -230,9 +230,9 @@ impl Texture {
     /// A random procedural texture for a surface of the given role.
     pub fn procedural(rng: &mut Rng, role: Role) -> Self {
         let weights: &[f64] = match role {
-            Role::Panel => &[0.35, 0.15, 0.12, 0.15, 0.23],
+            Role::Panel => &[0.38, 0.17, 0.15, 0.14, 0.16],
             Role::Thin => &[0.1, 0.3, 0.0, 0.3, 0.3],
-            Role::Backdrop => &[0.6, 0.0, 0.0, 0.2, 0.2],
+            Role::Backdrop => &[0.75, 0.0, 0.0, 0.15, 0.1],
         };
         let colours = rng.int_in(2, MAX_PALETTE);
         let palette = Palette::random(rng, colours);
@@ -242,13 +242,13 @@ impl Texture {
                 _ => Pattern::Noise(Fbm::random(rng, (1.5, 8.0), (2, 6))),
             },
             1 => Pattern::Stripes {
-                freq: rng.log_range(3.0, 25.0) as f32,
+                freq: rng.log_range(2.0, 12.0) as f32,
                 duty: rng.range(0.3, 0.7) as f32,
                 warp: Fbm::random(rng, (0.5, 2.0), (1, 3)),
                 warp_amount: rng.range(0.0, 0.4) as f32,
             },
             2 => {
-                let fu = rng.log_range(2.0, 16.0);
+                let fu = rng.log_range(1.5, 8.0);
                 Pattern::Checks { fu: fu as f32, fv: (fu * rng.range(0.7, 1.4)) as f32 }
             }
             3 => Pattern::Gradient,

@@ -5,8 +5,11 @@ pub mod sweep;
 pub mod train;
 pub mod demo;
 pub mod eval;
+pub mod export;
+pub mod forward;
 pub mod model_args;
 pub mod render;
+pub mod report;
 
 use clap::{Args, Parser, Subcommand};
 use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat};
@@ -34,6 +37,12 @@ pub enum Command {
     Eval(eval::Args),
     /// Everything with no files: a procedural scene, a held-out view, the embedded model.
     Demo(demo::Args),
+    /// Error against run time over a grid of settings: CSV, markdown table and plot.
+    Report(report::Args),
+    /// Write the network as ONNX (opset 17+, dynamic planes and size, weights as initializers).
+    Export(export::Args),
+    /// Run the network (candle or onnxruntime) on input tensors from a safetensors file.
+    Forward(forward::Args),
 }
 
 /// Runs one parsed command line.
@@ -45,6 +54,9 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(a) => render::run(a),
         Command::Eval(a) => eval::run(a),
         Command::Demo(a) => demo::run(a),
+        Command::Report(a) => report::run(a),
+        Command::Export(a) => export::run(a),
+        Command::Forward(a) => forward::run(a),
     }
 }
 

@@ -4,6 +4,7 @@ use super::SceneArgs;
 use anyhow::{bail, Context};
 use deepstereo_core::geometry::{depths_of, inverse_depths};
 use deepstereo_core::imageio::RgbImage;
+use deepstereo_core::inputs::{tile_inputs, PyramidSource};
 use deepstereo_core::sweep::{sweep, Region, Source, CHANNELS};
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use std::path::PathBuf;
@@ -15,27 +16,49 @@ pub struct Args {
     /// Index of the target view (left out of the sources).
     #[arg(long)]
     pub target: usize,
-    /// Number of source views: the nearest to the target by camera centre.
-    #[arg(long, default_value_t = 4)]
-    pub views: usize,
-    /// Number of depth planes, uniform in inverse depth between near and far.
-    #[arg(long, default_value_t = 32)]
-    pub planes: usize,
+    /// Number of source views: the nearest to the target by camera centre (default: the
+    /// model's with --model, else 4).
+    #[arg(long)]
+    pub views: Option<usize>,
+    /// Number of depth planes, uniform in inverse depth between near and far (default: the
+    /// model's with --model, else 32).
+    #[arg(long)]
+    pub planes: Option<usize>,
     /// Output safetensors file: `psv` [D, V, 4, H, W] f32, `depths` [D] f32, `target`
-    /// [3, H, W] f32 in [0, 1], `sources` [V] i64 (view indices).
+    /// [3, H, W] f32 in [0, 1], `sources` [V] i64 (view indices); with --model also the
+    /// network's inputs (see --model).
     #[arg(long)]
     pub out: PathBuf,
+    /// Also write every input of this model's network (and of its ONNX export) for one
+    /// tile covering the whole target image: `level0..level{L-1}` [1, D, 4V, H_l, W_l] f32
+    /// (the image size rounded up to the model's alignment, plus the border the network
+    /// reads), `tile_origin` [2] i64 (y0, x0) = (0, 0) and `tile_size` [2] i64 (th, tw).
+    /// The network's output is then [1, 3, th, tw]; crop it to the image size.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
     /// Also write one PNG per plane (the alpha-weighted mean of the sources) here.
     #[arg(long)]
     pub png: Option<PathBuf>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    if args.planes == 0 {
+    let model = match &args.model {
+        Some(p) => Some(super::export::load_model(Some(p))?),
+        None => None,
+    };
+    let cfg = model.as_ref().map(|t| t.model.config().clone());
+    let planes = args.planes.or(cfg.as_ref().map(|c| c.planes)).unwrap_or(32);
+    let views = args.views.or(cfg.as_ref().map(|c| c.views)).unwrap_or(4);
+    if planes == 0 {
         bail!("--planes must be at least 1");
     }
-    if args.views == 0 {
+    if views == 0 {
         bail!("--views must be at least 1");
+    }
+    if let Some(c) = &cfg {
+        if views != c.views {
+            bail!("--views {views}: the model takes {} source views", c.views);
+        }
     }
     let scene = args.scene.load()?;
     let n = scene.views.len();
@@ -45,8 +68,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if n < 2 {
         bail!("the scene has only one view: a target needs at least one other view as source");
     }
-    let src_idx = scene.nearest_views(args.target, args.views);
-    if src_idx.len() < args.views {
+    let src_idx = scene.nearest_views(args.target, views);
+    if src_idx.len() < views {
         eprintln!("note: only {} source views available", src_idx.len());
     }
     let target_img = scene.load_image(args.target)?;
@@ -57,19 +80,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .map(|(&i, image)| Source { camera: &scene.views[i].camera, image })
         .collect();
     let cam = &scene.views[args.target].camera;
-    let inv = inverse_depths(scene.near, scene.far, args.planes);
+    let inv = inverse_depths(scene.near, scene.far, planes);
     let region = Region::full(&cam.intrinsics);
     let t0 = std::time::Instant::now();
     let psv = sweep(cam, region, &sources, &inv);
     eprintln!(
         "swept {} planes x {} views at {}x{} in {:.3} s",
-        args.planes,
+        planes,
         sources.len(),
         region.width,
         region.height,
         t0.elapsed().as_secs_f64()
     );
-    let (d, v, h, w) = (args.planes, sources.len(), region.height, region.width);
+    let (d, v, h, w) = (planes, sources.len(), region.height, region.width);
     let depths: Vec<f32> = depths_of(&inv).iter().map(|&z| z as f32).collect();
     let mut target = vec![0f32; 3 * h * w];
     for (p, px) in target_img.data.chunks_exact(3).enumerate() {
@@ -78,16 +101,40 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let srcs: Vec<i64> = src_idx.iter().map(|&i| i as i64).collect();
-    write_safetensors(
-        &args.out,
-        &[
-            NamedArray::f32("psv", &[d, v, CHANNELS, h, w], &psv),
-            NamedArray::f32("depths", &[d], &depths),
-            NamedArray::f32("target", &[3, h, w], &target),
-            NamedArray::i64("sources", &[v], &srcs),
-        ],
-        None,
-    )?;
+    let mut arrays = vec![
+        NamedArray::f32("psv", &[d, v, CHANNELS, h, w], &psv),
+        NamedArray::f32("depths", &[d], &depths),
+        NamedArray::f32("target", &[3, h, w], &target),
+        NamedArray::i64("sources", &[v], &srcs),
+    ];
+    if let Some(cfg) = &cfg {
+        // One tile covering the whole image, through the same code that renders.
+        let a = cfg.tile_align();
+        let (th, tw) = (h.div_ceil(a) * a, w.div_ceil(a) * a);
+        let pyramids: Vec<PyramidSource> = src_idx
+            .iter()
+            .zip(&images)
+            .map(|(&i, image)| PyramidSource::new(&scene.views[i].camera, image, cfg.levels))
+            .collect();
+        let refs: Vec<&PyramidSource> = pyramids.iter().collect();
+        let t0 = std::time::Instant::now();
+        let inputs = tile_inputs(cfg, cam, &refs, &inv, (0, 0), (th, tw))?;
+        for (l, (data, &(lh, lw))) in inputs.levels.iter().zip(&inputs.sizes).enumerate() {
+            arrays.push(NamedArray::f32(
+                &deepstereo_export::input_name(l),
+                &[1, d, cfg.in_channels(), lh, lw],
+                data,
+            ));
+        }
+        arrays.push(NamedArray::i64("tile_origin", &[2], &[0, 0]));
+        arrays.push(NamedArray::i64("tile_size", &[2], &[th as i64, tw as i64]));
+        eprintln!(
+            "network inputs for one {th}x{tw} tile ({} levels) in {:.3} s",
+            cfg.levels,
+            t0.elapsed().as_secs_f64()
+        );
+    }
+    write_safetensors(&args.out, &arrays, None)?;
     eprintln!("wrote {}", args.out.display());
     if let Some(dir) = &args.png {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;

@@ -1,0 +1,182 @@
+//! Plane-sweep speed: a 96-plane, 4-view, 512x384 volume built by
+//! [`deepstereo_core::sweep::sweep_into`], against PyTorch `grid_sample` doing the same
+//! warps (`python/bench_sweep.py`, 2 threads) on the same machine, with the ratio.
+//!
+//! `cargo bench -p deepstereo-core --bench sweep`. The Rust side writes the source images
+//! and the per-(plane, view) pixel homographies (target -> source, pixel centres at
+//! `i + 0.5`) to a temporary directory; the Python side, run with
+//! `/work/main/.venv/bin/python` when it exists (or `$SWEEP_BENCH_PYTHON`), times the same
+//! warps and writes three planes of its volume back, which are compared with ours.
+//! `SWEEP_BENCH_PY=0` skips Python.
+
+use deepstereo_core::camera::{Camera, Intrinsics, WorldToCamera};
+use deepstereo_core::geometry::{inverse_depths, plane_homography};
+use deepstereo_core::imageio::RgbImage;
+use deepstereo_core::scene::npy::{read_npy, write_npy_f32, write_npy_f64};
+use deepstereo_core::sweep::{sweep_into, Region, Source, CHANNELS};
+use glam::{DMat3, DVec3};
+use std::path::Path;
+use std::process::Command;
+use std::time::Instant;
+
+const PLANES: usize = 96;
+const VIEWS: usize = 4;
+const WIDTH: u32 = 512;
+const HEIGHT: u32 = 384;
+/// Planes whose slices the Python side writes back for comparison.
+const CHECK_PLANES: [usize; 3] = [0, PLANES / 2, PLANES - 1];
+const VENV_PYTHON: &str = "/work/main/.venv/bin/python";
+
+/// A smooth random texture (sum of a few sinusoids per channel plus mild noise).
+fn texture(w: u32, h: u32, seed: u64) -> RgbImage {
+    let mut img = RgbImage::new(w, h);
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut rnd = || {
+        s ^= s << 13;
+        s ^= s >> 7;
+        s ^= s << 17;
+        (s >> 11) as f32 / (1u64 << 53) as f32
+    };
+    let f: Vec<f32> = (0..18).map(|_| 0.02 + 0.2 * rnd()).collect();
+    for y in 0..h {
+        for x in 0..w {
+            let i = (y * w + x) as usize * 3;
+            for c in 0..3 {
+                let (a, b, p) = (f[c * 6], f[c * 6 + 1], f[c * 6 + 2] * 30.0);
+                let v = 0.5
+                    + 0.2 * (a * x as f32 + b * y as f32 + p).sin()
+                    + 0.15 * (f[c * 6 + 3] * x as f32 - f[c * 6 + 4] * y as f32).cos()
+                    + 0.05 * (rnd() - 0.5);
+                img.data[i + c] = v.clamp(0.0, 1.0);
+            }
+        }
+    }
+    img
+}
+
+/// Median seconds of `f` over `reps` runs after one warm-up.
+fn median_s(reps: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let mut t: Vec<f64> = (0..reps)
+        .map(|_| {
+            let s = Instant::now();
+            f();
+            s.elapsed().as_secs_f64()
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[reps / 2]
+}
+
+fn camera(k: Intrinsics, r: DMat3, centre: DVec3) -> Camera {
+    Camera {
+        intrinsics: k,
+        pose: WorldToCamera {
+            rotation: r,
+            translation: -(r * centre),
+        },
+    }
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let k = Intrinsics::pinhole(450.0, 450.0, 256.0, 192.0, WIDTH, HEIGHT);
+    let target = camera(k, DMat3::IDENTITY, DVec3::ZERO);
+    let sources: Vec<Camera> = (0..VIEWS)
+        .map(|i| {
+            let a = i as f64 * std::f64::consts::FRAC_PI_2;
+            let r = DMat3::from_rotation_y(0.05 * a.cos()) * DMat3::from_rotation_x(0.04 * a.sin());
+            camera(k, r, DVec3::new(0.3 * a.cos(), 0.2 * a.sin(), 0.05 * i as f64))
+        })
+        .collect();
+    let images: Vec<RgbImage> = (0..VIEWS).map(|i| texture(WIDTH, HEIGHT, i as u64 + 1)).collect();
+    let srcs: Vec<Source> = sources
+        .iter()
+        .zip(&images)
+        .map(|(camera, image)| Source { camera, image })
+        .collect();
+    let inv = inverse_depths(1.0, 100.0, PLANES);
+    let region = Region::full(&k);
+    let hw = region.len();
+    let mut out = vec![0.0f32; PLANES * VIEWS * CHANNELS * hw];
+
+    let threads = rayon::current_num_threads();
+    let rust_s = median_s(5, || sweep_into(&target, region, &srcs, &inv, &mut out));
+    println!(
+        "plane sweep {PLANES} planes x {VIEWS} views x {WIDTH}x{HEIGHT} ({:.1} M samples)",
+        (PLANES * VIEWS * hw) as f64 / 1e6
+    );
+    println!(
+        "  rust sweep_into ({threads} rayon threads): {:8.1} ms  ({:.2} ns/sample)",
+        rust_s * 1e3,
+        rust_s * 1e9 / (PLANES * VIEWS * hw) as f64
+    );
+
+    if std::env::var("SWEEP_BENCH_PY").as_deref() == Ok("0") {
+        return Ok(());
+    }
+    let python = std::env::var("SWEEP_BENCH_PYTHON").unwrap_or_else(|_| VENV_PYTHON.to_string());
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../python/bench_sweep.py");
+    if !Path::new(&python).exists() || !script.is_file() {
+        println!("  pytorch: skipped ({python} or {} missing)", script.display());
+        return Ok(());
+    }
+    let dir = tempfile::tempdir()?;
+    // Pixel homographies, target pixel -> source pixel: K_s H(rho) K_t^-1, row-major.
+    let kt_inv = k.k().inverse();
+    let mut hs = Vec::with_capacity(PLANES * VIEWS * 9);
+    for &rho in &inv {
+        for s in &sources {
+            let rel = target.pose.relative_to(&s.pose);
+            let h = s.intrinsics.k() * plane_homography(&rel, rho) * kt_inv;
+            for r in 0..3 {
+                hs.extend([h.x_axis[r], h.y_axis[r], h.z_axis[r]]);
+            }
+        }
+    }
+    write_npy_f64(&dir.path().join("homographies.npy"), &[PLANES * VIEWS, 9], &hs)?;
+    let pixels: Vec<f32> = images.iter().flat_map(|i| i.data.iter().copied()).collect();
+    write_npy_f32(
+        &dir.path().join("images.npy"),
+        &[VIEWS * HEIGHT as usize, WIDTH as usize * 3],
+        &pixels,
+    )?;
+    let meta = serde_json::json!({
+        "planes": PLANES, "views": VIEWS, "height": HEIGHT, "width": WIDTH, "threads": 2,
+        "check_planes": CHECK_PLANES, "dir": dir.path(),
+    });
+    std::fs::write(dir.path().join("meta.json"), meta.to_string())?;
+    let res = Command::new(&python).arg(&script).arg(dir.path().join("meta.json")).output()?;
+    if !res.status.success() {
+        println!("  pytorch: failed:\n{}", String::from_utf8_lossy(&res.stderr));
+        return Ok(());
+    }
+    let report: serde_json::Value = serde_json::from_slice(&res.stdout)?;
+    let torch_ms = report["median_ms"].as_f64().unwrap_or(f64::NAN);
+    println!(
+        "  pytorch grid_sample ({} threads, torch {}): {torch_ms:8.1} ms",
+        report["threads"], report["torch"]
+    );
+    println!(
+        "  ratio pytorch / rust: {:.2}x ({})",
+        torch_ms / (rust_s * 1e3),
+        if torch_ms > rust_s * 1e3 { "rust faster" } else { "pytorch faster" }
+    );
+    // Same warps: compare the planes PyTorch wrote back.
+    let theirs = read_npy(&dir.path().join("check.npy"))?;
+    let slice = VIEWS * CHANNELS * hw;
+    let (mut max, mut sum, mut n) = (0.0f64, 0.0f64, 0usize);
+    for (i, &d) in CHECK_PLANES.iter().enumerate() {
+        let ours = &out[d * slice..(d + 1) * slice];
+        for (a, b) in ours.iter().zip(&theirs.data[i * slice..(i + 1) * slice]) {
+            let e = (*a as f64 - b).abs();
+            max = max.max(e);
+            sum += e;
+            n += 1;
+        }
+    }
+    println!(
+        "  same warps: max |rust - pytorch| = {max:.2e}, mean {:.2e} over planes {CHECK_PLANES:?}",
+        sum / n.max(1) as f64
+    );
+    Ok(())
+}

@@ -1,0 +1,116 @@
+//! `deepstereo forward`: the network on tensors from a file (for parity checks).
+
+use super::export::load_model;
+use crate::inference::BackendKind;
+use anyhow::{bail, Context};
+use candle_core::{Device, Tensor};
+use deepstereo_core::tensorio::{write_safetensors, NamedArray};
+use deepstereo_export::{input_name, OrtBackend};
+use safetensors::SafeTensors;
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// Model weights (safetensors with its config); default: the embedded `tiny` model.
+    /// With `--backend ort --onnx FILE` it may be left out (the ONNX file holds the config).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Input safetensors with `level0..level{L-1}`, each [B, D, 4V, H_l, W_l] f32 (as
+    /// `deepstereo sweep --model` writes them).
+    #[arg(long)]
+    pub inputs: PathBuf,
+    /// Output safetensors: `image` [B, 3, th, tw] and `selection` [B, D, th, tw] f32.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Runtime: candle, or ort (onnxruntime on the exported model).
+    #[arg(long, value_enum, default_value_t = BackendKind::Candle)]
+    pub backend: BackendKind,
+    /// With `--backend ort`: the ONNX file to run (default: the model exported in memory).
+    #[arg(long)]
+    pub onnx: Option<PathBuf>,
+}
+
+/// `(shape, data)` of the f32 tensor `name`.
+fn read_f32(st: &SafeTensors<'_>, name: &str, file: &std::path::Path) -> anyhow::Result<(Vec<usize>, Vec<f32>)> {
+    let view = st
+        .tensor(name)
+        .map_err(|_| anyhow::anyhow!("{}: no tensor '{name}'", file.display()))?;
+    if view.dtype() != safetensors::Dtype::F32 {
+        bail!("{}: tensor '{name}' is {:?}, expected F32", file.display(), view.dtype());
+    }
+    let data = view
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    Ok((view.shape().to_vec(), data))
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    if a.onnx.is_some() && a.backend != BackendKind::Ort {
+        bail!("--onnx needs --backend ort");
+    }
+    let bytes = std::fs::read(&a.inputs).with_context(|| format!("cannot read {}", a.inputs.display()))?;
+    let st = SafeTensors::deserialize(&bytes).with_context(|| format!("{}: not a safetensors file", a.inputs.display()))?;
+    let t0 = std::time::Instant::now();
+    let (image, image_shape, selection, selection_shape) = match a.backend {
+        BackendKind::Candle => {
+            let t = load_model(a.model.as_deref())?;
+            let cfg = t.model.config();
+            let mut inputs = Vec::with_capacity(cfg.levels);
+            for l in 0..cfg.levels {
+                let (shape, data) = read_f32(&st, &input_name(l), &a.inputs)?;
+                if shape.len() != 5 {
+                    bail!("{}: '{}' must be [B, D, 4V, H, W], got {shape:?}", a.inputs.display(), input_name(l));
+                }
+                inputs.push(Tensor::from_vec(data, shape, &Device::Cpu)?);
+            }
+            let out = t.model.forward(&inputs)?;
+            (
+                out.image.flatten_all()?.to_vec1::<f32>()?,
+                out.image.dims().to_vec(),
+                out.selection.flatten_all()?.to_vec1::<f32>()?,
+                out.selection.dims().to_vec(),
+            )
+        }
+        BackendKind::Ort => {
+            let backend = match (&a.onnx, &a.model) {
+                (Some(onnx), model) => {
+                    let b = OrtBackend::from_file(onnx)?;
+                    if let Some(m) = model {
+                        let t = load_model(Some(m))?;
+                        if t.model.config() != deepstereo_core::render::Backend::config(&b) {
+                            bail!("{} is not an export of {}: their configs differ", onnx.display(), m.display());
+                        }
+                    }
+                    b
+                }
+                (None, model) => OrtBackend::from_model(&load_model(model.as_deref())?)?,
+            };
+            let levels = deepstereo_core::render::Backend::config(&backend).levels;
+            let inputs: Vec<(Vec<usize>, Vec<f32>)> = (0..levels)
+                .map(|l| read_f32(&st, &input_name(l), &a.inputs))
+                .collect::<anyhow::Result<_>>()?;
+            let refs: Vec<(&[usize], &[f32])> = inputs.iter().map(|(s, d)| (s.as_slice(), d.as_slice())).collect();
+            let out = backend.forward(&refs)?;
+            (out.image, out.image_shape, out.selection, out.selection_shape)
+        }
+    };
+    eprintln!(
+        "forward ({:?}) in {:.3} s: image {image_shape:?}, selection {selection_shape:?}",
+        a.backend,
+        t0.elapsed().as_secs_f64()
+    );
+    let meta = HashMap::from([("backend".to_string(), format!("{:?}", a.backend).to_lowercase())]);
+    write_safetensors(
+        &a.out,
+        &[
+            NamedArray::f32("image", &image_shape, &image),
+            NamedArray::f32("selection", &selection_shape, &selection),
+        ],
+        Some(meta),
+    )?;
+    eprintln!("wrote {}", a.out.display());
+    Ok(())
+}

@@ -1,0 +1,465 @@
+"""Parity of the four runtimes of the DeepStereo network on the same inputs.
+
+    python python/parity.py --bin target/release/deepstereo
+
+For every model (the embedded one, a Rust-initialised `tiny` when the `init_weights`
+example is built, and a Python-initialised variant config with three levels and no colour
+skip), this script:
+
+1. exports ONNX with `deepstereo export`, and checks it with
+   `onnx.checker.check_model(full_check=True)` and `onnx.shape_inference.infer_shapes(
+   strict_mode=True)` (names of inputs, outputs and initializers included);
+2. loads the weights strictly into the PyTorch reference (`deepstereo_ref.py`);
+3. runs, on the same inputs, candle (`deepstereo forward`), PyTorch (CPU), onnxruntime
+   (Python) on the exported file and ort (`deepstereo forward --backend ort --onnx`), and
+   compares every runtime with candle (the specification) and ort with onnxruntime.
+
+Inputs: random volumes; extreme ones (all alpha zero, all zero, saturated, constant
+colours, one plane, 128 planes, values around 1e4 and 1e-6); real plane-sweep volumes from
+`deepstereo sweep --model` on a procedural scene (from `deepstereo synth` or `deepstereo
+demo`) and on the scenes of ../shared/data when present. Also the issue-6 check: the
+inputs `deepstereo sweep --model` writes, fed to onnxruntime, give candle's image.
+
+Fails (exit 1) when a difference exceeds its tolerance: 1e-4 absolute for the image and the
+selection, relative to the output's magnitude for inputs around 1e4.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from safetensors.numpy import load_file, save_file
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import deepstereo_ref as ref  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+TOL = 1e-4
+OUTPUTS = ("image", "selection")
+
+
+def variant_config() -> ref.Config:
+    """Exercises what `tiny` does not: three levels, towers reading different numbers of
+    levels, 5x5 kernels, no colour skip, two views."""
+    C = ref.Conv
+    return ref.Config(
+        name="variant",
+        views=2,
+        planes=12,
+        levels=3,
+        tile=16,
+        select=ref.TowerConfig(3, [C(3, 8), C(3, 8)], [C(5, 12), C(3, 8)]),
+        depth_convs=[C(3, 8), C(5, 1)],
+        colour=ref.TowerConfig(2, [C(3, 8)], [C(3, 8)]),
+        colour_skip=False,
+    )
+
+
+# --- running things --------------------------------------------------------------------
+
+
+def run(cmd: list[str], what: str, check: bool = True) -> subprocess.CompletedProcess:
+    p = subprocess.run([str(c) for c in cmd], capture_output=True, text=True)
+    if check and p.returncode != 0:
+        raise RuntimeError(f"{what} failed ({p.returncode}): {' '.join(map(str, cmd))}\n{p.stderr}")
+    return p
+
+
+@dataclass
+class Model:
+    name: str
+    weights: Path
+    onnx: Path
+    cfg: ref.Config
+    torch_model: ref.DeepStereo
+    session: ort.InferenceSession
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Row:
+    case: str
+    pair: str
+    diffs: dict[str, tuple[float, float]]  # output -> (max, mean)
+    tols: dict[str, float]
+
+    @property
+    def ok(self) -> bool:
+        return all(self.diffs[o][0] <= self.tols[o] for o in OUTPUTS)
+
+
+class Parity:
+    def __init__(self, binary: Path, work: Path):
+        self.bin = binary
+        self.work = work
+        self.rows: list[Row] = []
+        self.failures: list[str] = []
+        self.notes: list[str] = []
+        self.count = 0
+
+    def fail(self, msg: str) -> None:
+        print(f"FAIL: {msg}", flush=True)
+        self.failures.append(msg)
+
+    def note(self, msg: str) -> None:
+        print(f"note: {msg}", flush=True)
+        self.notes.append(msg)
+
+    # -- models --
+
+    def export_and_check(self, name: str, weights: Path, opset: int = 17) -> Path:
+        out = self.work / f"{name}.opset{opset}.onnx"
+        run([self.bin, "export", "--model", weights, "--out", out, "--opset", opset], f"export {name}")
+        m = onnx.load(str(out))
+        onnx.checker.check_model(m, full_check=True)
+        onnx.shape_inference.infer_shapes(m, check_type=True, strict_mode=True, data_prop=True)
+        cfg = ref.read_config(str(weights))
+        want_inputs = [f"level{l}" for l in range(cfg.levels)]
+        got_inputs = [i.name for i in m.graph.input]
+        if got_inputs != want_inputs:
+            self.fail(f"{name}: graph inputs {got_inputs}, expected {want_inputs}")
+        got_outputs = [o.name for o in m.graph.output]
+        if got_outputs != list(OUTPUTS):
+            self.fail(f"{name}: graph outputs {got_outputs}, expected {list(OUTPUTS)}")
+        init = sorted(t.name for t in m.graph.initializer)
+        names = sorted(load_file(str(weights)).keys())
+        if init != names:
+            self.fail(f"{name}: initializers {init} differ from the safetensors names {names}")
+        ops = sorted({n.op_type for n in m.graph.node})
+        domains = {n.domain for n in m.graph.node} - {""}
+        if domains:
+            self.fail(f"{name}: non-standard domains {domains}")
+        print(f"  {out.name}: checker (full) and strict shape inference pass; ops {', '.join(ops)}", flush=True)
+        return out
+
+    def load_model(self, name: str, weights: Path) -> Model:
+        print(f"== model {name}: {weights}", flush=True)
+        cfg = ref.read_config(str(weights))
+        onnx_path = self.export_and_check(name, weights)
+        tm = ref.load(str(weights))
+        sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+        print(f"  config '{cfg.name}': {cfg.views} views, {cfg.levels} levels, {ref.parameter_count(tm)} parameters", flush=True)
+        return Model(name, weights, onnx_path, cfg, tm, sess)
+
+    # -- one comparison --
+
+    def compare(self, model: Model, case: str, inputs: dict[str, np.ndarray], relative: bool = False) -> dict[str, dict[str, np.ndarray]]:
+        """Runs the four runtimes on `inputs` (level0..) and records the differences."""
+        self.count += 1
+        path = self.work / f"in{self.count}.safetensors"
+        save_file({k: np.ascontiguousarray(v, dtype=np.float32) for k, v in inputs.items()}, str(path))
+        feeds = [inputs[f"level{l}"] for l in range(model.cfg.levels)]
+        res: dict[str, dict[str, np.ndarray]] = {}
+        out = self.work / f"candle{self.count}.safetensors"
+        run([self.bin, "forward", "--model", model.weights, "--inputs", path, "--out", out], f"{case}: candle forward")
+        res["candle"] = load_file(str(out))
+        out = self.work / f"ort{self.count}.safetensors"
+        run(
+            [self.bin, "forward", "--backend", "ort", "--onnx", model.onnx, "--model", model.weights, "--inputs", path, "--out", out],
+            f"{case}: ort forward",
+        )
+        res["ort"] = load_file(str(out))
+        with torch.no_grad():
+            img, sel = model.torch_model([torch.from_numpy(np.ascontiguousarray(x)) for x in feeds])
+        res["torch"] = {"image": img.numpy(), "selection": sel.numpy()}
+        img, sel = model.session.run(list(OUTPUTS), {f"level{l}": x for l, x in enumerate(feeds)})
+        res["onnxruntime"] = {"image": img, "selection": sel}
+        path.unlink()
+        for pair in (("torch", "candle"), ("onnxruntime", "candle"), ("ort", "candle"), ("ort", "onnxruntime")):
+            self.record(f"{model.name}/{case}", pair, res[pair[0]], res[pair[1]], relative)
+        return res
+
+    def record(self, case: str, pair: tuple[str, str], a: dict, b: dict, relative: bool) -> None:
+        diffs, tols = {}, {}
+        for o in OUTPUTS:
+            x, y = np.asarray(a[o], np.float64), np.asarray(b[o], np.float64)
+            if x.shape != y.shape:
+                self.fail(f"{case}: {pair[0]} {o} has shape {x.shape}, {pair[1]} {y.shape}")
+                diffs[o], tols[o] = (float("inf"), float("inf")), TOL
+                continue
+            if not (np.isfinite(x).all() and np.isfinite(y).all()):
+                self.fail(f"{case}: non-finite {o} from {pair[0]} or {pair[1]}")
+            d = np.abs(x - y)
+            diffs[o] = (float(d.max()) if d.size else 0.0, float(d.mean()) if d.size else 0.0)
+            tols[o] = TOL * max(1.0, float(np.abs(y).max())) if relative else TOL
+        row = Row(case, f"{pair[0]} vs {pair[1]}", diffs, tols)
+        self.rows.append(row)
+        if not row.ok:
+            self.fail(f"{case}: {row.pair}: " + ", ".join(f"{o} max {diffs[o][0]:.3g} > {tols[o]:.3g}" for o in OUTPUTS if diffs[o][0] > tols[o]))
+
+    # -- report --
+
+    def table(self) -> str:
+        head = f"| {'case':<36} | {'pair':<26} | {'image max':>9} | {'image mean':>10} | {'sel. max':>9} | {'sel. mean':>9} | ok |"
+        lines = [head, "|" + "|".join("-" * (len(c)) for c in head.split("|")[1:-1]) + "|"]
+        for r in self.rows:
+            (im, imn), (sm, smn) = r.diffs["image"], r.diffs["selection"]
+            lines.append(
+                f"| {r.case:<36} | {r.pair:<26} | {im:9.2e} | {imn:10.2e} | {sm:9.2e} | {smn:9.2e} | {'ok' if r.ok else 'NO'} |"
+            )
+        return "\n".join(lines)
+
+
+# --- inputs ----------------------------------------------------------------------------
+
+
+def level_shapes(cfg: ref.Config, b: int, d: int, th: int, tw: int) -> list[tuple[int, ...]]:
+    return [(b, d, cfg.in_channels(), cfg.input_size(l, th), cfg.input_size(l, tw)) for l in range(cfg.levels)]
+
+
+def make_inputs(cfg: ref.Config, b: int, d: int, th: int, tw: int, fill, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    out = {}
+    for l, shape in enumerate(level_shapes(cfg, b, d, th, tw)):
+        x = fill(shape, rng).astype(np.float32)
+        out[f"level{l}"] = x
+    return out
+
+
+def rgb_alpha(shape, rng, rgb, alpha):
+    """Volume with colour `rgb(shape)` premultiplied by `alpha(shape)` per source view."""
+    b, d, c, h, w = shape
+    v = c // 4
+    x = np.empty((b, d, v, 4, h, w), np.float64)
+    a = alpha((b, d, v, 1, h, w))
+    x[:, :, :, :3] = rgb((b, d, v, 3, h, w)) * a
+    x[:, :, :, 3:] = a
+    return x.reshape(shape)
+
+
+def cases(cfg: ref.Config):
+    """(name, B, D, th, tw, fill, relative tolerance)."""
+    a = cfg.tile_align()
+    t = cfg.tile
+    u = lambda s, r: r.random(s)  # noqa: E731
+    psv = lambda s, r: rgb_alpha(s, r, r.random, lambda s2: np.clip(r.random(s2) * 1.6 - 0.3, 0, 1))  # noqa: E731
+    return [
+        ("random uniform", 2, cfg.planes, t, t, u, False),
+        ("random sweep-like", 1, 9, a, 3 * a, psv, False),
+        ("all alpha zero", 1, 6, t, t, lambda s, r: rgb_alpha(s, r, r.random, np.zeros), False),
+        ("all zero", 1, 4, a * 2, a * 2, lambda s, r: np.zeros(s), False),
+        ("saturated (all one)", 1, 5, t, t, lambda s, r: np.ones(s), False),
+        ("constant colours", 1, 5, t, t, lambda s, r: rgb_alpha(s, r, lambda s2: np.broadcast_to(r.random((1, 1, s2[2], 3, 1, 1)), s2), np.ones), False),
+        ("one plane", 1, 1, t, t, psv, False),
+        ("128 planes", 1, 128, 2 * a, 2 * a, psv, False),
+        ("large values (1e4)", 1, 6, t, t, lambda s, r: 1e4 * r.random(s), True),
+        ("small values (1e-6)", 1, 6, t, t, lambda s, r: 1e-6 * r.random(s), False),
+    ]
+
+
+# --- real sweeps -----------------------------------------------------------------------
+
+
+def procedural_scene(p: Parity) -> Path | None:
+    help_text = run([p.bin, "--help"], "help").stdout
+    commands = {line.split()[0] for line in help_text.splitlines() if line.startswith("  ") and line.split()}
+    if "synth" in commands:
+        out = p.work / "synth"
+        r = run([p.bin, "synth", "--out", out, "--scenes", "1", "--size", "96x72"], "synth", check=False)
+        if r.returncode == 0:
+            scenes = sorted(q for q in out.rglob("transforms.json")) or sorted(out.rglob("*"))
+            for s in scenes:
+                d = s.parent if s.is_file() else s
+                if run([p.bin, "inspect", "--scene", d], "inspect", check=False).returncode == 0:
+                    return d
+        p.note(f"`deepstereo synth` did not give a scene ({r.stderr.strip()[-200:]}); trying `demo`")
+    if "demo" in commands:
+        out = p.work / "demo"
+        r = run([p.bin, "demo", "--out", out, "--size", "96x72"], "demo", check=False)
+        if r.returncode == 0 and (out / "scene").is_dir():
+            return out / "scene"
+        p.note(f"`deepstereo demo` did not give a scene: {r.stderr.strip()[-300:]}")
+        return None
+    p.note("the binary has neither `synth` nor `demo`: the procedural-scene case is skipped")
+    return None
+
+
+def sweep_case(p: Parity, model: Model, name: str, scene: Path, planes: int | None, extra: list[str]) -> None:
+    out = p.work / f"sweep_{name}.safetensors"
+    cmd = [p.bin, "sweep", "--scene", scene, "--target", "0", "--model", model.weights, "--out", out, *extra]
+    if planes is not None:
+        cmd += ["--planes", planes]
+    r = run(cmd, f"sweep {name}", check=False)
+    if r.returncode != 0:
+        p.note(f"sweep of {name} failed, case skipped: {r.stderr.strip()[-300:]}")
+        return
+    st = load_file(str(out))
+    want = {f"level{l}" for l in range(model.cfg.levels)} | {"tile_origin", "tile_size"}
+    if not want <= st.keys():
+        p.fail(f"sweep --model of {name} lacks {sorted(want - st.keys())}")
+        return
+    graph_inputs = {i.name for i in model.session.get_inputs()}
+    if not graph_inputs <= st.keys():
+        p.fail(f"sweep --model of {name} lacks graph inputs {sorted(graph_inputs - st.keys())}")
+        return
+    th, tw = (int(v) for v in st["tile_size"])
+    d = st["level0"].shape[1]
+    h, w = st["target"].shape[1:]
+    print(f"  {name}: sweep {w}x{h}, tile {tw}x{th}, {d} planes, level0 {st['level0'].shape}", flush=True)
+    # Issue 6: the graph's inputs straight from the file into onnxruntime give candle's image.
+    feeds = {i.name: st[i.name] for i in model.session.get_inputs()}
+    onnx_image, onnx_sel = model.session.run(list(OUTPUTS), feeds)
+    res = p.compare(model, f"sweep {name}", {k: st[k] for k in feeds})
+    if onnx_image.shape != (1, 3, th, tw) or onnx_sel.shape != (1, d, th, tw):
+        p.fail(f"{name}: onnxruntime output shapes {onnx_image.shape}, {onnx_sel.shape} for tile {th}x{tw}")
+    di = float(np.abs(onnx_image - res["candle"]["image"]).max())
+    status = "ok" if di <= TOL else "FAIL"
+    print(f"  issue-6 check ({name}): onnxruntime on `sweep --model` inputs vs candle forward: image max |diff| {di:.2e} {status}", flush=True)
+    if di > TOL:
+        p.fail(f"issue-6 check on {name}: {di}")
+    # The rendered region is the image itself: sanity of the values there.
+    img = res["candle"]["image"][0, :, :h, :w]
+    sel = res["candle"]["selection"][0, :, :h, :w]
+    if not np.allclose(sel.sum(0), 1.0, atol=1e-4):
+        p.fail(f"{name}: selection does not sum to 1 over planes")
+    print(f"  {name}: image range [{img.min():.3f}, {img.max():.3f}]", flush=True)
+
+
+# --- main ------------------------------------------------------------------------------
+
+
+def reference_loader_checks(p: Parity, weights: Path) -> None:
+    """The reference and the Rust loader both refuse missing and unexpected tensors."""
+    from safetensors import safe_open
+
+    with safe_open(str(weights), framework="np") as f:
+        meta = f.metadata()
+    st = load_file(str(weights))
+    first = sorted(st)[0]
+    for label, bad in (
+        ("missing", {k: v for k, v in st.items() if k != first}),
+        ("unexpected", {**st, "select.extra.weight": np.zeros(1, np.float32)}),
+    ):
+        path = p.work / f"bad_{label}.safetensors"
+        save_file(bad, str(path), metadata=meta)
+        try:
+            ref.load(str(path))
+            p.fail(f"the PyTorch reference accepted a weights file with a {label} tensor")
+        except RuntimeError:
+            pass
+        r = run([p.bin, "export", "--model", path, "--out", p.work / "bad.onnx"], "export", check=False)
+        if r.returncode == 0:
+            p.fail(f"`deepstereo export` accepted a weights file with a {label} tensor")
+    print("  strict loading: missing and unexpected tensors are refused by PyTorch and Rust", flush=True)
+
+
+def newest_opset(p: Parity, model: Model) -> None:
+    """The newest opset both the exporter and onnxruntime take, on a random case."""
+    for opset in range(onnx.defs.onnx_opset_version(), 17, -1):
+        r = run([p.bin, "export", "--model", model.weights, "--out", p.work / "probe.onnx", "--opset", opset], "export", check=False)
+        if r.returncode != 0:
+            continue
+        try:
+            ort.InferenceSession(str(p.work / "probe.onnx"), providers=["CPUExecutionProvider"])
+        except Exception:  # noqa: BLE001 - onnxruntime raises various types for unsupported opsets
+            continue
+        path = p.export_and_check(model.name, model.weights, opset)
+        m = Model(f"{model.name}@opset{opset}", model.weights, path, model.cfg, model.torch_model,
+                  ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]))
+        rng = np.random.default_rng(17)
+        p.compare(m, "random uniform", make_inputs(m.cfg, 1, 7, m.cfg.tile, m.cfg.tile, lambda s, r: r.random(s), rng))
+        return
+    p.note("no opset above 17 loads in this onnxruntime")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--bin", required=True, type=Path, help="the deepstereo binary")
+    ap.add_argument("--weights", type=Path, action="append", default=[], help="extra weights files to check")
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data", help="real scenes (skipped when absent)")
+    ap.add_argument("--keep", type=Path, help="keep the intermediate files here")
+    args = ap.parse_args()
+    torch.set_num_threads(max(1, min(4, os.cpu_count() or 1)))
+    binary = args.bin.resolve()
+    if not binary.is_file():
+        print(f"error: {binary} not found: build it with `cargo build --release -p deepstereo-train`", file=sys.stderr)
+        return 2
+    t0 = time.time()
+    work = Path(tempfile.mkdtemp(prefix="deepstereo-parity-"))
+    p = Parity(binary, work)
+    try:
+        models: list[Model] = []
+        # The embedded model, and `deepstereo export` without --model exports exactly it.
+        asset = ROOT / "deepstereo-train" / "assets" / "tiny.safetensors"
+        if asset.is_file():
+            m = p.load_model("embedded", asset)
+            run([binary, "export", "--out", work / "default.onnx"], "export of the embedded model")
+            if (work / "default.onnx").read_bytes() != m.onnx.read_bytes():
+                p.fail("`deepstereo export` without --model differs from the export of deepstereo-train/assets/tiny.safetensors")
+            else:
+                print("  `deepstereo export` without --model writes the same file", flush=True)
+            models.append(m)
+        else:
+            p.note(f"{asset} not found: no embedded model to check")
+        # Rust-initialised tiny (the `init_weights` example, built by `cargo test --release`).
+        example = binary.parent / "examples" / "init_weights"
+        if example.is_file():
+            w = work / "rust_tiny.safetensors"
+            run([example, "tiny", w], "init_weights")
+            models.append(p.load_model("rust-init", w))
+        else:
+            p.note(f"{example} not built (`cargo build --release -p deepstereo-export --examples`): no Rust-initialised model")
+        # Python-initialised variant config (three levels, no colour skip).
+        w = work / "variant.safetensors"
+        ref.init_weights(variant_config(), str(w), seed=3)
+        models.append(p.load_model("py-variant", w))
+        for extra in args.weights:
+            models.append(p.load_model(extra.stem, extra))
+        reference_loader_checks(p, models[0].weights)
+
+        for m in models:
+            print(f"== cases for {m.name}", flush=True)
+            rng = np.random.default_rng(6)
+            for name, b, d, th, tw, fill, relative in cases(m.cfg):
+                p.compare(m, name, make_inputs(m.cfg, b, d, th, tw, fill, rng), relative)
+                print(f"  {name}: done", flush=True)
+        newest_opset(p, models[0])
+
+        # Real plane sweeps, through `deepstereo sweep --model`.
+        main_model = models[0]
+        print(f"== plane sweeps with {main_model.name}", flush=True)
+        scene = procedural_scene(p)
+        if scene is not None:
+            sweep_case(p, main_model, "procedural", scene, None, [])
+        # Real scenes: few planes so that a whole-image tile stays small.
+        real = [("templeRing", 4, []), ("ethiopianHead", 1, [])]
+        for name, planes, extra in real:
+            d = args.data / name
+            if d.is_dir():
+                sweep_case(p, main_model, name, d, planes, extra)
+            else:
+                p.note(f"{d} not found: real-scene case skipped")
+    finally:
+        if args.keep:
+            shutil.copytree(work, args.keep, dirs_exist_ok=True)
+        shutil.rmtree(work, ignore_errors=True)
+
+    print()
+    print(p.table())
+    print()
+    for n in p.notes:
+        print(f"note: {n}")
+    print(f"{len(p.rows)} comparisons in {time.time() - t0:.0f} s; tolerance {TOL:g} (relative to the output for 1e4 inputs)")
+    if p.failures:
+        print(f"PARITY FAILED: {len(p.failures)} problem(s)")
+        for f in p.failures:
+            print(f"  - {f}")
+        return 1
+    print("parity: all checks passed")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
