@@ -12,7 +12,14 @@ use std::path::Path;
 
 /// A forward-facing rig of `n` cameras 0.25 apart along x, slightly rotated.
 fn rig(n: usize, w: u32, h: u32) -> Vec<NamedCamera> {
-    let k = Intrinsics::pinhole(0.9 * w as f64, 0.9 * w as f64, w as f64 / 2.0, h as f64 / 2.0, w, h);
+    let k = Intrinsics::pinhole(
+        0.9 * w as f64,
+        0.9 * w as f64,
+        w as f64 / 2.0,
+        h as f64 / 2.0,
+        w,
+        h,
+    );
     (0..n)
         .map(|i| {
             let r = DMat3::from_rotation_y(0.02 * i as f64 - 0.03);
@@ -71,7 +78,10 @@ fn sweep_writes_the_documented_tensors_and_pngs() {
     assert_eq!(t["psv"].shape, vec![planes, views, 4, h, w]);
     assert_eq!(t["depths"].shape, vec![planes]);
     assert_eq!(t["target"].shape, vec![3, h, w]);
-    assert_eq!((t["sources"].dtype.as_str(), t["sources"].shape.clone()), ("I64", vec![views]));
+    assert_eq!(
+        (t["sources"].dtype.as_str(), t["sources"].shape.clone()),
+        ("I64", vec![views])
+    );
 
     // Sources: the nearest camera centres, excluding the target, nearest first.
     let centre = |i: usize| cams[i].camera.pose.centre();
@@ -102,7 +112,9 @@ fn sweep_writes_the_documented_tensors_and_pngs() {
 
     // The volume: finite, in [0, 1], partly opaque, and what the library computes.
     let psv = t["psv"].f32s();
-    assert!(psv.iter().all(|v| v.is_finite() && (0.0..=1.0 + 1e-6).contains(v)));
+    assert!(psv
+        .iter()
+        .all(|v| v.is_finite() && (0.0..=1.0 + 1e-6).contains(v)));
     let scene = Scene::load(&scene_dir, &LoadOptions::default()).expect("scene");
     let images: Vec<RgbImage> = sources
         .iter()
@@ -117,11 +129,21 @@ fn sweep_writes_the_documented_tensors_and_pngs() {
         })
         .collect();
     let cam = &scene.views[target].camera;
-    let lib = sweep(cam, Region::full(&cam.intrinsics), &srcs, &inverse_depths(1.5, 40.0, planes));
+    let lib = sweep(
+        cam,
+        Region::full(&cam.intrinsics),
+        &srcs,
+        &inverse_depths(1.5, 40.0, planes),
+    );
     assert_eq!(psv, lib, "the CLI's volume is the library's");
     let hw = h * w;
     let opaque = (0..planes * views)
-        .map(|s| psv[(s * 4 + 3) * hw..(s * 4 + 4) * hw].iter().filter(|&&a| a > 0.999).count())
+        .map(|s| {
+            psv[(s * 4 + 3) * hw..(s * 4 + 4) * hw]
+                .iter()
+                .filter(|&&a| a > 0.999)
+                .count()
+        })
         .sum::<usize>();
     assert!(opaque > planes * views * hw / 4, "mostly covered: {opaque}");
 
@@ -148,7 +170,9 @@ fn sweep_with_far_at_infinity() {
     let res = run_deepstereo(sweep_args(
         &scene_dir,
         &out,
-        &["--target", "0", "--views", "2", "--planes", "4", "--near", "1", "--far", "inf"],
+        &[
+            "--target", "0", "--views", "2", "--planes", "4", "--near", "1", "--far", "inf",
+        ],
     ));
     assert_eq!(res.code, Some(0), "stderr: {}", res.stderr);
     let t = read_safetensors(&out);
@@ -190,10 +214,18 @@ fn inspect_json_on_generated_scenes() {
             far: user.then_some(12.0),
             ..Default::default()
         };
-        check_inspect_json(&json, &Scene::load(&scene_dir, &opts).expect("scene"), format);
+        check_inspect_json(
+            &json,
+            &Scene::load(&scene_dir, &opts).expect("scene"),
+            format,
+        );
     }
     // Text mode names the format and every view.
-    let res = run_deepstereo(["inspect", "--scene", &tmp.path().join("llff").to_string_lossy()]);
+    let res = run_deepstereo([
+        "inspect",
+        "--scene",
+        &tmp.path().join("llff").to_string_lossy(),
+    ]);
     assert_eq!(res.code, Some(0));
     assert!(res.stdout.contains("llff"));
     assert!(cams.iter().all(|c| res.stdout.contains(&c.name)));
@@ -202,7 +234,12 @@ fn inspect_json_on_generated_scenes() {
 #[test]
 fn help_documents_every_option() {
     for (cmd, opts) in [
-        ("inspect", &["--scene", "--format", "--factor", "--near", "--far", "--json"][..]),
+        (
+            "inspect",
+            &[
+                "--scene", "--format", "--factor", "--near", "--far", "--json",
+            ][..],
+        ),
         (
             "sweep",
             &[

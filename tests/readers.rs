@@ -7,7 +7,7 @@ use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::scene::npy::read_npy;
 use deepstereo_core::scene::{BoundsSource, LoadOptions, Scene, SceneFormat};
 use deepstereo_tests::*;
-use glam::{DMat3, DVec3};
+use glam::DVec3;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -94,19 +94,28 @@ fn ethiopian_head_llff() {
         );
         let r = rows.row(i).expect("row");
         let (w_full, focal) = (r[9], r[14]);
-        assert!(w_full == 4000.0 && (focal - 7543.57).abs() < 0.01, "{w_full} {focal}");
+        assert!(
+            w_full == 4000.0 && (focal - 7543.57).abs() < 0.01,
+            "{w_full} {focal}"
+        );
         let k = &v.camera.intrinsics;
         assert_eq!((k.width, k.height), (first.width, first.height));
         let want_f = focal * first.width as f64 / w_full;
         assert!((k.fx - want_f).abs() < 1e-9 && (k.fy - want_f).abs() < 1e-9);
-        assert_eq!((k.cx, k.cy), (first.width as f64 / 2.0, first.height as f64 / 2.0));
+        assert_eq!(
+            (k.cx, k.cy),
+            (first.width as f64 / 2.0, first.height as f64 / 2.0)
+        );
         // Camera centre and axes: [down, right, backwards] columns.
         let col = |c: usize| DVec3::new(r[c], r[5 + c], r[10 + c]);
         let c2w = v.camera.pose.inverse();
         assert!((c2w.translation - col(3)).length() < 1e-9);
         assert!((c2w.rotation.x_axis - col(1)).length() < 1e-6, "x = right");
         assert!((c2w.rotation.y_axis - col(0)).length() < 1e-6, "y = down");
-        assert!((c2w.rotation.z_axis + col(2)).length() < 1e-6, "z = -backwards");
+        assert!(
+            (c2w.rotation.z_axis + col(2)).length() < 1e-6,
+            "z = -backwards"
+        );
         assert_eq!(v.bounds, Some((r[15], r[16])));
         near = near.min(r[15]);
         far = far.max(r[16]);
@@ -131,10 +140,16 @@ fn fox_nerf() {
     for (v, f) in scene.views.iter().zip(frames) {
         let k = &v.camera.intrinsics;
         assert_eq!(v.name, f["file_path"].as_str().expect("file_path"));
-        assert_eq!((k.fx, k.fy, k.cx, k.cy), (num("fl_x"), num("fl_y"), num("cx"), num("cy")));
+        assert_eq!(
+            (k.fx, k.fy, k.cx, k.cy),
+            (num("fl_x"), num("fl_y"), num("cx"), num("cy"))
+        );
         assert_eq!((k.width as f64, k.height as f64), (num("w"), num("h")));
         let d = k.distortion.expect("fox has distortion");
-        assert_eq!((d.k1, d.k2, d.p1, d.p2), (num("k1"), num("k2"), num("p1"), num("p2")));
+        assert_eq!(
+            (d.k1, d.k2, d.p1, d.p2),
+            (num("k1"), num("k2"), num("p1"), num("p2"))
+        );
         let m = &f["transform_matrix"];
         let gl = |r: usize, c: usize| m[r][c].as_f64().expect("number");
         let gl_col = |c: usize| DVec3::new(gl(0, c), gl(1, c), gl(2, c));
@@ -249,7 +264,11 @@ fn llff_round_trip_f32_and_images_folder_choice() {
     }
     std::fs::rename(&images, tmp.path().join("moved")).expect("rename");
     let scene = load(tmp.path(), None, None);
-    assert!(scene.notes.iter().any(|n| n.contains("images_4")), "{:?}", scene.notes);
+    assert!(
+        scene.notes.iter().any(|n| n.contains("images_4")),
+        "{:?}",
+        scene.notes
+    );
     for v in &scene.views {
         let k = &v.camera.intrinsics;
         assert_eq!((k.width, k.height), (4, 3));
@@ -257,7 +276,13 @@ fn llff_round_trip_f32_and_images_folder_choice() {
     }
     // Both folders: images/ wins unless --factor asks otherwise.
     std::fs::rename(tmp.path().join("moved"), &images).expect("rename");
-    assert_eq!(load(tmp.path(), None, None).views[0].camera.intrinsics.width, 16);
+    assert_eq!(
+        load(tmp.path(), None, None).views[0]
+            .camera
+            .intrinsics
+            .width,
+        16
+    );
     let opts = LoadOptions {
         factor: Some(4),
         ..Default::default()

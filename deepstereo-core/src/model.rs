@@ -57,7 +57,7 @@ impl Tower {
         for (l, convs) in self.levels.iter().enumerate() {
             let mut x = inputs[l].clone();
             for conv in convs {
-                x = conv.forward(&x)?.relu()?;
+                x = conv.forward_relu(&x)?;
             }
             if l > 0 {
                 x = upsample_nearest(&x, 1 << l)?;
@@ -68,7 +68,7 @@ impl Tower {
         }
         let mut x = Tensor::cat(&feats, 1)?; // [N, sum C, th+rf, tw+rf]
         for conv in &self.merge {
-            x = conv.forward(&x)?.relu()?;
+            x = conv.forward_relu(&x)?;
         }
         Ok(x) // [N, C, th, tw]
     }
@@ -176,10 +176,8 @@ impl DeepStereo {
         let last = self.depth.len() - 1;
         for (i, conv) in self.depth.iter().enumerate() {
             let p = cfg.depth_convs[i].kernel / 2;
-            x = conv.forward(&x.pad_with_zeros(2, p, p)?)?; // [B, C', D, th*tw]
-            if i < last {
-                x = x.relu()?;
-            }
+            let xp = x.pad_with_zeros(2, p, p)?; // [B, C, D + 2p, th*tw]
+            x = if i < last { conv.forward_relu(&xp)? } else { conv.forward(&xp)? }; // [B, C', D, th*tw]
         }
         let logits = x.tanh()?.broadcast_mul(&self.log_scale.exp()?)?; // [B, 1, D, th*tw]
         let selection = candle_nn::ops::softmax(&logits, 2)?.reshape((b, d, th, tw))?; // [B, D, th, tw]

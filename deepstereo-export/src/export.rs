@@ -9,9 +9,9 @@
 
 use crate::error::{Error, Result};
 use crate::onnx_proto::{
-    attribute_proto::AttributeType, tensor_proto::DataType, tensor_shape_proto, type_proto, AttributeProto,
-    GraphProto, ModelProto, NodeProto, OperatorSetIdProto, StringStringEntryProto, TensorProto, TensorShapeProto,
-    TypeProto, ValueInfoProto,
+    attribute_proto::AttributeType, tensor_proto::DataType, tensor_shape_proto, type_proto,
+    AttributeProto, GraphProto, ModelProto, NodeProto, OperatorSetIdProto, StringStringEntryProto,
+    TensorProto, TensorShapeProto, TypeProto, ValueInfoProto,
 };
 use deepstereo_core::config::{Config, TowerConfig};
 use deepstereo_core::weights::{self, Trainable, CONFIG_KEY};
@@ -25,6 +25,9 @@ pub const DEFAULT_OPSET: i64 = 17;
 pub const MIN_OPSET: i64 = 17;
 /// The newest opset this exporter knows the IR version of (the pinned `onnx` 1.23 package).
 pub const MAX_OPSET: i64 = 28;
+
+/// One named weight tensor: `(name, shape, row-major values)`.
+pub type Weight = (String, Vec<usize>, Vec<f32>);
 
 /// Name of the graph input holding level `l`.
 pub fn input_name(l: usize) -> String {
@@ -46,7 +49,7 @@ fn ir_version(opset: i64) -> i64 {
 }
 
 /// The weights of a model as `(name, shape, values)`, sorted by name.
-pub fn model_weights(t: &Trainable) -> Result<Vec<(String, Vec<usize>, Vec<f32>)>> {
+pub fn model_weights(t: &Trainable) -> Result<Vec<Weight>> {
     weights::named_vars(&t.varmap)
         .into_iter()
         .map(|(name, var)| {
@@ -64,7 +67,7 @@ pub fn export_trainable(t: &Trainable, opset: i64) -> Result<Vec<u8>> {
 /// Builds the ONNX model of the network `cfg` with `weights` (`(name, shape, values)`, named
 /// as in the safetensors file; every tensor the model has must be there, and no other) and
 /// returns its serialized bytes.
-pub fn export(cfg: &Config, weights: &[(String, Vec<usize>, Vec<f32>)], opset: i64) -> Result<Vec<u8>> {
+pub fn export(cfg: &Config, weights: &[Weight], opset: i64) -> Result<Vec<u8>> {
     Ok(build_model(cfg, weights, opset)?.encode_to_vec())
 }
 
@@ -96,7 +99,7 @@ pub(crate) fn config_of(model: &ModelProto) -> Result<Config> {
 }
 
 /// Builds the ONNX model (see [`export()`]).
-pub fn build_model(cfg: &Config, weights: &[(String, Vec<usize>, Vec<f32>)], opset: i64) -> Result<ModelProto> {
+pub fn build_model(cfg: &Config, weights: &[Weight], opset: i64) -> Result<ModelProto> {
     if !(MIN_OPSET..=MAX_OPSET).contains(&opset) {
         return Err(Error::Opset {
             got: opset,
@@ -113,24 +116,27 @@ pub fn build_model(cfg: &Config, weights: &[(String, Vec<usize>, Vec<f32>)], ops
 
     let dim = |name: &str| tensor_shape_proto::Dimension {
         denotation: None,
-        value: Some(tensor_shape_proto::dimension::Value::DimParam(name.to_string())),
+        value: Some(tensor_shape_proto::dimension::Value::DimParam(
+            name.to_string(),
+        )),
     };
     let fixed = |v: usize| tensor_shape_proto::Dimension {
         denotation: None,
         value: Some(tensor_shape_proto::dimension::Value::DimValue(v as i64)),
     };
-    let value_info = |name: &str, dims: Vec<tensor_shape_proto::Dimension>, doc: &str| ValueInfoProto {
-        name: Some(name.to_string()),
-        r#type: Some(TypeProto {
-            denotation: None,
-            value: Some(type_proto::Value::TensorType(type_proto::Tensor {
-                elem_type: Some(DataType::Float as i32),
-                shape: Some(TensorShapeProto { dim: dims }),
-            })),
-        }),
-        doc_string: Some(doc.to_string()),
-        metadata_props: vec![],
-    };
+    let value_info =
+        |name: &str, dims: Vec<tensor_shape_proto::Dimension>, doc: &str| ValueInfoProto {
+            name: Some(name.to_string()),
+            r#type: Some(TypeProto {
+                denotation: None,
+                value: Some(type_proto::Value::TensorType(type_proto::Tensor {
+                    elem_type: Some(DataType::Float as i32),
+                    shape: Some(TensorShapeProto { dim: dims }),
+                })),
+            }),
+            doc_string: Some(doc.to_string()),
+            metadata_props: vec![],
+        };
     let cin = cfg.in_channels();
     let inputs = (0..cfg.levels)
         .map(|l| {
@@ -155,12 +161,22 @@ pub fn build_model(cfg: &Config, weights: &[(String, Vec<usize>, Vec<f32>)], ops
     let outputs = vec![
         value_info(
             "image",
-            vec![dim("batch"), fixed(3), dim("tile_height"), dim("tile_width")],
+            vec![
+                dim("batch"),
+                fixed(3),
+                dim("tile_height"),
+                dim("tile_width"),
+            ],
             "rendered colour [B, 3, th, tw]",
         ),
         value_info(
             "selection",
-            vec![dim("batch"), dim("planes"), dim("tile_height"), dim("tile_width")],
+            vec![
+                dim("batch"),
+                dim("planes"),
+                dim("tile_height"),
+                dim("tile_width"),
+            ],
             "selection probabilities over planes [B, D, th, tw]",
         ),
     ];
@@ -275,13 +291,16 @@ struct Graph<'w> {
 }
 
 impl<'w> Graph<'w> {
-    fn new(cfg: &Config, weights: &'w [(String, Vec<usize>, Vec<f32>)]) -> Result<Self> {
+    fn new(cfg: &Config, weights: &'w [Weight]) -> Result<Self> {
         let mut map = BTreeMap::new();
         for (name, shape, values) in weights {
             if shape.iter().product::<usize>() != values.len() {
                 return Err(Error::Weights {
                     config: cfg.name.clone(),
-                    msg: format!("tensor '{name}' has shape {shape:?} but {} values", values.len()),
+                    msg: format!(
+                        "tensor '{name}' has shape {shape:?} but {} values",
+                        values.len()
+                    ),
                 });
             }
             if values.iter().any(|v| !v.is_finite()) {
@@ -290,7 +309,10 @@ impl<'w> Graph<'w> {
                     msg: format!("tensor '{name}' holds non-finite values"),
                 });
             }
-            if map.insert(name.as_str(), (shape.as_slice(), values.as_slice())).is_some() {
+            if map
+                .insert(name.as_str(), (shape.as_slice(), values.as_slice()))
+                .is_some()
+            {
                 return Err(Error::Weights {
                     config: cfg.name.clone(),
                     msg: format!("tensor '{name}' given twice"),
@@ -309,8 +331,18 @@ impl<'w> Graph<'w> {
         };
         // (B, D) and (th, tw) = (H_0 - 2 pad_0, W_0 - 2 pad_0), read from level 0.
         let level0 = input_name(0);
-        g.bd = g.op("Shape", &[&level0], vec![attr_int("start", 0), attr_int("end", 2)], "batch_planes");
-        let hw0 = g.op("Shape", &[&level0], vec![attr_int("start", 3), attr_int("end", 5)], "level0_size");
+        g.bd = g.op(
+            "Shape",
+            &[&level0],
+            vec![attr_int("start", 0), attr_int("end", 2)],
+            "batch_planes",
+        );
+        let hw0 = g.op(
+            "Shape",
+            &[&level0],
+            vec![attr_int("start", 3), attr_int("end", 5)],
+            "level0_size",
+        );
         let p0 = 2 * cfg.pad(0) as i64;
         let border = g.const_i64(&[p0, p0], "level0_border");
         g.tile = g.op("Sub", &[&hw0, &border], vec![], "tile_size");
@@ -323,7 +355,13 @@ impl<'w> Graph<'w> {
     }
 
     /// Adds a node with one output and returns the output's name.
-    fn op(&mut self, op: &str, inputs: &[&str], attribute: Vec<AttributeProto>, hint: &str) -> String {
+    fn op(
+        &mut self,
+        op: &str,
+        inputs: &[&str],
+        attribute: Vec<AttributeProto>,
+        hint: &str,
+    ) -> String {
         let out = self.fresh(hint);
         self.nodes.push(NodeProto {
             input: inputs.iter().map(|s| s.to_string()).collect(),
@@ -384,7 +422,10 @@ impl<'w> Graph<'w> {
         if let Some(extra) = self.weights.keys().find(|k| !self.used.contains(**k)) {
             return Err(Error::Weights {
                 config: self.config_name.clone(),
-                msg: format!("unexpected tensor '{extra}' (not part of a '{}' model)", self.config_name),
+                msg: format!(
+                    "unexpected tensor '{extra}' (not part of a '{}' model)",
+                    self.config_name
+                ),
             });
         }
         Ok(())
@@ -412,7 +453,14 @@ impl<'w> Graph<'w> {
     /// `Conv2d` of `model.rs`/`conv.rs` (valid, stride 1, bias) with optional zero `pads`
     /// `[top, left, bottom, right]`; weights `prefix.weight` `[cout, cin, kh, kw]` and
     /// `prefix.bias` `[cout]`.
-    fn conv(&mut self, x: &str, prefix: &str, (cin, cout): (usize, usize), (kh, kw): (usize, usize), pads: [i64; 4]) -> Result<String> {
+    fn conv(
+        &mut self,
+        x: &str,
+        prefix: &str,
+        (cin, cout): (usize, usize),
+        (kh, kw): (usize, usize),
+        pads: [i64; 4],
+    ) -> Result<String> {
         let w = self.weight(&format!("{prefix}.weight"), &[cout, cin, kh, kw])?;
         let b = self.weight(&format!("{prefix}.bias"), &[cout])?;
         let attrs = vec![
@@ -431,7 +479,14 @@ impl<'w> Graph<'w> {
 
     /// `x[..., starts[i] .. starts[i] + tile[i] + extra, ...]` on `axes` (two of them), the
     /// tile size read from the graph: `narrow(axes[0], s0, th + extra).narrow(axes[1], s1, tw + extra)`.
-    fn crop_to_tile(&mut self, x: &str, starts: [i64; 2], extra: i64, axes: [i64; 2], hint: &str) -> String {
+    fn crop_to_tile(
+        &mut self,
+        x: &str,
+        starts: [i64; 2],
+        extra: i64,
+        axes: [i64; 2],
+        hint: &str,
+    ) -> String {
         let s = self.const_i64(&starts, "starts");
         let add = self.const_i64(&[starts[0] + extra, starts[1] + extra], "end_offset");
         let tile = self.tile.clone();
@@ -441,14 +496,26 @@ impl<'w> Graph<'w> {
     }
 
     /// `Tower::forward` of `model.rs`: `inputs[l]` `[N, C_in, H_l, W_l]` -> `[N, C, th, tw]`.
-    fn tower(&mut self, t: &TowerConfig, prefix: &str, inputs: &[String], cin: usize) -> Result<String> {
+    fn tower(
+        &mut self,
+        t: &TowerConfig,
+        prefix: &str,
+        inputs: &[String],
+        cin: usize,
+    ) -> Result<String> {
         let rf = t.merge_reduction();
         let mut feats = Vec::with_capacity(t.levels);
         for (l, input) in inputs.iter().enumerate().take(t.levels) {
             let mut x = input.clone();
             let mut ch = cin;
             for (i, c) in t.level_convs.iter().enumerate() {
-                x = self.conv(&x, &format!("{prefix}.levels.{l}.{i}"), (ch, c.channels), (c.kernel, c.kernel), [0; 4])?;
+                x = self.conv(
+                    &x,
+                    &format!("{prefix}.levels.{l}.{i}"),
+                    (ch, c.channels),
+                    (c.kernel, c.kernel),
+                    [0; 4],
+                )?;
                 x = self.relu(&x);
                 ch = c.channels;
             }
@@ -461,22 +528,44 @@ impl<'w> Graph<'w> {
                     attr_str("coordinate_transformation_mode", "asymmetric"),
                     attr_str("nearest_mode", "floor"),
                 ];
-                x = self.op("Resize", &[&x, "", &scales], attrs, &format!("{prefix}.levels.{l}.upsample"));
+                x = self.op(
+                    "Resize",
+                    &[&x, "", &scales],
+                    attrs,
+                    &format!("{prefix}.levels.{l}.upsample"),
+                );
             }
             // x.narrow(2, off, th + rf).narrow(3, off, tw + rf)
             let off = t.upsample_crop(l) as i64;
-            x = self.crop_to_tile(&x, [off, off], rf as i64, [2, 3], &format!("{prefix}.levels.{l}.crop"));
+            x = self.crop_to_tile(
+                &x,
+                [off, off],
+                rf as i64,
+                [2, 3],
+                &format!("{prefix}.levels.{l}.crop"),
+            );
             feats.push(x);
         }
         let mut x = if feats.len() == 1 {
             feats.remove(0)
         } else {
             let refs: Vec<&str> = feats.iter().map(String::as_str).collect();
-            self.op("Concat", &refs, vec![attr_int("axis", 1)], &format!("{prefix}.concat"))
+            self.op(
+                "Concat",
+                &refs,
+                vec![attr_int("axis", 1)],
+                &format!("{prefix}.concat"),
+            )
         };
         let mut ch = t.level_channels(cin) * t.levels;
         for (i, c) in t.merge_convs.iter().enumerate() {
-            x = self.conv(&x, &format!("{prefix}.merge.{i}"), (ch, c.channels), (c.kernel, c.kernel), [0; 4])?;
+            x = self.conv(
+                &x,
+                &format!("{prefix}.merge.{i}"),
+                (ch, c.channels),
+                (c.kernel, c.kernel),
+                [0; 4],
+            )?;
             x = self.relu(&x);
             ch = c.channels;
         }
@@ -487,7 +576,12 @@ impl<'w> Graph<'w> {
     fn fold_planes(&mut self, x: &str, c: usize, hint: &str) -> String {
         let lead = self.const_i64(&[-1, c as i64], "fold_lead");
         let hw = self.op("Shape", &[x], vec![attr_int("start", 3)], "fold_hw");
-        let shape = self.op("Concat", &[&lead, &hw], vec![attr_int("axis", 0)], "fold_shape");
+        let shape = self.op(
+            "Concat",
+            &[&lead, &hw],
+            vec![attr_int("axis", 0)],
+            "fold_shape",
+        );
         self.op("Reshape", &[x, &shape], vec![], hint)
     }
 
@@ -504,7 +598,12 @@ impl<'w> Graph<'w> {
                     let s = self.const_i64(&[off, off], "starts");
                     let e = self.const_i64(&[-off, -off], "ends");
                     let ax = self.const_i64(&[3, 4], "axes");
-                    x = self.op("Slice", &[&x, &s, &e, &ax], vec![], &format!("{prefix}.input{l}.crop"));
+                    x = self.op(
+                        "Slice",
+                        &[&x, &s, &e, &ax],
+                        vec![],
+                        &format!("{prefix}.input{l}.crop"),
+                    );
                 }
                 self.fold_planes(&x, cin, &format!("{prefix}.input{l}.folded"))
             })
@@ -522,15 +621,31 @@ impl<'w> Graph<'w> {
         let s = self.tower(&cfg.select, "select", &inputs, cin)?; // [B*D, C, th, tw]
         let c = cfg.select.out_channels(cin);
         let tail = self.const_i64(&[c as i64, -1], "select_tail");
-        let shape = self.op("Concat", &[&bd, &tail], vec![attr_int("axis", 0)], "select_shape");
+        let shape = self.op(
+            "Concat",
+            &[&bd, &tail],
+            vec![attr_int("axis", 0)],
+            "select_shape",
+        );
         let x = self.op("Reshape", &[&s, &shape], vec![], "select.unfold"); // [B, D, C, th*tw]
-        let mut x = self.op("Transpose", &[&x], vec![attr_ints("perm", &[0, 2, 1, 3])], "select.transpose"); // [B, C, D, th*tw]
+        let mut x = self.op(
+            "Transpose",
+            &[&x],
+            vec![attr_ints("perm", &[0, 2, 1, 3])],
+            "select.transpose",
+        ); // [B, C, D, th*tw]
         let last = cfg.depth_convs.len() - 1;
         let mut ch = c;
         for (i, conv) in cfg.depth_convs.iter().enumerate() {
             // conv(pad_with_zeros(x, 2, p, p)): zero padding along depth only.
             let p = (conv.kernel / 2) as i64;
-            x = self.conv(&x, &format!("select.depth.{i}"), (ch, conv.channels), (conv.kernel, 1), [p, 0, p, 0])?;
+            x = self.conv(
+                &x,
+                &format!("select.depth.{i}"),
+                (ch, conv.channels),
+                (conv.kernel, 1),
+                [p, 0, p, 0],
+            )?;
             if i < last {
                 x = self.relu(&x);
             }
@@ -540,8 +655,18 @@ impl<'w> Graph<'w> {
         let log_scale = self.weight("select.log_scale", &[1])?;
         let scale = self.op("Exp", &[&log_scale], vec![], "select.scale");
         let logits = self.op("Mul", &[&x, &scale], vec![], "select.logits"); // [B, 1, D, th*tw]
-        let sel = self.op("Softmax", &[&logits], vec![attr_int("axis", 2)], "select.softmax");
-        let sel_shape = self.op("Concat", &[&bd, &tile], vec![attr_int("axis", 0)], "selection_shape");
+        let sel = self.op(
+            "Softmax",
+            &[&logits],
+            vec![attr_int("axis", 2)],
+            "select.softmax",
+        );
+        let sel_shape = self.op(
+            "Concat",
+            &[&bd, &tile],
+            vec![attr_int("axis", 0)],
+            "selection_shape",
+        );
         let selection = self.op("Reshape", &[&sel, &sel_shape], vec![], "selection"); // [B, D, th, tw]
 
         // Colour tower.
@@ -552,18 +677,33 @@ impl<'w> Graph<'w> {
             let p = cfg.pad(0) as i64;
             let centre = self.crop_to_tile(&input_name(0), [p, p], 0, [3, 4], "colour.centre");
             let centre = self.fold_planes(&centre, cin, "colour.centre.folded"); // [B*D, 4V, th, tw]
-            f = self.op("Concat", &[&f, &centre], vec![attr_int("axis", 1)], "colour.skip");
+            f = self.op(
+                "Concat",
+                &[&f, &centre],
+                vec![attr_int("axis", 1)],
+                "colour.skip",
+            );
             cout_in += cin;
         }
         let colours = self.conv(&f, "colour.out", (cout_in, 3), (1, 1), [0; 4])?; // [B*D, 3, th, tw]
         let three = self.const_i64(&[3], "three");
-        let col_shape = self.op("Concat", &[&bd, &three, &tile], vec![attr_int("axis", 0)], "colours_shape");
+        let col_shape = self.op(
+            "Concat",
+            &[&bd, &three, &tile],
+            vec![attr_int("axis", 0)],
+            "colours_shape",
+        );
         let colours = self.op("Reshape", &[&colours, &col_shape], vec![], "colours"); // [B, D, 3, th, tw]
         let axis2 = self.const_i64(&[2], "axis2");
         let sel5 = self.op("Unsqueeze", &[&selection, &axis2], vec![], "selection5"); // [B, D, 1, th, tw]
         let weighted = self.op("Mul", &[&colours, &sel5], vec![], "weighted"); // [B, D, 3, th, tw]
         let axis1 = self.const_i64(&[1], "axis1");
-        let image = self.op("ReduceSum", &[&weighted, &axis1], vec![attr_int("keepdims", 0)], "image"); // [B, 3, th, tw]
+        let image = self.op(
+            "ReduceSum",
+            &[&weighted, &axis1],
+            vec![attr_int("keepdims", 0)],
+            "image",
+        ); // [B, 3, th, tw]
         Ok((image, selection))
     }
 }
@@ -582,7 +722,13 @@ mod tests {
     #[test]
     fn opset_out_of_range_is_an_error() {
         let cfg = Config::tiny();
-        assert!(matches!(build_model(&cfg, &[], 16), Err(Error::Opset { .. })));
-        assert!(matches!(build_model(&cfg, &[], MAX_OPSET + 1), Err(Error::Opset { .. })));
+        assert!(matches!(
+            build_model(&cfg, &[], 16),
+            Err(Error::Opset { .. })
+        ));
+        assert!(matches!(
+            build_model(&cfg, &[], MAX_OPSET + 1),
+            Err(Error::Opset { .. })
+        ));
     }
 }

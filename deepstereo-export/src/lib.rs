@@ -15,11 +15,18 @@ pub mod error;
 pub mod export;
 pub mod ort_backend;
 
-#[allow(clippy::all, clippy::pedantic, missing_docs, rustdoc::all, non_camel_case_types)]
+#[allow(
+    clippy::all,
+    clippy::pedantic,
+    missing_docs,
+    rustdoc::all,
+    non_camel_case_types
+)]
 pub mod onnx_proto;
 
 pub use error::{Error, Result};
 pub use export::{
-    export, export_trainable, input_name, model_weights, read_config, DEFAULT_OPSET, MAX_OPSET, MIN_OPSET,
+    export, export_trainable, input_name, model_weights, read_config, Weight, DEFAULT_OPSET,
+    MAX_OPSET, MIN_OPSET,
 };
 pub use ort_backend::{find_onnxruntime, Forward, OrtBackend};

@@ -54,9 +54,9 @@ fn venv_libraries(venv: &Path) -> Vec<PathBuf> {
         let mut libs: Vec<PathBuf> = entries
             .filter_map(|e| e.ok().map(|e| e.path()))
             .filter(|p| {
-                p.file_name()
-                    .and_then(|n| n.to_str())
-                    .is_some_and(|n| n.starts_with("libonnxruntime.so") || n == "libonnxruntime.dylib")
+                p.file_name().and_then(|n| n.to_str()).is_some_and(|n| {
+                    n.starts_with("libonnxruntime.so") || n == "libonnxruntime.dylib"
+                })
             })
             .collect();
         // The versioned name (`libonnxruntime.so.1.31.1`) is the real file in the wheel.
@@ -181,7 +181,11 @@ impl OrtBackend {
     pub fn forward(&self, levels: &[(&[usize], &[f32])]) -> Result<Forward> {
         let cfg = &self.cfg;
         if levels.len() != cfg.levels {
-            return Err(Error::Input(format!("expected {} input levels, got {}", cfg.levels, levels.len())));
+            return Err(Error::Input(format!(
+                "expected {} input levels, got {}",
+                cfg.levels,
+                levels.len()
+            )));
         }
         let mut inputs = Vec::with_capacity(levels.len());
         for (l, (shape, data)) in levels.iter().enumerate() {
@@ -200,10 +204,9 @@ impl OrtBackend {
             let t = TensorRef::from_array_view((shape.to_vec(), *data)).map_err(Error::ort)?;
             inputs.push((input_name(l), t));
         }
-        let mut session = self
-            .session
-            .lock()
-            .map_err(|_| Error::Ort("the session's lock is poisoned (an earlier run panicked)".into()))?;
+        let mut session = self.session.lock().map_err(|_| {
+            Error::Ort("the session's lock is poisoned (an earlier run panicked)".into())
+        })?;
         let outputs = session.run(inputs).map_err(Error::ort)?;
         let get = |name: &str| -> Result<(Vec<usize>, Vec<f32>)> {
             let v = outputs
@@ -230,9 +233,17 @@ impl Backend for OrtBackend {
     fn config(&self) -> &Config {
         &self.cfg
     }
-    fn run(&self, inputs: &TileInputs, planes: usize) -> deepstereo_core::Result<(Vec<f32>, Vec<f32>)> {
+    fn run(
+        &self,
+        inputs: &TileInputs,
+        planes: usize,
+    ) -> deepstereo_core::Result<(Vec<f32>, Vec<f32>)> {
         let c = self.cfg.in_channels();
-        let shapes: Vec<[usize; 5]> = inputs.sizes.iter().map(|&(h, w)| [1, planes, c, h, w]).collect();
+        let shapes: Vec<[usize; 5]> = inputs
+            .sizes
+            .iter()
+            .map(|&(h, w)| [1, planes, c, h, w])
+            .collect();
         let levels: Vec<(&[usize], &[f32])> = shapes
             .iter()
             .zip(&inputs.levels)

@@ -4,7 +4,9 @@ use candle_core::{Device, Tensor};
 use deepstereo_core::config::{Config, Conv, TowerConfig};
 use deepstereo_core::weights::{self, Trainable};
 use deepstereo_export::onnx_proto::ModelProto;
-use deepstereo_export::{export, export_trainable, model_weights, read_config, Error, OrtBackend, DEFAULT_OPSET};
+use deepstereo_export::{
+    export, export_trainable, model_weights, read_config, Error, OrtBackend, DEFAULT_OPSET,
+};
 use prost::Message;
 
 /// A config that exercises what `tiny` does not: three levels, towers reading different
@@ -32,10 +34,22 @@ fn variant() -> Config {
     }
 }
 
-fn random_inputs(cfg: &Config, b: usize, d: usize, th: usize, tw: usize) -> anyhow::Result<Vec<Tensor>> {
+fn random_inputs(
+    cfg: &Config,
+    b: usize,
+    d: usize,
+    th: usize,
+    tw: usize,
+) -> anyhow::Result<Vec<Tensor>> {
     (0..cfg.levels)
         .map(|l| {
-            let shape = (b, d, cfg.in_channels(), cfg.input_size(l, th), cfg.input_size(l, tw));
+            let shape = (
+                b,
+                d,
+                cfg.in_channels(),
+                cfg.input_size(l, th),
+                cfg.input_size(l, tw),
+            );
             Ok(Tensor::rand(0f32, 1f32, shape, &Device::Cpu)?)
         })
         .collect()
@@ -43,7 +57,10 @@ fn random_inputs(cfg: &Config, b: usize, d: usize, th: usize, tw: usize) -> anyh
 
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 #[test]
@@ -57,12 +74,24 @@ fn exported_model_round_trips_through_prost() -> anyhow::Result<()> {
         assert_eq!(model.opset_import[0].version, Some(17));
         assert_eq!(model.ir_version, Some(8));
         let graph = model.graph.as_ref().expect("graph");
-        let inputs: Vec<&str> = graph.input.iter().filter_map(|i| i.name.as_deref()).collect();
+        let inputs: Vec<&str> = graph
+            .input
+            .iter()
+            .filter_map(|i| i.name.as_deref())
+            .collect();
         let want: Vec<String> = (0..cfg.levels).map(|l| format!("level{l}")).collect();
         assert_eq!(inputs, want);
-        let outputs: Vec<&str> = graph.output.iter().filter_map(|i| i.name.as_deref()).collect();
+        let outputs: Vec<&str> = graph
+            .output
+            .iter()
+            .filter_map(|i| i.name.as_deref())
+            .collect();
         assert_eq!(outputs, ["image", "selection"]);
-        let mut init: Vec<&str> = graph.initializer.iter().filter_map(|i| i.name.as_deref()).collect();
+        let mut init: Vec<&str> = graph
+            .initializer
+            .iter()
+            .filter_map(|i| i.name.as_deref())
+            .collect();
         init.sort();
         let names: Vec<String> = model_weights(&t)?.into_iter().map(|(n, _, _)| n).collect();
         assert_eq!(init, names);
@@ -77,13 +106,24 @@ fn mismatched_weights_are_rejected() -> anyhow::Result<()> {
     let cfg = Config::tiny();
     let t = weights::init(&cfg, &Device::Cpu)?;
     let w = model_weights(&t)?;
-    let missing: Vec<_> = w.iter().filter(|(n, _, _)| n != "colour.out.bias").cloned().collect();
+    let missing: Vec<_> = w
+        .iter()
+        .filter(|(n, _, _)| n != "colour.out.bias")
+        .cloned()
+        .collect();
     let e = export(&cfg, &missing, 17).unwrap_err();
-    assert!(matches!(e, Error::Weights { .. }) && e.to_string().contains("missing tensor 'colour.out.bias'"), "{e}");
+    assert!(
+        matches!(e, Error::Weights { .. })
+            && e.to_string().contains("missing tensor 'colour.out.bias'"),
+        "{e}"
+    );
     let mut extra = w.clone();
     extra.push(("select.bogus".into(), vec![1], vec![0.0]));
     let e = export(&cfg, &extra, 17).unwrap_err();
-    assert!(e.to_string().contains("unexpected tensor 'select.bogus'"), "{e}");
+    assert!(
+        e.to_string().contains("unexpected tensor 'select.bogus'"),
+        "{e}"
+    );
     let mut wrong = w.clone();
     if let Some(x) = wrong.iter_mut().find(|(n, _, _)| n == "colour.out.weight") {
         x.1 = vec![x.2.len()];
@@ -120,14 +160,28 @@ fn ort_matches_candle_on_random_inputs() -> anyhow::Result<()> {
                 .iter()
                 .map(|x| x.flatten_all()?.to_vec1::<f32>())
                 .collect::<candle_core::Result<_>>()?;
-            let levels: Vec<(&[usize], &[f32])> = shapes.iter().zip(&data).map(|(s, d)| (s.as_slice(), d.as_slice())).collect();
+            let levels: Vec<(&[usize], &[f32])> = shapes
+                .iter()
+                .zip(&data)
+                .map(|(s, d)| (s.as_slice(), d.as_slice()))
+                .collect();
             let got = backend.forward(&levels)?;
             assert_eq!(got.image_shape, out.image.dims());
             assert_eq!(got.selection_shape, out.selection.dims());
             let di = max_abs_diff(&got.image, &out.image.flatten_all()?.to_vec1::<f32>()?);
-            let ds = max_abs_diff(&got.selection, &out.selection.flatten_all()?.to_vec1::<f32>()?);
-            println!("{} opset {opset} B={b} D={d} {th}x{tw}: image {di:.2e}, selection {ds:.2e}", cfg.name);
-            assert!(di < 1e-4 && ds < 1e-4, "{}: image {di}, selection {ds}", cfg.name);
+            let ds = max_abs_diff(
+                &got.selection,
+                &out.selection.flatten_all()?.to_vec1::<f32>()?,
+            );
+            println!(
+                "{} opset {opset} B={b} D={d} {th}x{tw}: image {di:.2e}, selection {ds:.2e}",
+                cfg.name
+            );
+            assert!(
+                di < 1e-4 && ds < 1e-4,
+                "{}: image {di}, selection {ds}",
+                cfg.name
+            );
         }
     }
     Ok(())
@@ -149,7 +203,9 @@ fn ort_backend_renders_through_the_backend_trait() -> anyhow::Result<()> {
             .iter()
             .map(|x| x.flatten_all()?.to_vec1::<f32>())
             .collect::<candle_core::Result<_>>()?,
-        sizes: (0..cfg.levels).map(|l| (cfg.input_size(l, th), cfg.input_size(l, tw))).collect(),
+        sizes: (0..cfg.levels)
+            .map(|l| (cfg.input_size(l, th), cfg.input_size(l, tw)))
+            .collect(),
     };
     let candle = CandleBackend {
         model: t.model.clone(),

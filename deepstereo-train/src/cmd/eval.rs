@@ -2,7 +2,7 @@
 
 use super::model_args::ModelArgs;
 use super::SceneArgs;
-use crate::inference::{evaluate, holdout_list};
+use crate::inference::{evaluate, holdout_list, Baselines, EvalReport, Mean, Score};
 use deepstereo_core::imageio::write_atomic;
 use std::path::PathBuf;
 
@@ -13,6 +13,7 @@ pub struct Args {
     #[command(flatten)]
     pub model: ModelArgs,
     /// Held-out view indices, comma-separated (each is left out of its own sources).
+    /// `--scene` may also be a directory of scenes (as `synth` writes): each is evaluated.
     #[arg(long)]
     pub holdout: Option<String>,
     /// Hold out every Nth view (LLFF's convention: 0, N, 2N, ...).
@@ -28,35 +29,70 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let settings = a.model.settings()?;
-    let scene = a.scene.load()?;
-    let targets = holdout_list(a.holdout.as_deref(), a.llffhold, scene.views.len())?;
+    let dirs = if a.scene.format.is_some() { vec![a.scene.scene.clone()] } else { super::scene_dirs(&a.scene.scene)? };
     let backend = a.model.backend()?;
-    let images = a.images.clone();
-    let mut err = None;
-    let report = evaluate(backend.as_ref(), &a.model.name(), &scene, &targets, &settings, |v, imgs| {
-        eprintln!(
-            "view {:3} {:<20} PSNR {:6.2} SSIM {:.3} ({:.2} s) | nearest {:6.2} | plane sweep {:6.2}",
-            v.target, v.name, v.psnr, v.ssim, v.seconds, v.baselines.nearest.psnr, v.baselines.plane_sweep.psnr
-        );
-        if let Some(dir) = &images {
-            if let Err(e) = imgs.rendered.image.save_png(&dir.join(format!("view_{:03}.png", v.target))) {
-                err = Some(e);
+    let mut reports = Vec::new();
+    for dir in &dirs {
+        let sa = SceneArgs { scene: dir.clone(), ..a.scene.clone() };
+        let scene = sa.load()?;
+        let targets = holdout_list(a.holdout.as_deref(), a.llffhold, scene.views.len())?;
+        let images = a.images.as_ref().map(|d| if dirs.len() > 1 { d.join(dir.file_name().unwrap_or_default()) } else { d.clone() });
+        let mut err = None;
+        let report = evaluate(backend.as_ref(), &a.model.name(), &scene, &targets, &settings, |v, imgs| {
+            eprintln!(
+                "view {:3} {:<20} PSNR {:6.2} SSIM {:.3} ({:.2} s) | nearest {:6.2} | plane sweep {:6.2}",
+                v.target, v.name, v.psnr, v.ssim, v.seconds, v.baselines.nearest.psnr, v.baselines.plane_sweep.psnr
+            );
+            if let Some(dir) = &images {
+                if let Err(e) = imgs.rendered.image.save_png(&dir.join(format!("view_{:03}.png", v.target))) {
+                    err = Some(e);
+                }
             }
+        })?;
+        if let Some(e) = err {
+            return Err(e.into());
         }
-    })?;
-    if let Some(e) = err {
-        return Err(e.into());
+        print_mean(&report.scene, &report.mean);
+        reports.push(report);
     }
-    let m = &report.mean;
-    eprintln!(
-        "mean: DeepStereo PSNR {:.2} SSIM {:.3} ({:.2} s/view) | nearest {:.2} / {:.3} | plane sweep {:.2} / {:.3}",
-        m.psnr, m.ssim, m.seconds, m.baselines.nearest.psnr, m.baselines.nearest.ssim, m.baselines.plane_sweep.psnr, m.baselines.plane_sweep.ssim
-    );
-    let json = serde_json::to_string_pretty(&report)?;
+    let json = if reports.len() == 1 {
+        serde_json::to_value(&reports[0])?
+    } else {
+        let mean = mean_of(&reports);
+        print_mean(&format!("all {} scenes", reports.len()), &mean);
+        serde_json::json!({ "scenes": reports, "mean": mean })
+    };
+    let text = serde_json::to_string_pretty(&json)?;
     match a.json.as_deref() {
-        Some("-") => println!("{json}"),
-        Some(p) => write_atomic(std::path::Path::new(p), json.as_bytes())?,
+        Some("-") => println!("{text}"),
+        Some(p) => write_atomic(std::path::Path::new(p), text.as_bytes())?,
         None => {}
     }
     Ok(())
+}
+
+fn print_mean(what: &str, m: &Mean) {
+    eprintln!(
+        "mean ({what}): DeepStereo PSNR {:.2} SSIM {:.3} ({:.2} s/view) | nearest {:.2} / {:.3} | plane sweep {:.2} / {:.3}",
+        m.psnr, m.ssim, m.seconds, m.baselines.nearest.psnr, m.baselines.nearest.ssim, m.baselines.plane_sweep.psnr, m.baselines.plane_sweep.ssim
+    );
+}
+
+/// The mean over scenes of the per-scene means (each scene weighs the same).
+fn mean_of(reports: &[EvalReport]) -> Mean {
+    let n = reports.len().max(1) as f64;
+    let avg = |f: &dyn Fn(&Mean) -> f64| reports.iter().map(|r| f(&r.mean)).sum::<f64>() / n;
+    Mean {
+        psnr: avg(&|m| m.psnr),
+        ssim: avg(&|m| m.ssim),
+        seconds: avg(&|m| m.seconds),
+        baselines: Baselines {
+            nearest: Score { psnr: avg(&|m| m.baselines.nearest.psnr), ssim: avg(&|m| m.baselines.nearest.ssim), seconds: None },
+            plane_sweep: Score {
+                psnr: avg(&|m| m.baselines.plane_sweep.psnr),
+                ssim: avg(&|m| m.baselines.plane_sweep.ssim),
+                seconds: Some(avg(&|m| m.baselines.plane_sweep.seconds.unwrap_or(0.0))),
+            },
+        },
+    }
 }

@@ -33,7 +33,10 @@ pub fn load_model(model: Option<&Path>) -> anyhow::Result<Trainable> {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     if !(MIN_OPSET..=MAX_OPSET).contains(&a.opset) {
-        anyhow::bail!("--opset {} is not supported: use {MIN_OPSET}..={MAX_OPSET}", a.opset);
+        anyhow::bail!(
+            "--opset {} is not supported: use {MIN_OPSET}..={MAX_OPSET}",
+            a.opset
+        );
     }
     let t = load_model(a.model.as_deref())?;
     let bytes = deepstereo_export::export_trainable(&t, a.opset)?;

@@ -32,12 +32,20 @@ pub struct Args {
 }
 
 /// `(shape, data)` of the f32 tensor `name`.
-fn read_f32(st: &SafeTensors<'_>, name: &str, file: &std::path::Path) -> anyhow::Result<(Vec<usize>, Vec<f32>)> {
+fn read_f32(
+    st: &SafeTensors<'_>,
+    name: &str,
+    file: &std::path::Path,
+) -> anyhow::Result<(Vec<usize>, Vec<f32>)> {
     let view = st
         .tensor(name)
         .map_err(|_| anyhow::anyhow!("{}: no tensor '{name}'", file.display()))?;
     if view.dtype() != safetensors::Dtype::F32 {
-        bail!("{}: tensor '{name}' is {:?}, expected F32", file.display(), view.dtype());
+        bail!(
+            "{}: tensor '{name}' is {:?}, expected F32",
+            file.display(),
+            view.dtype()
+        );
     }
     let data = view
         .data()
@@ -51,8 +59,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if a.onnx.is_some() && a.backend != BackendKind::Ort {
         bail!("--onnx needs --backend ort");
     }
-    let bytes = std::fs::read(&a.inputs).with_context(|| format!("cannot read {}", a.inputs.display()))?;
-    let st = SafeTensors::deserialize(&bytes).with_context(|| format!("{}: not a safetensors file", a.inputs.display()))?;
+    let bytes =
+        std::fs::read(&a.inputs).with_context(|| format!("cannot read {}", a.inputs.display()))?;
+    let st = SafeTensors::deserialize(&bytes)
+        .with_context(|| format!("{}: not a safetensors file", a.inputs.display()))?;
     let t0 = std::time::Instant::now();
     let (image, image_shape, selection, selection_shape) = match a.backend {
         BackendKind::Candle => {
@@ -62,7 +72,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             for l in 0..cfg.levels {
                 let (shape, data) = read_f32(&st, &input_name(l), &a.inputs)?;
                 if shape.len() != 5 {
-                    bail!("{}: '{}' must be [B, D, 4V, H, W], got {shape:?}", a.inputs.display(), input_name(l));
+                    bail!(
+                        "{}: '{}' must be [B, D, 4V, H, W], got {shape:?}",
+                        a.inputs.display(),
+                        input_name(l)
+                    );
                 }
                 inputs.push(Tensor::from_vec(data, shape, &Device::Cpu)?);
             }
@@ -81,7 +95,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
                     if let Some(m) = model {
                         let t = load_model(Some(m))?;
                         if t.model.config() != deepstereo_core::render::Backend::config(&b) {
-                            bail!("{} is not an export of {}: their configs differ", onnx.display(), m.display());
+                            bail!(
+                                "{} is not an export of {}: their configs differ",
+                                onnx.display(),
+                                m.display()
+                            );
                         }
                     }
                     b
@@ -92,9 +110,17 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             let inputs: Vec<(Vec<usize>, Vec<f32>)> = (0..levels)
                 .map(|l| read_f32(&st, &input_name(l), &a.inputs))
                 .collect::<anyhow::Result<_>>()?;
-            let refs: Vec<(&[usize], &[f32])> = inputs.iter().map(|(s, d)| (s.as_slice(), d.as_slice())).collect();
+            let refs: Vec<(&[usize], &[f32])> = inputs
+                .iter()
+                .map(|(s, d)| (s.as_slice(), d.as_slice()))
+                .collect();
             let out = backend.forward(&refs)?;
-            (out.image, out.image_shape, out.selection, out.selection_shape)
+            (
+                out.image,
+                out.image_shape,
+                out.selection,
+                out.selection_shape,
+            )
         }
     };
     eprintln!(
@@ -102,7 +128,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         a.backend,
         t0.elapsed().as_secs_f64()
     );
-    let meta = HashMap::from([("backend".to_string(), format!("{:?}", a.backend).to_lowercase())]);
+    let meta = HashMap::from([(
+        "backend".to_string(),
+        format!("{:?}", a.backend).to_lowercase(),
+    )]);
     write_safetensors(
         &a.out,
         &[

@@ -10,6 +10,7 @@ pub mod forward;
 pub mod model_args;
 pub mod render;
 pub mod report;
+pub mod synth;
 
 use clap::{Args, Parser, Subcommand};
 use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat};
@@ -43,6 +44,8 @@ pub enum Command {
     Export(export::Args),
     /// Run the network (candle or onnxruntime) on input tensors from a safetensors file.
     Forward(forward::Args),
+    /// Write procedural posed scenes (images, exact depths, transforms.json) for training.
+    Synth(synth::Args),
 }
 
 /// Runs one parsed command line.
@@ -57,6 +60,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Report(a) => report::run(a),
         Command::Export(a) => export::run(a),
         Command::Forward(a) => forward::run(a),
+        Command::Synth(a) => synth::run(a),
     }
 }
 

@@ -63,7 +63,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let scene = args.scene.load()?;
     let n = scene.views.len();
     if args.target >= n {
-        bail!("--target {} is out of range: the scene has {n} views", args.target);
+        bail!(
+            "--target {} is out of range: the scene has {n} views",
+            args.target
+        );
     }
     if n < 2 {
         bail!("the scene has only one view: a target needs at least one other view as source");
@@ -73,11 +76,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         eprintln!("note: only {} source views available", src_idx.len());
     }
     let target_img = scene.load_image(args.target)?;
-    let images: Vec<RgbImage> = src_idx.iter().map(|&i| scene.load_image(i)).collect::<Result<_, _>>()?;
+    let images: Vec<RgbImage> = src_idx
+        .iter()
+        .map(|&i| scene.load_image(i))
+        .collect::<Result<_, _>>()?;
     let sources: Vec<Source<'_>> = src_idx
         .iter()
         .zip(&images)
-        .map(|(&i, image)| Source { camera: &scene.views[i].camera, image })
+        .map(|(&i, image)| Source {
+            camera: &scene.views[i].camera,
+            image,
+        })
         .collect();
     let cam = &scene.views[args.target].camera;
     let inv = inverse_depths(scene.near, scene.far, planes);
@@ -151,8 +160,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     }
                     wsum += a;
                 }
-                for c in 0..3 {
-                    img.data[p * 3 + c] = if wsum > 0.0 { acc[c] / wsum } else { 0.0 };
+                for (c, x) in acc.iter().enumerate() {
+                    img.data[p * 3 + c] = if wsum > 0.0 { x / wsum } else { 0.0 };
                 }
             }
             img.save_png(&dir.join(format!("plane_{z:03}.png")))?;
