@@ -27,7 +27,6 @@ selection, relative to the output's magnitude for inputs around 1e4.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import subprocess
@@ -434,7 +433,7 @@ def main() -> int:
         if scene is not None:
             sweep_case(p, main_model, "procedural", scene, None, [])
         # Real scenes: few planes so that a whole-image tile stays small.
-        real = [("templeRing", 4, []), ("ethiopianHead", 1, [])]
+        real = [("templeRing", 4, []), ("ethiopianHead", 2, [])]
         for name, planes, extra in real:
             d = args.data / name
             if d.is_dir():

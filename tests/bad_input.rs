@@ -152,6 +152,20 @@ fn edit_rows(dir: &Path, cols: usize, f: impl Fn(&mut Vec<f64>)) {
         .expect("npy");
 }
 
+/// An `.npy` file with the given header dict and data bytes.
+fn npy_with_header(header: &str, data: &[u8]) -> Vec<u8> {
+    let mut h = header.to_string();
+    while (10 + h.len() + 1) % 64 != 0 {
+        h.push(' ');
+    }
+    h.push('\n');
+    let mut b = b"\x93NUMPY\x01\x00".to_vec();
+    b.extend((h.len() as u16).to_le_bytes());
+    b.extend(h.as_bytes());
+    b.extend_from_slice(data);
+    b
+}
+
 /// Replaces line `n` (0-based, counting every line) of a text file.
 fn edit_line(path: PathBuf, n: usize, f: impl Fn(&str) -> String) {
     edit_text(path, |s| {
@@ -370,6 +384,7 @@ fn cases() -> Vec<Case> {
             |d| edit_line(d.join("sparse/0/points3D.txt"), 2, |l| set_token(l, 2, "x")),
             &["points3D.txt:3", "bad Y 'x'"],
         ),
+        case("colmap txt: no images", ColmapText, |d| std::fs::write(d.join("sparse/0/images.txt"), "# nothing\n").expect("write"), &["scene", "no views"]),
         // ---- COLMAP binary ----
         case(
             "colmap bin: image count too large",
@@ -653,6 +668,7 @@ fn cases() -> Vec<Case> {
             },
             &["img_000.png", "1000000000"],
         ),
+        case("middlebury: empty file", Middlebury, |d| std::fs::write(d.join("scene_par.txt"), "").expect("write"), &["scene_par.txt", "empty file"]),
         // ---- any scene ----
         case("empty directory", Empty, |_| {}, &["unknown scene format"]),
         case(
@@ -729,6 +745,9 @@ fn cases() -> Vec<Case> {
         case("--planes 0", Llff, |_| {}, &["--planes"])
             .args(&["--planes", "0"])
             .sweep_only(),
+        case("--planes 10^11", Llff, |_| {}, &["100000000000 planes", "cannot be allocated"]).args(&["--planes", "100000000000"]).sweep_only(),
+        case("--planes 2^63", Llff, |_| {}, &["planes", "overflows"]).args(&["--planes", "9223372036854775807"]).sweep_only(),
+        case("--target -1", Llff, |_| {}, &["--target", "-1"]).args(&["--target=-1"]).sweep_only(),
         case("--views 0", Llff, |_| {}, &["--views"])
             .args(&["--views", "0"])
             .sweep_only(),

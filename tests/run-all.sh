@@ -10,9 +10,6 @@ echo "== cargo fmt / clippy"
 cargo fmt --all -- --check
 cargo clippy --release --workspace --all-targets -- -D warnings
 
-echo "== Rust tests"
-cargo test --release --workspace
-
 echo "== Python venv"
 VENV="$ROOT/.venv"
 STAMP="$VENV/.requirements.sha256"
@@ -23,8 +20,10 @@ if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; 
   echo "$WANT" > "$STAMP"
 fi
 
-if [ -f python/parity.py ]; then
-  echo "== Python parity (candle vs PyTorch vs onnxruntime vs ort)"
-  "$VENV/bin/python" python/parity.py --bin "$ROOT/target/release/deepstereo"
-fi
+echo "== Rust build and tests"
+cargo build --release --workspace --bins --examples
+cargo test --release --workspace
+
+echo "== Python parity (candle vs PyTorch vs onnxruntime vs ort)"
+"$VENV/bin/python" python/parity.py --bin "$ROOT/target/release/deepstereo"
 echo "== all tests passed"

@@ -12,6 +12,7 @@
 //!   removed from the images: [`Intrinsics::project_normalized`] applies it and
 //!   [`Intrinsics::unproject_pixel`] inverts it iteratively.
 
+use crate::imageio::MAX_IMAGE_SIDE;
 use glam::{DMat3, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
@@ -138,9 +139,9 @@ impl Intrinsics {
                 self.fx, self.fy
             ));
         }
-        if self.width == 0 || self.height == 0 {
+        if self.width == 0 || self.height == 0 || self.width > MAX_IMAGE_SIDE || self.height > MAX_IMAGE_SIDE {
             return Err(format!(
-                "image size must be positive, got {}x{}",
+                "unsupported image size {}x{} (each side must be 1 to {MAX_IMAGE_SIDE})",
                 self.width, self.height
             ));
         }

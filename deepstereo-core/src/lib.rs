@@ -23,3 +23,4 @@ pub mod baseline;
 pub mod viz;
 pub mod plot;
 pub mod synth;
+pub mod prune;

@@ -10,8 +10,10 @@ use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
 use crate::inputs::{tile_inputs, PyramidSource, TileInputs};
 use crate::model::DeepStereo;
+use crate::prune::{PruneStats, Pruner, TilePlan};
 use crate::sweep::CHANNELS;
 use candle_core::{Device, Tensor};
+use std::time::Instant;
 
 /// Runs the network on one tile's inputs.
 pub trait Backend: Sync {
@@ -65,6 +67,8 @@ pub struct Rendered {
     pub confidence: Vec<f32>,
     /// Selection-weighted fraction of sources that see the pixel, `[H, W]`.
     pub coverage: Vec<f32>,
+    /// What pruning left out (`None`: rendered unpruned).
+    pub prune: Option<PruneStats>,
 }
 
 /// Renders the full `target` image tile by tile. `tile` is rounded up to the model's
@@ -75,6 +79,22 @@ pub fn render_view(
     sources: &[&PyramidSource],
     inv_depths: &[f64],
     tile: usize,
+    progress: &dyn Fn(usize, usize),
+) -> Result<Rendered> {
+    render_view_pruned(backend, target, sources, inv_depths, tile, None, progress)
+}
+
+/// [`render_view`], with the tiles planned by `pruner` (see [`crate::prune`]): the network
+/// runs only on each tile's band of planes (the selection is 0 outside it), and not at all
+/// on tiles no source covers or whose sources are constant there. `None`: every plane of
+/// every tile, exactly [`render_view`].
+pub fn render_view_pruned(
+    backend: &dyn Backend,
+    target: &Camera,
+    sources: &[&PyramidSource],
+    inv_depths: &[f64],
+    tile: usize,
+    pruner: Option<&Pruner<'_>>,
     progress: &dyn Fn(usize, usize),
 ) -> Result<Rendered> {
     let cfg = backend.config();
@@ -90,49 +110,124 @@ pub fn render_view(
         depth: vec![0.0; w * h],
         confidence: vec![0.0; w * h],
         coverage: vec![0.0; w * h],
+        prune: None,
     };
     let (ntx, nty) = (w.div_ceil(tile), h.div_ceil(tile));
     let total = ntx * nty;
     let v = cfg.views;
+    let mut stats = PruneStats { tiles: total, planes_total: total * d, ..PruneStats::default() };
+    let mut empty: Option<(Vec<f32>, Vec<f32>)> = None;
     for ty in 0..nty {
         for tx in 0..ntx {
             let (x0, y0) = (tx * tile, ty * tile);
-            let inputs = tile_inputs(cfg, target, sources, inv_depths, (x0 as i64, y0 as i64), (tile, tile))?;
-            let (img, sel) = backend.run(&inputs, d)?;
-            if img.iter().chain(&sel).any(|x| !x.is_finite()) {
-                return Err(Error::Invalid(format!(
-                    "the network produced non-finite values in the tile at ({x0}, {y0})"
-                )));
-            }
-            let (ih, iw) = inputs.sizes[0];
-            let p = cfg.pad(0);
-            let tt = tile * tile;
-            for yy in 0..tile.min(h - y0) {
-                for xx in 0..tile.min(w - x0) {
-                    let o = yy * tile + xx;
-                    let pix = (y0 + yy) * w + x0 + xx;
-                    for ch in 0..3 {
-                        out.image.data[pix * 3 + ch] = img[ch * tt + o].clamp(0.0, 1.0);
+            let t0 = Instant::now();
+            let plan = pruner.map_or(TilePlan::Band { first: 0, last: d - 1 }, |p| p.plan(x0, y0, tile));
+            stats.coarse_seconds += t0.elapsed().as_secs_f64();
+            let rows = y0..(y0 + tile).min(h);
+            let cols = x0..(x0 + tile).min(w);
+            match plan {
+                TilePlan::Uncovered => {
+                    stats.uncovered += 1;
+                    if empty.is_none() {
+                        empty = Some(empty_response(backend, d)?);
                     }
-                    let (mut rho, mut best, mut cov) = (0.0f64, 0.0f32, 0.0f32);
-                    for (z, r) in inv_depths.iter().enumerate() {
-                        let s = sel[z * tt + o];
-                        rho += s as f64 * r;
-                        best = best.max(s);
-                        let mut alpha = 0.0;
-                        for k in 0..v {
-                            let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
-                            alpha += inputs.levels[0][base + (yy + p) * iw + xx + p];
+                    let (img, sel) = empty.as_ref().map(|(i, s)| (i.as_slice(), s.as_slice())).unwrap_or_default();
+                    for y in rows.clone() {
+                        for x in cols.clone() {
+                            let pix = y * w + x;
+                            out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(img);
+                            let (rho, best) = expectation(inv_depths, 0, sel.iter().copied());
+                            write_depth(&mut out, pix, rho, best, 0.0);
                         }
-                        cov += s * alpha / v as f32;
                     }
-                    out.depth[pix] = if rho > 0.0 { (1.0 / rho) as f32 } else { f32::INFINITY };
-                    out.confidence[pix] = best;
-                    out.coverage[pix] = cov;
+                }
+                TilePlan::Flat { colour, coverage } => {
+                    stats.flat += 1;
+                    let (z0, z1) = pruner.map_or((0, d - 1), |p| p.range());
+                    let p = 1.0 / (z1 + 1 - z0) as f32;
+                    for y in rows.clone() {
+                        for x in cols.clone() {
+                            let pix = y * w + x;
+                            out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(&colour);
+                            let (rho, best) = expectation(inv_depths, z0, (z0..=z1).map(|_| p));
+                            write_depth(&mut out, pix, rho, best, coverage);
+                        }
+                    }
+                }
+                TilePlan::Band { first, last } => {
+                    let band = &inv_depths[first..=last];
+                    let nb = band.len();
+                    stats.planes_run += nb;
+                    let inputs = tile_inputs(cfg, target, sources, band, (x0 as i64, y0 as i64), (tile, tile))?;
+                    let (img, sel) = backend.run(&inputs, nb)?;
+                    if img.iter().chain(&sel).any(|x| !x.is_finite()) {
+                        return Err(Error::Invalid(format!(
+                            "the network produced non-finite values in the tile at ({x0}, {y0})"
+                        )));
+                    }
+                    let (ih, iw) = inputs.sizes[0];
+                    let p = cfg.pad(0);
+                    let tt = tile * tile;
+                    for yy in 0..rows.len() {
+                        for xx in 0..cols.len() {
+                            let o = yy * tile + xx;
+                            let pix = (y0 + yy) * w + x0 + xx;
+                            for ch in 0..3 {
+                                out.image.data[pix * 3 + ch] = img[ch * tt + o].clamp(0.0, 1.0);
+                            }
+                            let (mut rho, mut best, mut cov) = (0.0f64, 0.0f32, 0.0f32);
+                            for (z, r) in band.iter().enumerate() {
+                                let s = sel[z * tt + o];
+                                rho += s as f64 * r;
+                                best = best.max(s);
+                                let mut alpha = 0.0;
+                                for k in 0..v {
+                                    let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
+                                    alpha += inputs.levels[0][base + (yy + p) * iw + xx + p];
+                                }
+                                cov += s * alpha / v as f32;
+                            }
+                            write_depth(&mut out, pix, rho, best, cov);
+                        }
+                    }
                 }
             }
             progress(ty * ntx + tx + 1, total);
         }
     }
+    if let Some(p) = pruner {
+        stats.depth_range = Some(p.range()).filter(|&r| r != (0, d - 1));
+        out.prune = Some(stats);
+    }
     Ok(out)
+}
+
+/// Expected inverse depth and largest probability of a selection starting at plane `z0`.
+fn expectation(inv_depths: &[f64], z0: usize, sel: impl Iterator<Item = f32>) -> (f64, f32) {
+    let (mut rho, mut best) = (0.0f64, 0.0f32);
+    for (s, r) in sel.zip(&inv_depths[z0..]) {
+        rho += s as f64 * r;
+        best = best.max(s);
+    }
+    (rho, best)
+}
+
+fn write_depth(out: &mut Rendered, pix: usize, rho: f64, best: f32, coverage: f32) {
+    out.depth[pix] = if rho > 0.0 { (1.0 / rho) as f32 } else { f32::INFINITY };
+    out.confidence[pix] = best;
+    out.coverage[pix] = coverage;
+}
+
+/// The network's colour and selection `[D]` for a pixel whose inputs are all empty (no
+/// source covers it at any plane): every such pixel gets exactly these, so one minimal
+/// tile gives them.
+pub fn empty_response(backend: &dyn Backend, planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
+    let cfg = backend.config();
+    let a = cfg.tile_align();
+    let c = cfg.in_channels();
+    let sizes: Vec<(usize, usize)> = (0..cfg.levels).map(|l| (cfg.input_size(l, a), cfg.input_size(l, a))).collect();
+    let levels = sizes.iter().map(|(h, w)| vec![0.0f32; planes * c * h * w]).collect();
+    let (img, sel) = backend.run(&TileInputs { levels, sizes }, planes)?;
+    let n = a * a;
+    Ok(((0..3).map(|ch| img[ch * n].clamp(0.0, 1.0)).collect(), (0..planes).map(|z| sel[z * n]).collect()))
 }

@@ -13,6 +13,7 @@
 //! not in front of the source camera gets RGBA = 0.
 
 use crate::camera::{Camera, Intrinsics, WorldToCamera};
+use crate::error::{Error, Result};
 use crate::geometry::{apply_h, plane_homography};
 use crate::imageio::RgbImage;
 use glam::DVec2;
@@ -102,6 +103,31 @@ pub fn sweep_into(
             let h = plane_homography(&rels[k], inv_depths[d]);
             warp_slice(&h, &rays, &sources[k], chunk);
         });
+}
+
+/// A zeroed `[D, V, 4, h, w]` buffer for [`sweep_into`], or an error naming the size when
+/// it overflows or cannot be allocated (a huge `--planes` must not abort the process).
+pub fn alloc_volume(planes: usize, views: usize, region: Region) -> Result<Vec<f32>> {
+    let len = [planes, views, CHANNELS, region.width, region.height]
+        .iter()
+        .try_fold(1usize, |a, &b| a.checked_mul(b));
+    let too_big = |detail: String| {
+        Error::Invalid(format!(
+            "a plane-sweep volume of {planes} planes x {views} views x {CHANNELS} x {}x{} \
+             f32 {detail}",
+            region.width, region.height
+        ))
+    };
+    let len = len.ok_or_else(|| too_big("overflows the address space".into()))?;
+    let mut v = Vec::new();
+    v.try_reserve_exact(len).map_err(|_| {
+        too_big(format!(
+            "({:.1} GiB) cannot be allocated",
+            len as f64 * 4.0 / (1u64 << 30) as f64
+        ))
+    })?;
+    v.resize(len, 0.0);
+    Ok(v)
 }
 
 /// Allocating wrapper of [`sweep_into`].

@@ -97,8 +97,7 @@ pub fn find_onnxruntime() -> Result<PathBuf> {
             p.display()
         )));
     }
-    let roots = search_roots();
-    for root in &roots {
+    for root in search_roots() {
         let venv = root.join(".venv");
         if venv.is_dir() {
             if let Some(lib) = venv_libraries(&venv).into_iter().next() {
@@ -106,12 +105,12 @@ pub fn find_onnxruntime() -> Result<PathBuf> {
             }
         }
     }
-    Err(Error::OrtLibrary(format!(
-        "libonnxruntime not found: set ORT_DYLIB_PATH to libonnxruntime.so, or run `bash tests/run-all.sh` \
-         once in the repository to create .venv with the onnxruntime Python package (searched .venv in {} \
-         and their parents)",
-        roots.first().map(|r| r.display().to_string()).unwrap_or_else(|| "the current directory".into())
-    )))
+    Err(Error::OrtLibrary(
+        "libonnxruntime not found: set ORT_DYLIB_PATH to libonnxruntime.so, or run `bash tests/run-all.sh` once in \
+         the repository to create .venv with the onnxruntime Python package (searched for .venv in the current \
+         directory, the executable's directory and their parents)"
+            .into(),
+    ))
 }
 
 /// The process's one onnxruntime environment (ort allows one per process) and the library

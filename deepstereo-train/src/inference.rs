@@ -257,6 +257,6 @@ pub fn model_name(model: Option<&PathBuf>) -> String {
 pub fn make_backend(kind: BackendKind, model: Option<&Path>) -> Result<Box<dyn Backend>> {
     match kind {
         BackendKind::Candle => Ok(Box::new(candle_backend(model)?)),
-        BackendKind::Ort => bail!("--backend ort is not available in this build yet"),
+        BackendKind::Ort => Ok(Box::new(deepstereo_export::OrtBackend::from_model(&crate::cmd::export::load_model(model)?)?)),
     }
 }

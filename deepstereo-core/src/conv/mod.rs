@@ -6,6 +6,7 @@
 //! # Design
 //! DESIGN_PLACEHOLDER
 
+mod im2col;
 mod kernels;
 mod op;
 #[cfg(test)]

@@ -1,7 +1,8 @@
 //! The convolution as a candle `CustomOp3` `(x, weight, bias) -> y`, whose backward calls
 //! the kernels directly.
 
-use super::kernels::{self, Geom};
+use super::im2col::Geom;
+use super::kernels;
 use candle_core::{bail, CpuStorage, CustomOp3, DType, Layout, Result, Shape, Storage, Tensor, WithDType};
 
 /// Whether [`conv2d`] runs these inputs (CPU, f32 or f64); otherwise use candle's conv2d.

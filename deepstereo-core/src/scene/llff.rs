@@ -26,7 +26,6 @@
 use super::{make_view, RawScene};
 use crate::camera::{CameraToWorld, Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};
-use crate::imageio::MAX_IMAGE_SIDE;
 use glam::{DMat3, DVec3};
 use std::path::{Path, PathBuf};
 
@@ -81,11 +80,7 @@ pub fn read(dir: &Path, factor: Option<u32>) -> Result<RawScene> {
     let first = images
         .first()
         .ok_or_else(|| Error::format(&folder, "no images found"))?;
-    let (w, h) = image::image_dimensions(first)
-        .map_err(|e| Error::image(first, format!("cannot read the image size: {e}")))?;
-    if w == 0 || h == 0 || w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE {
-        return Err(Error::image(first, format!("unsupported image size {w}x{h}")));
-    }
+    let (w, h) = super::image_size(first)?;
     notes.push(format!("{folder_note} ({rows} images of {w}x{h})"));
 
     let mut views = Vec::with_capacity(rows);

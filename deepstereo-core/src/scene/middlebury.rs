@@ -71,8 +71,7 @@ pub fn read(dir: &Path) -> Result<RawScene> {
             return Err(Error::parse(&file, Some(lineno), "K must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)"));
         }
         let image_path = dir.join(&name);
-        let (w, h) = image::image_dimensions(&image_path)
-            .map_err(|e| Error::image(&image_path, format!("cannot read the image header: {e}")))?;
+        let (w, h) = super::image_size(&image_path)?;
         let intrinsics = Intrinsics::pinhole(k[0], k[4], k[2], k[5], w, h);
         let r = &vals[9..18];
         let rot = DMat3::from_cols(

@@ -12,7 +12,7 @@ pub mod npy;
 
 use crate::camera::{Camera, Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};
-use crate::imageio::RgbImage;
+use crate::imageio::{RgbImage, MAX_IMAGE_SIDE};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -137,6 +137,7 @@ impl Scene {
                 raw.notes.push("depth bounds from the bounding box in README.txt".to_string());
             }
         }
+        check_image_headers(&raw.views)?;
         Self::from_raw(dir, format, raw, opts)
     }
 
@@ -191,10 +192,13 @@ impl Scene {
     }
 
     /// Indices of the `k` views whose camera centres are nearest to view `target`'s,
-    /// excluding `target` itself, nearest first (ties broken by index).
+    /// excluding `target` itself, nearest first (ties broken by index); empty when `target`
+    /// is out of range.
     pub fn nearest_views(&self, target: usize, k: usize) -> Vec<usize> {
-        let c = self.views[target].camera.pose.centre();
-        nearest_to_point(&self.views, c, k, Some(target))
+        match self.views.get(target) {
+            Some(v) => nearest_to_point(&self.views, v.camera.pose.centre(), k, Some(target)),
+            None => Vec::new(),
+        }
     }
 }
 
@@ -261,6 +265,49 @@ pub fn detect(dir: &Path) -> Result<SceneFormat> {
         "unknown scene format: expected poses_bounds.npy (LLFF), transforms.json (NeRF), \
          sparse/0/ or sparse/ (COLMAP) or *_par.txt (Middlebury); use --format to force one",
     ))
+}
+
+/// The size in an image file's header (PNG or JPEG, detected from the content, else the
+/// extension), without decoding the pixels. The decoder's memory limit is lifted for the
+/// header only, so that a header claiming a huge size is reported as such; sides must be
+/// within `1..=MAX_IMAGE_SIDE`.
+pub fn image_size(path: &Path) -> Result<(u32, u32)> {
+    let reader = image::ImageReader::open(path)
+        .map_err(|e| Error::image(path, format!("cannot open the image: {e}")))?;
+    let mut reader = reader
+        .with_guessed_format()
+        .map_err(|e| Error::image(path, format!("cannot read the image: {e}")))?;
+    reader.no_limits();
+    let (w, h) = reader
+        .into_dimensions()
+        .map_err(|e| Error::image(path, format!("cannot read the image header: {e}")))?;
+    if w == 0 || h == 0 || w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE {
+        return Err(Error::image(
+            path,
+            format!("unsupported image size {w}x{h} (each side must be 1 to {MAX_IMAGE_SIDE})"),
+        ));
+    }
+    Ok((w, h))
+}
+
+/// Checks that every view's image exists, has a readable header and the size its camera
+/// expects, so that a scene that loads has usable images (the pixels are decoded, and
+/// checked again, only when an image is loaded).
+pub fn check_image_headers(views: &[View]) -> Result<()> {
+    for v in views {
+        let (w, h) = image_size(&v.image_path)?;
+        let k = &v.camera.intrinsics;
+        if (w, h) != (k.width, k.height) {
+            return Err(Error::image(
+                &v.image_path,
+                format!(
+                    "image is {w}x{h} but the camera of view '{}' expects {}x{}",
+                    v.name, k.width, k.height
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Helper for readers: a pose error attributed to a file and view.

@@ -180,8 +180,7 @@ fn intrinsics(top: &Map<String, Value>, frame: &Map<String, Value>, image: &Path
     }
     let (w, h) = match (side(top, frame, "w")?, side(top, frame, "h")?) {
         (Some(w), Some(h)) => (w, h),
-        _ => image::image_dimensions(image)
-            .map_err(|e| format!("no 'w'/'h' and cannot read the size of {}: {e}", image.display()))?,
+        _ => super::image_size(image).map_err(|e| format!("no 'w'/'h' and {e}"))?,
     };
     let from_angle = |obj: &Map<String, Value>, key: &str, size: u32| -> std::result::Result<Option<f64>, String> {
         match number(obj, key)? {

@@ -27,7 +27,7 @@ const SLANT_ODDS: [f64; 3] = [0.35, 0.4, 0.25];
 /// Slant ranges of those classes (degrees from facing the camera).
 const SLANT_DEG: [(f64, f64); 3] = [(0.0, 8.0), (15.0, 50.0), (55.0, 75.0)];
 /// Half-size of a rectangle as a fraction of the view width at its depth.
-const PANEL_SIZE: (f64, f64) = (0.06, 0.28);
+const PANEL_SIZE: (f64, f64) = (0.05, 0.24);
 /// Ratio of a rectangle's sides.
 const PANEL_ASPECT: (f64, f64) = (0.4, 2.5);
 /// Width of thin structures in pixels (of the view they are placed from).

@@ -32,6 +32,8 @@ struct Local<'a> {
     hv: f64,
     /// `[x0, x1, y0, y1]` in pixels.
     bbox: [f64; 4],
+    /// A lower bound of the depth of any of its points in the view.
+    zmin: f64,
     surf: &'a Surface,
 }
 
@@ -42,12 +44,18 @@ fn localize<'a>(cam: &Camera, s: &'a Surface) -> Option<Local<'a>> {
     let k = &cam.intrinsics;
     let (w, h) = (k.width as f64, k.height as f64);
     let full = [f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY];
+    // Rays through the image have |d| <= d_max, and hit the plane at distance >= |n . c|.
+    let corner = |u: f64, v: f64| k.unproject_pixel(DVec2::new(u, v)).length_squared();
+    let d_max = (1.0 + corner(0.0, 0.0).max(corner(w, 0.0)).max(corner(0.0, h)).max(corner(w, h))).sqrt();
+    let mut zmin = n.dot(c).abs() / d_max;
     let bbox = if s.half_u.is_finite() && s.half_v.is_finite() {
         let (du, dv) = (u * s.half_u, v * s.half_v);
         let corners = [c - du - dv, c + du - dv, c + du + dv, c - du + dv];
         if corners.iter().all(|p| p.z <= 0.0) {
             return None;
         }
+        // Depth is linear over the rectangle: its smallest value is at a corner.
+        zmin = zmin.max(corners.iter().fold(f64::INFINITY, |m, p| m.min(p.z)));
         if corners.iter().any(|p| p.z <= BEHIND_EPS) {
             full
         } else {
@@ -64,14 +72,19 @@ fn localize<'a>(cam: &Camera, s: &'a Surface) -> Option<Local<'a>> {
     if bbox[1] < 0.0 || bbox[0] > w || bbox[3] < 0.0 || bbox[2] > h {
         return None;
     }
-    Some(Local { c, u, v, n, nc: n.dot(c), hu: s.half_u, hv: s.half_v, bbox, surf: s })
+    Some(Local { c, u, v, n, nc: n.dot(c), hu: s.half_u, hv: s.half_v, bbox, zmin, surf: s })
 }
 
-/// Nearest hit of the ray `d = (x, y, 1)`: its depth and surface.
+/// Nearest hit of the ray `d = (x, y, 1)` among `locals[cands]` (sorted by `zmin`): its
+/// depth and index.
 #[inline]
-fn trace<'a, 'b>(d: DVec3, cands: &[&'b Local<'a>]) -> Option<(f64, &'b Local<'a>)> {
-    let mut best: Option<(f64, &Local)> = None;
-    for &l in cands {
+fn trace(d: DVec3, locals: &[Local], cands: &[usize]) -> Option<(f64, usize)> {
+    let mut best: Option<(f64, usize)> = None;
+    for &i in cands {
+        let l = &locals[i];
+        if best.is_some_and(|(bt, _)| l.zmin >= bt) {
+            break;
+        }
         let denom = l.n.dot(d);
         if denom.abs() < PARALLEL_EPS {
             continue;
@@ -82,7 +95,7 @@ fn trace<'a, 'b>(d: DVec3, cands: &[&'b Local<'a>]) -> Option<(f64, &'b Local<'a
         }
         let q = d * t - l.c;
         if q.dot(l.u).abs() <= l.hu && q.dot(l.v).abs() <= l.hv {
-            best = Some((t, l));
+            best = Some((t, i));
         }
     }
     best
@@ -90,6 +103,11 @@ fn trace<'a, 'b>(d: DVec3, cands: &[&'b Local<'a>]) -> Option<(f64, &'b Local<'a
 
 /// Renders one view: its image (times the exposure `gain`, clamped to [0, 1]) and its
 /// depth map, `[H * W]` camera z of the pixel-centre rays.
+///
+/// Every sub-pixel ray finds its nearest surface (exact coverage, box filtered).
+/// Procedural textures are prefiltered by their footprint, so the sub-rays of a pixel
+/// that hit the same surface share one texture lookup at their mean hit point with the
+/// footprint of the whole pixel; photo textures are looked up per sub-ray.
 pub(crate) fn render(
     cam: &Camera,
     surfaces: &[Surface],
@@ -99,64 +117,90 @@ pub(crate) fn render(
 ) -> Result<(RgbImage, Vec<f32>)> {
     let k = &cam.intrinsics;
     let (w, h) = (k.width as usize, k.height as usize);
-    let locals: Vec<Local> = surfaces.iter().filter_map(|s| localize(cam, s)).collect();
+    let mut locals: Vec<Local> = surfaces.iter().filter_map(|s| localize(cam, s)).collect();
+    locals.sort_by(|a, b| a.zmin.total_cmp(&b.zmin));
     let ss = supersample.max(1) as usize;
-    let inv_ss = 1.0 / ss as f64;
-    let f_mean = 0.5 * (k.fx + k.fy);
-    // Footprint of one sub-sample ray per unit of ray length, in world units.
-    let sample_angle = inv_ss / f_mean;
+    let ssf = ss as f64;
+    // Angle of one pixel and of one sub-pixel ray.
+    let pixel_angle = 2.0 / (k.fx + k.fy);
+    let sample_angle = pixel_angle / ssf;
     let weight = gain / (ss * ss) as f32;
     let mut image = RgbImage::new(k.width, k.height);
     let mut depth = vec![0f32; w * h];
-    let mut row: Vec<&Local> = Vec::with_capacity(locals.len());
-    let mut cands: Vec<&Local> = Vec::with_capacity(locals.len());
+    let mut row: Vec<usize> = Vec::with_capacity(locals.len());
+    let mut cands: Vec<usize> = Vec::with_capacity(locals.len());
+    // Per pixel: (surface, sum of hit points, count) of the prefiltered hits.
+    let mut groups: Vec<(usize, DVec3, u32)> = Vec::with_capacity(ss * ss);
+    let ray = |x: f64, y: f64| {
+        let n = k.unproject_pixel(DVec2::new(x, y));
+        DVec3::new(n.x, n.y, 1.0)
+    };
+    let missed = |px: usize, py: usize| Error::Invalid(format!("synth: a ray through pixel ({px}, {py}) hit nothing"));
     for py in 0..h {
         let (y0, y1) = (py as f64, py as f64 + 1.0);
         row.clear();
-        row.extend(locals.iter().filter(|l| l.bbox[2] <= y1 && l.bbox[3] >= y0));
+        row.extend((0..locals.len()).filter(|&i| locals[i].bbox[2] <= y1 && locals[i].bbox[3] >= y0));
         for px in 0..w {
             let (x0, x1) = (px as f64, px as f64 + 1.0);
             cands.clear();
-            cands.extend(row.iter().copied().filter(|l| l.bbox[0] <= x1 && l.bbox[1] >= x0));
-            let ray = |x: f64, y: f64| {
-                let n = k.unproject_pixel(DVec2::new(x, y));
-                DVec3::new(n.x, n.y, 1.0)
-            };
-            let (t, _) = trace(ray(x0 + 0.5, y0 + 0.5), &cands).ok_or_else(|| {
-                Error::Invalid(format!("synth: the ray through pixel ({px}, {py}) hit nothing"))
-            })?;
-            depth[py * w + px] = t as f32;
+            cands.extend(row.iter().copied().filter(|&i| locals[i].bbox[0] <= x1 && locals[i].bbox[1] >= x0));
+            if ss % 2 == 0 {
+                let (t, _) = trace(ray(x0 + 0.5, y0 + 0.5), &locals, &cands).ok_or_else(|| missed(px, py))?;
+                depth[py * w + px] = t as f32;
+            }
             let mut acc = [0f32; 3];
+            groups.clear();
             for sy in 0..ss {
                 for sx in 0..ss {
-                    let d = ray(x0 + (sx as f64 + 0.5) * inv_ss, y0 + (sy as f64 + 0.5) * inv_ss);
-                    let (t, l) = trace(d, &cands).ok_or_else(|| {
-                        Error::Invalid(format!("synth: a sub-pixel ray of ({px}, {py}) hit nothing"))
-                    })?;
-                    let c = shade(d, t, l, sample_angle, photos);
-                    for (a, v) in acc.iter_mut().zip(c) {
-                        *a += v;
+                    // With odd `ss` the middle sub-ray is exactly the pixel-centre ray.
+                    let d = ray(x0 + (sx as f64 + 0.5) / ssf, y0 + (sy as f64 + 0.5) / ssf);
+                    let (t, i) = trace(d, &locals, &cands).ok_or_else(|| missed(px, py))?;
+                    if ss % 2 == 1 && sx == ss / 2 && sy == ss / 2 {
+                        depth[py * w + px] = t as f32;
+                    }
+                    let p = d * t;
+                    if locals[i].surf.texture.prefiltered() {
+                        match groups.iter_mut().find(|g| g.0 == i) {
+                            Some(g) => {
+                                g.1 += p;
+                                g.2 += 1;
+                            }
+                            None => groups.push((i, p, 1)),
+                        }
+                    } else {
+                        add(&mut acc, shade(p, &locals[i], sample_angle, photos), 1.0);
                     }
                 }
             }
-            let i = (py * w + px) * 3;
-            for (o, a) in image.data[i..i + 3].iter_mut().zip(acc) {
-                *o = (a * weight).clamp(0.0, 1.0);
+            for &(i, sum, n) in &groups {
+                add(&mut acc, shade(sum / n as f64, &locals[i], pixel_angle, photos), n as f32);
+            }
+            let o = (py * w + px) * 3;
+            for (out, a) in image.data[o..o + 3].iter_mut().zip(acc) {
+                *out = (a * weight).clamp(0.0, 1.0);
             }
         }
     }
     Ok((image, depth))
 }
 
-/// Colour of the hit at depth `t` along `d` on `l`.
 #[inline]
-fn shade(d: DVec3, t: f64, l: &Local, sample_angle: f64, photos: &[RgbImage]) -> [f32; 3] {
+fn add(acc: &mut [f32; 3], c: [f32; 3], n: f32) {
+    for (a, v) in acc.iter_mut().zip(c) {
+        *a += v * n;
+    }
+}
+
+/// Colour of the point `p` (camera coordinates) of surface `l`, for a sample covering
+/// `angle` radians.
+#[inline]
+fn shade(p: DVec3, l: &Local, angle: f64, photos: &[RgbImage]) -> [f32; 3] {
     let s = l.surf;
-    let q = d * t - l.c;
+    let q = p - l.c;
     let (a, b) = (q.dot(l.u), q.dot(l.v));
-    let len2 = d.length_squared();
-    let cos = (l.n.dot(d).abs() / len2.sqrt()).max(MIN_COS);
-    let fp = t * len2.sqrt() * sample_angle / cos / s.tex_scale;
+    let dist = p.length();
+    let cos = (l.n.dot(p).abs() / dist).max(MIN_COS);
+    let fp = dist * angle / cos / s.tex_scale;
     let c = s.texture.eval(
         (a / s.tex_scale + 0.5) as f32,
         (b / s.tex_scale + 0.5) as f32,

@@ -419,3 +419,43 @@ fn synth_debug_rosette() -> TestResult {
     }
     Ok(())
 }
+
+#[test]
+#[ignore]
+fn synth_debug_many() -> TestResult {
+    for rig in Rig::CONCRETE {
+        let mut mins = Vec::new();
+        let mut errs = 0;
+        for seed in 0..300 {
+            match generate(scene_seed(1234, seed), &SynthOptions { supersample: 1, ..small(rig, 10, 64, 48) }) {
+                Ok(s) => {
+                    let m = (0..s.cameras.len()).map(|t| coverage(&s, t)).fold((1.0f64, 1.0f64), |a, b| (a.0.min(b.0), a.1.min(b.1)));
+                    mins.push(m);
+                }
+                Err(e) => { errs += 1; println!("{rig} seed {seed}: {e}"); }
+            }
+        }
+        mins.sort_by(|a, b| a.1.total_cmp(&b.1));
+        let n = mins.len();
+        println!("{rig}: errors {errs}; >=2 coverage worst {:?} p5 {:?} p50 {:?}", mins[0], mins[n / 20], mins[n / 2]);
+    }
+    Ok(())
+}
+
+#[test]
+#[ignore]
+fn synth_debug_extremes() -> TestResult {
+    for rig in Rig::CONCRETE {
+        for (v, w, h) in [(2, 1, 1), (2, 17, 300), (40, 32, 24), (3, 300, 17)] {
+            for seed in 0..20 {
+                let s = generate(seed, &SynthOptions { supersample: 2, ..small(rig, v, w, h) })?;
+                assert_eq!(s.cameras.len(), v);
+                if v == 40 && seed == 0 {
+                    let m = (0..s.cameras.len()).map(|t| coverage(&s, t)).fold((1.0f64, 1.0f64), |a, b| (a.0.min(b.0), a.1.min(b.1)));
+                    println!("{rig} 40 views: {m:?} near {} far {}", s.near, s.far);
+                }
+            }
+        }
+    }
+    Ok(())
+}

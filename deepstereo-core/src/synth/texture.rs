@@ -104,6 +104,15 @@ fn smoothstep(e0: f32, e1: f32, x: f32) -> f32 {
     t * t * (3.0 - 2.0 * t)
 }
 
+/// `floor(x)` as a float and an integer, without a libm call (inputs are far inside the
+/// i32 range).
+#[inline]
+fn floor_i(x: f32) -> (f32, i32) {
+    let i = x as i32;
+    let i = if (i as f32) > x { i - 1 } else { i };
+    (i as f32, i)
+}
+
 #[inline]
 fn quintic(t: f32) -> f32 {
     t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
@@ -120,8 +129,7 @@ fn hash2(x: i32, y: i32, seed: u32) -> u32 {
 /// Value noise in [-1, 1].
 #[inline]
 fn value_noise(x: f32, y: f32, seed: u32) -> f32 {
-    let (fx, fy) = (x.floor(), y.floor());
-    let (ix, iy) = (fx as i32, fy as i32);
+    let ((fx, ix), (fy, iy)) = (floor_i(x), floor_i(y));
     let (tx, ty) = (quintic(x - fx), quintic(y - fy));
     let l = |dx: i32, dy: i32| (hash2(ix + dx, iy + dy, seed) >> 8) as f32 * (2.0 / 16_777_216.0) - 1.0;
     let a = l(0, 0) + (l(1, 0) - l(0, 0)) * tx;
@@ -136,8 +144,7 @@ fn gradient_noise(x: f32, y: f32, seed: u32) -> f32 {
         [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0],
         [0.7071, 0.7071], [-0.7071, 0.7071], [0.7071, -0.7071], [-0.7071, -0.7071],
     ];
-    let (fx, fy) = (x.floor(), y.floor());
-    let (ix, iy) = (fx as i32, fy as i32);
+    let ((fx, ix), (fy, iy)) = (floor_i(x), floor_i(y));
     let (rx, ry) = (x - fx, y - fy);
     let g = |dx: i32, dy: i32| {
         let d = DIRS[(hash2(ix + dx, iy + dy, seed) >> 29) as usize];
@@ -194,10 +201,10 @@ impl Fbm {
 #[inline]
 fn box_square(x: f32, w: f32, duty: f32) -> f32 {
     if w < MIN_FILTER_WIDTH {
-        return if x - x.floor() < duty { 1.0 } else { 0.0 };
+        return if x - floor_i(x).0 < duty { 1.0 } else { 0.0 };
     }
     let (a, b) = (x - 0.5 * w, x + 0.5 * w);
-    let (fa, fb) = (a.floor(), b.floor());
+    let (fa, fb) = (floor_i(a).0, floor_i(b).0);
     (((fb - fa) * duty + (b - fb).min(duty) - (a - fa).min(duty)) / w).clamp(0.0, 1.0)
 }
 
@@ -291,6 +298,12 @@ impl Texture {
         }
     }
 
+    /// Whether the texture filters itself by the footprint (procedural patterns do; photo
+    /// crops are point-sampled and need supersampling).
+    pub fn prefiltered(&self) -> bool {
+        !matches!(self.pattern, Pattern::Photo { .. })
+    }
+
     /// Colour at texture coordinates `(u, v)` for a sample of footprint `fp`.
     pub fn eval(&self, u: f32, v: f32, fp: f32, photos: &[RgbImage]) -> [f32; 3] {
         let (cu, cv) = (u - 0.5, v - 0.5);
@@ -342,7 +355,7 @@ fn sample_photo(img: &RgbImage, x: f32, y: f32) -> [f32; 3] {
     }
     let sx = (x - 0.5).clamp(0.0, (w - 1) as f32);
     let sy = (y - 0.5).clamp(0.0, (h - 1) as f32);
-    let (x0, y0) = (sx.floor() as usize, sy.floor() as usize);
+    let (x0, y0) = (sx as usize, sy as usize); // sx, sy >= 0: truncation is floor
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
     let (ax, ay) = (sx - x0 as f32, sy - y0 as f32);
     let px = |xx: usize, yy: usize| {

@@ -123,15 +123,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             )
         }
     };
+    let backend = format!("{:?}", a.backend).to_lowercase();
     eprintln!(
-        "forward ({:?}) in {:.3} s: image {image_shape:?}, selection {selection_shape:?}",
-        a.backend,
+        "forward ({backend}) in {:.3} s: image {image_shape:?}, selection {selection_shape:?}",
         t0.elapsed().as_secs_f64()
     );
-    let meta = HashMap::from([(
-        "backend".to_string(),
-        format!("{:?}", a.backend).to_lowercase(),
-    )]);
+    let meta = HashMap::from([("backend".to_string(), backend)]);
     write_safetensors(
         &a.out,
         &[

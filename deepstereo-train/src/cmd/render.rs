@@ -38,7 +38,7 @@ pub struct Args {
     /// Frames of --path.
     #[arg(long, default_value_t = 30)]
     pub frames: usize,
-    /// Output directory: image.png, depth.png (colour-mapped), depth.npy (raw, [H, W] f32),
+    /// Output directory: image.png (and image.npy, [H, W, 3] f32), depth.png (colour-mapped), depth.npy (raw, [H, W] f32),
     /// confidence.png, coverage.png; with --path, frame_XXXX.png.
     #[arg(long)]
     pub out: PathBuf,
@@ -92,11 +92,12 @@ pub fn run(a: Args) -> Result<()> {
 pub fn write_outputs(dir: &Path, r: &Rendered, near: f64, far: f64) -> Result<()> {
     let (w, h) = (r.image.width, r.image.height);
     r.image.save_png(&dir.join("image.png"))?;
+    write_npy_f32(&dir.join("image.npy"), &[h as usize, w as usize, 3], &r.image.data)?;
     depth_image(&r.depth, w, h, near, far).save_png(&dir.join("depth.png"))?;
     write_npy_f32(&dir.join("depth.npy"), &[h as usize, w as usize], &r.depth)?;
     grey_image(&r.confidence, w, h).save_png(&dir.join("confidence.png"))?;
     grey_image(&r.coverage, w, h).save_png(&dir.join("coverage.png"))?;
-    eprintln!("wrote image.png, depth.png, depth.npy, confidence.png, coverage.png to {}", dir.display());
+    eprintln!("wrote image.png, image.npy, depth.png, depth.npy, confidence.png, coverage.png to {}", dir.display());
     Ok(())
 }
 

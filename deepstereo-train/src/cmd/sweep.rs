@@ -5,7 +5,7 @@ use anyhow::{bail, Context};
 use deepstereo_core::geometry::{depths_of, inverse_depths};
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::{tile_inputs, PyramidSource};
-use deepstereo_core::sweep::{sweep, Region, Source, CHANNELS};
+use deepstereo_core::sweep::{alloc_volume, sweep_into, Region, Source, CHANNELS};
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use std::path::PathBuf;
 
@@ -89,10 +89,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         })
         .collect();
     let cam = &scene.views[args.target].camera;
-    let inv = inverse_depths(scene.near, scene.far, planes);
     let region = Region::full(&cam.intrinsics);
+    // Allocated fallibly before anything of size `planes`: a huge --planes is an error.
+    let mut psv = alloc_volume(planes, sources.len(), region)?;
+    let inv = inverse_depths(scene.near, scene.far, planes);
     let t0 = std::time::Instant::now();
-    let psv = sweep(cam, region, &sources, &inv);
+    sweep_into(cam, region, &sources, &inv, &mut psv);
     eprintln!(
         "swept {} planes x {} views at {}x{} in {:.3} s",
         planes,

@@ -1,0 +1,267 @@
+//! Leaving out the work a given scene does not need (`--prune auto`).
+//!
+//! DeepStereo's cost grows with planes x views x pixels. For one target, most planes carry
+//! no selection probability, some candidate sources do not see the target, and some
+//! tiles are seen by no source. With pruning on, the renderer:
+//!
+//! - **Depth range** ([`plane_range_from_points`]): when the scene has sparse points,
+//!   keeps only the planes between the nearest and farthest points the target sees (the
+//!   plane grid itself, uniform in inverse depth between the scene's near and far, is
+//!   unchanged, so a kept plane is exactly a plane of the unpruned render).
+//! - **Planes** ([`Pruner::plan`]): per output tile, a coarse photo-consistency pass
+//!   (colour variance across the sources, on a subsampled grid of the tile's pixels, at
+//!   pyramid level [`PruneOptions::level`]) finds the planes where a surface can be; the
+//!   network runs only on the contiguous band of planes holding them plus
+//!   [`PruneOptions::margin`] planes on each side (the selection tower's convolutions
+//!   along depth look at neighbouring planes, so a band plane's logit is exactly the
+//!   unpruned one once the margin covers their reach). Only the band's planes are warped;
+//!   the selection outside the band is 0.
+//! - **Views** ([`rank_views`]): candidate sources are ranked by how much of the target
+//!   frustum they see, discounted by their distance; views that see too little are left
+//!   out, and when fewer useful views than the model takes exist, the nearest fill in.
+//! - **Pixels**: a tile whose input footprint no source covers at any plane skips the
+//!   network and takes the network's response to empty input (computed once per render:
+//!   exactly what the network would produce there); a tile whose sampled source colours
+//!   are all equal (within [`PruneOptions::flat`]) takes their mean colour, with the
+//!   selection spread uniformly over its band.
+//!
+//! With [`PruneMode::Off`] nothing of this runs and the renderer is the unpruned one.
+
+mod plan;
+mod views;
+#[cfg(test)]
+mod tests;
+
+pub use plan::{Pruner, TilePlan};
+pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
+
+use crate::camera::Camera;
+use crate::config::Config;
+use crate::error::{Error, Result};
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+/// Whether the renderer prunes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PruneMode {
+    /// Every plane, the nearest views, every tile: the unpruned renderer.
+    #[default]
+    Off,
+    /// Leave out planes, views and tiles the scene does not need.
+    Auto,
+}
+
+impl PruneMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            PruneMode::Off => "off",
+            PruneMode::Auto => "auto",
+        }
+    }
+}
+
+impl std::fmt::Display for PruneMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for PruneMode {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "off" => Ok(PruneMode::Off),
+            "auto" => Ok(PruneMode::Auto),
+            o => Err(Error::Invalid(format!("unknown prune mode '{o}' (expected off or auto)"))),
+        }
+    }
+}
+
+/// Default of [`PruneOptions::mass`].
+pub const DEFAULT_MASS: f32 = 0.98;
+/// Default of [`PruneOptions::tolerance`].
+pub const DEFAULT_TOLERANCE: f32 = 0.1;
+/// Default of [`PruneOptions::stride`].
+pub const DEFAULT_STRIDE: usize = 4;
+/// Default of [`PruneOptions::flat`].
+pub const DEFAULT_FLAT: f32 = 1.0 / 255.0;
+/// Default of [`PruneOptions::contrast`].
+pub const DEFAULT_CONTRAST: f32 = 2e-4;
+
+/// How much to prune (see the module docs).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PruneOptions {
+    pub mode: PruneMode,
+    /// Fraction of a tile's informative coarse samples whose candidate planes the band must
+    /// hold (1: all of them; lower values drop outliers at both ends of the band).
+    pub mass: f32,
+    /// Planes added on each side of a tile's band; `None`: the reach of the selection
+    /// tower's depth convolutions (3 for the presets).
+    pub margin: Option<usize>,
+    /// A coarse sample's candidate planes: those whose cost lies within `tolerance` x its
+    /// cost range of its least cost.
+    pub tolerance: f32,
+    /// Spacing of the coarse samples in level-0 pixels.
+    pub stride: usize,
+    /// Pyramid level the coarse pass samples (clamped to the model's levels).
+    pub level: usize,
+    /// A sample whose cost range across planes is below this (colour variance) says
+    /// nothing about depth (textureless) and does not constrain the band.
+    pub contrast: f32,
+    /// A tile is flat when every sampled source colour lies within this of the mean.
+    pub flat: f32,
+}
+
+impl Default for PruneOptions {
+    fn default() -> Self {
+        Self {
+            mode: PruneMode::Off,
+            mass: DEFAULT_MASS,
+            margin: None,
+            tolerance: DEFAULT_TOLERANCE,
+            stride: DEFAULT_STRIDE,
+            level: 1,
+            contrast: DEFAULT_CONTRAST,
+            flat: DEFAULT_FLAT,
+        }
+    }
+}
+
+impl PruneOptions {
+    /// Pruning off.
+    pub fn off() -> Self {
+        Self::default()
+    }
+
+    /// Pruning on, default thresholds.
+    pub fn auto() -> Self {
+        Self { mode: PruneMode::Auto, ..Self::default() }
+    }
+
+    pub fn is_on(&self) -> bool {
+        self.mode == PruneMode::Auto
+    }
+
+    /// Checks the thresholds, with a message naming the bad one.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(Error::Invalid(m));
+        if !(self.mass > 0.0 && self.mass <= 1.0) {
+            return bad(format!("--prune-mass must be in (0, 1], got {}", self.mass));
+        }
+        if !(self.tolerance >= 0.0 && self.tolerance <= 1.0) {
+            return bad(format!("--prune-tolerance must be in [0, 1], got {}", self.tolerance));
+        }
+        if self.stride == 0 {
+            return bad("--prune-stride must be at least 1".into());
+        }
+        if !(self.contrast >= 0.0 && self.flat >= 0.0) {
+            return bad("prune thresholds must be non-negative".into());
+        }
+        Ok(())
+    }
+
+    /// The margin in planes for `cfg`.
+    pub fn margin_for(&self, cfg: &Config) -> usize {
+        self.margin.unwrap_or_else(|| depth_reach(cfg))
+    }
+}
+
+/// How far (in planes) the selection tower's convolutions along depth look on each side.
+pub fn depth_reach(cfg: &Config) -> usize {
+    cfg.depth_convs.iter().map(|c| c.kernel / 2).sum()
+}
+
+/// What pruning did in one render.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct PruneStats {
+    pub tiles: usize,
+    /// Tiles no source covers (network skipped).
+    pub uncovered: usize,
+    /// Tiles whose sources are constant there (network skipped).
+    pub flat: usize,
+    /// Planes the network ran on, summed over the tiles it ran on.
+    pub planes_run: usize,
+    /// Planes of the unpruned render, summed over all tiles.
+    pub planes_total: usize,
+    /// The planes the depth range kept (`first..=last`), when the scene had points.
+    pub depth_range: Option<(usize, usize)>,
+    /// Seconds in the coarse pass.
+    pub coarse_seconds: f64,
+}
+
+impl PruneStats {
+    /// Fraction of the unpruned plane-tiles the network ran on.
+    pub fn planes_fraction(&self) -> f64 {
+        if self.planes_total == 0 {
+            1.0
+        } else {
+            self.planes_run as f64 / self.planes_total as f64
+        }
+    }
+
+    /// A line for people.
+    pub fn summary(&self) -> String {
+        let range = match self.depth_range {
+            Some((a, b)) => format!(", depth range planes {a}..={b}"),
+            None => String::new(),
+        };
+        format!(
+            "prune: network on {:.0}% of the plane-tiles ({} tiles, {} uncovered, {} flat{range}, coarse pass {:.2} s)",
+            100.0 * self.planes_fraction(),
+            self.tiles,
+            self.uncovered,
+            self.flat,
+            self.coarse_seconds
+        )
+    }
+}
+
+/// Fewest points a point set needs to be treated as a cloud (in-frustum filtering);
+/// smaller sets (such as the 8 corners of a bounding box) bound the scene as a hull.
+pub const MIN_CLOUD_POINTS: usize = 16;
+/// Quantiles of the in-frustum point depths taken as the target's depth range.
+pub const POINT_QUANTILES: (f64, f64) = (0.005, 0.995);
+/// Relative margin on the target's point depth range (near x (1 - m), far x (1 + m)).
+pub const POINT_MARGIN: f64 = 0.1;
+
+/// The planes (`first..=last` of `inv_depths`, which decrease) that the scene's sparse
+/// `points` seen by `target` need: the planes between the nearest and farthest point
+/// depths (robust quantiles, widened by [`POINT_MARGIN`]), plus the plane just outside
+/// on each side. Fewer than [`MIN_CLOUD_POINTS`] points are taken as a hull: every point
+/// in front of the camera counts, in view or not. `None` when the points say nothing.
+pub fn plane_range_from_points(target: &Camera, points: &[DVec3], inv_depths: &[f64]) -> Option<(usize, usize)> {
+    let d = inv_depths.len();
+    if d == 0 || points.is_empty() {
+        return None;
+    }
+    let cloud = points.len() >= MIN_CLOUD_POINTS;
+    let (w, h) = (target.intrinsics.width as f64, target.intrinsics.height as f64);
+    let mut depths: Vec<f64> = points
+        .iter()
+        .filter_map(|&p| {
+            let pc = target.pose.transform_point(p);
+            if !(pc.z > 0.0 && pc.z.is_finite()) {
+                return None;
+            }
+            if cloud {
+                let (uv, _) = target.project(p);
+                if !(uv.x >= 0.0 && uv.y >= 0.0 && uv.x < w && uv.y < h) {
+                    return None;
+                }
+            }
+            Some(pc.z)
+        })
+        .collect();
+    if depths.len() < if cloud { 8 } else { 2 } {
+        return None;
+    }
+    depths.sort_by(f64::total_cmp);
+    let q = |f: f64| depths[((depths.len() - 1) as f64 * f).round() as usize];
+    let (lo, hi) = if cloud { (q(POINT_QUANTILES.0), q(POINT_QUANTILES.1)) } else { (depths[0], depths[depths.len() - 1]) };
+    let (rho_hi, rho_lo) = (1.0 / (lo * (1.0 - POINT_MARGIN)), 1.0 / (hi * (1.0 + POINT_MARGIN)));
+    // Planes inside [rho_lo, rho_hi], plus one outside on each side.
+    let first = inv_depths.iter().position(|&r| r <= rho_hi).unwrap_or(d - 1).saturating_sub(1);
+    let last = inv_depths.iter().rposition(|&r| r >= rho_lo).map_or(0, |z| (z + 1).min(d - 1));
+    (first <= last).then_some((first, last))
+}

@@ -1,0 +1,10 @@
+//! Numerical stability on stiff and extreme cases (issue 7): geometry and plane sweeps,
+//! the network, reduced precision and the optimizers. Every check prints one markdown
+//! row `| case | check | worst error |`; the whole table is written to
+//! `target/stability.md`. Reproduce with
+//! `cargo test --release -p deepstereo-core --test stability -- --nocapture --test-threads 1`.
+
+mod geometry;
+mod network;
+mod table;
+mod training;
