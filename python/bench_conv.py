@@ -1,12 +1,12 @@
 """Times valid, stride-1 Conv2d shapes in PyTorch (forward, forward + backward) and in
 onnxruntime (forward), on 2 threads, for the Rust benchmark `benches/conv.rs`.
 
-Reads a JSON list of shapes `[n, cin, h, w, cout, kh, kw]` on stdin, prints a JSON list of
-`{"shape": [...], "torch_fwd_ms": .., "torch_fwdbwd_ms": .., "ort_fwd_ms": ..}` (medians).
+Reads one JSON shape `[n, cin, h, w, cout, kh, kw]` per line on stdin and answers each with
+one JSON line `{"shape": [...], "torch_fwd_ms": .., "torch_fwdbwd_ms": .., "ort_fwd_ms": ..}`
+(best of several runs), so that the caller can interleave its own timings shape by shape.
 """
 
 import json
-import statistics
 import sys
 import time
 
@@ -19,8 +19,9 @@ from onnx import TensorProto, helper, numpy_helper
 THREADS = 2
 
 
-def timed(f, budget_s=1.0, max_reps=10):
-    """Median wall time of f() in ms: one warm-up run, then repeats within the budget."""
+def timed(f, budget_s=1.5, max_reps=10):
+    """Best wall time of f() in ms: one warm-up run, then 2..max_reps runs within the budget
+    (the best run is the least disturbed by other processes on a shared machine)."""
     t0 = time.perf_counter()
     f()
     first = time.perf_counter() - t0
@@ -30,7 +31,7 @@ def timed(f, budget_s=1.0, max_reps=10):
         t0 = time.perf_counter()
         f()
         times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
+    return 1e3 * min(times)
 
 
 def torch_times(n, cin, h, w, cout, kh, kw):
@@ -72,20 +73,13 @@ def ort_time(n, cin, h, w, cout, kh, kw, conv):
 
 def main():
     torch.set_num_threads(THREADS)
-    shapes = json.load(sys.stdin)
-    out = []
-    for shape in shapes:
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        shape = json.loads(line)
         fwd, fwd_bwd, conv = torch_times(*shape)
-        out.append(
-            {
-                "shape": shape,
-                "torch_fwd_ms": fwd,
-                "torch_fwdbwd_ms": fwd_bwd,
-                "ort_fwd_ms": ort_time(*shape, conv),
-            }
-        )
-        print(f"python: {shape} done", file=sys.stderr)
-    print(json.dumps(out))
+        row = {"shape": shape, "torch_fwd_ms": fwd, "torch_fwdbwd_ms": fwd_bwd, "ort_fwd_ms": ort_time(*shape, conv)}
+        print(json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":

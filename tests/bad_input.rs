@@ -384,7 +384,12 @@ fn cases() -> Vec<Case> {
             |d| edit_line(d.join("sparse/0/points3D.txt"), 2, |l| set_token(l, 2, "x")),
             &["points3D.txt:3", "bad Y 'x'"],
         ),
-        case("colmap txt: no images", ColmapText, |d| std::fs::write(d.join("sparse/0/images.txt"), "# nothing\n").expect("write"), &["scene", "no views"]),
+        case(
+            "colmap txt: no images",
+            ColmapText,
+            |d| std::fs::write(d.join("sparse/0/images.txt"), "# nothing\n").expect("write"),
+            &["scene", "no views"],
+        ),
         // ---- COLMAP binary ----
         case(
             "colmap bin: image count too large",
@@ -668,7 +673,12 @@ fn cases() -> Vec<Case> {
             },
             &["img_000.png", "1000000000"],
         ),
-        case("middlebury: empty file", Middlebury, |d| std::fs::write(d.join("scene_par.txt"), "").expect("write"), &["scene_par.txt", "empty file"]),
+        case(
+            "middlebury: empty file",
+            Middlebury,
+            |d| std::fs::write(d.join("scene_par.txt"), "").expect("write"),
+            &["scene_par.txt", "empty file"],
+        ),
         // ---- any scene ----
         case("empty directory", Empty, |_| {}, &["unknown scene format"]),
         case(
@@ -745,9 +755,20 @@ fn cases() -> Vec<Case> {
         case("--planes 0", Llff, |_| {}, &["--planes"])
             .args(&["--planes", "0"])
             .sweep_only(),
-        case("--planes 10^11", Llff, |_| {}, &["100000000000 planes", "cannot be allocated"]).args(&["--planes", "100000000000"]).sweep_only(),
-        case("--planes 2^63", Llff, |_| {}, &["planes", "overflows"]).args(&["--planes", "9223372036854775807"]).sweep_only(),
-        case("--target -1", Llff, |_| {}, &["--target", "-1"]).args(&["--target=-1"]).sweep_only(),
+        case(
+            "--planes 10^11",
+            Llff,
+            |_| {},
+            &["100000000000 planes", "cannot be allocated"],
+        )
+        .args(&["--planes", "100000000000"])
+        .sweep_only(),
+        case("--planes 2^63", Llff, |_| {}, &["planes", "overflows"])
+            .args(&["--planes", "9223372036854775807"])
+            .sweep_only(),
+        case("--target -1", Llff, |_| {}, &["--target", "-1"])
+            .args(&["--target=-1"])
+            .sweep_only(),
         case("--views 0", Llff, |_| {}, &["--views"])
             .args(&["--views", "0"])
             .sweep_only(),
@@ -781,7 +802,10 @@ fn run_case(c: &Case, index: usize, root: &Path, cmd: &str) -> (String, Option<S
     if cmd == "sweep" {
         let overrides: Vec<&str> = c.args.iter().map(String::as_str).collect();
         for (opt, val) in [("--target", "0"), ("--views", "2"), ("--planes", "3")] {
-            if !overrides.contains(&opt) {
+            let given = overrides
+                .iter()
+                .any(|a| *a == opt || a.starts_with(&format!("{opt}=")));
+            if !given {
                 args.extend([opt.to_string(), val.to_string()]);
             }
         }

@@ -4,22 +4,22 @@
 //! PyTorch and onnxruntime on the same shapes (`python/bench_conv.py`).
 //!
 //! `cargo bench -p deepstereo-core --bench conv`; `CONV_BENCH_REF=0` skips candle's conv2d,
-//! `CONV_BENCH_PY=0` skips Python, `CONV_BENCH_CONFIGS=tiny` picks presets.
+//! `CONV_BENCH_PY=0` skips Python, `CONV_BENCH_CONFIGS=tiny` picks presets. Times are the
+//! best of several runs (the machine is shared); Python times each shape right after Rust.
 
 use candle_core::{DType, Device, Module, Result, Tensor, Var};
 use candle_nn::{VarBuilder, VarMap};
 use deepstereo_core::config::Config;
 use deepstereo_core::conv::Conv2d;
-use std::collections::BTreeMap;
-use std::io::Write;
+use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::{Child, ChildStdout, Command, Stdio};
 use std::time::Instant;
 
 /// `(n, cin, h, w, cout, kh, kw)`.
 type Shape = [usize; 7];
 
-/// Median ms of `f`: one warm-up run, then repeats within `budget_s` (none if the warm-up
+/// Best ms of `f`: one warm-up run, then repeats within `budget_s` (none if the warm-up
 /// alone took longer).
 fn timed(budget_s: f64, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
     let t = Instant::now();
@@ -35,8 +35,7 @@ fn timed(budget_s: f64, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
         f()?;
         times.push(t.elapsed().as_secs_f64());
     }
-    times.sort_by(f64::total_cmp);
-    Ok(times[reps / 2] * 1e3)
+    Ok(times.into_iter().fold(f64::MAX, f64::min) * 1e3)
 }
 
 /// Unique layer shapes of a preset, with the layer names sharing each.
@@ -94,35 +93,48 @@ fn matmul_gflops() -> Result<f64> {
     Ok(2.0 * 2048f64.powi(3) / (ms * 1e-3) * 1e-9)
 }
 
-/// PyTorch / onnxruntime times per shape from `python/bench_conv.py`, if the venv exists.
-fn python_times(all: &[Shape]) -> Option<BTreeMap<Shape, [f64; 3]>> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let python = root.join(".venv/bin/python");
-    if !python.exists() || std::env::var("CONV_BENCH_PY").as_deref() == Ok("0") {
-        println!("(no PyTorch / onnxruntime comparison: {} missing or CONV_BENCH_PY=0)", python.display());
-        return None;
+/// `python/bench_conv.py` running in the venv: PyTorch and onnxruntime times per shape.
+struct Python {
+    child: Child,
+    out: BufReader<ChildStdout>,
+}
+
+impl Python {
+    fn start() -> Option<Self> {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let python = root.join(".venv/bin/python");
+        if !python.exists() || std::env::var("CONV_BENCH_PY").as_deref() == Ok("0") {
+            println!("(no PyTorch / onnxruntime: {} missing or CONV_BENCH_PY=0)", python.display());
+            return None;
+        }
+        let mut child = Command::new(python)
+            .arg(root.join("python/bench_conv.py"))
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .ok()?;
+        let out = BufReader::new(child.stdout.take()?);
+        Some(Self { child, out })
     }
-    let mut child = Command::new(python)
-        .arg(root.join("python/bench_conv.py"))
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .spawn()
-        .ok()?;
-    let input = serde_json::to_string(all).ok()?;
-    child.stdin.take()?.write_all(input.as_bytes()).ok()?;
-    let out = child.wait_with_output().ok()?;
-    if !out.status.success() {
-        println!("(python/bench_conv.py failed: {})", out.status);
-        return None;
+
+    /// `[torch fwd, torch fwd+bwd, onnxruntime fwd]` in ms.
+    fn times(&mut self, s: &Shape) -> Option<[f64; 3]> {
+        let stdin = self.child.stdin.as_mut()?;
+        writeln!(stdin, "{}", serde_json::to_string(s).ok()?).ok()?;
+        stdin.flush().ok()?;
+        let mut line = String::new();
+        self.out.read_line(&mut line).ok()?;
+        let r: serde_json::Value = serde_json::from_str(&line).ok()?;
+        let f = |k: &str| r[k].as_f64();
+        Some([f("torch_fwd_ms")?, f("torch_fwdbwd_ms")?, f("ort_fwd_ms")?])
     }
-    let rows: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).ok()?;
-    let mut map = BTreeMap::new();
-    for r in rows {
-        let shape: Shape = serde_json::from_value(r["shape"].clone()).ok()?;
-        let f = |k: &str| r[k].as_f64().unwrap_or(f64::NAN);
-        map.insert(shape, [f("torch_fwd_ms"), f("torch_fwdbwd_ms"), f("ort_fwd_ms")]);
+}
+
+impl Drop for Python {
+    fn drop(&mut self) {
+        drop(self.child.stdin.take());
+        let _ = self.child.wait();
     }
-    Some(map)
 }
 
 fn main() -> Result<()> {
@@ -132,23 +144,23 @@ fn main() -> Result<()> {
         .into_iter()
         .filter(|(c, _)| wanted.split(',').any(|w| w == c.name))
         .collect();
-    let mm = matmul_gflops()?;
-    println!("threads: {}, 2048^2 f32 matmul: {mm:.1} GFLOP/s", rayon::current_num_threads());
-    let per_config: Vec<_> = configs.iter().map(|(c, b)| (c, *b, shapes(c, *b))).collect();
-    let all: Vec<Shape> = per_config.iter().flat_map(|(_, _, s)| s.iter().map(|(s, _)| *s)).collect();
-    let py = python_times(&all);
-    for (cfg, batch, shapes) in &per_config {
-        println!("\n## {} (batch {batch} tiles, {} planes)\n", cfg.name, cfg.planes);
+    let tunables = std::env::var("GLIBC_TUNABLES").unwrap_or_default();
+    println!("threads: {}, GLIBC_TUNABLES={tunables:?}", rayon::current_num_threads());
+    let mut py = Python::start();
+    for (cfg, batch) in &configs {
+        let shapes = shapes(cfg, *batch);
+        let mm = matmul_gflops()?;
+        println!("\n## {} (batch {batch} tiles, {} planes); 2048^2 f32 matmul: {mm:.1} GFLOP/s\n", cfg.name, cfg.planes);
         println!("| layers | N x Cin x H x W -> Cout, k | GFLOP | fwd ms | GFLOP/s | of matmul | x candle | fwd+bwd ms | GFLOP/s | of matmul | x candle | / torch fwd | / torch f+b | / ort fwd |");
         println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
         let mut tot = [0f64; 7]; // ours fwd, fb, candle fwd, fb, torch fwd, fb, ort
-        for (s, names) in shapes {
+        for (s, names) in &shapes {
             let (ours, theirs) = bench_shape(s, reference)?;
             let g = gflop(s);
             let reps = names.len() as f64;
             let ratio = |a: f64, b: Option<f64>| b.map_or("-".into(), |b| format!("{:.2}", a / b));
             let speedup = |a: f64, b: Option<f64>| b.map_or("-".into(), |b| format!("{:.1}", b / a));
-            let pt = py.as_ref().and_then(|m| m.get(s)).copied();
+            let pt = py.as_mut().and_then(|p| p.times(s));
             let [n, cin, h, w, cout, kh, kw] = *s;
             println!(
                 "| {} | {n}x{cin}x{h}x{w} -> {cout}, {kh}x{kw} | {g:.2} | {:.1} | {:.0} | {:.2} | {} | {:.1} | {:.0} | {:.2} | {} | {} | {} | {} |",

@@ -85,10 +85,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .map(|i| {
             let a = i as f64 * std::f64::consts::FRAC_PI_2;
             let r = DMat3::from_rotation_y(0.05 * a.cos()) * DMat3::from_rotation_x(0.04 * a.sin());
-            camera(k, r, DVec3::new(0.3 * a.cos(), 0.2 * a.sin(), 0.05 * i as f64))
+            camera(
+                k,
+                r,
+                DVec3::new(0.3 * a.cos(), 0.2 * a.sin(), 0.05 * i as f64),
+            )
         })
         .collect();
-    let images: Vec<RgbImage> = (0..VIEWS).map(|i| texture(WIDTH, HEIGHT, i as u64 + 1)).collect();
+    let images: Vec<RgbImage> = (0..VIEWS)
+        .map(|i| texture(WIDTH, HEIGHT, i as u64 + 1))
+        .collect();
     let srcs: Vec<Source> = sources
         .iter()
         .zip(&images)
@@ -117,7 +123,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let python = std::env::var("SWEEP_BENCH_PYTHON").unwrap_or_else(|_| VENV_PYTHON.to_string());
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("../python/bench_sweep.py");
     if !Path::new(&python).exists() || !script.is_file() {
-        println!("  pytorch: skipped ({python} or {} missing)", script.display());
+        println!(
+            "  pytorch: skipped ({python} or {} missing)",
+            script.display()
+        );
         return Ok(());
     }
     let dir = tempfile::tempdir()?;
@@ -133,7 +142,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
         }
     }
-    write_npy_f64(&dir.path().join("homographies.npy"), &[PLANES * VIEWS, 9], &hs)?;
+    write_npy_f64(
+        &dir.path().join("homographies.npy"),
+        &[PLANES * VIEWS, 9],
+        &hs,
+    )?;
     let pixels: Vec<f32> = images.iter().flat_map(|i| i.data.iter().copied()).collect();
     write_npy_f32(
         &dir.path().join("images.npy"),
@@ -145,9 +158,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         "check_planes": CHECK_PLANES, "dir": dir.path(),
     });
     std::fs::write(dir.path().join("meta.json"), meta.to_string())?;
-    let res = Command::new(&python).arg(&script).arg(dir.path().join("meta.json")).output()?;
+    let res = Command::new(&python)
+        .arg(&script)
+        .arg(dir.path().join("meta.json"))
+        .output()?;
     if !res.status.success() {
-        println!("  pytorch: failed:\n{}", String::from_utf8_lossy(&res.stderr));
+        println!(
+            "  pytorch: failed:\n{}",
+            String::from_utf8_lossy(&res.stderr)
+        );
         return Ok(());
     }
     let report: serde_json::Value = serde_json::from_slice(&res.stdout)?;
@@ -159,7 +178,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!(
         "  ratio pytorch / rust: {:.2}x ({})",
         torch_ms / (rust_s * 1e3),
-        if torch_ms > rust_s * 1e3 { "rust faster" } else { "pytorch faster" }
+        if torch_ms > rust_s * 1e3 {
+            "rust faster"
+        } else {
+            "pytorch faster"
+        }
     );
     // Same warps: compare the planes PyTorch wrote back.
     let theirs = read_npy(&dir.path().join("check.npy"))?;

@@ -56,6 +56,31 @@ impl Distortion {
     pub fn is_zero(&self) -> bool {
         self.k1 == 0.0 && self.k2 == 0.0 && self.p1 == 0.0 && self.p2 == 0.0
     }
+
+    /// The largest `r^2 = x^2 + y^2` of ideal normalized coordinates up to which the
+    /// radial part `r (1 + k1 r^2 + k2 r^4)` still grows with `r` (`f64::INFINITY` when it
+    /// always does): the first positive root of `1 + 3 k1 s + 5 k2 s^2`. Beyond it the
+    /// polynomial folds back, so a point there would be drawn onto pixels that belong to
+    /// nearer rays; such points are treated as outside the image. (The small tangential
+    /// terms are not included.)
+    pub fn max_radius2(&self) -> f64 {
+        let (a, b) = (5.0 * self.k2, 3.0 * self.k1);
+        let roots = if a == 0.0 {
+            [-1.0 / b, f64::NAN]
+        } else {
+            let disc = b * b - 4.0 * a;
+            if disc < 0.0 {
+                return f64::INFINITY;
+            }
+            // Stable quadratic roots of a s^2 + b s + 1 = 0.
+            let q = -0.5 * (b + disc.sqrt().copysign(b));
+            [q / a, 1.0 / q]
+        };
+        roots
+            .into_iter()
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .fold(f64::INFINITY, f64::min)
+    }
 }
 
 /// Pinhole intrinsics of an image of `width x height` pixels.
@@ -139,7 +164,11 @@ impl Intrinsics {
                 self.fx, self.fy
             ));
         }
-        if self.width == 0 || self.height == 0 || self.width > MAX_IMAGE_SIDE || self.height > MAX_IMAGE_SIDE {
+        if self.width == 0
+            || self.height == 0
+            || self.width > MAX_IMAGE_SIDE
+            || self.height > MAX_IMAGE_SIDE
+        {
             return Err(format!(
                 "unsupported image size {}x{} (each side must be 1 to {MAX_IMAGE_SIDE})",
                 self.width, self.height
@@ -328,12 +357,49 @@ mod tests {
     }
 
     #[test]
+    fn validate_rejects_impossible_intrinsics() {
+        let ok = Intrinsics::pinhole(10.0, 10.0, 5.0, 5.0, 10, 10);
+        assert!(ok.validate().is_ok());
+        let huge = Intrinsics {
+            width: MAX_IMAGE_SIDE + 1,
+            ..ok
+        };
+        assert!(huge
+            .validate()
+            .unwrap_err()
+            .contains("unsupported image size"));
+        assert!(Intrinsics { height: 0, ..ok }.validate().is_err());
+        assert!(Intrinsics { fx: -1.0, ..ok }.validate().is_err());
+        assert!(Intrinsics { cy: f64::NAN, ..ok }.validate().is_err());
+        let d = Distortion {
+            k1: f64::INFINITY,
+            ..Default::default()
+        };
+        assert!(Intrinsics {
+            distortion: Some(d),
+            ..ok
+        }
+        .validate()
+        .is_err());
+    }
+
+    #[test]
     fn rejects_bad_rotations() {
-        assert!(WorldToCamera::new_checked(DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0)), DVec3::ZERO).is_err());
-        assert!(WorldToCamera::new_checked(DMat3::from_diagonal(DVec3::splat(2.0)), DVec3::ZERO).is_err());
+        assert!(WorldToCamera::new_checked(
+            DMat3::from_diagonal(DVec3::new(1.0, 1.0, -1.0)),
+            DVec3::ZERO
+        )
+        .is_err());
+        assert!(
+            WorldToCamera::new_checked(DMat3::from_diagonal(DVec3::splat(2.0)), DVec3::ZERO)
+                .is_err()
+        );
         let mut nan = DMat3::IDENTITY;
         nan.x_axis.x = f64::NAN;
         assert!(WorldToCamera::new_checked(nan, DVec3::ZERO).is_err());
-        assert!(WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::new(f64::INFINITY, 0.0, 0.0)).is_err());
+        assert!(
+            WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::new(f64::INFINITY, 0.0, 0.0))
+                .is_err()
+        );
     }
 }

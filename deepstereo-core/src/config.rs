@@ -68,6 +68,17 @@ impl TowerConfig {
     }
 }
 
+/// Upper limits checked by [`Config::validate`]: far above any useful network, they keep
+/// every size derived from a config (parameter counts, layer costs) from overflowing, so
+/// that a corrupt config in a weights file is an error, not a panic or a huge allocation.
+pub const MAX_VIEWS: usize = 64;
+pub const MAX_PLANES: usize = 4096;
+pub const MAX_TILE: usize = 4096;
+pub const MAX_KERNEL: usize = 31;
+pub const MAX_CHANNELS: usize = 4096;
+/// Most convolutions in one list (`level_convs`, `merge_convs` or `depth_convs`).
+pub const MAX_CONVS: usize = 32;
+
 /// The whole network's configuration. Serialized as JSON into the weights' metadata.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Config {
@@ -198,6 +209,16 @@ impl Config {
         if self.views == 0 || self.planes == 0 {
             return Err("views and planes must be positive".into());
         }
+        if self.views > MAX_VIEWS || self.planes > MAX_PLANES || self.tile > MAX_TILE {
+            return Err(format!(
+                "views {}, planes {} and tile {} must be at most {MAX_VIEWS}, {MAX_PLANES} and {MAX_TILE}",
+                self.views, self.planes, self.tile
+            ));
+        }
+        let lists = [&self.select.level_convs, &self.select.merge_convs, &self.depth_convs];
+        if lists.iter().chain([&self.colour.level_convs, &self.colour.merge_convs].iter()).any(|l| l.len() > MAX_CONVS) {
+            return Err(format!("at most {MAX_CONVS} convolutions per list"));
+        }
         if self.levels == 0 || self.levels > 6 {
             return Err(format!("levels must be 1..=6, got {}", self.levels));
         }
@@ -209,6 +230,11 @@ impl Config {
             for conv in convs.chain(if name == "select" { self.depth_convs.iter() } else { [].iter() }) {
                 if conv.kernel % 2 == 0 || conv.channels == 0 {
                     return Err(format!("{name}: kernels must be odd and channels positive, got {conv:?}"));
+                }
+                if conv.kernel > MAX_KERNEL || conv.channels > MAX_CHANNELS {
+                    return Err(format!(
+                        "{name}: kernels must be at most {MAX_KERNEL} and channels at most {MAX_CHANNELS}, got {conv:?}"
+                    ));
                 }
             }
         }

@@ -10,7 +10,7 @@ use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
 use crate::inputs::{tile_inputs, PyramidSource, TileInputs};
 use crate::model::DeepStereo;
-use crate::prune::{PruneStats, Pruner, TilePlan};
+use crate::prune::{Block, PruneStats, Pruner, TilePlan};
 use crate::sweep::CHANNELS;
 use candle_core::{Device, Tensor};
 use std::time::Instant;
@@ -115,79 +115,84 @@ pub fn render_view_pruned(
     let (ntx, nty) = (w.div_ceil(tile), h.div_ceil(tile));
     let total = ntx * nty;
     let v = cfg.views;
-    let mut stats = PruneStats { tiles: total, planes_total: total * d, ..PruneStats::default() };
+    let mut stats = PruneStats { tiles: total, planes_total: total * tile * tile * d, ..PruneStats::default() };
     let mut empty: Option<(Vec<f32>, Vec<f32>)> = None;
     for ty in 0..nty {
         for tx in 0..ntx {
             let (x0, y0) = (tx * tile, ty * tile);
             let t0 = Instant::now();
-            let plan = pruner.map_or(TilePlan::Band { first: 0, last: d - 1 }, |p| p.plan(x0, y0, tile));
+            let blocks = match pruner {
+                Some(p) => p.plan(x0, y0, tile),
+                None => vec![Block { x0, y0, size: tile, plan: TilePlan::Planes((0..d).collect()) }],
+            };
             stats.coarse_seconds += t0.elapsed().as_secs_f64();
-            let rows = y0..(y0 + tile).min(h);
-            let cols = x0..(x0 + tile).min(w);
-            match plan {
-                TilePlan::Uncovered => {
-                    stats.uncovered += 1;
-                    if empty.is_none() {
-                        empty = Some(empty_response(backend, d)?);
-                    }
-                    let (img, sel) = empty.as_ref().map(|(i, s)| (i.as_slice(), s.as_slice())).unwrap_or_default();
-                    for y in rows.clone() {
-                        for x in cols.clone() {
-                            let pix = y * w + x;
-                            out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(img);
-                            let (rho, best) = expectation(inv_depths, 0, sel.iter().copied());
-                            write_depth(&mut out, pix, rho, best, 0.0);
+            for Block { x0, y0, size: tile, plan } in blocks {
+                let rows = y0..(y0 + tile).min(h);
+                let cols = x0..(x0 + tile).min(w);
+                match plan {
+                    TilePlan::Uncovered => {
+                        stats.uncovered += 1;
+                        if empty.is_none() {
+                            empty = Some(empty_response(backend, d)?);
                         }
-                    }
-                }
-                TilePlan::Flat { colour, coverage } => {
-                    stats.flat += 1;
-                    let (z0, z1) = pruner.map_or((0, d - 1), |p| p.range());
-                    let p = 1.0 / (z1 + 1 - z0) as f32;
-                    for y in rows.clone() {
-                        for x in cols.clone() {
-                            let pix = y * w + x;
-                            out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(&colour);
-                            let (rho, best) = expectation(inv_depths, z0, (z0..=z1).map(|_| p));
-                            write_depth(&mut out, pix, rho, best, coverage);
-                        }
-                    }
-                }
-                TilePlan::Band { first, last } => {
-                    let band = &inv_depths[first..=last];
-                    let nb = band.len();
-                    stats.planes_run += nb;
-                    let inputs = tile_inputs(cfg, target, sources, band, (x0 as i64, y0 as i64), (tile, tile))?;
-                    let (img, sel) = backend.run(&inputs, nb)?;
-                    if img.iter().chain(&sel).any(|x| !x.is_finite()) {
-                        return Err(Error::Invalid(format!(
-                            "the network produced non-finite values in the tile at ({x0}, {y0})"
-                        )));
-                    }
-                    let (ih, iw) = inputs.sizes[0];
-                    let p = cfg.pad(0);
-                    let tt = tile * tile;
-                    for yy in 0..rows.len() {
-                        for xx in 0..cols.len() {
-                            let o = yy * tile + xx;
-                            let pix = (y0 + yy) * w + x0 + xx;
-                            for ch in 0..3 {
-                                out.image.data[pix * 3 + ch] = img[ch * tt + o].clamp(0.0, 1.0);
+                        let (img, sel) = empty.as_ref().map(|(i, s)| (i.as_slice(), s.as_slice())).unwrap_or_default();
+                        for y in rows.clone() {
+                            for x in cols.clone() {
+                                let pix = y * w + x;
+                                out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(img);
+                                let (rho, best) = expectation(inv_depths, 0..d, sel.iter().copied());
+                                write_depth(&mut out, pix, rho, best, 0.0);
                             }
-                            let (mut rho, mut best, mut cov) = (0.0f64, 0.0f32, 0.0f32);
-                            for (z, r) in band.iter().enumerate() {
-                                let s = sel[z * tt + o];
-                                rho += s as f64 * r;
-                                best = best.max(s);
-                                let mut alpha = 0.0;
-                                for k in 0..v {
-                                    let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
-                                    alpha += inputs.levels[0][base + (yy + p) * iw + xx + p];
+                        }
+                    }
+                    TilePlan::Flat { colour, coverage } => {
+                        stats.flat += 1;
+                        let (z0, z1) = pruner.map_or((0, d - 1), |p| p.range());
+                        let p = 1.0 / (z1 + 1 - z0) as f32;
+                        for y in rows.clone() {
+                            for x in cols.clone() {
+                                let pix = y * w + x;
+                                out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(&colour);
+                                let (rho, best) = expectation(inv_depths, z0..z1 + 1, (z0..=z1).map(|_| p));
+                                write_depth(&mut out, pix, rho, best, coverage);
+                            }
+                        }
+                    }
+                    TilePlan::Planes(planes) => {
+                        let band: Vec<f64> = planes.iter().map(|&z| inv_depths[z]).collect();
+                        let nb = band.len();
+                        stats.planes_run += nb * tile * tile;
+                        let inputs = tile_inputs(cfg, target, sources, &band, (x0 as i64, y0 as i64), (tile, tile))?;
+                        let (img, sel) = backend.run(&inputs, nb)?;
+                        if img.iter().chain(&sel).any(|x| !x.is_finite()) {
+                            return Err(Error::Invalid(format!(
+                                "the network produced non-finite values in the tile at ({x0}, {y0})"
+                            )));
+                        }
+                        let (ih, iw) = inputs.sizes[0];
+                        let p = cfg.pad(0);
+                        let tt = tile * tile;
+                        for yy in 0..rows.len() {
+                            for xx in 0..cols.len() {
+                                let o = yy * tile + xx;
+                                let pix = (y0 + yy) * w + x0 + xx;
+                                for ch in 0..3 {
+                                    out.image.data[pix * 3 + ch] = img[ch * tt + o].clamp(0.0, 1.0);
                                 }
-                                cov += s * alpha / v as f32;
+                                let (mut rho, mut best, mut cov) = (0.0f64, 0.0f32, 0.0f32);
+                                for (z, r) in band.iter().enumerate() {
+                                    let s = sel[z * tt + o];
+                                    rho += s as f64 * r;
+                                    best = best.max(s);
+                                    let mut alpha = 0.0;
+                                    for k in 0..v {
+                                        let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
+                                        alpha += inputs.levels[0][base + (yy + p) * iw + xx + p];
+                                    }
+                                    cov += s * alpha / v as f32;
+                                }
+                                write_depth(&mut out, pix, rho, best, cov);
                             }
-                            write_depth(&mut out, pix, rho, best, cov);
                         }
                     }
                 }
@@ -202,10 +207,10 @@ pub fn render_view_pruned(
     Ok(out)
 }
 
-/// Expected inverse depth and largest probability of a selection starting at plane `z0`.
-fn expectation(inv_depths: &[f64], z0: usize, sel: impl Iterator<Item = f32>) -> (f64, f32) {
+/// Expected inverse depth and largest probability of a selection over `planes`.
+fn expectation(inv_depths: &[f64], planes: std::ops::Range<usize>, sel: impl Iterator<Item = f32>) -> (f64, f32) {
     let (mut rho, mut best) = (0.0f64, 0.0f32);
-    for (s, r) in sel.zip(&inv_depths[z0..]) {
+    for (s, r) in sel.zip(&inv_depths[planes]) {
         rho += s as f64 * r;
         best = best.max(s);
     }

@@ -10,7 +10,9 @@
 //! bilinear weight of the taps inside the image, so it is 1 in the interior, fractional
 //! within half a pixel of the border, and 0 outside; colours are the same zero-padded
 //! bilinear sum, so at the border they are premultiplied by alpha. A plane point that is
-//! not in front of the source camera gets RGBA = 0.
+//! not in front of the source camera gets RGBA = 0, and so does one beyond the range where
+//! the source's lens distortion is monotonic ([`crate::camera::Distortion::max_radius2`]),
+//! which the distortion polynomial would fold back into the image.
 
 use crate::camera::{Camera, Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};
@@ -131,7 +133,12 @@ pub fn alloc_volume(planes: usize, views: usize, region: Region) -> Result<Vec<f
 }
 
 /// Allocating wrapper of [`sweep_into`].
-pub fn sweep(target: &Camera, region: Region, sources: &[Source<'_>], inv_depths: &[f64]) -> Vec<f32> {
+pub fn sweep(
+    target: &Camera,
+    region: Region,
+    sources: &[Source<'_>],
+    inv_depths: &[f64],
+) -> Vec<f32> {
     let mut out = vec![0.0; inv_depths.len() * sources.len() * CHANNELS * region.len()];
     sweep_into(target, region, sources, inv_depths, &mut out);
     out
@@ -144,11 +151,17 @@ fn warp_slice(h: &glam::DMat3, rays: &[DVec2], src: &Source<'_>, out: &mut [f32]
     let (g_out, rest) = rest.split_at_mut(hw);
     let (b_out, a_out) = rest.split_at_mut(hw);
     let intr = &src.camera.intrinsics;
+    let max_r2 = intr.distortion.map_or(f64::INFINITY, |d| d.max_radius2());
     for (i, ray) in rays.iter().enumerate() {
         let q = apply_h(h, ray.x, ray.y);
         let rgba = if q.z > IN_FRONT_EPS * q.length() {
-            let uv = intr.project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
-            sample_bilinear(src.image, uv.x, uv.y)
+            let n = DVec2::new(q.x / q.z, q.y / q.z);
+            if n.length_squared() < max_r2 {
+                let uv = intr.project_normalized(n);
+                sample_bilinear(src.image, uv.x, uv.y)
+            } else {
+                [0.0; 4]
+            }
         } else {
             [0.0; 4]
         };
@@ -171,8 +184,10 @@ pub fn sample_bilinear(img: &RgbImage, u: f64, v: f64) -> [f32; 4] {
     }
     let (fx, fy) = (sx.floor(), sy.floor());
     let (x0, y0) = (fx as i64, fy as i64);
-    let (ax, ay) = ((sx - fx) as f32, (sy - fy) as f32);
-    let mut acc = [0.0f32; 4];
+    // Weights and sums in f64, rounded once: in f32 the four weights can sum to
+    // 1.0000001, giving alpha > 1 and colours above alpha.
+    let (ax, ay) = (sx - fx, sy - fy);
+    let mut acc = [0.0f64; 4];
     let taps = [
         (x0, y0, (1.0 - ax) * (1.0 - ay)),
         (x0 + 1, y0, ax * (1.0 - ay)),
@@ -182,14 +197,16 @@ pub fn sample_bilinear(img: &RgbImage, u: f64, v: f64) -> [f32; 4] {
     for (x, y, wt) in taps {
         if x >= 0 && y >= 0 && x < w && y < h && wt > 0.0 {
             let i = (y as usize * img.width as usize + x as usize) * 3;
-            acc[0] += wt * img.data[i];
-            acc[1] += wt * img.data[i + 1];
-            acc[2] += wt * img.data[i + 2];
+            acc[0] += wt * img.data[i] as f64;
+            acc[1] += wt * img.data[i + 1] as f64;
+            acc[2] += wt * img.data[i + 2] as f64;
             acc[3] += wt;
         }
     }
-    acc
+    acc.map(|v| v as f32)
 }
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_extreme;

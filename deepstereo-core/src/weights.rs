@@ -185,6 +185,7 @@ pub fn read_config(path: &Path, bytes: &[u8]) -> Result<Config> {
 pub fn load_bytes(path: &Path, bytes: &[u8], device: &Device) -> Result<Trainable> {
     let cfg = read_config(path, bytes)?;
     let st = SafeTensors::deserialize(bytes).map_err(|e| Error::model(path, format!("not a safetensors file: {e}")))?;
+    check_size(path, &cfg, &st)?;
     let t = init(&cfg, device)?;
     assign(path, &st, &t.varmap, "")?;
     let expected: Vec<String> = named_vars(&t.varmap).into_iter().map(|(n, _)| n).collect();
@@ -192,6 +193,30 @@ pub fn load_bytes(path: &Path, bytes: &[u8], device: &Device) -> Result<Trainabl
         return Err(Error::model(path, format!("unexpected tensor '{extra}' (not part of a '{}' model)", cfg.name)));
     }
     Ok(t)
+}
+
+/// Refuses, before the model is allocated, a config that needs more parameters than the
+/// file holds values (so a corrupt config cannot request a huge allocation), naming the
+/// first missing tensor when there is one.
+fn check_size(path: &Path, cfg: &Config, st: &SafeTensors<'_>) -> Result<()> {
+    let held = st
+        .tensors()
+        .iter()
+        .map(|(_, v)| v.shape().iter().try_fold(1usize, |a, &d| a.checked_mul(d)).unwrap_or(usize::MAX))
+        .fold(0usize, usize::saturating_add);
+    let needed = cfg.parameters();
+    if needed <= held {
+        return Ok(());
+    }
+    let names = cfg.layers().into_iter().flat_map(|l| [format!("{}.weight", l.name), format!("{}.bias", l.name)]);
+    let missing = names.chain(["select.log_scale".to_string()]).find(|n| st.tensor(n).is_err());
+    Err(Error::model(
+        path,
+        match missing {
+            Some(n) => format!("missing tensor '{n}'"),
+            None => format!("the '{}' config needs {needed} parameters but the file holds {held} values", cfg.name),
+        },
+    ))
 }
 
 /// Loads a model from a weights file.

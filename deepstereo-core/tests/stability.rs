@@ -4,7 +4,11 @@
 //! `target/stability.md`. Reproduce with
 //! `cargo test --release -p deepstereo-core --test stability -- --nocapture --test-threads 1`.
 
+#[path = "stability/geometry.rs"]
 mod geometry;
+#[path = "stability/network.rs"]
 mod network;
+#[path = "stability/table.rs"]
 mod table;
+#[path = "stability/training.rs"]
 mod training;

@@ -95,24 +95,43 @@ pub(crate) fn plan(g: &Geom, elem_bytes: usize) -> Vec<Chunk> {
     chunks
 }
 
-/// Runs `f` over `chunks` on all rayon threads (dynamic schedule), one state per thread.
-pub(crate) fn for_each_chunk<S: Send>(
+/// Runs `f` over `chunks` on all rayon threads. Consecutive chunks form `blocks` blocks
+/// that threads take one at a time; `f` gets its thread's scratch state and its block's
+/// accumulator. Returns the accumulators in block order, so that sums over them do not
+/// depend on the schedule (gradients are deterministic for a given thread count).
+pub(crate) fn for_each_chunk<S, A: Send>(
     chunks: &[Chunk],
-    init: impl Fn() -> S + Sync,
-    f: impl Fn(&mut S, &Chunk) + Sync,
-) -> Vec<S> {
+    blocks: usize,
+    scratch: impl Fn() -> S + Sync,
+    acc: impl Fn() -> A + Sync,
+    f: impl Fn(&mut S, &mut A, &Chunk) + Sync,
+) -> Vec<A> {
+    let blocks = blocks.clamp(1, chunks.len().max(1));
     let next = AtomicUsize::new(0);
-    let threads = rayon::current_num_threads().min(chunks.len()).max(1);
-    (0..threads)
+    let threads = rayon::current_num_threads().min(blocks);
+    let mut done: Vec<(usize, A)> = (0..threads)
         .into_par_iter()
-        .map(|_| {
-            let mut state = init();
-            while let Some(c) = chunks.get(next.fetch_add(1, Ordering::Relaxed)) {
-                f(&mut state, c);
+        .flat_map_iter(|_| {
+            let (mut state, mut done) = (scratch(), Vec::new());
+            loop {
+                let b = next.fetch_add(1, Ordering::Relaxed);
+                if b >= blocks {
+                    return done;
+                }
+                let mut a = acc();
+                let range = b * chunks.len() / blocks..(b + 1) * chunks.len() / blocks;
+                chunks[range].iter().for_each(|c| f(&mut state, &mut a, c));
+                done.push((b, a));
             }
-            state
         })
-        .collect()
+        .collect();
+    done.sort_by_key(|(b, _)| *b);
+    done.into_iter().map(|(_, a)| a).collect()
+}
+
+/// Blocks for [`for_each_chunk`] when their accumulators are summed.
+pub(crate) fn reduction_blocks() -> usize {
+    rayon::current_num_threads() * CHUNKS_PER_THREAD
 }
 
 /// A pointer shared by threads that write disjoint parts of its buffer.

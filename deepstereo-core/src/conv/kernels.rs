@@ -2,7 +2,7 @@
 //! the module doc). Each [`Chunk`] runs on one thread: im2col into a buffer reused by that
 //! thread, one gemm, then bias and ReLU (forward) or col2im (backward).
 
-use super::im2col::{col2im, for_each_chunk, im2col, matmul, plan, Chunk, Geom, SharedMut};
+use super::im2col::{col2im, for_each_chunk, im2col, matmul, plan, reduction_blocks, Chunk, Geom, SharedMut};
 use candle_core::WithDType;
 
 /// `dst = act(src + bias)` with `act` ReLU or identity.
@@ -30,9 +30,9 @@ pub(crate) fn forward<T: WithDType>(g: &Geom, x: &[T], w: &[T], b: &[T], relu: b
     let zero = T::from_f64(0.0);
     let mut y = vec![zero; g.n * cout * p];
     let yp = SharedMut(y.as_mut_ptr());
-    let lhs = (w.as_ptr(), k, 1);
-    for_each_chunk(&chunks, || (Vec::new(), Vec::new()), |(buf, tmp), c| {
+    for_each_chunk(&chunks, chunks.len(), || (Vec::new(), Vec::new()), || (), |(buf, tmp), _, c| {
         let (cols, per) = (c.cols(g), c.cols_per_image(g));
+        let lhs = (w.as_ptr(), k, 1);
         // The chunk's outputs of image n, channel co.
         let out = |n: usize, co: usize| unsafe {
             std::slice::from_raw_parts_mut(yp.get().add((n * cout + co) * p + c.r0 * wo), per)
@@ -74,16 +74,20 @@ pub(crate) struct Grads<T> {
     pub db: Vec<T>,
 }
 
-/// What one thread accumulates in [`backward`].
-struct State<T> {
-    /// Weight gradient, transposed (`[K, cout]`): gemm then reads the im2col buffer
-    /// without repacking it.
-    dwt: Vec<T>,
-    db: Vec<T>,
+/// Scratch buffers of one thread in [`backward`].
+struct Scratch<T> {
     /// im2col columns, then the columns' gradient.
     buf: Vec<T>,
     /// The chunk's output gradient `[cout, cols]`, ReLU-masked.
     gy: Vec<T>,
+}
+
+/// What a block of chunks accumulates in [`backward`].
+struct Acc<T> {
+    /// Weight gradient, transposed (`[K, cout]`): gemm then reads the im2col buffer
+    /// without repacking it.
+    dwt: Vec<T>,
+    db: Vec<T>,
 }
 
 /// Backward of [`forward`] from `dy` (`[n, cout, Ho, Wo]`); `y` is forward's output, read
@@ -104,8 +108,9 @@ pub(crate) fn backward<T: WithDType>(
     let zero = T::from_f64(0.0);
     let mut dx = need_dx.then(|| vec![zero; g.n * cin * hw]);
     let dxp = SharedMut(dx.as_mut().map_or(std::ptr::null_mut(), |v| v.as_mut_ptr()));
-    let init = || State { dwt: vec![zero; k * cout], db: vec![zero; cout], buf: Vec::new(), gy: Vec::new() };
-    let step = |s: &mut State<T>, c: &Chunk| {
+    let scratch = || Scratch { buf: Vec::new(), gy: Vec::new() };
+    let acc = || Acc { dwt: vec![zero; k * cout], db: vec![zero; cout] };
+    let step = |s: &mut Scratch<T>, a: &mut Acc<T>, c: &Chunk| {
         let (cols, per) = (c.cols(g), c.cols_per_image(g));
         s.gy.resize(cout * cols, zero);
         for n in c.n0..c.n1 {
@@ -119,7 +124,7 @@ pub(crate) fn backward<T: WithDType>(
                 } else {
                     dst.copy_from_slice(&dy[off..][..per]);
                 }
-                s.db[co] += dst.iter().fold(zero, |a, &v| a + v);
+                a.db[co] += dst.iter().fold(zero, |a, &v| a + v);
             }
         }
         let gy = |n: usize| (s.gy[(n - c.n0) * per..].as_ptr(), cols, 1);
@@ -128,7 +133,7 @@ pub(crate) fn backward<T: WithDType>(
         unsafe {
             if need_dw {
                 // dw^T [K, cout] += cols [K, cols] x gy^T [cols, cout], as dw [cout, K].
-                let dst = (s.dwt.as_mut_ptr(), 1, cout);
+                let dst = (a.dwt.as_mut_ptr(), 1, cout);
                 if g.direct() {
                     for n in c.n0..c.n1 {
                         let xt = (x.as_ptr().add(n * cin * hw + c.r0 * g.w), 1, hw);
@@ -155,20 +160,21 @@ pub(crate) fn backward<T: WithDType>(
             }
         }
     };
-    let states = if need_dx && !g.direct() {
+    let run = |chunks: &[Chunk]| for_each_chunk(chunks, reduction_blocks(), &scratch, &acc, &step);
+    let accs = if need_dx && !g.direct() {
         let phase = |i: usize| chunks.iter().filter(|c| c.phase == i).copied().collect::<Vec<_>>();
-        let mut states = for_each_chunk(&phase(0), init, step);
-        states.extend(for_each_chunk(&phase(1), init, step));
-        states
+        let mut accs = run(&phase(0));
+        accs.extend(run(&phase(1)));
+        accs
     } else {
-        for_each_chunk(&chunks, init, step)
+        run(&chunks)
     };
     let (mut dw, mut db) = (vec![zero; cout * k], vec![zero; cout]);
-    for s in &states {
-        for (kk, row) in s.dwt.chunks_exact(cout).enumerate() {
+    for a in &accs {
+        for (kk, row) in a.dwt.chunks_exact(cout).enumerate() {
             row.iter().enumerate().for_each(|(co, &v)| dw[co * k + kk] += v);
         }
-        db.iter_mut().zip(&s.db).for_each(|(a, &v)| *a += v);
+        db.iter_mut().zip(&a.db).for_each(|(d, &v)| *d += v);
     }
     Grads { dx, dw, db }
 }

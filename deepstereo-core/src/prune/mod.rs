@@ -32,7 +32,7 @@ mod views;
 #[cfg(test)]
 mod tests;
 
-pub use plan::{Pruner, TilePlan};
+pub use plan::{Block, Pruner, TilePlan};
 pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
 
 use crate::camera::Camera;
@@ -86,6 +86,8 @@ pub const DEFAULT_TOLERANCE: f32 = 0.1;
 pub const DEFAULT_STRIDE: usize = 4;
 /// Default of [`PruneOptions::flat`].
 pub const DEFAULT_FLAT: f32 = 1.0 / 255.0;
+/// Default of [`PruneOptions::min_block`].
+pub const DEFAULT_MIN_BLOCK: usize = 16;
 /// Default of [`PruneOptions::contrast`].
 pub const DEFAULT_CONTRAST: f32 = 2e-4;
 
@@ -111,6 +113,8 @@ pub struct PruneOptions {
     pub contrast: f32,
     /// A tile is flat when every sampled source colour lies within this of the mean.
     pub flat: f32,
+    /// Smallest block a tile is split into when its parts need different planes.
+    pub min_block: usize,
 }
 
 impl Default for PruneOptions {
@@ -124,6 +128,7 @@ impl Default for PruneOptions {
             level: 1,
             contrast: DEFAULT_CONTRAST,
             flat: DEFAULT_FLAT,
+            min_block: DEFAULT_MIN_BLOCK,
         }
     }
 }
@@ -180,9 +185,9 @@ pub struct PruneStats {
     pub uncovered: usize,
     /// Tiles whose sources are constant there (network skipped).
     pub flat: usize,
-    /// Planes the network ran on, summed over the tiles it ran on.
+    /// Planes the network ran on times the pixels of the blocks it ran them on.
     pub planes_run: usize,
-    /// Planes of the unpruned render, summed over all tiles.
+    /// The same for the unpruned render (planes times the pixels of every tile).
     pub planes_total: usize,
     /// The planes the depth range kept (`first..=last`), when the scene had points.
     pub depth_range: Option<(usize, usize)>,
@@ -191,7 +196,7 @@ pub struct PruneStats {
 }
 
 impl PruneStats {
-    /// Fraction of the unpruned plane-tiles the network ran on.
+    /// Fraction of the unpruned render's plane-pixels the network ran on.
     pub fn planes_fraction(&self) -> f64 {
         if self.planes_total == 0 {
             1.0
@@ -207,7 +212,7 @@ impl PruneStats {
             None => String::new(),
         };
         format!(
-            "prune: network on {:.0}% of the plane-tiles ({} tiles, {} uncovered, {} flat{range}, coarse pass {:.2} s)",
+            "prune: network on {:.0}% of the planes x pixels ({} tiles, {} uncovered, {} flat{range}, coarse pass {:.2} s)",
             100.0 * self.planes_fraction(),
             self.tiles,
             self.uncovered,

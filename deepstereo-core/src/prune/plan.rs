@@ -9,17 +9,26 @@ use crate::inputs::{level_camera, PyramidSource};
 use crate::sweep::{sample_bilinear, IN_FRONT_EPS};
 use glam::{DMat3, DVec2};
 
-/// What to do with one output tile.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// What to do with one block of output pixels.
+#[derive(Clone, Debug, PartialEq)]
 pub enum TilePlan {
-    /// No source covers the tile's input footprint at any plane: the network's response
-    /// to empty input.
+    /// No source covers the block's input footprint at any plane: the network's
+    /// response to empty input.
     Uncovered,
     /// Every sampled source colour equals `colour` (within [`PruneOptions::flat`]);
     /// `coverage`: the fraction of the sources that see the samples.
     Flat { colour: [f32; 3], coverage: f32 },
-    /// Run the network on planes `first..=last`.
-    Band { first: usize, last: usize },
+    /// Run the network on these planes (increasing indices; a union of contiguous bands).
+    Planes(Vec<usize>),
+}
+
+/// A square block of a tile (level-0 pixels; it may reach beyond the image) and its plan.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Block {
+    pub x0: usize,
+    pub y0: usize,
+    pub size: usize,
+    pub plan: TilePlan,
 }
 
 /// Plans the tiles of one render (one target, its sources and planes).
@@ -38,6 +47,9 @@ pub struct Pruner<'a> {
     homs: Vec<DMat3>,
     /// Level-0 pixels the network's input footprint reaches beyond a tile on each side.
     footprint: usize,
+    /// The level-0 input border (`Config::pad(0)`) and the tile alignment.
+    pad0: usize,
+    align: usize,
     /// Level-0 pixels a source image's samples reach beyond its border.
     reach: f64,
     /// Whether the exact coverage test applies (no lens distortion anywhere).
@@ -80,6 +92,8 @@ impl<'a> Pruner<'a> {
             target: *target,
             homs,
             footprint,
+            pad0: cfg.pad(0),
+            align: cfg.tile_align(),
             reach: (1u64 << (cfg.levels - 1)) as f64 + 1.0,
             pinhole,
         }
@@ -123,47 +137,93 @@ impl<'a> Pruner<'a> {
         false
     }
 
-    /// Decides what to do with the tile at `(x0, y0)` of side `tile` (level-0 pixels).
-    pub fn plan(&self, x0: usize, y0: usize, tile: usize) -> TilePlan {
+    /// Decides what to do with the tile at `(x0, y0)` of side `tile` (level-0 pixels):
+    /// one block for the whole tile, or (when its planes differ across it and the smaller
+    /// inputs' borders cost less than the planes saved) quadrants down to
+    /// [`PruneOptions::min_block`], each with its own planes.
+    pub fn plan(&self, x0: usize, y0: usize, tile: usize) -> Vec<Block> {
+        let whole = |plan| vec![Block { x0, y0, size: tile, plan }];
         if !self.covered(x0, y0, tile) {
-            return TilePlan::Uncovered;
+            return whole(TilePlan::Uncovered);
         }
         let samples = self.coarse(x0, y0, tile);
-        self.decide(&samples)
+        if let Some(plan) = self.flat(&samples) {
+            return whole(plan);
+        }
+        let all: Vec<usize> = (0..samples.pos.len()).collect();
+        self.split(&samples, &all, x0, y0, tile).1
     }
 
-    /// Normalized rays of the coarse samples of a tile.
-    fn rays(&self, x0: usize, y0: usize, tile: usize) -> Vec<DVec2> {
+    /// Cost of running the network on `planes` planes of a block of side `size`: the
+    /// level-0 input area times the planes.
+    fn cost(&self, size: usize, planes: usize) -> f64 {
+        let side = (size + 2 * self.pad0) as f64;
+        side * side * planes as f64
+    }
+
+    /// The cheapest blocks for the samples `idx` of the block at `(x0, y0)`.
+    fn split(&self, s: &Samples, idx: &[usize], x0: usize, y0: usize, size: usize) -> (f64, Vec<Block>) {
+        let planes = self.needed(s, idx);
+        let here = self.cost(size, planes.len());
+        let half = size / 2;
+        if half >= self.opts.min_block.max(1) && half % self.align == 0 {
+            let mut total = 0.0;
+            let mut blocks = Vec::new();
+            for (qx, qy) in [(x0, y0), (x0 + half, y0), (x0, y0 + half), (x0 + half, y0 + half)] {
+                let sub: Vec<usize> = idx
+                    .iter()
+                    .copied()
+                    .filter(|&i| (qx..qx + half).contains(&s.pos[i].0) && (qy..qy + half).contains(&s.pos[i].1))
+                    .collect();
+                if sub.is_empty() {
+                    continue; // outside the image
+                }
+                let (c, b) = self.split(s, &sub, qx, qy, half);
+                total += c;
+                blocks.extend(b);
+            }
+            if total < here {
+                return (total, blocks);
+            }
+        }
+        (here, vec![Block { x0, y0, size, plan: TilePlan::Planes(planes) }])
+    }
+
+    /// Level-0 positions and normalized rays of the coarse samples of a tile: every
+    /// `stride`-th pixel of the coarse level inside the image, and the first and last.
+    fn rays(&self, x0: usize, y0: usize, tile: usize) -> (Vec<(usize, usize)>, Vec<DVec2>) {
         let intr = &self.coarse_target.intrinsics;
         let f = 1usize << self.level;
         let s = (self.opts.stride >> self.level).max(1);
         let (tw, th) = (self.target.intrinsics.width as usize, self.target.intrinsics.height as usize);
-        // Every `s`-th level pixel of the tile's part of the image, and its first and last.
-        let span = |a: usize, len: usize, n: usize| -> Vec<usize> {
-            let (lo, hi) = (a / f, (a + len).min(n).div_ceil(f));
+        let span = |a: usize, n: usize| -> Vec<usize> {
+            let (lo, hi) = (a / f, (a + tile).min(n).div_ceil(f));
             let mut v: Vec<usize> = (lo..hi).skip(s / 2).step_by(s).collect();
             v.extend([lo, hi.saturating_sub(1)].into_iter().filter(|&i| i < hi));
             v.sort_unstable();
             v.dedup();
             v
         };
-        let mut rays = Vec::new();
-        let ys = span(y0, tile, th);
-        for i in span(x0, tile, tw) {
-            for &j in &ys {
+        let (xs, ys) = (span(x0, tw), span(y0, th));
+        let mut pos = Vec::with_capacity(xs.len() * ys.len());
+        let mut rays = Vec::with_capacity(xs.len() * ys.len());
+        for &j in &ys {
+            for &i in &xs {
+                pos.push((i * f, j * f));
                 rays.push(intr.unproject_pixel(DVec2::new(i as f64 + 0.5, j as f64 + 0.5)));
             }
         }
-        rays
+        (pos, rays)
     }
 
     /// The coarse cost volume of a tile.
     fn coarse(&self, x0: usize, y0: usize, tile: usize) -> Samples {
-        let rays = self.rays(x0, y0, tile);
+        let (pos, rays) = self.rays(x0, y0, tile);
         let (z0, z1) = self.range;
         let nz = z1 + 1 - z0;
         let mut out = Samples {
             nz,
+            pos,
             cost: vec![f32::NAN; rays.len() * nz],
             lo: [f32::INFINITY; 3],
             hi: [f32::NEG_INFINITY; 3],
@@ -211,17 +271,25 @@ impl<'a> Pruner<'a> {
         out
     }
 
-    /// The plan from a tile's coarse samples.
-    fn decide(&self, s: &Samples) -> TilePlan {
-        let (z0, z1) = self.range;
+    /// The flat plan when every sampled source colour is the same.
+    fn flat(&self, s: &Samples) -> Option<TilePlan> {
         let flat = (0..3).all(|ch| s.hi[ch] - s.lo[ch] <= 2.0 * self.opts.flat);
-        if s.count > 0 && s.all_seen && flat {
-            let coverage = s.count as f32 / (s.cost.len() * self.sources.len()).max(1) as f32;
-            return TilePlan::Flat { colour: s.sum.map(|x| x / s.count as f32), coverage };
-        }
-        let (mut los, mut his) = (Vec::new(), Vec::new());
+        (s.count > 0 && s.all_seen && flat).then(|| TilePlan::Flat {
+            colour: s.sum.map(|x| x / s.count as f32),
+            coverage: s.count as f32 / (s.cost.len() * self.sources.len()).max(1) as f32,
+        })
+    }
+
+    /// The planes the samples `idx` need: each informative sample's candidate planes
+    /// (cost within the tolerance of its least), less the planes too few samples want
+    /// ([`PruneOptions::mass`]), widened by the margin on each side.
+    fn needed(&self, s: &Samples, idx: &[usize]) -> Vec<usize> {
+        let (z0, z1) = self.range;
+        let mut support = vec![0usize; s.nz];
         let mut total = vec![0f32; s.nz];
-        for c in s.cost.chunks(s.nz) {
+        let mut informative = 0usize;
+        for &p in idx {
+            let c = &s.cost[p * s.nz..(p + 1) * s.nz];
             let known = || c.iter().enumerate().filter(|(_, x)| !x.is_nan());
             let (lo, hi) = known().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), (_, &x)| (a.min(x), b.max(x)));
             if known().count() < 2 || hi - lo < self.opts.contrast {
@@ -230,28 +298,34 @@ impl<'a> Pruner<'a> {
                 }
                 continue;
             }
+            informative += 1;
             let cut = lo + self.opts.tolerance * (hi - lo);
-            let good = || known().filter(|(_, &x)| x <= cut).map(|(z, _)| z);
-            los.push(good().min().unwrap_or(0));
-            his.push(good().max().unwrap_or(s.nz - 1));
+            for (z, _) in known().filter(|(_, &x)| x <= cut) {
+                support[z] += 1;
+            }
         }
-        let (first, last) = if los.is_empty() {
-            // Nothing in the tile tells depths apart: the plane of least total cost.
-            match total.iter().enumerate().filter(|(_, x)| **x > 0.0).min_by(|a, b| a.1.total_cmp(b.1)) {
-                Some((z, _)) => (z, z),
-                None => (0, s.nz - 1),
+        let mut want = vec![false; self.planes];
+        if informative > 0 {
+            let min = ((1.0 - self.opts.mass as f64) * informative as f64).floor() as usize;
+            for (z, &n) in support.iter().enumerate() {
+                want[z0 + z] = n > min;
+            }
+            if !want.iter().any(|&w| w) {
+                let z = (0..s.nz).max_by_key(|&z| support[z]).unwrap_or(0);
+                want[z0 + z] = true;
             }
         } else {
-            los.sort_unstable();
-            his.sort_unstable();
-            let drop = ((1.0 - self.opts.mass as f64) * los.len() as f64).floor() as usize;
-            let (a, b) = (los[drop.min(los.len() - 1)], his[his.len() - 1 - drop.min(his.len() - 1)]);
-            (a.min(b), a.max(b))
-        };
-        let first = (z0 + first).saturating_sub(self.margin);
-        let last = (z0 + last + self.margin).min(self.planes - 1);
-        debug_assert!(first <= last && last <= z1.max(last));
-        TilePlan::Band { first, last }
+            // Nothing here tells depths apart: the plane of least total cost, or every
+            // plane of the range when no source sees any sample.
+            match total.iter().enumerate().filter(|(_, x)| **x > 0.0).min_by(|a, b| a.1.total_cmp(b.1)) {
+                Some((z, _)) => want[z0 + z] = true,
+                None => want[z0..=z1].iter_mut().for_each(|w| *w = true),
+            }
+        }
+        let m = self.margin;
+        (0..self.planes)
+            .filter(|&z| (z.saturating_sub(m)..=(z + m).min(self.planes - 1)).any(|q| want[q]))
+            .collect()
     }
 }
 
@@ -259,6 +333,8 @@ impl<'a> Pruner<'a> {
 struct Samples {
     /// Planes of the range.
     nz: usize,
+    /// Level-0 position of each sample (the top-left of its coarse pixel).
+    pos: Vec<(usize, usize)>,
     /// `[sample, plane]` colour variance across the sources that see the point (NaN
     /// where fewer than two do).
     cost: Vec<f32>,

@@ -84,24 +84,26 @@ pub fn read(dir: &Path) -> Result<RawScene> {
         }
     };
     let (cam_file, cam_bin) = pick("cameras");
+    let cam_bytes = read_file(&cam_file)?;
     let cameras = if cam_bin {
-        cameras_bin(&cam_file)?
+        parse_cameras_bin(&cam_file, &cam_bytes)?
     } else {
-        cameras_txt(&cam_file)?
+        parse_cameras_txt(&cam_file, &cam_bytes)?
     };
     let (img_file, img_bin) = pick("images");
+    let img_bytes = read_file(&img_file)?;
     let images = if img_bin {
-        images_bin(&img_file)?
+        parse_images_bin(&img_file, &img_bytes)?
     } else {
-        images_txt(&img_file)?
+        parse_images_txt(&img_file, &img_bytes)?
     };
     let (pts_file, pts_bin) = pick("points3D");
     let points = if !pts_file.is_file() {
         Vec::new()
     } else if pts_bin {
-        points_bin(&pts_file)?
+        parse_points3d_bin(&pts_file, &read_file(&pts_file)?)?
     } else {
-        points_txt(&pts_file)?
+        parse_points3d_txt(&pts_file, &read_file(&pts_file)?)?
     };
 
     let mut views: Vec<View> = Vec::with_capacity(images.len());
@@ -141,11 +143,13 @@ fn find_image(dir: &Path, name: &str) -> Option<PathBuf> {
 }
 
 /// One entry of `images.{txt,bin}` before its camera is looked up.
-struct ImageEntry {
-    name: String,
-    camera_id: u32,
-    pose: std::result::Result<WorldToCamera, String>,
-    line: Option<usize>,
+pub struct ImageEntry {
+    pub name: String,
+    pub camera_id: u32,
+    /// The pose, or why it is unusable (reported once the view is built).
+    pub pose: std::result::Result<WorldToCamera, String>,
+    /// Line in `images.txt` (none for the binary file).
+    pub line: Option<usize>,
 }
 
 /// The pose from a COLMAP quaternion (w, x, y, z) and translation.
@@ -198,12 +202,15 @@ fn intrinsics_from(model: &str, width: u64, height: u64, p: &[f64]) -> std::resu
     Ok(k)
 }
 
-/// Reads a text file, reporting the line of the first invalid UTF-8 byte.
-pub(crate) fn read_utf8(path: &Path) -> Result<String> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-    String::from_utf8(bytes).map_err(|e| {
-        let at = e.utf8_error().valid_up_to();
-        let line = e.as_bytes().get(..at).unwrap_or(&[]).iter().filter(|&&b| b == b'\n').count() + 1;
+fn read_file(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| Error::io(path, e))
+}
+
+/// The bytes of a text file as UTF-8, reporting the line of the first invalid byte.
+pub(crate) fn utf8<'a>(path: &Path, bytes: &'a [u8]) -> Result<&'a str> {
+    std::str::from_utf8(bytes).map_err(|e| {
+        let at = e.valid_up_to();
+        let line = bytes.get(..at).unwrap_or(&[]).iter().filter(|&&b| b == b'\n').count() + 1;
         Error::parse(path, Some(line), "not valid UTF-8 text")
     })
 }
@@ -219,8 +226,10 @@ fn is_skippable(line: &str) -> bool {
     t.is_empty() || t.starts_with('#')
 }
 
-fn cameras_txt(path: &Path) -> Result<HashMap<u32, Intrinsics>> {
-    let text = read_utf8(path)?;
+/// Parses the bytes of `cameras.txt` (`path` names the file in errors): camera id to
+/// intrinsics.
+pub fn parse_cameras_txt(path: &Path, bytes: &[u8]) -> Result<HashMap<u32, Intrinsics>> {
+    let text = utf8(path, bytes)?;
     let mut out = HashMap::new();
     for (i, line) in text.lines().enumerate().filter(|(_, l)| !is_skippable(l)) {
         let n = i + 1;
@@ -246,8 +255,9 @@ fn is_points2d_line(line: &str) -> bool {
     toks.len() % 3 == 0 && toks.iter().all(|t| t.parse::<f64>().is_ok())
 }
 
-fn images_txt(path: &Path) -> Result<Vec<ImageEntry>> {
-    let text = read_utf8(path)?;
+/// Parses the bytes of `images.txt` (`path` names the file in errors).
+pub fn parse_images_txt(path: &Path, bytes: &[u8]) -> Result<Vec<ImageEntry>> {
+    let text = utf8(path, bytes)?;
     let mut lines = text.lines().enumerate().peekable();
     let mut out = Vec::new();
     while let Some((i, line)) = lines.next() {
@@ -279,8 +289,9 @@ fn images_txt(path: &Path) -> Result<Vec<ImageEntry>> {
     Ok(out)
 }
 
-fn points_txt(path: &Path) -> Result<Vec<DVec3>> {
-    let text = read_utf8(path)?;
+/// Parses the bytes of `points3D.txt` (`path` names the file in errors): the points.
+pub fn parse_points3d_txt(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>> {
+    let text = utf8(path, bytes)?;
     let mut out = Vec::new();
     for (i, line) in text.lines().enumerate().filter(|(_, l)| !is_skippable(l)) {
         let n = i + 1;
@@ -301,14 +312,13 @@ fn points_txt(path: &Path) -> Result<Vec<DVec3>> {
 /// A bounds-checked little-endian reader over a binary model file.
 struct Bin<'a> {
     path: &'a Path,
-    bytes: Vec<u8>,
+    bytes: &'a [u8],
     pos: usize,
 }
 
 impl<'a> Bin<'a> {
-    fn open(path: &'a Path) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-        Ok(Self { path, bytes, pos: 0 })
+    fn new(path: &'a Path, bytes: &'a [u8]) -> Self {
+        Self { path, bytes, pos: 0 }
     }
     fn remaining(&self) -> usize {
         self.bytes.len().saturating_sub(self.pos)
@@ -372,8 +382,9 @@ impl<'a> Bin<'a> {
     }
 }
 
-fn cameras_bin(path: &Path) -> Result<HashMap<u32, Intrinsics>> {
-    let mut b = Bin::open(path)?;
+/// Parses the bytes of `cameras.bin` (`path` names the file in errors).
+pub fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<HashMap<u32, Intrinsics>> {
+    let mut b = Bin::new(path, bytes);
     let n = b.count(MIN_CAMERA_RECORD, "camera count")?;
     let mut out = HashMap::with_capacity(n);
     for _ in 0..n {
@@ -405,8 +416,9 @@ fn cameras_bin(path: &Path) -> Result<HashMap<u32, Intrinsics>> {
     Ok(out)
 }
 
-fn images_bin(path: &Path) -> Result<Vec<ImageEntry>> {
-    let mut b = Bin::open(path)?;
+/// Parses the bytes of `images.bin` (`path` names the file in errors).
+pub fn parse_images_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ImageEntry>> {
+    let mut b = Bin::new(path, bytes);
     let n = b.count(MIN_IMAGE_RECORD, "image count")?;
     let mut out = Vec::with_capacity(n);
     for _ in 0..n {
@@ -430,8 +442,9 @@ fn images_bin(path: &Path) -> Result<Vec<ImageEntry>> {
     Ok(out)
 }
 
-fn points_bin(path: &Path) -> Result<Vec<DVec3>> {
-    let mut b = Bin::open(path)?;
+/// Parses the bytes of `points3D.bin` (`path` names the file in errors).
+pub fn parse_points3d_bin(path: &Path, bytes: &[u8]) -> Result<Vec<DVec3>> {
+    let mut b = Bin::new(path, bytes);
     let n = b.count(MIN_POINT3D_RECORD, "point count")?;
     let mut out = Vec::with_capacity(n);
     for _ in 0..n {

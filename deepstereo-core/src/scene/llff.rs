@@ -43,28 +43,8 @@ pub const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
 pub fn read(dir: &Path, factor: Option<u32>) -> Result<RawScene> {
     let file = dir.join(POSES_FILE);
     let arr = super::npy::read_npy(&file)?;
-    let (rows, cols) = match arr.shape.as_slice() {
-        [r, c] => (*r, *c),
-        other => {
-            return Err(Error::parse(
-                &file,
-                None,
-                format!("expected a 2-D N x {POSES_BOUNDS_COLUMNS} array, got shape {other:?}"),
-            ))
-        }
-    };
-    if cols != POSES_BOUNDS_COLUMNS {
-        return Err(Error::parse(
-            &file,
-            None,
-            format!("expected {POSES_BOUNDS_COLUMNS} columns (3x5 pose + near, far), got {cols}"),
-        ));
-    }
-    if rows == 0 {
-        return Err(Error::parse(&file, None, "the file holds no cameras (0 rows)"));
-    }
+    let rows = poses_rows(&file, &arr)?;
 
-    let mut notes = Vec::new();
     let (folder, folder_note) = choose_folder(dir, factor)?;
     let images = list_images(&folder)?;
     if images.len() != rows {
@@ -81,8 +61,52 @@ pub fn read(dir: &Path, factor: Option<u32>) -> Result<RawScene> {
         .first()
         .ok_or_else(|| Error::format(&folder, "no images found"))?;
     let (w, h) = super::image_size(first)?;
-    notes.push(format!("{folder_note} ({rows} images of {w}x{h})"));
+    let mut raw = poses_to_views(&file, &arr, images, (w, h))?;
+    raw.notes.insert(0, format!("{folder_note} ({rows} images of {w}x{h})"));
+    Ok(raw)
+}
 
+/// Parses the bytes of `poses_bounds.npy` at `file` into one view per row for `images`
+/// (in row order; only their names are used), all of `size` pixels: the part of [`read`]
+/// after the image folder has been listed.
+pub fn parse_poses_bounds(file: &Path, bytes: &[u8], images: Vec<PathBuf>, size: (u32, u32)) -> Result<RawScene> {
+    let arr = super::npy::parse_npy(file, bytes)?;
+    let rows = poses_rows(file, &arr)?;
+    if images.len() != rows {
+        return Err(Error::format(file, format!("{rows} poses in {POSES_FILE} but {} images", images.len())));
+    }
+    poses_to_views(file, &arr, images, size)
+}
+
+/// The number of rows of a `poses_bounds` array, after checking its shape.
+fn poses_rows(file: &Path, arr: &super::npy::NpyArray) -> Result<usize> {
+    let (rows, cols) = match arr.shape.as_slice() {
+        [r, c] => (*r, *c),
+        other => {
+            return Err(Error::parse(
+                file,
+                None,
+                format!("expected a 2-D N x {POSES_BOUNDS_COLUMNS} array, got shape {other:?}"),
+            ))
+        }
+    };
+    if cols != POSES_BOUNDS_COLUMNS {
+        return Err(Error::parse(
+            file,
+            None,
+            format!("expected {POSES_BOUNDS_COLUMNS} columns (3x5 pose + near, far), got {cols}"),
+        ));
+    }
+    if rows == 0 {
+        return Err(Error::parse(file, None, "the file holds no cameras (0 rows)"));
+    }
+    Ok(rows)
+}
+
+/// The views of the rows of a `poses_bounds` array for `images` of size `(w, h)`.
+fn poses_to_views(file: &Path, arr: &super::npy::NpyArray, images: Vec<PathBuf>, (w, h): (u32, u32)) -> Result<RawScene> {
+    let rows = images.len();
+    let mut notes = Vec::new();
     let mut views = Vec::with_capacity(rows);
     let mut bounds: Option<(f64, f64)> = None;
     let mut aspect_noted = false;

@@ -39,7 +39,14 @@ pub fn par_file(dir: &Path) -> Option<PathBuf> {
 pub fn read(dir: &Path) -> Result<RawScene> {
     let file = par_file(dir).ok_or_else(|| Error::format(dir, "no *_par.txt file"))?;
     let bytes = std::fs::read(&file).map_err(|e| Error::io(&file, e))?;
-    let text = String::from_utf8(bytes).map_err(|_| Error::parse(&file, None, "not UTF-8 text"))?;
+    parse_par(&file, &bytes)
+}
+
+/// Parses the bytes of a `*_par.txt` at `file` (images, and a `README.txt` with the
+/// bounding box, are looked up in its folder).
+pub fn parse_par(file: &Path, bytes: &[u8]) -> Result<RawScene> {
+    let dir = file.parent().unwrap_or(Path::new("."));
+    let text = std::str::from_utf8(bytes).map_err(|_| Error::parse(file, None, "not UTF-8 text"))?;
     let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
     let (_, first) = lines.next().ok_or_else(|| Error::parse(&file, None, "empty file"))?;
     let count: usize = first

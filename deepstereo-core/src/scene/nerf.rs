@@ -48,7 +48,15 @@ pub fn read(dir: &Path) -> Result<RawScene> {
         .find(|p| p.is_file())
         .ok_or_else(|| Error::format(dir, "no transforms.json or transforms_train.json"))?;
     let bytes = std::fs::read(&file).map_err(|e| Error::io(&file, e))?;
-    let json: Value = serde_json::from_slice(&bytes)
+    parse_transforms(&file, &bytes)
+}
+
+/// Parses the bytes of a `transforms.json` at `file` (image paths are resolved, and
+/// image headers read, relative to its folder).
+pub fn parse_transforms(file: &Path, bytes: &[u8]) -> Result<RawScene> {
+    let file = file.to_path_buf();
+    let dir = file.parent().unwrap_or(Path::new("."));
+    let json: Value = serde_json::from_slice(bytes)
         .map_err(|e| Error::parse(&file, Some(e.line()), format!("invalid JSON: {e}")))?;
     let fname = file
         .file_name()

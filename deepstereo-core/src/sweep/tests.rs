@@ -1,32 +1,33 @@
-//! Unit tests of the plane sweep against analytic renderings and f64 references.
+//! Unit tests of the plane sweep against analytic renderings and f64 references
+//! (extreme geometry is in `tests_extreme.rs`).
 use super::*;
 use crate::camera::Distortion;
 use crate::geometry::inverse_depths;
 use glam::{DMat3, DVec3};
 
 /// Deterministic pseudo-random numbers in [0, 1) (SplitMix64).
-struct Rng(u64);
+pub(super) struct Rng(u64);
 impl Rng {
-    fn next(&mut self) -> f64 {
+    pub(super) fn next(&mut self) -> f64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
         ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
     }
-    fn range(&mut self, a: f64, b: f64) -> f64 {
+    pub(super) fn range(&mut self, a: f64, b: f64) -> f64 {
         a + (b - a) * self.next()
     }
 }
 
-fn cam(r: DMat3, centre: DVec3, intr: Intrinsics) -> Camera {
+pub(super) fn cam(r: DMat3, centre: DVec3, intr: Intrinsics) -> Camera {
     Camera {
         intrinsics: intr,
         pose: WorldToCamera::new_checked(r, -(r * centre)).unwrap(),
     }
 }
 
-fn noise_image(w: u32, h: u32, seed: u64) -> RgbImage {
+pub(super) fn noise_image(w: u32, h: u32, seed: u64) -> RgbImage {
     let mut rng = Rng(seed);
     let mut img = RgbImage::new(w, h);
     img.data.iter_mut().for_each(|v| *v = rng.next() as f32);
@@ -202,7 +203,7 @@ fn target_swept_into_itself_is_identity() {
 
 /// Per-pixel f64 reference: unproject the target pixel to the plane, project it into
 /// the source, sample (alpha 0 behind the source).
-fn reference_slice(target: &Camera, src: &Source, rho: f64, region: Region) -> Vec<f32> {
+pub(super) fn reference_slice(target: &Camera, src: &Source, rho: f64, region: Region) -> Vec<f32> {
     let hw = region.len();
     let mut out = vec![0.0f32; 4 * hw];
     let ct = target.pose.inverse();
@@ -314,124 +315,4 @@ fn sweep_matches_f64_point_projection() {
             "trial {trial}: nothing visible, the test would be vacuous"
         );
     }
-}
-
-#[test]
-fn points_behind_a_source_get_alpha_zero() {
-    let intr = Intrinsics::pinhole(40.0, 40.0, 16.0, 12.0, 32, 24);
-    let target = cam(DMat3::IDENTITY, DVec3::ZERO, intr);
-    let img = noise_image(32, 24, 1);
-    // A source beyond the plane z = 2, looking the same way: the plane is behind it,
-    // and a projection that ignored the sign of z would land inside its image.
-    let beyond = cam(DMat3::IDENTITY, DVec3::new(0.0, 0.0, 4.0), intr);
-    // A source turned sideways at the plane: part of the plane is behind it.
-    let sideways = cam(DMat3::from_rotation_y(1.3), DVec3::new(0.3, 0.0, 2.0), intr);
-    for source in [beyond, sideways] {
-        let src = [Source {
-            camera: &source,
-            image: &img,
-        }];
-        let out = sweep(&target, Region::full(&intr), &src, &[0.5]);
-        let hw = Region::full(&intr).len();
-        let (mut behind, mut naive_inside) = (0, 0);
-        for p in 0..hw {
-            let uv = DVec2::new((p % 32) as f64 + 0.5, (p / 32) as f64 + 0.5);
-            let (uv_src, z) = source.project(target.unproject(uv, 2.0));
-            let a = out[3 * hw + p];
-            if z <= 0.0 {
-                behind += 1;
-                assert_eq!(a, 0.0, "pixel {p} behind the source has alpha {a}");
-                assert!((0..3).all(|c| out[c * hw + p] == 0.0));
-                // A projection that ignored the sign of z would have sampled here.
-                naive_inside += usize::from(sample_bilinear(&img, uv_src.x, uv_src.y)[3] > 0.0);
-            }
-        }
-        assert!(
-            behind > 0 && naive_inside > 0,
-            "behind {behind}, naive inside {naive_inside}"
-        );
-    }
-}
-
-#[test]
-fn far_at_infinity_is_a_pure_rotation() {
-    let intr = Intrinsics::pinhole(50.0, 50.0, 20.0, 15.0, 40, 30);
-    let target = cam(DMat3::from_rotation_x(0.2), DVec3::new(0.0, 1.0, 0.0), intr);
-    let img = noise_image(40, 30, 9);
-    let r = DMat3::from_rotation_y(0.15) * DMat3::from_rotation_x(0.2);
-    let near_src = cam(r, DVec3::new(0.0, 1.0, 0.0), intr);
-    let far_src = cam(r, DVec3::new(5.0, -3.0, 2.0), intr);
-    let inv = inverse_depths(1.0, f64::INFINITY, 4);
-    assert_eq!(inv[3], 0.0);
-    let a = sweep(
-        &target,
-        Region::full(&intr),
-        &[Source {
-            camera: &near_src,
-            image: &img,
-        }],
-        &inv,
-    );
-    let b = sweep(
-        &target,
-        Region::full(&intr),
-        &[Source {
-            camera: &far_src,
-            image: &img,
-        }],
-        &inv,
-    );
-    let n = 4 * Region::full(&intr).len();
-    assert!(a.iter().chain(&b).all(|v| v.is_finite()));
-    // At infinity the translation does not matter...
-    assert_eq!(&a[3 * n..], &b[3 * n..]);
-    // ...and the slice is the rotation-only reference.
-    let want = reference_slice(
-        &target,
-        &Source {
-            camera: &near_src,
-            image: &img,
-        },
-        0.0,
-        Region::full(&intr),
-    );
-    assert!(a[3 * n..]
-        .iter()
-        .zip(&want)
-        .all(|(g, w)| (g - w).abs() < 1e-5));
-    assert!(want.iter().skip(3 * n / 4).any(|&al| al > 0.99));
-    // ...while at finite depth it does.
-    assert_ne!(&a[..n], &b[..n]);
-}
-
-#[test]
-fn extreme_near_and_far_stay_finite() {
-    let intr = Intrinsics::pinhole(40.0, 40.0, 16.0, 12.0, 32, 24);
-    let target = cam(DMat3::IDENTITY, DVec3::ZERO, intr);
-    let source = cam(
-        DMat3::from_rotation_y(0.1),
-        DVec3::new(0.2, 0.05, -0.1),
-        intr,
-    );
-    let img = noise_image(32, 24, 4);
-    let inv = inverse_depths(1e-3, 1e6, 16);
-    assert!(inv.iter().all(|r| r.is_finite() && *r > 0.0));
-    let out = sweep(
-        &target,
-        Region::full(&intr),
-        &[Source {
-            camera: &source,
-            image: &img,
-        }],
-        &inv,
-    );
-    assert!(out
-        .iter()
-        .all(|v| v.is_finite() && (0.0..=1.0 + 1e-6).contains(v)));
-    let hw = Region::full(&intr).len();
-    let last_alpha = &out[(15 * 4 + 3) * hw..(15 * 4 + 4) * hw];
-    assert!(
-        last_alpha.iter().any(|&a| a > 0.99),
-        "the far plane must be visible"
-    );
 }

@@ -22,6 +22,7 @@
 //! `depth/view_NNN.npy` (float32 `[H, W]`).
 
 mod layout;
+mod noise;
 mod raytrace;
 mod rig;
 mod rng;
@@ -29,6 +30,8 @@ mod texture;
 mod write;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_sweep;
 
 pub use write::{contact_sheet, load_textures, scene_dir, write_scene, write_scenes, write_scenes_progress};
 

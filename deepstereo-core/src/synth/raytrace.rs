@@ -144,7 +144,7 @@ pub(crate) fn render(
             let (x0, x1) = (px as f64, px as f64 + 1.0);
             cands.clear();
             cands.extend(row.iter().copied().filter(|&i| locals[i].bbox[0] <= x1 && locals[i].bbox[1] >= x0));
-            if ss % 2 == 0 {
+            if ss.is_multiple_of(2) {
                 let (t, _) = trace(ray(x0 + 0.5, y0 + 0.5), &locals, &cands).ok_or_else(|| missed(px, py))?;
                 depth[py * w + px] = t as f32;
             }
@@ -155,7 +155,7 @@ pub(crate) fn render(
                     // With odd `ss` the middle sub-ray is exactly the pixel-centre ray.
                     let d = ray(x0 + (sx as f64 + 0.5) / ssf, y0 + (sy as f64 + 0.5) / ssf);
                     let (t, i) = trace(d, &locals, &cands).ok_or_else(|| missed(px, py))?;
-                    if ss % 2 == 1 && sx == ss / 2 && sy == ss / 2 {
+                    if !ss.is_multiple_of(2) && sx == ss / 2 && sy == ss / 2 {
                         depth[py * w + px] = t as f32;
                     }
                     let p = d * t;

@@ -4,7 +4,7 @@
 //! axes: x right, y down). Every rig keeps all of its rays pointing into the +z half
 //! space (checked), so the backdrop plane `z = const` behind the content fills every view.
 //! Baselines are chosen from a target disparity between neighbouring views at the nearest
-//! content depth `d0`, a fraction [`NEIGHBOUR_DISPARITY`] of the image width.
+//! content depth `d0`, a fraction [`NEIGHBOUR_DISPARITY`] of the image's larger side.
 
 use super::rng::Rng;
 use super::Rig;
@@ -12,7 +12,8 @@ use crate::camera::{Camera, CameraToWorld, Intrinsics};
 use crate::error::{Error, Result};
 use glam::{DMat3, DVec2, DVec3};
 
-/// Focal length range, as a multiple of the image width.
+/// Focal length range, as a multiple of the image's larger side (its width for
+/// landscape images).
 pub const FOCAL_RANGE: (f64, f64) = (0.8, 1.4);
 /// Largest offset of the principal point from the image centre, as a fraction of the size.
 pub const PRINCIPAL_OFFSET: f64 = 0.05;
@@ -22,7 +23,8 @@ const PIXEL_ASPECT_JITTER: f64 = 0.02;
 const FRAME_FOCAL_JITTER: f64 = 0.01;
 /// Largest per-frame shift of the principal point, as a fraction of the size.
 const FRAME_PRINCIPAL_JITTER: f64 = 0.005;
-/// Disparity between neighbouring views at the nearest content, as a fraction of the width.
+/// Disparity between neighbouring views at the nearest content, as a fraction of the
+/// image's larger side.
 pub const NEIGHBOUR_DISPARITY: (f64, f64) = (0.05, 0.15);
 /// Log-uniform range of the nearest content depth, for rigs without a natural scale.
 const SCENE_SCALE: (f64, f64) = (1.0, 10.0);
@@ -79,7 +81,7 @@ fn deg(d: f64) -> f64 {
 /// Random intrinsics for a `width x height` image.
 fn base_intrinsics(rng: &mut Rng, width: u32, height: u32) -> Intrinsics {
     let (w, h) = (width as f64, height as f64);
-    let fx = w * rng.range(FOCAL_RANGE.0, FOCAL_RANGE.1);
+    let fx = w.max(h) * rng.range(FOCAL_RANGE.0, FOCAL_RANGE.1);
     let fy = fx * (1.0 + rng.sym(PIXEL_ASPECT_JITTER));
     let cx = 0.5 * w + rng.sym(PRINCIPAL_OFFSET * w);
     let cy = 0.5 * h + rng.sym(PRINCIPAL_OFFSET * h);
@@ -103,7 +105,7 @@ fn frame_intrinsics(rng: &mut Rng, k: &Intrinsics) -> Intrinsics {
 /// Builds the cameras of a concrete rig (not [`Rig::Mixed`]).
 pub(crate) fn build(rig: Rig, rng: &mut Rng, views: usize, width: u32, height: u32) -> Result<RigLayout> {
     let base = base_intrinsics(rng, width, height);
-    let disp = rng.range(NEIGHBOUR_DISPARITY.0, NEIGHBOUR_DISPARITY.1) * width as f64;
+    let disp = rng.range(NEIGHBOUR_DISPARITY.0, NEIGHBOUR_DISPARITY.1) * width.max(height) as f64;
     let f = base.fx;
     let hfov = 2.0 * (0.5 * width as f64 / f).atan();
     let (poses, d0, focus) = match rig {

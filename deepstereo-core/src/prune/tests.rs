@@ -1,0 +1,338 @@
+//! Pruning against ground truth: kept bands hold every pixel's true surface plane,
+//! uncovered tiles skip the network, and pruning off is the unpruned renderer bit for bit.
+
+use super::*;
+use crate::config::{Config, Conv, TowerConfig};
+use crate::geometry::inverse_depths;
+use crate::inputs::{tile_inputs, PyramidSource};
+use crate::render::{render_view, render_view_pruned, Backend, CandleBackend, Rendered};
+use crate::sweep::CHANNELS;
+use crate::synth::{generate, Rig, SynthOptions, SynthScene};
+use crate::weights::init_seeded;
+use candle_core::{DType, Device};
+
+type TestResult = std::result::Result<(), Box<dyn std::error::Error>>;
+
+fn nearest(cams: &[Camera], t: usize, k: usize) -> Vec<usize> {
+    let c = cams[t].pose.centre();
+    let mut idx: Vec<(f64, usize)> =
+        (0..cams.len()).filter(|&i| i != t).map(|i| (cams[i].pose.centre().distance_squared(c), i)).collect();
+    idx.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    idx.into_iter().take(k).map(|(_, i)| i).collect()
+}
+
+fn pyramids(s: &SynthScene, idx: &[usize], levels: usize) -> Vec<PyramidSource> {
+    idx.iter().map(|&i| PyramidSource::new(&s.cameras[i], &s.images[i], levels)).collect()
+}
+
+/// Index of the plane (of decreasing `inv`) nearest in inverse depth to `depth`.
+fn nearest_plane(inv: &[f64], depth: f64) -> usize {
+    let r = 1.0 / depth;
+    (0..inv.len()).min_by(|&a, &b| (inv[a] - r).abs().total_cmp(&(inv[b] - r).abs())).unwrap_or(0)
+}
+
+/// A small model with the tiny preset's structure (2 levels, 3 depth convs).
+fn small_backend(views: usize) -> CandleBackend {
+    let c = |k, ch| Conv { kernel: k, channels: ch };
+    let cfg = Config {
+        name: "prune-test".into(),
+        views,
+        planes: 12,
+        levels: 2,
+        tile: 8,
+        select: TowerConfig { levels: 2, level_convs: vec![c(3, 4)], merge_convs: vec![c(3, 4)] },
+        depth_convs: vec![c(3, 4), c(3, 4), c(3, 1)],
+        colour: TowerConfig { levels: 1, level_convs: vec![c(1, 4)], merge_convs: vec![c(1, 4)] },
+        colour_skip: true,
+    };
+    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 7).expect("model");
+    CandleBackend { model: t.model, device: Device::Cpu }
+}
+
+/// For every tile of `target`, the planes nearest the true depth of each of its pixels
+/// that the plan leaves out; returns (misses, pixels checked, plane-pixels kept, total).
+fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: &PruneOptions) -> (usize, usize, usize, usize) {
+    let cfg = Config::tiny();
+    let src = nearest(&s.cameras, target, cfg.views);
+    let pyr = pyramids(s, &src, cfg.levels);
+    let refs: Vec<&PyramidSource> = pyr.iter().collect();
+    let inv = inverse_depths(s.near, s.far, planes);
+    let cam = &s.cameras[target];
+    let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, opts);
+    let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+    let (mut misses, mut checked, mut kept, mut total) = (0, 0, 0, 0);
+    for y0 in (0..h).step_by(tile) {
+        for x0 in (0..w).step_by(tile) {
+            for b in pruner.plan(x0, y0, tile) {
+                let set = match b.plan {
+                    TilePlan::Planes(set) => set,
+                    TilePlan::Uncovered | TilePlan::Flat { .. } => continue,
+                };
+                for y in b.y0..(b.y0 + b.size).min(h) {
+                    for x in b.x0..(b.x0 + b.size).min(w) {
+                        let z = nearest_plane(&inv, s.depths[target][y * w + x] as f64);
+                        checked += 1;
+                        kept += set.len();
+                        total += planes;
+                        if !set.contains(&z) {
+                            misses += 1;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    (misses, checked, kept, total)
+}
+
+fn scene(seed: u64, rig: Rig) -> SynthScene {
+    generate(seed, &SynthOptions { views: 8, width: 128, height: 96, rig, supersample: 2, textures: Vec::new() })
+        .expect("scene")
+}
+
+#[test]
+fn prune_keeps_the_true_surface_plane_of_every_pixel() {
+    let opts = PruneOptions::auto();
+    let (mut kept, mut total) = (0, 0);
+    for (i, rig) in Rig::CONCRETE.into_iter().enumerate() {
+        let s = scene(9100 + i as u64, rig);
+        let target = s.cameras.len() / 2;
+        let (m, n, k, t) = check_bands(&s, target, 32, 32, &opts);
+        assert_eq!(m, 0, "{rig}: {m} of {n} pixels lost their surface plane");
+        assert!(n > 0);
+        kept += k;
+        total += t;
+    }
+    // Pruning must also leave something out.
+    assert!(kept < total, "kept {kept} of {total} plane-tiles");
+}
+
+#[test]
+fn prune_depth_range_from_points_keeps_the_points() {
+    let s = scene(77, Rig::Forward);
+    let cam = s.cameras[0];
+    let inv = inverse_depths(s.near, s.far, 32);
+    // Points on the true surfaces of the middle of the image.
+    let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+    let pts: Vec<_> = (0..200)
+        .map(|i| {
+            let (x, y) = (w / 4 + (i * 37) % (w / 2), h / 4 + (i * 53) % (h / 2));
+            cam.unproject(glam::DVec2::new(x as f64 + 0.5, y as f64 + 0.5), s.depths[0][y * w + x] as f64)
+        })
+        .collect();
+    let (first, last) = plane_range_from_points(&cam, &pts, &inv).expect("a range");
+    for p in &pts {
+        let z = nearest_plane(&inv, cam.pose.transform_point(*p).z);
+        assert!(first <= z && z <= last, "plane {z} outside {first}..={last}");
+    }
+    // Too few points say nothing; points behind the camera neither.
+    assert_eq!(plane_range_from_points(&cam, &pts[..1], &inv), None);
+    let behind: Vec<_> = (0..40).map(|i| cam.unproject(glam::DVec2::new(10.0 + i as f64, 10.0), -1.0 - i as f64)).collect();
+    assert_eq!(plane_range_from_points(&cam, &behind, &inv), None);
+}
+
+/// The renderer as it was before pruning, kept here as the reference.
+fn reference_render(backend: &dyn Backend, target: &Camera, sources: &[&PyramidSource], inv: &[f64], tile: usize) -> Rendered {
+    let cfg = backend.config();
+    let a = cfg.tile_align();
+    let tile = tile.max(1).div_ceil(a) * a;
+    let (w, h) = (target.intrinsics.width as usize, target.intrinsics.height as usize);
+    let mut out = Rendered {
+        image: crate::imageio::RgbImage::new(w as u32, h as u32),
+        depth: vec![0.0; w * h],
+        confidence: vec![0.0; w * h],
+        coverage: vec![0.0; w * h],
+        prune: None,
+    };
+    let v = cfg.views;
+    for y0 in (0..h).step_by(tile) {
+        for x0 in (0..w).step_by(tile) {
+            let inputs = tile_inputs(cfg, target, sources, inv, (x0 as i64, y0 as i64), (tile, tile)).unwrap();
+            let (img, sel) = backend.run(&inputs, inv.len()).unwrap();
+            let (ih, iw) = inputs.sizes[0];
+            let p = cfg.pad(0);
+            let tt = tile * tile;
+            for yy in 0..tile.min(h - y0) {
+                for xx in 0..tile.min(w - x0) {
+                    let o = yy * tile + xx;
+                    let pix = (y0 + yy) * w + x0 + xx;
+                    for ch in 0..3 {
+                        out.image.data[pix * 3 + ch] = img[ch * tt + o].clamp(0.0, 1.0);
+                    }
+                    let (mut rho, mut best, mut cov) = (0.0f64, 0.0f32, 0.0f32);
+                    for (z, r) in inv.iter().enumerate() {
+                        let s = sel[z * tt + o];
+                        rho += s as f64 * r;
+                        best = best.max(s);
+                        let mut alpha = 0.0;
+                        for k in 0..v {
+                            let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
+                            alpha += inputs.levels[0][base + (yy + p) * iw + xx + p];
+                        }
+                        cov += s * alpha / v as f32;
+                    }
+                    out.depth[pix] = if rho > 0.0 { (1.0 / rho) as f32 } else { f32::INFINITY };
+                    out.confidence[pix] = best;
+                    out.coverage[pix] = cov;
+                }
+            }
+        }
+    }
+    out
+}
+
+fn bits(r: &Rendered) -> Vec<u32> {
+    r.image.data.iter().chain(&r.depth).chain(&r.confidence).chain(&r.coverage).map(|x| x.to_bits()).collect()
+}
+
+#[test]
+fn prune_off_is_bit_identical_to_the_unpruned_renderer() -> TestResult {
+    let backend = small_backend(3);
+    let s = generate(5, &SynthOptions { views: 5, width: 44, height: 30, rig: Rig::Forward, supersample: 1, textures: Vec::new() })?;
+    let src = nearest(&s.cameras, 2, 3);
+    let pyr = pyramids(&s, &src, 2);
+    let refs: Vec<&PyramidSource> = pyr.iter().collect();
+    let inv = inverse_depths(s.near, s.far, 9);
+    let want = reference_render(&backend, &s.cameras[2], &refs, &inv, 16);
+    let got = render_view(&backend, &s.cameras[2], &refs, &inv, 16, &|_, _| {})?;
+    assert_eq!(bits(&got), bits(&want));
+    assert!(got.prune.is_none());
+    let got = render_view_pruned(&backend, &s.cameras[2], &refs, &inv, 16, None, &|_, _| {})?;
+    assert_eq!(bits(&got), bits(&want));
+    Ok(())
+}
+
+#[test]
+fn prune_skips_uncovered_tiles_with_the_networks_own_output() -> TestResult {
+    let backend = small_backend(2);
+    let s = generate(8, &SynthOptions { views: 3, width: 64, height: 48, rig: Rig::Forward, supersample: 1, textures: Vec::new() })?;
+    let src = [1usize, 2];
+    let pyr = pyramids(&s, &src, 2);
+    let refs: Vec<&PyramidSource> = pyr.iter().collect();
+    let inv = inverse_depths(s.near, s.far, 6);
+    // A target that looks far to the side of the sources sees nothing they see on its
+    // left; widen its image so whole tiles lie outside every source.
+    let mut cam = s.cameras[0];
+    cam.intrinsics.width = 192;
+    cam.intrinsics.cx += 128.0;
+    let opts = PruneOptions { margin: Some(100), ..PruneOptions::auto() };
+    let pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
+    let got = render_view_pruned(&backend, &cam, &refs, &inv, 16, Some(&pruner), &|_, _| {})?;
+    let stats = got.prune.clone().expect("stats");
+    assert!(stats.uncovered > 0, "{stats:?}");
+    assert!(got.image.data.iter().chain(&got.confidence).chain(&got.coverage).all(|x| x.is_finite()));
+    assert!(got.depth.iter().all(|x| !x.is_nan()));
+    // The skipped tiles hold exactly what the network gives there (the full band, with a
+    // margin covering every plane, leaves the others equal too).
+    let want = render_view(&backend, &cam, &refs, &inv, 16, &|_, _| {})?;
+    let diff = got.image.data.iter().zip(&want.image.data).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff < 1e-5, "max difference {diff}");
+    let (w, tile) = (192usize, 16usize);
+    let mut skipped_pixels = 0;
+    for y in 0..48 {
+        for x in 0..w {
+            if !pruner.covered(x / tile * tile, y / tile * tile, tile) {
+                skipped_pixels += 1;
+                let p = y * w + x;
+                assert_eq!(got.image.data[p * 3..p * 3 + 3], want.image.data[p * 3..p * 3 + 3]);
+                assert_eq!(got.coverage[p], 0.0);
+            }
+        }
+    }
+    assert!(skipped_pixels > 0);
+    Ok(())
+}
+
+#[test]
+fn prune_views_prefer_views_that_see_the_target() {
+    let s = scene(31, Rig::Rosette);
+    let t = 0;
+    let k = 3;
+    let cams = &s.cameras;
+    let (chosen, ranks) = rank_views(cams, &cams[t], k, Some(t), s.near, s.far);
+    assert_eq!(chosen.len(), k);
+    assert!(!chosen.contains(&t));
+    let useful = ranks.iter().filter(|r| r.coverage >= MIN_VIEW_COVERAGE).count();
+    for &c in &chosen {
+        let r = ranks.iter().find(|r| r.index == c).expect("ranked");
+        assert!(r.coverage >= MIN_VIEW_COVERAGE || useful < k, "view {c} sees {:.2}", r.coverage);
+    }
+    // A view looking the opposite way sees nothing of the frustum.
+    let mut back = cams[t];
+    back.pose.rotation = glam::DMat3::from_rotation_y(std::f64::consts::PI) * back.pose.rotation;
+    back.pose.translation = glam::DMat3::from_rotation_y(std::f64::consts::PI) * back.pose.translation;
+    assert_eq!(view_coverage(&cams[t], &back, s.near, s.far), 0.0);
+    assert!(view_coverage(&cams[t], &cams[t], s.near, s.far) > 0.99);
+}
+
+/// Calibration, not a check: per scene, how many planes the bands keep and how many
+/// pixels lose their true plane (`cargo test --release -p deepstereo-core prune_calibrate
+/// -- --ignored --nocapture`).
+#[test]
+#[ignore]
+fn prune_calibrate() {
+    let planes = 32;
+    for tile in [16usize, 32, 64] {
+        let (mut k, mut t, mut k3) = (0, 0, 0);
+        let mut union = [0usize; 4];
+        let mut hist = [0usize; 9];
+        for i in 0..8u64 {
+            let s = scene(4242 + i, Rig::Mixed);
+            let target = s.cameras.len() / 2;
+            let inv = inverse_depths(s.near, s.far, planes);
+            let (w, h) = (s.images[target].width as usize, s.images[target].height as usize);
+            for y0 in (0..h).step_by(tile) {
+                for x0 in (0..w).step_by(tile) {
+                    let (mut lo, mut hi) = (planes, 0);
+                    let mut used = vec![false; planes];
+                    for y in y0..(y0 + tile).min(h) {
+                        for x in x0..(x0 + tile).min(w) {
+                            let z = nearest_plane(&inv, s.depths[target][y * w + x] as f64);
+                            used[z] = true;
+                            lo = lo.min(z);
+                            hi = hi.max(z);
+                        }
+                    }
+                    for (m, u) in union.iter_mut().enumerate() {
+                        *u += (0..planes).filter(|&z| (z.saturating_sub(m)..=(z + m).min(planes - 1)).any(|q| used[q])).count();
+                    }
+                    k += hi + 1 - lo;
+                    k3 += (hi + 3).min(planes - 1) + 1 - lo.saturating_sub(3);
+                    t += planes;
+                    hist[((hi + 1 - lo) * 8 / planes).min(8)] += 1;
+                }
+            }
+        }
+        println!("tile {tile}: ground-truth union with margin 0..3 keeps {:?}%", union.map(|u| (1000 * u / t) as f64 / 10.0));
+        println!("tile {tile}: ground-truth hull keeps {:.1}%, with margin 3 {:.1}%; widths by eighths {hist:?}", 100.0 * k as f64 / t as f64, 100.0 * k3 as f64 / t as f64);
+    }
+    let grid: Vec<(f32, f32, usize, usize)> = std::env::var("PRUNE_GRID")
+        .ok()
+        .map(|g| {
+            g.split(';')
+                .map(|t| {
+                    let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
+                    (v[0] as f32, v[1] as f32, v[2] as usize, v[3] as usize)
+                })
+                .collect()
+        })
+        .unwrap_or_else(|| vec![(1.0, 0.1, 4, 3), (1.0, 0.1, 2, 1), (0.98, 0.1, 2, 1), (1.0, 0.05, 2, 1), (1.0, 0.2, 2, 1)]);
+    for tile in [64usize] {
+        for &(mass, tol, stride, margin) in &grid {
+            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), ..PruneOptions::auto() };
+            let (mut m, mut n, mut k, mut t) = (0, 0, 0, 0);
+            for i in 0..8u64 {
+                let s = scene(4242 + i, Rig::Mixed);
+                let r = check_bands(&s, s.cameras.len() / 2, planes, tile, &opts);
+                m += r.0;
+                n += r.1;
+                k += r.2;
+                t += r.3;
+            }
+            println!(
+                "tile {tile} mass {mass} tol {tol} stride {stride} margin {margin}: kept {:.1}% of plane-pixels, {m} of {n} pixels miss",
+                100.0 * k as f64 / t as f64
+            );
+        }
+    }
+}

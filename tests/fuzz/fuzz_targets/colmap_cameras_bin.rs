@@ -1,0 +1,12 @@
+#![no_main]
+//! cargo-fuzz target `colmap_cameras_bin` (nightly: `cargo fuzz run colmap_cameras_bin` in tests/fuzz); the stable
+//! driver runs the same function (tests/fuzz/run.sh).
+
+#[path = "../targets.rs"]
+mod targets;
+
+static FIXTURE: std::sync::OnceLock<targets::Fixture> = std::sync::OnceLock::new();
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    let _ = targets::run("colmap_cameras_bin", data, FIXTURE.get_or_init(targets::Fixture::new));
+});
