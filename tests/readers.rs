@@ -18,6 +18,7 @@ fn load(dir: &Path, format: Option<SceneFormat>, bounds: Option<(f64, f64)>) -> 
         factor: None,
         near: bounds.map(|b| b.0),
         far: bounds.map(|b| b.1),
+        downscale: None,
     };
     Scene::load(dir, &opts).unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
 }

@@ -54,9 +54,22 @@ fn texture(w: u32, h: u32, seed: u64) -> RgbImage {
     img
 }
 
-/// Median seconds of `f` over `reps` runs after one warm-up.
-fn median_s(reps: usize, mut f: impl FnMut()) -> f64 {
+/// CPU seconds (user + system, all threads) this process has used, from `/proc/self/stat`
+/// (Linux; clock ticks of 10 ms); `None` elsewhere.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the parenthesized command name; utime and stime are fields 14 and 15.
+    let rest = stat.rsplit_once(')')?.1;
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+/// Median wall seconds of `f` over `reps` runs after one warm-up, and the mean CPU
+/// seconds per run (wall time is unreliable on a machine shared with other jobs).
+fn timed(reps: usize, mut f: impl FnMut()) -> (f64, f64) {
     f();
+    let cpu0 = cpu_seconds().unwrap_or(f64::NAN);
     let mut t: Vec<f64> = (0..reps)
         .map(|_| {
             let s = Instant::now();
@@ -64,8 +77,9 @@ fn median_s(reps: usize, mut f: impl FnMut()) -> f64 {
             s.elapsed().as_secs_f64()
         })
         .collect();
+    let cpu = (cpu_seconds().unwrap_or(f64::NAN) - cpu0) / reps as f64;
     t.sort_by(f64::total_cmp);
-    t[reps / 2]
+    (t[reps / 2], cpu)
 }
 
 fn camera(k: Intrinsics, r: DMat3, centre: DVec3) -> Camera {
@@ -106,14 +120,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut out = vec![0.0f32; PLANES * VIEWS * CHANNELS * hw];
 
     let threads = rayon::current_num_threads();
-    let rust_s = median_s(5, || sweep_into(&target, region, &srcs, &inv, &mut out));
+    let (rust_s, rust_cpu) = timed(5, || sweep_into(&target, region, &srcs, &inv, &mut out));
     println!(
         "plane sweep {PLANES} planes x {VIEWS} views x {WIDTH}x{HEIGHT} ({:.1} M samples)",
         (PLANES * VIEWS * hw) as f64 / 1e6
     );
     println!(
-        "  rust sweep_into ({threads} rayon threads): {:8.1} ms  ({:.2} ns/sample)",
+        "  rust sweep_into ({threads} rayon threads): {:8.1} ms wall, {:8.1} ms CPU  ({:.2} ns/sample wall)",
         rust_s * 1e3,
+        rust_cpu * 1e3,
         rust_s * 1e9 / (PLANES * VIEWS * hw) as f64
     );
 
@@ -171,14 +186,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     let report: serde_json::Value = serde_json::from_slice(&res.stdout)?;
     let torch_ms = report["median_ms"].as_f64().unwrap_or(f64::NAN);
+    let torch_cpu_ms = report["cpu_ms"].as_f64().unwrap_or(f64::NAN);
     println!(
-        "  pytorch grid_sample ({} threads, torch {}): {torch_ms:8.1} ms",
+        "  pytorch grid_sample ({} threads, torch {}): {torch_ms:8.1} ms wall, {torch_cpu_ms:8.1} ms CPU",
         report["threads"], report["torch"]
     );
+    let ratio = torch_ms / (rust_s * 1e3);
     println!(
-        "  ratio pytorch / rust: {:.2}x ({})",
-        torch_ms / (rust_s * 1e3),
-        if torch_ms > rust_s * 1e3 {
+        "  ratio pytorch / rust: {ratio:.2}x wall, {:.2}x CPU ({})",
+        torch_cpu_ms / (rust_cpu * 1e3),
+        if ratio > 1.0 {
             "rust faster"
         } else {
             "pytorch faster"

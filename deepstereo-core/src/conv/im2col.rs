@@ -72,20 +72,22 @@ impl Chunk {
     }
 }
 
-/// Cuts the column space into chunks of about [`CHUNK_BYTES`] of im2col, and at least
-/// [`CHUNKS_PER_THREAD`] per thread when there are enough columns.
+/// Cuts the column space into chunks of about [`CHUNK_BYTES`] of im2col (whole images up to
+/// 1.5 times that), and at least [`CHUNKS_PER_THREAD`] per thread when there are enough
+/// columns.
 pub(crate) fn plan(g: &Geom, elem_bytes: usize) -> Vec<Chunk> {
     let (p, ho) = (g.p(), g.ho());
     let want = rayon::current_num_threads() * CHUNKS_PER_THREAD;
     let target = (CHUNK_BYTES / elem_bytes / g.k()).min((g.n * p).div_ceil(want)).max(MIN_COLS);
     let mut chunks = Vec::new();
-    if p <= target {
-        let group = target / p;
+    if 2 * p <= 3 * target {
+        let group = (target / p).max(1);
         for n0 in (0..g.n).step_by(group) {
             chunks.push(Chunk { n0, n1: (n0 + group).min(g.n), r0: 0, r1: ho, phase: 0 });
         }
     } else {
-        let rows = (target / g.wo()).max(g.kh).max(1);
+        // Rows split evenly; at least kh rows so that chunks two apart never overlap.
+        let rows = ho.div_ceil(p.div_ceil(target)).max(g.kh);
         for n0 in 0..g.n {
             for (i, r0) in (0..ho).step_by(rows).enumerate() {
                 chunks.push(Chunk { n0, n1: n0 + 1, r0, r1: (r0 + rows).min(ho), phase: i % 2 });

@@ -271,6 +271,13 @@ impl<'a> Pruner<'a> {
         out
     }
 
+    /// Per sample of a tile, its level-0 position and its cost per plane of the range.
+    #[cfg(test)]
+    pub(crate) fn debug_costs(&self, x0: usize, y0: usize, tile: usize) -> Vec<((usize, usize), Vec<f32>)> {
+        let s = self.coarse(x0, y0, tile);
+        s.pos.iter().enumerate().map(|(p, &xy)| (xy, s.cost[p * s.nz..(p + 1) * s.nz].to_vec())).collect()
+    }
+
     /// The flat plan when every sampled source colour is the same.
     fn flat(&self, s: &Samples) -> Option<TilePlan> {
         let flat = (0..3).all(|ch| s.hi[ch] - s.lo[ch] <= 2.0 * self.opts.flat);

@@ -336,3 +336,23 @@ fn prune_calibrate() {
         }
     }
 }
+
+#[test]
+#[ignore]
+fn prune_debug_costs() {
+    let s = scene(4242, Rig::Mixed);
+    let t = s.cameras.len() / 2;
+    let cfg = Config::tiny();
+    let src = nearest(&s.cameras, t, cfg.views);
+    let pyr = pyramids(&s, &src, cfg.levels);
+    let refs: Vec<&PyramidSource> = pyr.iter().collect();
+    let inv = inverse_depths(s.near, s.far, 32);
+    let pruner = Pruner::new(&cfg, &s.cameras[t], &refs, &inv, None, &PruneOptions::auto());
+    let samples = pruner.debug_costs(32, 32, 64);
+    let w = s.images[t].width as usize;
+    for (k, (pos, c)) in samples.iter().enumerate().step_by(97) {
+        let z = nearest_plane(&inv, s.depths[t][pos.1 * w + pos.0] as f64);
+        let line: Vec<String> = c.iter().map(|x| format!("{:.0}", x * 1e4)).collect();
+        println!("sample {k} at {pos:?} true plane {z}: {}", line.join(" "));
+    }
+}

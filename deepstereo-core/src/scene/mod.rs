@@ -17,6 +17,8 @@ use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
+/// Largest accepted `--downscale`.
+pub const MAX_DOWNSCALE: u32 = 64;
 /// Lower and upper percentiles of sparse-point depths used as near/far bounds.
 pub const POINT_DEPTH_PERCENTILES: (f64, f64) = (0.01, 0.99);
 /// Margin applied to percentile bounds: near is multiplied by `1 - m`, far by `1 + m`.
@@ -98,6 +100,9 @@ pub struct LoadOptions {
     pub factor: Option<u32>,
     pub near: Option<f64>,
     pub far: Option<f64>,
+    /// Read images at `1 / downscale` resolution (a power of two; box-filtered, odd
+    /// trailing rows and columns dropped), intrinsics scaled to match.
+    pub downscale: Option<u32>,
 }
 
 /// A posed image set with resolved depth bounds.
@@ -112,6 +117,8 @@ pub struct Scene {
     pub bounds_source: BoundsSource,
     pub points: Vec<DVec3>,
     pub notes: Vec<String>,
+    /// Images are read at `1 / 2^downscale_levels` of their file resolution.
+    pub downscale_levels: u32,
 }
 
 impl Scene {
@@ -170,7 +177,7 @@ impl Scene {
             }
         };
         check_bounds(near, far).map_err(|m| Error::format(dir, m))?;
-        Ok(Scene {
+        Scene {
             root: dir.to_path_buf(),
             format,
             views: raw.views,
@@ -179,7 +186,9 @@ impl Scene {
             bounds_source,
             points: raw.points,
             notes: raw.notes,
-        })
+            downscale_levels: 0,
+        }
+        .downscaled(opts.downscale.unwrap_or(1))
     }
 
     /// Loads view `i`'s image, checking it has the size its camera expects.
@@ -188,7 +197,46 @@ impl Scene {
             .views
             .get(i)
             .ok_or_else(|| Error::Invalid(format!("view {i} out of range (scene has {})", self.views.len())))?;
-        RgbImage::load_expecting(&v.image_path, v.camera.intrinsics.width, v.camera.intrinsics.height)
+        let k = self.downscale_levels;
+        if k == 0 {
+            return RgbImage::load_expecting(&v.image_path, v.camera.intrinsics.width, v.camera.intrinsics.height);
+        }
+        let mut img = RgbImage::load(&v.image_path)?;
+        if img.width >> k != v.camera.intrinsics.width || img.height >> k != v.camera.intrinsics.height {
+            return Err(Error::image(
+                &v.image_path,
+                format!(
+                    "image is {}x{}, expected {}x{} before downscaling by {}",
+                    img.width,
+                    img.height,
+                    v.camera.intrinsics.width << k,
+                    v.camera.intrinsics.height << k,
+                    1u32 << k
+                ),
+            ));
+        }
+        for _ in 0..k {
+            img = img.downsample2();
+        }
+        Ok(img)
+    }
+
+    /// The scene read at `1 / factor` resolution (`factor` a power of two).
+    fn downscaled(mut self, factor: u32) -> Result<Scene> {
+        if factor == 0 || !factor.is_power_of_two() || factor > MAX_DOWNSCALE {
+            return Err(Error::Invalid(format!("--downscale must be a power of two from 1 to {MAX_DOWNSCALE}, got {factor}")));
+        }
+        let k = factor.trailing_zeros();
+        for v in &mut self.views {
+            let i = &v.camera.intrinsics;
+            let (w, h) = (i.width >> k, i.height >> k);
+            if w == 0 || h == 0 {
+                return Err(camera_err(&v.image_path, &v.name, format!("{}x{} is too small to downscale by {factor}", i.width, i.height)));
+            }
+            v.camera.intrinsics = i.downscaled(factor as f64, w, h);
+        }
+        self.downscale_levels = k;
+        Ok(self)
     }
 
     /// Indices of the `k` views whose camera centres are nearest to view `target`'s,

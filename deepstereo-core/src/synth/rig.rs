@@ -102,7 +102,8 @@ fn frame_intrinsics(rng: &mut Rng, k: &Intrinsics) -> Intrinsics {
     )
 }
 
-/// Builds the cameras of a concrete rig (not [`Rig::Mixed`]).
+/// Builds the cameras of a concrete rig (the caller resolves [`Rig::Mixed`]; here it
+/// falls back to handheld).
 pub(crate) fn build(rig: Rig, rng: &mut Rng, views: usize, width: u32, height: u32) -> Result<RigLayout> {
     let base = base_intrinsics(rng, width, height);
     let disp = rng.range(NEIGHBOUR_DISPARITY.0, NEIGHBOUR_DISPARITY.1) * width.max(height) as f64;

@@ -82,6 +82,9 @@ pub struct SceneArgs {
     /// Farthest depth of the planes; `inf` for a plane at infinity.
     #[arg(long)]
     pub far: Option<f64>,
+    /// Read the images at 1/N resolution (N a power of two), intrinsics scaled to match.
+    #[arg(long)]
+    pub downscale: Option<u32>,
 }
 
 impl SceneArgs {
@@ -92,6 +95,7 @@ impl SceneArgs {
             factor: self.factor,
             near: self.near,
             far: self.far,
+            downscale: self.downscale,
         };
         let scene = Scene::load(&self.scene, &opts)?;
         for n in &scene.notes {

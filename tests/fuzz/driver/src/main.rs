@@ -250,7 +250,7 @@ fn child(target: &str, budget: Duration, seed: u64, root: &Path, corpus: Option<
         }
     });
     let fx = targets::Fixture::new();
-    let mut pool = targets::seeds(target, &fx);
+    let pool = targets::seeds(target, &fx);
     if let Some(dir) = corpus.map(|c| c.join(target)) {
         let _ = std::fs::create_dir_all(&dir);
         for s in &pool {
@@ -296,7 +296,7 @@ fn child(target: &str, budget: Duration, seed: u64, root: &Path, corpus: Option<
                 let ok = res.is_ok();
                 oks += ok as u64;
                 let key = res.err().map_or("ok".to_string(), |e| shape_of(&e));
-                if debug && !seen.contains(&key) {
+                if debug && !ok && !seen.contains(&key) {
                     eprintln!("new error kind: {key}");
                 }
                 // Accepted inputs (some) and inputs with a new kind of error join the pool.
