@@ -155,7 +155,7 @@ fn edit_rows(dir: &Path, cols: usize, f: impl Fn(&mut Vec<f64>)) {
 /// An `.npy` file with the given header dict and data bytes.
 fn npy_with_header(header: &str, data: &[u8]) -> Vec<u8> {
     let mut h = header.to_string();
-    while (10 + h.len() + 1) % 64 != 0 {
+    while !(10 + h.len() + 1).is_multiple_of(64) {
         h.push(' ');
     }
     h.push('\n');
@@ -219,6 +219,44 @@ fn cases() -> Vec<Case> {
             Llff,
             |d| std::fs::write(d.join("poses_bounds.npy"), b"hello, world").expect("write"),
             &["poses_bounds.npy", "magic"],
+        ),
+        case(
+            "llff: npy header claims 2^62 rows",
+            Llff,
+            |d| {
+                std::fs::write(d.join("poses_bounds.npy"), npy_with_header("{'descr': '<f8', 'fortran_order': False, 'shape': (4611686018427387904, 17), }", &[0; 64])).expect("write")
+            },
+            &["poses_bounds.npy", "overflows"],
+        ),
+        case(
+            "llff: npy of 0 rows",
+            Llff,
+            |d| {
+                std::fs::write(
+                    d.join("poses_bounds.npy"),
+                    npy_with_header(
+                        "{'descr': '<f8', 'fortran_order': False, 'shape': (0, 17), }",
+                        &[],
+                    ),
+                )
+                .expect("write")
+            },
+            &["poses_bounds.npy", "0 rows"],
+        ),
+        case(
+            "llff: npy of int64",
+            Llff,
+            |d| {
+                std::fs::write(
+                    d.join("poses_bounds.npy"),
+                    npy_with_header(
+                        "{'descr': '<i8', 'fortran_order': False, 'shape': (4, 17), }",
+                        &[0; 544],
+                    ),
+                )
+                .expect("write")
+            },
+            &["poses_bounds.npy", "'<i8' is not supported"],
         ),
         case(
             "llff: npy of 15 columns",
@@ -596,6 +634,26 @@ fn cases() -> Vec<Case> {
             Nerf,
             |d| edit_json(d.join("transforms.json"), |v| v["h"] = json!(-5)),
             &["transforms.json", "'h' must be"],
+        ),
+        case(
+            "nerf: top level is an array",
+            Nerf,
+            |d| std::fs::write(d.join("transforms.json"), "[1, 2]").expect("write"),
+            &["transforms.json", "must be an object"],
+        ),
+        case(
+            "nerf: camera_angle_x = 4 rad",
+            Nerf,
+            |d| {
+                edit_json(d.join("transforms.json"), |v| {
+                    drop(
+                        v.as_object_mut()
+                            .map(|o| (o.remove("fl_x"), o.remove("fl_y"))),
+                    );
+                    v["camera_angle_x"] = json!(4.0);
+                })
+            },
+            &["transforms.json", "'camera_angle_x' must be an angle"],
         ),
         case(
             "nerf: near without far",

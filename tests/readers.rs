@@ -224,7 +224,8 @@ fn same_cameras_through_every_format() {
     write_nerf(&root.join("nerf"), &cams, false, bounds);
     write_middlebury(&root.join("middlebury"), &cams);
     let same = |s: &str| s.to_string();
-    let cases: [(&str, SceneFormat, &dyn Fn(&str) -> String); 5] = [
+    type ViewName<'a> = &'a dyn Fn(&str) -> String;
+    let cases: [(&str, SceneFormat, ViewName); 5] = [
         ("llff64", SceneFormat::Llff, &same),
         ("colmap_txt", SceneFormat::Colmap, &same),
         ("colmap_bin", SceneFormat::Colmap, &same),

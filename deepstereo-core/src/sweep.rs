@@ -145,6 +145,10 @@ pub fn sweep(
 }
 
 /// Warps one source through one plane homography into `out` (`[4, h, w]`).
+///
+/// Per pixel: the homography in f64, the in-front test without a square root, one
+/// reciprocal instead of two divisions, and [`sample_bilinear`]'s branch-free interior
+/// path; the results equal the straightforward per-pixel formulas to about 1e-13 pixels.
 fn warp_slice(h: &glam::DMat3, rays: &[DVec2], src: &Source<'_>, out: &mut [f32]) {
     let hw = rays.len();
     let (r_out, rest) = out.split_at_mut(hw);
@@ -152,12 +156,18 @@ fn warp_slice(h: &glam::DMat3, rays: &[DVec2], src: &Source<'_>, out: &mut [f32]
     let (b_out, a_out) = rest.split_at_mut(hw);
     let intr = &src.camera.intrinsics;
     let max_r2 = intr.distortion.map_or(f64::INFINITY, |d| d.max_radius2());
+    let eps2 = IN_FRONT_EPS * IN_FRONT_EPS;
     for (i, ray) in rays.iter().enumerate() {
         let q = apply_h(h, ray.x, ray.y);
-        let rgba = if q.z > IN_FRONT_EPS * q.length() {
-            let n = DVec2::new(q.x / q.z, q.y / q.z);
+        // In front: q.z > IN_FRONT_EPS * |q|, compared squared.
+        let rgba = if q.z > 0.0 && q.z * q.z > eps2 * q.length_squared() {
+            let inv_z = 1.0 / q.z;
+            let n = DVec2::new(q.x * inv_z, q.y * inv_z);
             if n.length_squared() < max_r2 {
-                let uv = intr.project_normalized(n);
+                let uv = match &intr.distortion {
+                    None => DVec2::new(intr.fx * n.x + intr.cx, intr.fy * n.y + intr.cy),
+                    Some(_) => intr.project_normalized(n),
+                };
                 sample_bilinear(src.image, uv.x, uv.y)
             } else {
                 [0.0; 4]
@@ -172,6 +182,17 @@ fn warp_slice(h: &glam::DMat3, rays: &[DVec2], src: &Source<'_>, out: &mut [f32]
     }
 }
 
+/// `floor(s)` as an integer without a libm call; exact for `|s| < 2^63`.
+#[inline]
+fn floor_i64(s: f64) -> i64 {
+    let t = s as i64;
+    if (t as f64) > s {
+        t - 1
+    } else {
+        t
+    }
+}
+
 /// Zero-padded bilinear sample at pixel coordinate `(u, v)` (pixel centres at `i + 0.5`);
 /// returns RGB and the coverage alpha.
 #[inline]
@@ -182,25 +203,47 @@ pub fn sample_bilinear(img: &RgbImage, u: f64, v: f64) -> [f32; 4] {
     if !(sx > -1.0 && sy > -1.0 && sx < w as f64 && sy < h as f64) {
         return [0.0; 4];
     }
-    let (fx, fy) = (sx.floor(), sy.floor());
-    let (x0, y0) = (fx as i64, fy as i64);
+    let (x0, y0) = (floor_i64(sx), floor_i64(sy));
     // Weights and sums in f64, rounded once: in f32 the four weights can sum to
     // 1.0000001, giving alpha > 1 and colours above alpha.
-    let (ax, ay) = (sx - fx, sy - fy);
-    let mut acc = [0.0f64; 4];
-    let taps = [
-        (x0, y0, (1.0 - ax) * (1.0 - ay)),
-        (x0 + 1, y0, ax * (1.0 - ay)),
-        (x0, y0 + 1, (1.0 - ax) * ay),
-        (x0 + 1, y0 + 1, ax * ay),
+    let (ax, ay) = (sx - x0 as f64, sy - y0 as f64);
+    let weights = [
+        (1.0 - ax) * (1.0 - ay),
+        ax * (1.0 - ay),
+        (1.0 - ax) * ay,
+        ax * ay,
     ];
-    for (x, y, wt) in taps {
+    let mut acc = [0.0f64; 4];
+    if x0 >= 0 && y0 >= 0 && x0 + 1 < w && y0 + 1 < h {
+        // Interior: all four taps exist. The same sums in the same order as below (a zero
+        // weight adds an exact zero), so both paths give identical results.
+        let stride = img.width as usize * 3;
+        let i = y0 as usize * stride + x0 as usize * 3;
+        let rows = (
+            img.data.get(i..i + 6),
+            img.data.get(i + stride..i + stride + 6),
+        );
+        if let (Some(r0), Some(r1)) = rows {
+            let px = [&r0[..3], &r0[3..], &r1[..3], &r1[3..]];
+            for (p, wt) in px.iter().zip(weights) {
+                acc[0] += wt * p[0] as f64;
+                acc[1] += wt * p[1] as f64;
+                acc[2] += wt * p[2] as f64;
+                acc[3] += wt;
+            }
+            return acc.map(|v| v as f32);
+        }
+    }
+    let taps = [(x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1)];
+    for ((x, y), wt) in taps.into_iter().zip(weights) {
         if x >= 0 && y >= 0 && x < w && y < h && wt > 0.0 {
             let i = (y as usize * img.width as usize + x as usize) * 3;
-            acc[0] += wt * img.data[i] as f64;
-            acc[1] += wt * img.data[i + 1] as f64;
-            acc[2] += wt * img.data[i + 2] as f64;
-            acc[3] += wt;
+            if let Some(p) = img.data.get(i..i + 3) {
+                acc[0] += wt * p[0] as f64;
+                acc[1] += wt * p[1] as f64;
+                acc[2] += wt * p[2] as f64;
+                acc[3] += wt;
+            }
         }
     }
     acc.map(|v| v as f32)

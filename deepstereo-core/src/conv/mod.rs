@@ -4,7 +4,44 @@
 //! Weights `[C_out, C_in, kh, kw]` and bias `[C_out]`, PyTorch's layout.
 //!
 //! # Design
-//! DESIGN_PLACEHOLDER
+//! [`Conv2d::forward`] and [`Conv2d::forward_relu`] apply one candle `CustomOp3`
+//! `(x, weight, bias) -> y` (`op.rs`); its backward calls the kernels directly instead of
+//! composing candle ops, and candle's autograd adds the three gradients as for any op
+//! (no second-order gradients). Off the CPU, or for dtypes other than f32 / f64, the layer
+//! falls back to candle's `conv2d` ([`Conv2d::forward_reference`]).
+//!
+//! The convolution is one product in "column space" (`im2col.rs`):
+//! `Y [Cout, N*P] = W [Cout, K] x cols [K, N*P]`, `P = Ho*Wo`, `K = Cin*kh*kw`. The
+//! columns are cut into chunks (whole images, grouped when small, or balanced runs of
+//! output rows of one image) whose im2col buffer is about 1 MiB (a core's L2), at least
+//! 4 per thread. Rayon threads take chunks and run, each in its own reused buffers and
+//! with a single-threaded `gemm` call (the crate candle's matmul uses):
+//! - forward: im2col, `W x cols` written straight into `y` (NCHW) when the chunk lies in
+//!   one image, else through a buffer; then bias and ReLU on the cache-hot rows;
+//! - backward: the ReLU-masked output gradient `gy` of the chunk (summed into the bias
+//!   gradient on the way), im2col again (columns are recomputed, not kept: memory stays that
+//!   of the activations), `dW^T += cols x gy^T` into an accumulator per block of chunks
+//!   (transposed so gemm reads the im2col buffer without repacking it; blocks are summed in
+//!   a fixed order, so gradients are deterministic), then `dcols = W^T x gy` and col2im
+//!   into `dx`. Row chunks of one image overlap in `dx` and run in two phases (even, odd).
+//!   `dx` is only computed when `x` needs a gradient (not for the plane-sweep input).
+//! - 1x1 kernels skip im2col / col2im: gemm reads `x` and writes `dx` in place.
+//!
+//! # Measurements behind the choices (2 cores, AVX-512, shared and loaded machine)
+//! - candle's own autograd over an im2col op plus `broadcast_matmul` (weights `[Cout, K]`
+//!   against cols `[N, K, P]`) was slower even before counting im2col / col2im: for
+//!   768x64x18x18 -> 96, 5x5 its matmul backward alone took about 2.2 s against 0.8 s for
+//!   this whole backward (it loops over N small gemms and materialises `[N, Cout, K]`
+//!   weight gradients), and it keeps cols (`[N, K, P]`, 0.74 GB for the paper's first
+//!   layer) alive for the backward.
+//! - A few huge chunks (in effect one big gemm per thread over the CNHW column space) were
+//!   1.5-2x slower than L2-sized chunks; one image per chunk was about as fast as the
+//!   chosen plan.
+//! - On this VM a first touch of fresh memory costs about 1.5-2 ms per MB (page faults),
+//!   comparable with the arithmetic of the small-channel layers. Every new tensor pays it
+//!   (candle's gradient accumulation allocates several per op); starting the process with
+//!   `GLIBC_TUNABLES=glibc.malloc.hugetlb=1:glibc.malloc.mmap_threshold=4294967295:glibc.malloc.trim_threshold=4294967295`
+//!   (huge pages, freed memory kept for reuse) made the tiny preset's backward 2-3x faster.
 
 mod im2col;
 mod kernels;

@@ -113,6 +113,8 @@ pub struct PruneOptions {
     pub contrast: f32,
     /// A tile is flat when every sampled source colour lies within this of the mean.
     pub flat: f32,
+    /// Radius, in coarse samples, of the window costs are averaged over.
+    pub window: usize,
     /// Smallest block a tile is split into when its parts need different planes.
     pub min_block: usize,
 }
@@ -129,6 +131,7 @@ impl Default for PruneOptions {
             contrast: DEFAULT_CONTRAST,
             flat: DEFAULT_FLAT,
             min_block: DEFAULT_MIN_BLOCK,
+            window: 1,
         }
     }
 }

@@ -191,7 +191,7 @@ impl<'a> Pruner<'a> {
 
     /// Level-0 positions and normalized rays of the coarse samples of a tile: every
     /// `stride`-th pixel of the coarse level inside the image, and the first and last.
-    fn rays(&self, x0: usize, y0: usize, tile: usize) -> (Vec<(usize, usize)>, Vec<DVec2>) {
+    fn rays(&self, x0: usize, y0: usize, tile: usize) -> (Vec<(usize, usize)>, Vec<DVec2>, usize) {
         let intr = &self.coarse_target.intrinsics;
         let f = 1usize << self.level;
         let s = (self.opts.stride >> self.level).max(1);
@@ -213,12 +213,12 @@ impl<'a> Pruner<'a> {
                 rays.push(intr.unproject_pixel(DVec2::new(i as f64 + 0.5, j as f64 + 0.5)));
             }
         }
-        (pos, rays)
+        (pos, rays, xs.len())
     }
 
     /// The coarse cost volume of a tile.
     fn coarse(&self, x0: usize, y0: usize, tile: usize) -> Samples {
-        let (pos, rays) = self.rays(x0, y0, tile);
+        let (pos, rays, nx) = self.rays(x0, y0, tile);
         let (z0, z1) = self.range;
         let nz = z1 + 1 - z0;
         let mut out = Samples {
@@ -232,6 +232,7 @@ impl<'a> Pruner<'a> {
             all_seen: true,
         };
         let v = self.sources.len();
+        let mut raw = vec![f32::NAN; rays.len() * nz];
         let mut rgb = vec![[0f32; 3]; v];
         for (p, n) in rays.iter().enumerate() {
             for z in z0..=z1 {
@@ -263,8 +264,28 @@ impl<'a> Pruner<'a> {
                 }
                 out.count += cnt;
                 if cnt >= 2 {
-                    let var: f32 = rgb[..cnt].iter().map(|c| (0..3).map(|ch| (c[ch] - mean[ch]).powi(2)).sum::<f32>()).sum();
-                    out.cost[p * nz + z - z0] = var / (3 * cnt) as f32;
+                    raw[p * nz + z - z0] = pair_cost(&rgb[..cnt]);
+                }
+            }
+        }
+        // Aggregate over a window of neighbouring samples (NaN-aware mean).
+        let r = self.opts.window as isize;
+        let ny = rays.len() / nx.max(1);
+        for p in 0..rays.len() {
+            let (px, py) = ((p % nx) as isize, (p / nx) as isize);
+            for z in 0..nz {
+                let (mut acc, mut n) = (0f32, 0f32);
+                for qy in (py - r).max(0)..(py + r + 1).min(ny as isize) {
+                    for qx in (px - r).max(0)..(px + r + 1).min(nx as isize) {
+                        let c = raw[(qy as usize * nx + qx as usize) * nz + z];
+                        if !c.is_nan() {
+                            acc += c;
+                            n += 1.0;
+                        }
+                    }
+                }
+                if n > 0.0 {
+                    out.cost[p * nz + z] = acc / n;
                 }
             }
         }
@@ -313,12 +334,16 @@ impl<'a> Pruner<'a> {
         }
         let mut want = vec![false; self.planes];
         if informative > 0 {
-            let min = ((1.0 - self.opts.mass as f64) * informative as f64).floor() as usize;
-            for (z, &n) in support.iter().enumerate() {
-                want[z0 + z] = n > min;
-            }
-            if !want.iter().any(|&w| w) {
-                let z = (0..s.nz).max_by_key(|&z| support[z]).unwrap_or(0);
+            // The most supported planes holding `mass` of the support.
+            let mut order: Vec<usize> = (0..s.nz).filter(|&z| support[z] > 0).collect();
+            order.sort_by(|&a, &b| support[b].cmp(&support[a]).then(a.cmp(&b)));
+            let all: usize = support.iter().sum();
+            let mut acc = 0usize;
+            for z in order {
+                if acc as f64 >= self.opts.mass as f64 * all as f64 {
+                    break;
+                }
+                acc += support[z];
                 want[z0 + z] = true;
             }
         } else {
@@ -334,6 +359,20 @@ impl<'a> Pruner<'a> {
             .filter(|&z| (z.saturating_sub(m)..=(z + m).min(self.planes - 1)).any(|q| want[q]))
             .collect()
     }
+}
+
+/// Photo-consistency of the colours one point gets from the sources that see it, robust
+/// to occlusion: the smallest squared difference between two of them (per channel), so
+/// that two sources agreeing make a surface likely whatever the others see.
+fn pair_cost(rgb: &[[f32; 3]]) -> f32 {
+    let mut best = f32::INFINITY;
+    for (i, a) in rgb.iter().enumerate() {
+        for b in &rgb[i + 1..] {
+            let d: f32 = (0..3).map(|ch| (a[ch] - b[ch]).powi(2)).sum();
+            best = best.min(d / 3.0);
+        }
+    }
+    best
 }
 
 /// The coarse pass's view of a tile.

@@ -306,20 +306,20 @@ fn prune_calibrate() {
         println!("tile {tile}: ground-truth union with margin 0..3 keeps {:?}%", union.map(|u| (1000 * u / t) as f64 / 10.0));
         println!("tile {tile}: ground-truth hull keeps {:.1}%, with margin 3 {:.1}%; widths by eighths {hist:?}", 100.0 * k as f64 / t as f64, 100.0 * k3 as f64 / t as f64);
     }
-    let grid: Vec<(f32, f32, usize, usize)> = std::env::var("PRUNE_GRID")
+    let grid: Vec<(f32, f32, usize, usize, usize)> = std::env::var("PRUNE_GRID")
         .ok()
         .map(|g| {
             g.split(';')
                 .map(|t| {
                     let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
-                    (v[0] as f32, v[1] as f32, v[2] as usize, v[3] as usize)
+                    (v[0] as f32, v[1] as f32, v[2] as usize, v[3] as usize, v.get(4).map_or(1, |&x| x as usize))
                 })
                 .collect()
         })
-        .unwrap_or_else(|| vec![(1.0, 0.1, 4, 3), (1.0, 0.1, 2, 1), (0.98, 0.1, 2, 1), (1.0, 0.05, 2, 1), (1.0, 0.2, 2, 1)]);
+        .unwrap_or_else(|| vec![(1.0, 0.1, 2, 1, 1)]);
     for tile in [64usize] {
-        for &(mass, tol, stride, margin) in &grid {
-            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), ..PruneOptions::auto() };
+        for &(mass, tol, stride, margin, window) in &grid {
+            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), window, ..PruneOptions::auto() };
             let (mut m, mut n, mut k, mut t) = (0, 0, 0, 0);
             for i in 0..8u64 {
                 let s = scene(4242 + i, Rig::Mixed);
@@ -330,7 +330,7 @@ fn prune_calibrate() {
                 t += r.3;
             }
             println!(
-                "tile {tile} mass {mass} tol {tol} stride {stride} margin {margin}: kept {:.1}% of plane-pixels, {m} of {n} pixels miss",
+                "tile {tile} mass {mass} tol {tol} stride {stride} margin {margin} window {window}: kept {:.1}% of plane-pixels, {m} of {n} pixels miss",
                 100.0 * k as f64 / t as f64
             );
         }
@@ -340,19 +340,164 @@ fn prune_calibrate() {
 #[test]
 #[ignore]
 fn prune_debug_costs() {
-    let s = scene(4242, Rig::Mixed);
-    let t = s.cameras.len() / 2;
     let cfg = Config::tiny();
-    let src = nearest(&s.cameras, t, cfg.views);
-    let pyr = pyramids(&s, &src, cfg.levels);
-    let refs: Vec<&PyramidSource> = pyr.iter().collect();
-    let inv = inverse_depths(s.near, s.far, 32);
-    let pruner = Pruner::new(&cfg, &s.cameras[t], &refs, &inv, None, &PruneOptions::auto());
-    let samples = pruner.debug_costs(32, 32, 64);
-    let w = s.images[t].width as usize;
-    for (k, (pos, c)) in samples.iter().enumerate().step_by(97) {
-        let z = nearest_plane(&inv, s.depths[t][pos.1 * w + pos.0] as f64);
-        let line: Vec<String> = c.iter().map(|x| format!("{:.0}", x * 1e4)).collect();
-        println!("sample {k} at {pos:?} true plane {z}: {}", line.join(" "));
+    let mut hist = [[0usize; 11]; 2];
+    let mut rel = [[0usize; 11]; 2];
+    for i in 0..8u64 {
+        let s = scene(4242 + i, Rig::Mixed);
+        let t = s.cameras.len() / 2;
+        let src = nearest(&s.cameras, t, cfg.views);
+        let pyr = pyramids(&s, &src, cfg.levels);
+        let refs: Vec<&PyramidSource> = pyr.iter().collect();
+        let inv = inverse_depths(s.near, s.far, 32);
+        let pruner = Pruner::new(&cfg, &s.cameras[t], &refs, &inv, None, &PruneOptions::auto());
+        let (w, h) = (s.images[t].width as usize, s.images[t].height as usize);
+        for y0 in (0..h).step_by(64) {
+            for x0 in (0..w).step_by(64) {
+                for (pos, c) in pruner.debug_costs(x0, y0, 64) {
+                    let d = s.depths[t][pos.1 * w + pos.0] as f64;
+                    let z = nearest_plane(&inv, d);
+                    // Visible in how many sources (depth test against their depth maps)?
+                    let x = s.cameras[t].unproject(glam::DVec2::new(pos.0 as f64 + 0.5, pos.1 as f64 + 0.5), d);
+                    let vis = src
+                        .iter()
+                        .filter(|&&k| {
+                            let (uv, zk) = s.cameras[k].project(x);
+                            let (sw, sh) = (s.images[k].width as f64, s.images[k].height as f64);
+                            uv.x >= 0.0 && uv.y >= 0.0 && uv.x < sw && uv.y < sh && {
+                                let dk = s.depths[k][uv.y as usize * sw as usize + uv.x as usize] as f64;
+                                (dk - zk).abs() < 0.03 * zk
+                            }
+                        })
+                        .count();
+                    let known: Vec<f32> = c.iter().copied().filter(|x| !x.is_nan()).collect();
+                    if known.len() < 2 || c[z].is_nan() {
+                        continue;
+                    }
+                    let lo = known.iter().copied().fold(f32::INFINITY, f32::min);
+                    let hi = known.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+                    if hi - lo < 2e-4 {
+                        continue;
+                    }
+                    // best cost within +-1 plane of the truth
+                    let ct = (z.saturating_sub(1)..=(z + 1).min(31)).filter_map(|q| (!c[q].is_nan()).then_some(c[q])).fold(f32::INFINITY, f32::min);
+                    let rank = known.iter().filter(|&&x| x < ct).count() as f64 / known.len() as f64;
+                    let r = ((ct - lo) / (hi - lo)) as f64;
+                    let g = usize::from(vis >= 2);
+                    hist[g][(rank * 10.0) as usize] += 1;
+                    rel[g][((r * 10.0) as usize).min(10)] += 1;
+                }
+            }
+        }
     }
+    println!("occluded (<2 sources): rank deciles {:?} relative-cost deciles {:?}", hist[0], rel[0]);
+    println!("visible (>=2 sources): rank deciles {:?} relative-cost deciles {:?}", hist[1], rel[1]);
+}
+
+/// Calibration against a trained network (`PRUNE_MODEL=path.safetensors`): per scene,
+/// the selection mass the plans leave out, the fraction of planes x pixels run, and the
+/// PSNR of the pruned and unpruned renders against the truth.
+#[test]
+#[ignore]
+fn prune_calibrate_network() -> TestResult {
+    let Ok(path) = std::env::var("PRUNE_MODEL") else { return Ok(()) };
+    let t = crate::weights::load(std::path::Path::new(&path), &Device::Cpu)?;
+    let backend = CandleBackend { model: t.model, device: Device::Cpu };
+    let cfg = backend.config().clone();
+    let grid: Vec<(f32, f32, usize, usize, usize)> = std::env::var("PRUNE_GRID")
+        .ok()
+        .map(|g| {
+            g.split(';')
+                .map(|t| {
+                    let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
+                    (v[0] as f32, v[1] as f32, v[2] as usize, v[3] as usize, v.get(4).map_or(1, |&x| x as usize))
+                })
+                .collect()
+        })
+        .unwrap_or_else(|| vec![(1.0, 0.05, 2, 1, 1)]);
+    let scenes: usize = std::env::var("PRUNE_SCENES").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
+    let mut sums = vec![(0.0f64, 0.0f64, 0.0f64, 0.0f64); grid.len()];
+    let mut off_sum = 0.0;
+    let mut mass_need = [0.0f64; 3];
+    let mut npix = 0.0;
+    for i in 0..scenes as u64 {
+        let s = generate(4242 + i, &SynthOptions { views: 10, width: 160, height: 120, rig: Rig::Mixed, supersample: 2, textures: Vec::new() })?;
+        let target = s.cameras.len() / 2;
+        let src = nearest(&s.cameras, target, cfg.views);
+        let pyr = pyramids(&s, &src, cfg.levels);
+        let refs: Vec<&PyramidSource> = pyr.iter().collect();
+        let inv = inverse_depths(s.near, s.far, cfg.planes);
+        let cam = &s.cameras[target];
+        let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+        // Full selections per pixel.
+        let d = inv.len();
+        let mut sel_full = vec![0f32; w * h * d];
+        let tile = 64;
+        for y0 in (0..h).step_by(tile) {
+            for x0 in (0..w).step_by(tile) {
+                let inputs = tile_inputs(&cfg, cam, &refs, &inv, (x0 as i64, y0 as i64), (tile, tile))?;
+                let (_, sel) = backend.run(&inputs, d)?;
+                for y in y0..(y0 + tile).min(h) {
+                    for x in x0..(x0 + tile).min(w) {
+                        let o = (y - y0) * tile + x - x0;
+                        for z in 0..d {
+                            sel_full[(y * w + x) * d + z] = sel[z * tile * tile + o];
+                        }
+                        let mut v: Vec<f32> = (0..d).map(|z| sel[z * tile * tile + o]).collect();
+                        v.sort_by(|a, b| b.total_cmp(a));
+                        for (k, q) in [0.9f32, 0.95, 0.99].iter().enumerate() {
+                            let mut acc = 0.0;
+                            let n = v.iter().take_while(|&&x| {
+                                let before = acc;
+                                acc += x;
+                                before < *q
+                            });
+                            mass_need[k] += n.count() as f64;
+                        }
+                        npix += 1.0;
+                    }
+                }
+            }
+        }
+        let off = render_view(&backend, cam, &refs, &inv, tile, &|_, _| {})?;
+        let off_psnr = crate::metrics::psnr(&off.image, &s.images[target]);
+        off_sum += off_psnr;
+        for (g, &(mass, tol, stride, margin, window)) in grid.iter().enumerate() {
+            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), window, ..PruneOptions::auto() };
+            let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, &opts);
+            let mut lost = 0.0f64;
+            for y0 in (0..h).step_by(tile) {
+                for x0 in (0..w).step_by(tile) {
+                    for b in pruner.plan(x0, y0, tile) {
+                        let keep = match &b.plan {
+                            TilePlan::Planes(p) => p.clone(),
+                            _ => Vec::new(),
+                        };
+                        for y in b.y0..(b.y0 + b.size).min(h) {
+                            for x in b.x0..(b.x0 + b.size).min(w) {
+                                let m: f32 = (0..d).filter(|z| !keep.contains(z)).map(|z| sel_full[(y * w + x) * d + z]).sum();
+                                lost += m as f64;
+                            }
+                        }
+                    }
+                }
+            }
+            let r = render_view_pruned(&backend, cam, &refs, &inv, tile, Some(&pruner), &|_, _| {})?;
+            let p = crate::metrics::psnr(&r.image, &s.images[target]);
+            let vs_off = crate::metrics::psnr(&r.image, &off.image);
+            let st = r.prune.expect("stats");
+            sums[g].0 += p - off_psnr;
+            sums[g].1 += st.planes_fraction();
+            sums[g].2 += lost / (w * h) as f64;
+            sums[g].3 += vs_off;
+            println!("scene {i} {:?}: off {off_psnr:.2} pruned {p:.2} (vs off {vs_off:.1} dB), planes {:.1}%, lost mass {:.3}", (mass, tol, stride, margin, window), 100.0 * st.planes_fraction(), lost / (w * h) as f64);
+        }
+    }
+    let n = scenes as f64;
+    println!("network needs planes for 90/95/99% mass: {:?} of {}", mass_need.map(|m| (m / npix * 10.0).round() / 10.0), cfg.planes);
+    println!("off mean PSNR {:.2}", off_sum / n);
+    for (g, s) in grid.iter().zip(&sums) {
+        println!("{g:?}: PSNR change {:+.3} dB, planes {:.1}%, lost mass {:.3}, vs off {:.1} dB", s.0 / n, 100.0 * s.1 / n, s.2 / n, s.3 / n);
+    }
+    Ok(())
 }

@@ -73,7 +73,10 @@ pub fn model_dir(dir: &Path) -> Option<PathBuf> {
 /// Reads a COLMAP scene directory.
 pub fn read(dir: &Path) -> Result<RawScene> {
     let model = model_dir(dir).ok_or_else(|| {
-        Error::format(dir, "no COLMAP model: expected sparse/0/ or sparse/ with cameras and images files")
+        Error::format(
+            dir,
+            "no COLMAP model: expected sparse/0/ or sparse/ with cameras and images files",
+        )
     })?;
     let pick = |stem: &str| {
         let bin = model.join(format!("{stem}.bin"));
@@ -112,21 +115,38 @@ pub fn read(dir: &Path) -> Result<RawScene> {
             Error::parse(
                 &img_file,
                 img.line,
-                format!("image '{}' uses camera {} which is not in {}", img.name, img.camera_id, cam_file.display()),
+                format!(
+                    "image '{}' uses camera {} which is not in {}",
+                    img.name,
+                    img.camera_id,
+                    cam_file.display()
+                ),
             )
         })?;
         let image_path = find_image(dir, &img.name).ok_or_else(|| {
             Error::image(
                 dir.join("images").join(&img.name),
-                format!("image '{}' listed in {} not found in images/ or the scene directory", img.name, img_file.display()),
+                format!(
+                    "image '{}' listed in {} not found in images/ or the scene directory",
+                    img.name,
+                    img_file.display()
+                ),
             )
         })?;
-        views.push(make_view(&img_file, &img.name, image_path, intrinsics, img.pose, None)?);
+        views.push(make_view(
+            &img_file, &img.name, image_path, intrinsics, img.pose, None,
+        )?);
     }
     views.sort_by(|a, b| a.name.cmp(&b.name));
-    if let Some(w) = views.windows(2).find(|w| w.first().map(|v| &v.name) == w.get(1).map(|v| &v.name)) {
+    if let Some(w) = views
+        .windows(2)
+        .find(|w| w.first().map(|v| &v.name) == w.get(1).map(|v| &v.name))
+    {
         let name = w.first().map(|v| v.name.clone()).unwrap_or_default();
-        return Err(Error::format(&img_file, format!("image '{name}' is listed twice")));
+        return Err(Error::format(
+            &img_file,
+            format!("image '{name}' is listed twice"),
+        ));
     }
     Ok(RawScene {
         views,
@@ -164,7 +184,12 @@ fn pose_from(q: [f64; 4], t: [f64; 3]) -> std::result::Result<WorldToCamera, Str
 }
 
 /// Intrinsics from a model name and its parameters; `Err` is a message.
-fn intrinsics_from(model: &str, width: u64, height: u64, p: &[f64]) -> std::result::Result<Intrinsics, String> {
+fn intrinsics_from(
+    model: &str,
+    width: u64,
+    height: u64,
+    p: &[f64],
+) -> std::result::Result<Intrinsics, String> {
     let need = match model {
         "SIMPLE_PINHOLE" => 3,
         "PINHOLE" => 4,
@@ -178,12 +203,19 @@ fn intrinsics_from(model: &str, width: u64, height: u64, p: &[f64]) -> std::resu
         }
     };
     if p.len() != need {
-        return Err(format!("camera model {model} needs {need} parameters, got {}", p.len()));
+        return Err(format!(
+            "camera model {model} needs {need} parameters, got {}",
+            p.len()
+        ));
     }
     if p.iter().any(|v| !v.is_finite()) {
         return Err(format!("non-finite camera parameters {p:?}"));
     }
-    let side = |v: u64| u32::try_from(v).ok().filter(|&s| s > 0 && s <= MAX_IMAGE_SIDE);
+    let side = |v: u64| {
+        u32::try_from(v)
+            .ok()
+            .filter(|&s| s > 0 && s <= MAX_IMAGE_SIDE)
+    };
     let (w, h) = match (side(width), side(height)) {
         (Some(w), Some(h)) => (w, h),
         _ => return Err(format!("unsupported image size {width}x{height}")),
@@ -196,7 +228,12 @@ fn intrinsics_from(model: &str, width: u64, height: u64, p: &[f64]) -> std::resu
         "RADIAL" => (g(0), g(0), g(1), g(2), [g(3), g(4), 0.0, 0.0]),
         _ => (g(0), g(1), g(2), g(3), [g(4), g(5), g(6), g(7)]),
     };
-    let dist = Distortion { k1: d[0], k2: d[1], p1: d[2], p2: d[3] };
+    let dist = Distortion {
+        k1: d[0],
+        k2: d[1],
+        p1: d[2],
+        p2: d[3],
+    };
     let mut k = Intrinsics::pinhole(fx, fy, cx, cy, w, h);
     k.distortion = (!dist.is_zero()).then_some(dist);
     Ok(k)
@@ -210,12 +247,23 @@ fn read_file(path: &Path) -> Result<Vec<u8>> {
 pub(crate) fn utf8<'a>(path: &Path, bytes: &'a [u8]) -> Result<&'a str> {
     std::str::from_utf8(bytes).map_err(|e| {
         let at = e.valid_up_to();
-        let line = bytes.get(..at).unwrap_or(&[]).iter().filter(|&&b| b == b'\n').count() + 1;
+        let line = bytes
+            .get(..at)
+            .unwrap_or(&[])
+            .iter()
+            .filter(|&&b| b == b'\n')
+            .count()
+            + 1;
         Error::parse(path, Some(line), "not valid UTF-8 text")
     })
 }
 
-fn parse_num<T: std::str::FromStr>(path: &Path, line: usize, tok: Option<&str>, what: &str) -> Result<T> {
+fn parse_num<T: std::str::FromStr>(
+    path: &Path,
+    line: usize,
+    tok: Option<&str>,
+    what: &str,
+) -> Result<T> {
     let tok = tok.ok_or_else(|| Error::parse(path, Some(line), format!("missing {what}")))?;
     tok.parse::<T>()
         .map_err(|_| Error::parse(path, Some(line), format!("bad {what} '{tok}'")))
@@ -235,15 +283,25 @@ pub fn parse_cameras_txt(path: &Path, bytes: &[u8]) -> Result<HashMap<u32, Intri
         let n = i + 1;
         let mut tok = line.split_whitespace();
         let id: u32 = parse_num(path, n, tok.next(), "camera id")?;
-        let model = tok.next().ok_or_else(|| Error::parse(path, Some(n), "missing camera model"))?;
+        let model = tok
+            .next()
+            .ok_or_else(|| Error::parse(path, Some(n), "missing camera model"))?;
         let width: u64 = parse_num(path, n, tok.next(), "width")?;
         let height: u64 = parse_num(path, n, tok.next(), "height")?;
         let params = tok
-            .map(|t| t.parse::<f64>().map_err(|_| Error::parse(path, Some(n), format!("bad camera parameter '{t}'"))))
+            .map(|t| {
+                t.parse::<f64>()
+                    .map_err(|_| Error::parse(path, Some(n), format!("bad camera parameter '{t}'")))
+            })
             .collect::<Result<Vec<_>>>()?;
-        let k = intrinsics_from(model, width, height, &params).map_err(|m| Error::parse(path, Some(n), format!("camera {id}: {m}")))?;
+        let k = intrinsics_from(model, width, height, &params)
+            .map_err(|m| Error::parse(path, Some(n), format!("camera {id}: {m}")))?;
         if out.insert(id, k).is_some() {
-            return Err(Error::parse(path, Some(n), format!("camera id {id} appears twice")));
+            return Err(Error::parse(
+                path,
+                Some(n),
+                format!("camera id {id} appears twice"),
+            ));
         }
     }
     Ok(out)
@@ -252,7 +310,7 @@ pub fn parse_cameras_txt(path: &Path, bytes: &[u8]) -> Result<HashMap<u32, Intri
 /// A line after an image line is its 2D points if blank or whole numeric triples.
 fn is_points2d_line(line: &str) -> bool {
     let toks: Vec<&str> = line.split_whitespace().collect();
-    toks.len() % 3 == 0 && toks.iter().all(|t| t.parse::<f64>().is_ok())
+    toks.len().is_multiple_of(3) && toks.iter().all(|t| t.parse::<f64>().is_ok())
 }
 
 /// Parses the bytes of `images.txt` (`path` names the file in errors).
@@ -318,7 +376,11 @@ struct Bin<'a> {
 
 impl<'a> Bin<'a> {
     fn new(path: &'a Path, bytes: &'a [u8]) -> Self {
-        Self { path, bytes, pos: 0 }
+        Self {
+            path,
+            bytes,
+            pos: 0,
+        }
     }
     fn remaining(&self) -> usize {
         self.bytes.len().saturating_sub(self.pos)
@@ -357,10 +419,15 @@ impl<'a> Bin<'a> {
     /// A count of records each at least `min_size` bytes, checked against what is left.
     fn count(&mut self, min_size: usize, what: &str) -> Result<usize> {
         let n = self.u64(what)?;
-        let fits = usize::try_from(n)
-            .ok()
-            .filter(|&n| n.checked_mul(min_size).is_some_and(|b| b <= self.remaining()));
-        fits.ok_or_else(|| self.err(format!("{what} {n} is larger than the rest of the file allows (corrupt or truncated)")))
+        let fits = usize::try_from(n).ok().filter(|&n| {
+            n.checked_mul(min_size)
+                .is_some_and(|b| b <= self.remaining())
+        });
+        fits.ok_or_else(|| {
+            self.err(format!(
+                "{what} {n} is larger than the rest of the file allows (corrupt or truncated)"
+            ))
+        })
     }
     fn cstring(&mut self, what: &str) -> Result<String> {
         let rest = self.bytes.get(self.pos..).unwrap_or(&[]);
@@ -392,9 +459,14 @@ pub fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<HashMap<u32, Intri
         let model_id = b.i32("camera model")?;
         let width = b.u64("width")?;
         let height = b.u64("height")?;
-        let name = usize::try_from(model_id).ok().and_then(|i| MODEL_NAMES.get(i)).copied();
+        let name = usize::try_from(model_id)
+            .ok()
+            .and_then(|i| MODEL_NAMES.get(i))
+            .copied();
         let Some(name) = name else {
-            return Err(b.err(format!("camera {id}: unsupported camera model id {model_id}")));
+            return Err(b.err(format!(
+                "camera {id}: unsupported camera model id {model_id}"
+            )));
         };
         let nparams = match name {
             "SIMPLE_PINHOLE" => 3,
@@ -407,7 +479,8 @@ pub fn parse_cameras_bin(path: &Path, bytes: &[u8]) -> Result<HashMap<u32, Intri
         for _ in 0..nparams {
             params.push(b.f64("camera parameter")?);
         }
-        let k = intrinsics_from(name, width, height, &params).map_err(|m| b.err(format!("camera {id}: {m}")))?;
+        let k = intrinsics_from(name, width, height, &params)
+            .map_err(|m| b.err(format!("camera {id}: {m}")))?;
         if out.insert(id, k).is_some() {
             return Err(b.err(format!("camera id {id} appears twice")));
         }

@@ -62,18 +62,27 @@ pub fn read(dir: &Path, factor: Option<u32>) -> Result<RawScene> {
         .ok_or_else(|| Error::format(&folder, "no images found"))?;
     let (w, h) = super::image_size(first)?;
     let mut raw = poses_to_views(&file, &arr, images, (w, h))?;
-    raw.notes.insert(0, format!("{folder_note} ({rows} images of {w}x{h})"));
+    raw.notes
+        .insert(0, format!("{folder_note} ({rows} images of {w}x{h})"));
     Ok(raw)
 }
 
 /// Parses the bytes of `poses_bounds.npy` at `file` into one view per row for `images`
 /// (in row order; only their names are used), all of `size` pixels: the part of [`read`]
 /// after the image folder has been listed.
-pub fn parse_poses_bounds(file: &Path, bytes: &[u8], images: Vec<PathBuf>, size: (u32, u32)) -> Result<RawScene> {
+pub fn parse_poses_bounds(
+    file: &Path,
+    bytes: &[u8],
+    images: Vec<PathBuf>,
+    size: (u32, u32),
+) -> Result<RawScene> {
     let arr = super::npy::parse_npy(file, bytes)?;
     let rows = poses_rows(file, &arr)?;
     if images.len() != rows {
-        return Err(Error::format(file, format!("{rows} poses in {POSES_FILE} but {} images", images.len())));
+        return Err(Error::format(
+            file,
+            format!("{rows} poses in {POSES_FILE} but {} images", images.len()),
+        ));
     }
     poses_to_views(file, &arr, images, size)
 }
@@ -98,13 +107,22 @@ fn poses_rows(file: &Path, arr: &super::npy::NpyArray) -> Result<usize> {
         ));
     }
     if rows == 0 {
-        return Err(Error::parse(file, None, "the file holds no cameras (0 rows)"));
+        return Err(Error::parse(
+            file,
+            None,
+            "the file holds no cameras (0 rows)",
+        ));
     }
     Ok(rows)
 }
 
 /// The views of the rows of a `poses_bounds` array for `images` of size `(w, h)`.
-fn poses_to_views(file: &Path, arr: &super::npy::NpyArray, images: Vec<PathBuf>, (w, h): (u32, u32)) -> Result<RawScene> {
+fn poses_to_views(
+    file: &Path,
+    arr: &super::npy::NpyArray,
+    images: Vec<PathBuf>,
+    (w, h): (u32, u32),
+) -> Result<RawScene> {
     let rows = images.len();
     let mut notes = Vec::new();
     let mut views = Vec::with_capacity(rows);
@@ -112,13 +130,13 @@ fn poses_to_views(file: &Path, arr: &super::npy::NpyArray, images: Vec<PathBuf>,
     let mut aspect_noted = false;
     for (i, image_path) in images.into_iter().enumerate() {
         let row = arr.row(i).ok_or_else(|| {
-            Error::parse(&file, None, format!("row {i} is missing from the array"))
+            Error::parse(file, None, format!("row {i} is missing from the array"))
         })?;
         let name = image_path
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| format!("{i}"));
-        let row_err = |msg: String| Error::parse(&file, None, format!("row {i} ({name}): {msg}"));
+        let row_err = |msg: String| Error::parse(file, None, format!("row {i} ({name}): {msg}"));
         if row.iter().any(|v| !v.is_finite()) {
             return Err(row_err("non-finite value".into()));
         }
@@ -149,7 +167,14 @@ fn poses_to_views(file: &Path, arr: &super::npy::NpyArray, images: Vec<PathBuf>,
         let pose: std::result::Result<WorldToCamera, String> =
             CameraToWorld::new_checked(DMat3::from_cols(right, down, -backwards), centre)
                 .map(|c2w| c2w.inverse());
-        views.push(make_view(&file, &name, image_path, intrinsics, pose, Some((near, far)))?);
+        views.push(make_view(
+            file,
+            &name,
+            image_path,
+            intrinsics,
+            pose,
+            Some((near, far)),
+        )?);
         bounds = Some(match bounds {
             None => (near, far),
             Some((n, f)) => (n.min(near), f.max(far)),
@@ -166,14 +191,22 @@ fn poses_to_views(file: &Path, arr: &super::npy::NpyArray, images: Vec<PathBuf>,
 /// Picks the image folder; returns it and a note saying why.
 fn choose_folder(dir: &Path, factor: Option<u32>) -> Result<(PathBuf, String)> {
     match factor {
-        Some(0) => Err(Error::Invalid("the LLFF image factor must be at least 1".into())),
+        Some(0) => Err(Error::Invalid(
+            "the LLFF image factor must be at least 1".into(),
+        )),
         Some(n) => {
             let named = dir.join(format!("images_{n}"));
             if named.is_dir() {
-                return Ok((named, format!("LLFF: using images_{n}/ (factor {n} requested)")));
+                return Ok((
+                    named,
+                    format!("LLFF: using images_{n}/ (factor {n} requested)"),
+                ));
             }
             if n == 1 && dir.join("images").is_dir() {
-                return Ok((dir.join("images"), "LLFF: using images/ (factor 1 requested)".into()));
+                return Ok((
+                    dir.join("images"),
+                    "LLFF: using images/ (factor 1 requested)".into(),
+                ));
             }
             Err(Error::format(
                 &named,

@@ -29,7 +29,11 @@ pub fn par_file(dir: &Path) -> Option<PathBuf> {
     let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
         .ok()?
         .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_file() && p.file_name().is_some_and(|n| n.to_string_lossy().ends_with("_par.txt")))
+        .filter(|p| {
+            p.is_file()
+                && p.file_name()
+                    .is_some_and(|n| n.to_string_lossy().ends_with("_par.txt"))
+        })
         .collect();
     found.sort();
     found.into_iter().next()
@@ -46,36 +50,58 @@ pub fn read(dir: &Path) -> Result<RawScene> {
 /// bounding box, are looked up in its folder).
 pub fn parse_par(file: &Path, bytes: &[u8]) -> Result<RawScene> {
     let dir = file.parent().unwrap_or(Path::new("."));
-    let text = std::str::from_utf8(bytes).map_err(|_| Error::parse(file, None, "not UTF-8 text"))?;
-    let mut lines = text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty());
-    let (_, first) = lines.next().ok_or_else(|| Error::parse(&file, None, "empty file"))?;
-    let count: usize = first
-        .trim()
-        .parse()
-        .map_err(|_| Error::parse(&file, Some(1), format!("expected the number of views, got '{}'", first.trim())))?;
+    let text =
+        std::str::from_utf8(bytes).map_err(|_| Error::parse(file, None, "not UTF-8 text"))?;
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .filter(|(_, l)| !l.trim().is_empty());
+    let (_, first) = lines
+        .next()
+        .ok_or_else(|| Error::parse(file, None, "empty file"))?;
+    let count: usize = first.trim().parse().map_err(|_| {
+        Error::parse(
+            file,
+            Some(1),
+            format!("expected the number of views, got '{}'", first.trim()),
+        )
+    })?;
     let mut views = Vec::new();
     for (i, line) in lines {
         let lineno = i + 1;
         let mut parts = line.split_whitespace();
         let name = parts.next().unwrap_or_default().to_string();
         let vals: Vec<f64> = parts
-            .map(|s| s.parse::<f64>().map_err(|_| Error::parse(&file, Some(lineno), format!("'{s}' is not a number"))))
+            .map(|s| {
+                s.parse::<f64>()
+                    .map_err(|_| Error::parse(file, Some(lineno), format!("'{s}' is not a number")))
+            })
             .collect::<Result<_>>()?;
         if vals.len() != VALUES_PER_LINE {
             return Err(Error::parse(
-                &file,
+                file,
                 Some(lineno),
-                format!("expected a name and {VALUES_PER_LINE} numbers, got {} numbers", vals.len()),
+                format!(
+                    "expected a name and {VALUES_PER_LINE} numbers, got {} numbers",
+                    vals.len()
+                ),
             ));
         }
         if vals.iter().any(|v| !v.is_finite()) {
-            return Err(Error::parse(&file, Some(lineno), "non-finite value"));
+            return Err(Error::parse(file, Some(lineno), "non-finite value"));
         }
         let k = &vals[0..9];
-        if k[1].abs() > K_TOLERANCE || k[3].abs() > K_TOLERANCE || k[6].abs() > K_TOLERANCE || k[7].abs() > K_TOLERANCE
+        if k[1].abs() > K_TOLERANCE
+            || k[3].abs() > K_TOLERANCE
+            || k[6].abs() > K_TOLERANCE
+            || k[7].abs() > K_TOLERANCE
             || (k[8] - 1.0).abs() > K_TOLERANCE
         {
-            return Err(Error::parse(&file, Some(lineno), "K must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)"));
+            return Err(Error::parse(
+                file,
+                Some(lineno),
+                "K must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)",
+            ));
         }
         let image_path = dir.join(&name);
         let (w, h) = super::image_size(&image_path)?;
@@ -87,13 +113,23 @@ pub fn parse_par(file: &Path, bytes: &[u8]) -> Result<RawScene> {
             DVec3::new(r[2], r[5], r[8]),
         );
         let t = DVec3::new(vals[18], vals[19], vals[20]);
-        views.push(make_view(&file, &name, image_path, intrinsics, WorldToCamera::new_checked(rot, t), None)?);
+        views.push(make_view(
+            file,
+            &name,
+            image_path,
+            intrinsics,
+            WorldToCamera::new_checked(rot, t),
+            None,
+        )?);
     }
     if views.len() != count {
         return Err(Error::parse(
-            &file,
+            file,
             Some(1),
-            format!("the header says {count} views but {} camera lines follow", views.len()),
+            format!(
+                "the header says {count} views but {} camera lines follow",
+                views.len()
+            ),
         ));
     }
     let points = readme_bbox(&dir.join("README.txt")).unwrap_or_default();
@@ -118,7 +154,10 @@ pub(crate) fn readme_bbox(path: &Path) -> Option<Vec<DVec3>> {
         .skip(1)
         .filter_map(|chunk| {
             let inner = chunk.split(')').next()?;
-            let v: Vec<f64> = inner.split_whitespace().filter_map(|s| s.parse().ok()).collect();
+            let v: Vec<f64> = inner
+                .split_whitespace()
+                .filter_map(|s| s.parse().ok())
+                .collect();
             (v.len() == 3 && v.iter().all(|x| x.is_finite())).then(|| DVec3::new(v[0], v[1], v[2]))
         })
         .take(2)

@@ -125,7 +125,10 @@ impl Scene {
     /// Reads a scene directory, detecting its format unless `opts.format` forces one.
     pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
         if !dir.is_dir() {
-            return Err(Error::format(dir, "not a directory (expected a scene directory)"));
+            return Err(Error::format(
+                dir,
+                "not a directory (expected a scene directory)",
+            ));
         }
         let format = match opts.format {
             Some(f) => f,
@@ -141,7 +144,8 @@ impl Scene {
         if raw.bounds.is_none() && raw.points.is_empty() {
             if let Some(corners) = middlebury::readme_bbox(&dir.join("README.txt")) {
                 raw.points = corners;
-                raw.notes.push("depth bounds from the bounding box in README.txt".to_string());
+                raw.notes
+                    .push("depth bounds from the bounding box in README.txt".to_string());
             }
         }
         check_image_headers(&raw.views)?;
@@ -149,16 +153,24 @@ impl Scene {
     }
 
     /// Resolves bounds (user > file > sparse points) and validates every camera.
-    pub fn from_raw(dir: &Path, format: SceneFormat, raw: RawScene, opts: &LoadOptions) -> Result<Scene> {
+    pub fn from_raw(
+        dir: &Path,
+        format: SceneFormat,
+        raw: RawScene,
+        opts: &LoadOptions,
+    ) -> Result<Scene> {
         if raw.views.is_empty() {
             return Err(Error::format(dir, "the scene has no views"));
         }
         for v in &raw.views {
-            v.camera.intrinsics.validate().map_err(|msg| Error::Camera {
-                path: v.image_path.clone(),
-                view: v.name.clone(),
-                msg,
-            })?;
+            v.camera
+                .intrinsics
+                .validate()
+                .map_err(|msg| Error::Camera {
+                    path: v.image_path.clone(),
+                    view: v.name.clone(),
+                    msg,
+                })?;
         }
         let (near, far, bounds_source) = match (opts.near, opts.far) {
             (Some(n), Some(f)) => (n, f, BoundsSource::User),
@@ -193,16 +205,24 @@ impl Scene {
 
     /// Loads view `i`'s image, checking it has the size its camera expects.
     pub fn load_image(&self, i: usize) -> Result<RgbImage> {
-        let v = self
-            .views
-            .get(i)
-            .ok_or_else(|| Error::Invalid(format!("view {i} out of range (scene has {})", self.views.len())))?;
+        let v = self.views.get(i).ok_or_else(|| {
+            Error::Invalid(format!(
+                "view {i} out of range (scene has {})",
+                self.views.len()
+            ))
+        })?;
         let k = self.downscale_levels;
         if k == 0 {
-            return RgbImage::load_expecting(&v.image_path, v.camera.intrinsics.width, v.camera.intrinsics.height);
+            return RgbImage::load_expecting(
+                &v.image_path,
+                v.camera.intrinsics.width,
+                v.camera.intrinsics.height,
+            );
         }
         let mut img = RgbImage::load(&v.image_path)?;
-        if img.width >> k != v.camera.intrinsics.width || img.height >> k != v.camera.intrinsics.height {
+        if img.width >> k != v.camera.intrinsics.width
+            || img.height >> k != v.camera.intrinsics.height
+        {
             return Err(Error::image(
                 &v.image_path,
                 format!(
@@ -224,14 +244,23 @@ impl Scene {
     /// The scene read at `1 / factor` resolution (`factor` a power of two).
     fn downscaled(mut self, factor: u32) -> Result<Scene> {
         if factor == 0 || !factor.is_power_of_two() || factor > MAX_DOWNSCALE {
-            return Err(Error::Invalid(format!("--downscale must be a power of two from 1 to {MAX_DOWNSCALE}, got {factor}")));
+            return Err(Error::Invalid(format!(
+                "--downscale must be a power of two from 1 to {MAX_DOWNSCALE}, got {factor}"
+            )));
         }
         let k = factor.trailing_zeros();
         for v in &mut self.views {
             let i = &v.camera.intrinsics;
             let (w, h) = (i.width >> k, i.height >> k);
             if w == 0 || h == 0 {
-                return Err(camera_err(&v.image_path, &v.name, format!("{}x{} is too small to downscale by {factor}", i.width, i.height)));
+                return Err(camera_err(
+                    &v.image_path,
+                    &v.name,
+                    format!(
+                        "{}x{} is too small to downscale by {factor}",
+                        i.width, i.height
+                    ),
+                ));
             }
             v.camera.intrinsics = i.downscaled(factor as f64, w, h);
         }
@@ -377,7 +406,9 @@ pub(crate) fn make_view(
     bounds: Option<(f64, f64)>,
 ) -> Result<View> {
     let pose = pose.map_err(|m| camera_err(file, name, m))?;
-    intrinsics.validate().map_err(|m| camera_err(file, name, m))?;
+    intrinsics
+        .validate()
+        .map_err(|m| camera_err(file, name, m))?;
     Ok(View {
         name: name.to_string(),
         image_path,

@@ -88,14 +88,19 @@ pub fn parse_transforms(file: &Path, bytes: &[u8]) -> Result<RawScene> {
     let mut views = Vec::with_capacity(frames.len());
     for (i, frame) in frames.iter().enumerate() {
         let ferr = |msg: String| Error::parse(&file, None, format!("frame {i}: {msg}"));
-        let frame = frame.as_object().ok_or_else(|| ferr("must be an object".into()))?;
+        let frame = frame
+            .as_object()
+            .ok_or_else(|| ferr("must be an object".into()))?;
         let rel = match frame.get("file_path") {
             Some(Value::String(s)) if !s.is_empty() => s.as_str(),
             Some(_) => return Err(ferr("'file_path' must be a non-empty string".into())),
             None => return Err(ferr("missing 'file_path'".into())),
         };
         let image_path = find_image(base, rel).ok_or_else(|| {
-            Error::image(base.join(rel), format!("{fname}: frame {i}: image not found (also tried .png/.jpg/.jpeg)"))
+            Error::image(
+                base.join(rel),
+                format!("{fname}: frame {i}: image not found (also tried .png/.jpg/.jpeg)"),
+            )
         })?;
         let c2w = matrix(frame).map_err(ferr)?;
         let intrinsics = intrinsics(top, frame, &image_path).map_err(ferr)?;
@@ -125,7 +130,11 @@ fn number(obj: &Map<String, Value>, key: &str) -> std::result::Result<Option<f64
 }
 
 /// A key looked up in the frame first, then at the top level.
-fn either(top: &Map<String, Value>, frame: &Map<String, Value>, key: &str) -> std::result::Result<Option<f64>, String> {
+fn either(
+    top: &Map<String, Value>,
+    frame: &Map<String, Value>,
+    key: &str,
+) -> std::result::Result<Option<f64>, String> {
     match number(frame, key)? {
         Some(v) => Ok(Some(v)),
         None => number(top, key),
@@ -154,24 +163,40 @@ fn matrix(frame: &Map<String, Value>) -> std::result::Result<[DVec3; 4], String>
     }
     let last = [m[3][0], m[3][1], m[3][2], m[3][3] - 1.0];
     if last.iter().any(|v| v.abs() > LAST_ROW_TOLERANCE) {
-        return Err(format!("'transform_matrix' last row must be [0, 0, 0, 1], got {:?}", m[3]));
+        return Err(format!(
+            "'transform_matrix' last row must be [0, 0, 0, 1], got {:?}",
+            m[3]
+        ));
     }
     let col = |c: usize| DVec3::new(m[0][c], m[1][c], m[2][c]);
     Ok([col(0), col(1), col(2), col(3)])
 }
 
 /// An image side given as a JSON number (integer-valued, possibly written as a float).
-fn side(top: &Map<String, Value>, frame: &Map<String, Value>, key: &str) -> std::result::Result<Option<u32>, String> {
+fn side(
+    top: &Map<String, Value>,
+    frame: &Map<String, Value>,
+    key: &str,
+) -> std::result::Result<Option<u32>, String> {
     match either(top, frame, key)? {
         None => Ok(None),
         Some(v) if v.fract() == 0.0 && v >= 1.0 && v <= MAX_IMAGE_SIDE as f64 => Ok(Some(v as u32)),
-        Some(v) => Err(format!("'{key}' must be a positive whole number of pixels, got {v}")),
+        Some(v) => Err(format!(
+            "'{key}' must be a positive whole number of pixels, got {v}"
+        )),
     }
 }
 
 /// The intrinsics of one frame.
-fn intrinsics(top: &Map<String, Value>, frame: &Map<String, Value>, image: &Path) -> std::result::Result<Intrinsics, String> {
-    if let Some(v) = frame.get("camera_model").or_else(|| top.get("camera_model")) {
+fn intrinsics(
+    top: &Map<String, Value>,
+    frame: &Map<String, Value>,
+    image: &Path,
+) -> std::result::Result<Intrinsics, String> {
+    if let Some(v) = frame
+        .get("camera_model")
+        .or_else(|| top.get("camera_model"))
+    {
         let name = v.as_str().ok_or("'camera_model' must be a string")?;
         if !SUPPORTED_MODELS.contains(&name) {
             return Err(format!("unsupported camera model {name}"));
@@ -183,17 +208,26 @@ fn intrinsics(top: &Map<String, Value>, frame: &Map<String, Value>, image: &Path
     }
     for key in ["k3", "k4"] {
         if either(top, frame, key)?.is_some_and(|v| v != 0.0) {
-            return Err(format!("nonzero '{key}' is not supported (only k1 k2 p1 p2)"));
+            return Err(format!(
+                "nonzero '{key}' is not supported (only k1 k2 p1 p2)"
+            ));
         }
     }
     let (w, h) = match (side(top, frame, "w")?, side(top, frame, "h")?) {
         (Some(w), Some(h)) => (w, h),
         _ => super::image_size(image).map_err(|e| format!("no 'w'/'h' and {e}"))?,
     };
-    let from_angle = |obj: &Map<String, Value>, key: &str, size: u32| -> std::result::Result<Option<f64>, String> {
+    let from_angle = |obj: &Map<String, Value>,
+                      key: &str,
+                      size: u32|
+     -> std::result::Result<Option<f64>, String> {
         match number(obj, key)? {
-            Some(a) if a > 0.0 && a < std::f64::consts::PI => Ok(Some(0.5 * size as f64 / (0.5 * a).tan())),
-            Some(a) => Err(format!("'{key}' must be an angle in (0, pi) radians, got {a}")),
+            Some(a) if a > 0.0 && a < std::f64::consts::PI => {
+                Ok(Some(0.5 * size as f64 / (0.5 * a).tan()))
+            }
+            Some(a) => Err(format!(
+                "'{key}' must be an angle in (0, pi) radians, got {a}"
+            )),
             None => Ok(None),
         }
     };

@@ -101,7 +101,9 @@ pub fn parse_npy(path: &Path, bytes: &[u8]) -> Result<NpyArray> {
         .rev()
         .fold(0usize, |acc, &b| (acc << 8) | b as usize);
     if header_len > MAX_HEADER_LEN {
-        return Err(err(format!("header length {header_len} is implausibly large")));
+        return Err(err(format!(
+            "header length {header_len} is implausibly large"
+        )));
     }
     let data_start = header_start + header_len;
     let header = bytes
@@ -123,7 +125,11 @@ pub fn parse_npy(path: &Path, bytes: &[u8]) -> Result<NpyArray> {
             "shape {shape:?} of {} needs {expected} data bytes but the file has {}{}",
             dtype.descr(),
             data.len(),
-            if data.len() < expected { " (truncated)" } else { "" }
+            if data.len() < expected {
+                " (truncated)"
+            } else {
+                ""
+            }
         )));
     }
     let data: Vec<f64> = match dtype {
@@ -172,7 +178,10 @@ fn parse_header(header: &str) -> std::result::Result<(NpyDtype, Vec<usize>), Str
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
-        .map(|s| s.parse::<usize>().map_err(|_| format!("bad dimension '{s}' in shape")))
+        .map(|s| {
+            s.parse::<usize>()
+                .map_err(|_| format!("bad dimension '{s}' in shape"))
+        })
         .collect::<std::result::Result<Vec<_>, _>>()?;
     if shape.is_empty() || shape.len() > MAX_DIMS {
         return Err(format!(
@@ -214,7 +223,10 @@ fn npy_bytes(dtype: NpyDtype, shape: &[usize], payload: &[u8]) -> Vec<u8> {
         [n] => format!("({n},)"),
         dims => format!(
             "({})",
-            dims.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ")
+            dims.iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
         ),
     };
     let mut header = format!(

@@ -58,7 +58,7 @@ fn reference(target: &Camera, src: &Camera, img: &RgbImage, rho: f64, uv: DVec2)
     } else {
         src.pose.rotation * (c2w.rotation * n)
     };
-    if !(pc.z > 0.0) {
+    if pc.z.is_nan() || pc.z <= 0.0 {
         return ([0.0; 4], None);
     }
     let p = src.intrinsics.project_normalized(DVec2::new(pc.x / pc.z, pc.y / pc.z));
@@ -282,8 +282,8 @@ fn g08_rotations_of_180_degrees() {
         for p in 0..(W * H) as usize {
             let (x, y) = (p as u32 % W, p as u32 / W);
             let want = img.pixel(W - 1 - x, H - 1 - y);
-            for c in 0..3 {
-                worst = worst.max((sw.slice(1, d, 0, c)[p] - want[c]).abs() as f64);
+            for (c, w) in want.iter().enumerate() {
+                worst = worst.max((sw.slice(1, d, 0, c)[p] - w).abs() as f64);
             }
             worst = worst.max((sw.slice(1, d, 0, 3)[p] - 1.0).abs() as f64);
         }

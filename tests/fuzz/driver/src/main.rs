@@ -258,7 +258,10 @@ fn child(target: &str, budget: Duration, seed: u64, root: &Path, corpus: Option<
         }
     }
     let seeds = pool.len();
-    let mut odd: Vec<Vec<u8>> = targets::regressions(root, target).into_iter().filter_map(|p| std::fs::read(p).ok()).collect();
+    // A restarted child (seed > 0) leaves out the regressions: one of them may be what
+    // made the previous child abort.
+    let kept = if seed == 0 { targets::regressions(root, target) } else { Vec::new() };
+    let mut odd: Vec<Vec<u8>> = kept.into_iter().filter_map(|p| std::fs::read(p).ok()).collect();
     let debug = std::env::var_os("FUZZ_DEBUG").is_some();
     let mut seen: HashSet<String> = HashSet::new();
     let mut crashes: HashSet<String> = HashSet::new();
