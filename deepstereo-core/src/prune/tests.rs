@@ -49,8 +49,44 @@ fn small_backend(views: usize) -> CandleBackend {
     CandleBackend { model: t.model, device: Device::Cpu }
 }
 
-/// For every tile of `target`, the planes nearest the true depth of each of its pixels
-/// that the plan leaves out; returns (misses, pixels checked, plane-pixels kept, total).
+/// Whether the surface at pixel `(x, y)` of view `t` can be told from the images: seen
+/// (not occluded, inside the image) by at least two of `sources`, and textured (the
+/// colour varies by at least [`MIN_TEXTURE`] in its 5x5 neighbourhood).
+fn identifiable(s: &SynthScene, t: usize, sources: &[usize], x: usize, y: usize) -> bool {
+    let img = &s.images[t];
+    let (w, h) = (img.width as usize, img.height as usize);
+    let d = s.depths[t][y * w + x] as f64;
+    let p = s.cameras[t].unproject(glam::DVec2::new(x as f64 + 0.5, y as f64 + 0.5), d);
+    let seen = sources
+        .iter()
+        .filter(|&&k| {
+            let (uv, zk) = s.cameras[k].project(p);
+            let (sw, sh) = (s.images[k].width as f64, s.images[k].height as f64);
+            zk > 0.0 && uv.x >= 1.0 && uv.y >= 1.0 && uv.x < sw - 1.0 && uv.y < sh - 1.0 && {
+                let dk = s.depths[k][uv.y as usize * sw as usize + uv.x as usize] as f64;
+                (dk - zk).abs() < 0.02 * zk
+            }
+        })
+        .count();
+    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for yy in y.saturating_sub(2)..(y + 3).min(h) {
+        for xx in x.saturating_sub(2)..(x + 3).min(w) {
+            let c = img.pixel(xx as u32, yy as u32);
+            for ch in 0..3 {
+                lo[ch] = lo[ch].min(c[ch]);
+                hi[ch] = hi[ch].max(c[ch]);
+            }
+        }
+    }
+    seen >= 2 && (0..3).any(|ch| hi[ch] - lo[ch] >= MIN_TEXTURE)
+}
+
+/// Least colour range around a pixel for its surface to count as textured.
+const MIN_TEXTURE: f32 = 0.1;
+
+/// For every tile of `target`, the identifiable pixels (see [`identifiable`]) whose true
+/// surface plane the plan leaves out; returns (misses, identifiable pixels, plane-pixels
+/// kept, plane-pixels in all).
 fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: &PruneOptions) -> (usize, usize, usize, usize) {
     let cfg = Config::tiny();
     let src = nearest(&s.cameras, target, cfg.views);
@@ -70,12 +106,19 @@ fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: 
                 };
                 for y in b.y0..(b.y0 + b.size).min(h) {
                     for x in b.x0..(b.x0 + b.size).min(w) {
-                        let z = nearest_plane(&inv, s.depths[target][y * w + x] as f64);
-                        checked += 1;
                         kept += set.len();
                         total += planes;
+                        if !identifiable(s, target, &src, x, y) {
+                            continue;
+                        }
+                        let z = nearest_plane(&inv, s.depths[target][y * w + x] as f64);
+                        checked += 1;
                         if !set.contains(&z) {
                             misses += 1;
+                            if std::env::var("PRUNE_MISS").is_ok() {
+                                let gap = set.iter().map(|&q| q.abs_diff(z)).min().unwrap_or(99);
+                                eprintln!("miss gap {gap} plane {z}");
+                            }
                         }
                     }
                 }
@@ -319,7 +362,8 @@ fn prune_calibrate() {
         .unwrap_or_else(|| vec![(1.0, 0.1, 2, 1, 1)]);
     for tile in [64usize] {
         for &(mass, tol, stride, margin, window) in &grid {
-            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), window, ..PruneOptions::auto() };
+            let contrast = std::env::var("PRUNE_CONTRAST").ok().and_then(|c| c.parse().ok()).unwrap_or(DEFAULT_CONTRAST);
+            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), window, contrast, ..PruneOptions::auto() };
             let (mut m, mut n, mut k, mut t) = (0, 0, 0, 0);
             for i in 0..8u64 {
                 let s = scene(4242 + i, Rig::Mixed);
@@ -463,7 +507,8 @@ fn prune_calibrate_network() -> TestResult {
         let off_psnr = crate::metrics::psnr(&off.image, &s.images[target]);
         off_sum += off_psnr;
         for (g, &(mass, tol, stride, margin, window)) in grid.iter().enumerate() {
-            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), window, ..PruneOptions::auto() };
+            let contrast = std::env::var("PRUNE_CONTRAST").ok().and_then(|c| c.parse().ok()).unwrap_or(DEFAULT_CONTRAST);
+            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), window, contrast, ..PruneOptions::auto() };
             let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, &opts);
             let mut lost = 0.0f64;
             for y0 in (0..h).step_by(tile) {

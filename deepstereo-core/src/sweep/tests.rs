@@ -184,20 +184,23 @@ fn target_swept_into_itself_is_identity() {
         let inv = [10.0, 1.0, 0.01, 0.0];
         let out = sweep(&camera, Region::full(&intr), &src, &inv);
         let hw = Region::full(&intr).len();
+        let mut worst = 0.0f32;
         for d in 0..inv.len() {
             let s = &out[d * 4 * hw..(d + 1) * 4 * hw];
             for p in 0..hw {
                 for c in 0..3 {
-                    let e = (s[c * hw + p] - img.data[p * 3 + c]).abs();
-                    assert!(e < 1e-5, "{distortion:?} plane {d} pixel {p}: error {e}");
+                    worst = worst.max((s[c * hw + p] - img.data[p * 3 + c]).abs());
                 }
-                assert!(
-                    (s[3 * hw + p] - 1.0).abs() < 1e-5,
-                    "alpha {}",
-                    s[3 * hw + p]
-                );
+                worst = worst.max((s[3 * hw + p] - 1.0).abs());
             }
         }
+        println!("identity sweep, distortion {distortion:?}: max |error| {worst:e}");
+        // Unprojecting and projecting again (undistorting by fixed-point iteration and
+        // distorting again) is exact to f64 rounding, which the f32 output does not show.
+        assert_eq!(
+            worst, 0.0,
+            "{distortion:?}: the identity sweep is not exact"
+        );
     }
 }
 

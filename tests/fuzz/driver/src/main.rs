@@ -250,6 +250,7 @@ fn child(target: &str, budget: Duration, seed: u64, root: &Path, corpus: Option<
         }
     });
     let fx = targets::Fixture::new();
+    println!("FIXTURE {}", fx.dir.display()); // the parent removes it if this child aborts
     let pool = targets::seeds(target, &fx);
     if let Some(dir) = corpus.map(|c| c.join(target)) {
         let _ = std::fs::create_dir_all(&dir);
@@ -357,9 +358,11 @@ fn main() {
                 .spawn()
                 .expect("spawn a child");
             let out = c.stdout.take().expect("child stdout");
-            let mut partial = 0u64;
+            let (mut partial, mut fixture) = (0u64, None);
             for line in BufReader::new(out).lines().map_while(Result::ok) {
-                if let Some(n) = line.strip_prefix("EXECS ") {
+                if let Some(dir) = line.strip_prefix("FIXTURE ") {
+                    fixture = Some(PathBuf::from(dir));
+                } else if let Some(n) = line.strip_prefix("EXECS ") {
                     partial = n.parse().unwrap_or(partial);
                 } else if let Some(rest) = line.strip_prefix("RESULT ") {
                     partial = 0;
@@ -372,6 +375,9 @@ fn main() {
                 }
             }
             let status = c.wait().expect("wait for the child");
+            if let Some(dir) = fixture {
+                let _ = std::fs::remove_dir_all(dir);
+            }
             execs += partial;
             if !status.success() {
                 crashes += 1; // an abort: the child printed and saved its input
