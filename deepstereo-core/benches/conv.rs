@@ -45,10 +45,26 @@ fn shapes(cfg: &Config, batch: usize) -> Vec<(Shape, Vec<String>)> {
         let k = l.kernel;
         let shape = if l.name.starts_with("select.depth") {
             // [B, C, D + k - 1, t*t] zero-padded along depth, kernel (k, 1).
-            [batch, l.in_channels, cfg.planes + k - 1, cfg.tile * cfg.tile, l.out_channels, k, 1]
+            [
+                batch,
+                l.in_channels,
+                cfg.planes + k - 1,
+                cfg.tile * cfg.tile,
+                l.out_channels,
+                k,
+                1,
+            ]
         } else {
             let s = l.out_size + k - 1;
-            [batch * cfg.planes, l.in_channels, s, s, l.out_channels, k, k]
+            [
+                batch * cfg.planes,
+                l.in_channels,
+                s,
+                s,
+                l.out_channels,
+                k,
+                k,
+            ]
         };
         match out.iter_mut().find(|(s, _)| *s == shape) {
             Some((_, names)) => names.push(l.name),
@@ -74,7 +90,12 @@ fn bench_shape(s: &Shape, reference: bool) -> Result<(Times, Option<Times>)> {
     let [n, cin, h, w, cout, kh, kw] = *s;
     let dev = Device::Cpu;
     let vm = VarMap::new();
-    let conv = Conv2d::new(cin, cout, (kh, kw), VarBuilder::from_varmap(&vm, DType::F32, &dev))?;
+    let conv = Conv2d::new(
+        cin,
+        cout,
+        (kh, kw),
+        VarBuilder::from_varmap(&vm, DType::F32, &dev),
+    )?;
     let x = Var::from_tensor(&Tensor::randn(0f32, 1., (n, cin, h, w), &dev)?)?;
     let run = |f: &dyn Fn(&Tensor) -> Result<Tensor>, budget: f64| -> Result<Times> {
         let fwd = timed(budget, || f(&x).map(drop))?;
@@ -82,7 +103,9 @@ fn bench_shape(s: &Shape, reference: bool) -> Result<(Times, Option<Times>)> {
         Ok(Times { fwd, fwd_bwd })
     };
     let ours = run(&|x| conv.forward(x), 1.5)?;
-    let theirs = reference.then(|| run(&|x| conv.forward_reference(x), 0.5)).transpose()?;
+    let theirs = reference
+        .then(|| run(&|x| conv.forward_reference(x), 0.5))
+        .transpose()?;
     Ok((ours, theirs))
 }
 
@@ -106,7 +129,10 @@ impl Python {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
         let python = root.join(".venv/bin/python");
         if !python.exists() || std::env::var("CONV_BENCH_PY").as_deref() == Ok("0") {
-            println!("(no PyTorch / onnxruntime: {} missing or CONV_BENCH_PY=0)", python.display());
+            println!(
+                "(no PyTorch / onnxruntime: {} missing or CONV_BENCH_PY=0)",
+                python.display()
+            );
             return None;
         }
         let mut child = Command::new(python)
@@ -147,11 +173,17 @@ fn main() -> Result<()> {
         .filter(|(c, _)| wanted.split(',').any(|w| w == c.name))
         .collect();
     let tunables = std::env::var("GLIBC_TUNABLES").unwrap_or_default();
-    println!("threads: {}, GLIBC_TUNABLES={tunables:?}", rayon::current_num_threads());
+    println!(
+        "threads: {}, GLIBC_TUNABLES={tunables:?}",
+        rayon::current_num_threads()
+    );
     let mut py = Python::start();
     for (cfg, batch) in &configs {
         let shapes = shapes(cfg, *batch);
-        println!("\n## {} (batch {batch} tiles, {} planes)\n", cfg.name, cfg.planes);
+        println!(
+            "\n## {} (batch {batch} tiles, {} planes)\n",
+            cfg.name, cfg.planes
+        );
         println!("| layers | N x Cin x H x W -> Cout, k | GFLOP | matmul GFLOP/s | fwd ms | GFLOP/s | of matmul | x candle | fwd+bwd ms | GFLOP/s | of matmul | x candle | / torch fwd | / torch f+b | / ort fwd |");
         println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
         let mut tot = [0f64; 7]; // ours fwd, fb, candle fwd, fb, torch fwd, fb, ort
@@ -161,7 +193,8 @@ fn main() -> Result<()> {
             let g = gflop(s);
             let reps = names.len() as f64;
             let ratio = |a: f64, b: Option<f64>| b.map_or("-".into(), |b| format!("{:.2}", a / b));
-            let speedup = |a: f64, b: Option<f64>| b.map_or("-".into(), |b| format!("{:.1}", b / a));
+            let speedup =
+                |a: f64, b: Option<f64>| b.map_or("-".into(), |b| format!("{:.1}", b / a));
             let pt = py.as_mut().and_then(|p| p.times(s));
             let [n, cin, h, w, cout, kh, kw] = *s;
             println!(
@@ -181,7 +214,10 @@ fn main() -> Result<()> {
             );
             let t = theirs.unwrap_or_default();
             let p = pt.unwrap_or([0.0; 3]);
-            for (acc, v) in tot.iter_mut().zip([ours.fwd, ours.fwd_bwd, t.fwd, t.fwd_bwd, p[0], p[1], p[2]]) {
+            for (acc, v) in
+                tot.iter_mut()
+                    .zip([ours.fwd, ours.fwd_bwd, t.fwd, t.fwd_bwd, p[0], p[1], p[2]])
+            {
                 *acc += reps * v;
             }
         }

@@ -241,7 +241,7 @@ impl Config {
         if self.depth_convs.last().map(|c| c.channels) != Some(1) {
             return Err("the last depth conv must have 1 channel".into());
         }
-        if self.tile == 0 || self.tile % self.tile_align() != 0 {
+        if self.tile == 0 || !self.tile.is_multiple_of(self.tile_align()) {
             return Err(format!("tile {} must be a positive multiple of {}", self.tile, self.tile_align()));
         }
         Ok(())

@@ -53,7 +53,7 @@ pub struct TileInputs {
 /// Checks a tile placement against the config's alignment.
 pub fn check_tile(cfg: &Config, x0: i64, y0: i64, th: usize, tw: usize) -> Result<()> {
     let a = cfg.tile_align();
-    if x0.rem_euclid(a as i64) != 0 || y0.rem_euclid(a as i64) != 0 || th % a != 0 || tw % a != 0 || th == 0 || tw == 0 {
+    if x0.rem_euclid(a as i64) != 0 || y0.rem_euclid(a as i64) != 0 || !th.is_multiple_of(a) || !tw.is_multiple_of(a) || th == 0 || tw == 0 {
         return Err(Error::Invalid(format!(
             "tile origin ({x0}, {y0}) and size {th}x{tw} must be positive multiples of {a}"
         )));

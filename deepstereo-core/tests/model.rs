@@ -67,7 +67,7 @@ fn gradients_match_finite_differences_f64() -> Result<()> {
         let w0 = var.as_tensor().flatten_all()?.to_vec1::<f64>()?;
         let picks: Vec<usize> = rand_vec(3, name.len() as u64, 0.0, w0.len() as f64).iter().map(|v| *v as usize).collect();
         for &i in &picks {
-            let mut eval = |delta: f64| -> Result<f64> {
+            let eval = |delta: f64| -> Result<f64> {
                 let mut w = w0.clone();
                 w[i] += delta;
                 var.set(&Tensor::from_vec(w, var.as_tensor().dims(), &Device::Cpu)?)?;

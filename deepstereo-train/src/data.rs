@@ -19,7 +19,7 @@ use std::path::Path;
 use std::sync::mpsc::{sync_channel, Receiver};
 
 /// Salt mixed into the seed of validation scenes so they never repeat training scenes.
-pub const VALIDATION_SALT: u64 = 0x5eed_0f_7a11_da7e;
+pub const VALIDATION_SALT: u64 = 0x005e_ed0f_7a11_da7e;
 
 /// One scene ready for sampling: cameras and image pyramids of every view.
 pub struct SceneData {

@@ -185,8 +185,8 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
             bad = 0;
             opt.step(&grads)?;
         }
-        let validate_now = step % sched.validate_every == 0 || step == sched.steps;
-        if step % sched.log_every == 0 || validate_now || skipped {
+        let validate_now = step.is_multiple_of(sched.validate_every) || step == sched.steps;
+        if step.is_multiple_of(sched.log_every) || validate_now || skipped {
             let secs = window_t.elapsed().as_secs_f64();
             let line = LogLine {
                 step,
@@ -213,7 +213,7 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
         }
         bar.set_position(step);
         let stopping = stop.load(Ordering::SeqCst);
-        if step % sched.checkpoint_every == 0 || step == sched.steps || stopping {
+        if step.is_multiple_of(sched.checkpoint_every) || step == sched.steps || stopping {
             save_checkpoint(&ckpt, &out.join("model.safetensors"), run, &t, &opt, step)?;
         }
         if stopping {

@@ -78,19 +78,33 @@ impl Chunk {
 pub(crate) fn plan(g: &Geom, elem_bytes: usize) -> Vec<Chunk> {
     let (p, ho) = (g.p(), g.ho());
     let want = rayon::current_num_threads() * CHUNKS_PER_THREAD;
-    let target = (CHUNK_BYTES / elem_bytes / g.k()).min((g.n * p).div_ceil(want)).max(MIN_COLS);
+    let target = (CHUNK_BYTES / elem_bytes / g.k())
+        .min((g.n * p).div_ceil(want))
+        .max(MIN_COLS);
     let mut chunks = Vec::new();
     if 2 * p <= 3 * target {
         let group = (target / p).max(1);
         for n0 in (0..g.n).step_by(group) {
-            chunks.push(Chunk { n0, n1: (n0 + group).min(g.n), r0: 0, r1: ho, phase: 0 });
+            chunks.push(Chunk {
+                n0,
+                n1: (n0 + group).min(g.n),
+                r0: 0,
+                r1: ho,
+                phase: 0,
+            });
         }
     } else {
         // Rows split evenly; at least kh rows so that chunks two apart never overlap.
         let rows = ho.div_ceil(p.div_ceil(target)).max(g.kh);
         for n0 in 0..g.n {
             for (i, r0) in (0..ho).step_by(rows).enumerate() {
-                chunks.push(Chunk { n0, n1: n0 + 1, r0, r1: (r0 + rows).min(ho), phase: i % 2 });
+                chunks.push(Chunk {
+                    n0,
+                    n1: n0 + 1,
+                    r0,
+                    r1: (r0 + rows).min(ho),
+                    phase: i % 2,
+                });
             }
         }
     }
@@ -166,8 +180,25 @@ pub(crate) unsafe fn matmul<T: WithDType>(
     let alpha = if accumulate { one } else { zero };
     let s = |v: usize| v as isize;
     gemm(
-        m, n, k, dst, s(dst_cs), s(dst_rs), accumulate, lhs, s(lhs_cs), s(lhs_rs), rhs, s(rhs_cs),
-        s(rhs_rs), alpha, one, false, false, false, Parallelism::None,
+        m,
+        n,
+        k,
+        dst,
+        s(dst_cs),
+        s(dst_rs),
+        accumulate,
+        lhs,
+        s(lhs_cs),
+        s(lhs_rs),
+        rhs,
+        s(rhs_cs),
+        s(rhs_rs),
+        alpha,
+        one,
+        false,
+        false,
+        false,
+        Parallelism::None,
     );
 }
 

@@ -2,7 +2,9 @@
 //! the module doc). Each [`Chunk`] runs on one thread: im2col into a buffer reused by that
 //! thread, one gemm, then bias and ReLU (forward) or col2im (backward).
 
-use super::im2col::{col2im, for_each_chunk, im2col, matmul, plan, reduction_blocks, Chunk, Geom, SharedMut};
+use super::im2col::{
+    col2im, for_each_chunk, im2col, matmul, plan, reduction_blocks, Chunk, Geom, SharedMut,
+};
 use candle_core::WithDType;
 
 /// `dst = act(src + bias)` with `act` ReLU or identity.
@@ -30,40 +32,52 @@ pub(crate) fn forward<T: WithDType>(g: &Geom, x: &[T], w: &[T], b: &[T], relu: b
     let zero = T::from_f64(0.0);
     let mut y = vec![zero; g.n * cout * p];
     let yp = SharedMut(y.as_mut_ptr());
-    for_each_chunk(&chunks, chunks.len(), || (Vec::new(), Vec::new()), || (), |(buf, tmp), _, c| {
-        let (cols, per) = (c.cols(g), c.cols_per_image(g));
-        let lhs = (w.as_ptr(), k, 1);
-        // The chunk's outputs of image n, channel co.
-        let out = |n: usize, co: usize| unsafe {
-            std::slice::from_raw_parts_mut(yp.get().add((n * cout + co) * p + c.r0 * wo), per)
-        };
-        // SAFETY: chunks cover disjoint outputs; offsets and strides follow Geom.
-        unsafe {
-            if g.direct() {
-                for n in c.n0..c.n1 {
-                    let dst = (yp.get().add(n * cout * p + c.r0 * wo), p, 1);
-                    let rhs = (x.as_ptr().add(n * cin * hw + c.r0 * g.w), hw, 1);
-                    matmul((cout, per, k), dst, false, lhs, rhs);
-                    (0..cout).for_each(|co| bias_act(out(n, co), None, b[co], relu));
-                }
-            } else if c.n1 - c.n0 == 1 {
-                im2col(g, c, x, buf);
-                let dst = (yp.get().add(c.n0 * cout * p + c.r0 * wo), p, 1);
-                matmul((cout, cols, k), dst, false, lhs, (buf.as_ptr(), cols, 1));
-                (0..cout).for_each(|co| bias_act(out(c.n0, co), None, b[co], relu));
-            } else {
-                im2col(g, c, x, buf);
-                tmp.resize(cout * cols, zero);
-                matmul((cout, cols, k), (tmp.as_mut_ptr(), cols, 1), false, lhs, (buf.as_ptr(), cols, 1));
-                for n in c.n0..c.n1 {
-                    for co in 0..cout {
-                        let src = &tmp[co * cols + (n - c.n0) * per..][..per];
-                        bias_act(out(n, co), Some(src), b[co], relu);
+    for_each_chunk(
+        &chunks,
+        chunks.len(),
+        || (Vec::new(), Vec::new()),
+        || (),
+        |(buf, tmp), _, c| {
+            let (cols, per) = (c.cols(g), c.cols_per_image(g));
+            let lhs = (w.as_ptr(), k, 1);
+            // The chunk's outputs of image n, channel co.
+            let out = |n: usize, co: usize| unsafe {
+                std::slice::from_raw_parts_mut(yp.get().add((n * cout + co) * p + c.r0 * wo), per)
+            };
+            // SAFETY: chunks cover disjoint outputs; offsets and strides follow Geom.
+            unsafe {
+                if g.direct() {
+                    for n in c.n0..c.n1 {
+                        let dst = (yp.get().add(n * cout * p + c.r0 * wo), p, 1);
+                        let rhs = (x.as_ptr().add(n * cin * hw + c.r0 * g.w), hw, 1);
+                        matmul((cout, per, k), dst, false, lhs, rhs);
+                        (0..cout).for_each(|co| bias_act(out(n, co), None, b[co], relu));
+                    }
+                } else if c.n1 - c.n0 == 1 {
+                    im2col(g, c, x, buf);
+                    let dst = (yp.get().add(c.n0 * cout * p + c.r0 * wo), p, 1);
+                    matmul((cout, cols, k), dst, false, lhs, (buf.as_ptr(), cols, 1));
+                    (0..cout).for_each(|co| bias_act(out(c.n0, co), None, b[co], relu));
+                } else {
+                    im2col(g, c, x, buf);
+                    tmp.resize(cout * cols, zero);
+                    matmul(
+                        (cout, cols, k),
+                        (tmp.as_mut_ptr(), cols, 1),
+                        false,
+                        lhs,
+                        (buf.as_ptr(), cols, 1),
+                    );
+                    for n in c.n0..c.n1 {
+                        for co in 0..cout {
+                            let src = &tmp[co * cols + (n - c.n0) * per..][..per];
+                            bias_act(out(n, co), Some(src), b[co], relu);
+                        }
                     }
                 }
             }
-        }
-    });
+        },
+    );
     y
 }
 
@@ -108,8 +122,14 @@ pub(crate) fn backward<T: WithDType>(
     let zero = T::from_f64(0.0);
     let mut dx = need_dx.then(|| vec![zero; g.n * cin * hw]);
     let dxp = SharedMut(dx.as_mut().map_or(std::ptr::null_mut(), |v| v.as_mut_ptr()));
-    let scratch = || Scratch { buf: Vec::new(), gy: Vec::new() };
-    let acc = || Acc { dwt: vec![zero; k * cout], db: vec![zero; cout] };
+    let scratch = || Scratch {
+        buf: Vec::new(),
+        gy: Vec::new(),
+    };
+    let acc = || Acc {
+        dwt: vec![zero; k * cout],
+        db: vec![zero; cout],
+    };
     let step = |s: &mut Scratch<T>, a: &mut Acc<T>, c: &Chunk| {
         let (cols, per) = (c.cols(g), c.cols_per_image(g));
         s.gy.resize(cout * cols, zero);
@@ -118,7 +138,9 @@ pub(crate) fn backward<T: WithDType>(
                 let off = (n * cout + co) * p + c.r0 * wo;
                 let dst = &mut s.gy[co * cols + (n - c.n0) * per..][..per];
                 if relu {
-                    for ((d, &dv), &yv) in dst.iter_mut().zip(&dy[off..][..per]).zip(&y[off..][..per]) {
+                    for ((d, &dv), &yv) in
+                        dst.iter_mut().zip(&dy[off..][..per]).zip(&y[off..][..per])
+                    {
                         *d = if yv > zero { dv } else { zero };
                     }
                 } else {
@@ -141,7 +163,13 @@ pub(crate) fn backward<T: WithDType>(
                     }
                 } else {
                     im2col(g, c, x, &mut s.buf);
-                    matmul((cout, k, cols), dst, true, gy(c.n0), (s.buf.as_ptr(), 1, cols));
+                    matmul(
+                        (cout, k, cols),
+                        dst,
+                        true,
+                        gy(c.n0),
+                        (s.buf.as_ptr(), 1, cols),
+                    );
                 }
             }
             if need_dx {
@@ -154,7 +182,13 @@ pub(crate) fn backward<T: WithDType>(
                     }
                 } else {
                     s.buf.resize(k * cols, zero);
-                    matmul((k, cols, cout), (s.buf.as_mut_ptr(), cols, 1), false, wt, gy(c.n0));
+                    matmul(
+                        (k, cols, cout),
+                        (s.buf.as_mut_ptr(), cols, 1),
+                        false,
+                        wt,
+                        gy(c.n0),
+                    );
                     col2im(g, c, &s.buf, dxp);
                 }
             }
@@ -162,7 +196,13 @@ pub(crate) fn backward<T: WithDType>(
     };
     let run = |chunks: &[Chunk]| for_each_chunk(chunks, reduction_blocks(), &scratch, &acc, &step);
     let accs = if need_dx && !g.direct() {
-        let phase = |i: usize| chunks.iter().filter(|c| c.phase == i).copied().collect::<Vec<_>>();
+        let phase = |i: usize| {
+            chunks
+                .iter()
+                .filter(|c| c.phase == i)
+                .copied()
+                .collect::<Vec<_>>()
+        };
         let mut accs = run(&phase(0));
         accs.extend(run(&phase(1)));
         accs
@@ -172,7 +212,9 @@ pub(crate) fn backward<T: WithDType>(
     let (mut dw, mut db) = (vec![zero; cout * k], vec![zero; cout]);
     for a in &accs {
         for (kk, row) in a.dwt.chunks_exact(cout).enumerate() {
-            row.iter().enumerate().for_each(|(co, &v)| dw[co * k + kk] += v);
+            row.iter()
+                .enumerate()
+                .for_each(|(co, &v)| dw[co * k + kk] += v);
         }
         db.iter_mut().zip(&a.db).for_each(|(d, &v)| *d += v);
     }

@@ -63,7 +63,10 @@ impl Conv2d {
     pub fn new(cin: usize, cout: usize, (kh, kw): (usize, usize), vb: VarBuilder) -> Result<Self> {
         let fan_in = (cin * kh * kw) as f64;
         let bound = 1.0 / fan_in.sqrt();
-        let init = candle_nn::Init::Uniform { lo: -bound, up: bound };
+        let init = candle_nn::Init::Uniform {
+            lo: -bound,
+            up: bound,
+        };
         let weight = vb.get_with_hints((cout, cin, kh, kw), "weight", init)?;
         let bias = vb.get_with_hints(cout, "bias", init)?;
         Ok(Self { weight, bias })

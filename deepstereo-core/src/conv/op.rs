@@ -3,7 +3,9 @@
 
 use super::im2col::Geom;
 use super::kernels;
-use candle_core::{bail, CpuStorage, CustomOp3, DType, Layout, Result, Shape, Storage, Tensor, WithDType};
+use candle_core::{
+    bail, CpuStorage, CustomOp3, DType, Layout, Result, Shape, Storage, Tensor, WithDType,
+};
 
 /// Whether [`conv2d`] runs these inputs (CPU, f32 or f64); otherwise use candle's conv2d.
 pub(crate) fn supported(x: &Tensor, w: &Tensor) -> bool {
@@ -15,7 +17,11 @@ pub(crate) fn supported(x: &Tensor, w: &Tensor) -> bool {
 pub(crate) fn conv2d(x: &Tensor, w: &Tensor, b: &Tensor, relu: bool) -> Result<Tensor> {
     let g = geom(x.dims(), w.dims())?;
     if b.dims() != [g.cout] {
-        bail!("conv2d: bias {:?} does not match weight {:?}", b.dims(), w.dims());
+        bail!(
+            "conv2d: bias {:?} does not match weight {:?}",
+            b.dims(),
+            w.dims()
+        );
     }
     x.contiguous()?
         .apply_op3(&w.contiguous()?, &b.contiguous()?, ConvOp { relu })
@@ -28,7 +34,15 @@ fn geom(x: &[usize], w: &[usize]) -> Result<Geom> {
     if wcin != cin || kh == 0 || kw == 0 || kh > h || kw > wd {
         bail!("conv2d: input {x:?} does not fit weight {w:?}");
     }
-    Ok(Geom { n, cin, h, w: wd, cout, kh, kw })
+    Ok(Geom {
+        n,
+        cin,
+        h,
+        w: wd,
+        cout,
+        kh,
+        kw,
+    })
 }
 
 struct ConvOp {
@@ -46,7 +60,14 @@ fn data<'a, T: WithDType>(s: &'a Storage, l: &Layout) -> Result<&'a [T]> {
 type Grads = (Option<Tensor>, Option<Tensor>, Option<Tensor>);
 
 impl ConvOp {
-    fn bwd_typed<T: WithDType>(&self, x: &Tensor, w: &Tensor, b: &Tensor, y: &Tensor, dy: &Tensor) -> Result<Grads> {
+    fn bwd_typed<T: WithDType>(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        b: &Tensor,
+        y: &Tensor,
+        dy: &Tensor,
+    ) -> Result<Grads> {
         let g = geom(x.dims(), w.dims())?;
         let (need_dx, need_dw) = (x.track_op(), w.track_op());
         let grads = {
@@ -55,13 +76,25 @@ impl ConvOp {
             let (ys, yl) = y.storage_and_layout();
             let (ds, dl) = dy.storage_and_layout();
             let y = if self.relu { data::<T>(&ys, yl)? } else { &[] };
-            let (x, w, dy) = (data::<T>(&xs, xl)?, data::<T>(&ws, wl)?, data::<T>(&ds, dl)?);
+            let (x, w, dy) = (
+                data::<T>(&xs, xl)?,
+                data::<T>(&ws, wl)?,
+                data::<T>(&ds, dl)?,
+            );
             kernels::backward(&g, x, w, y, dy, self.relu, need_dx, need_dw)
         };
         let dev = x.device();
-        let dx = grads.dx.map(|v| Tensor::from_vec(v, x.shape(), dev)).transpose()?;
-        let dw = need_dw.then(|| Tensor::from_vec(grads.dw, w.shape(), dev)).transpose()?;
-        let db = b.track_op().then(|| Tensor::from_vec(grads.db, b.shape(), dev)).transpose()?;
+        let dx = grads
+            .dx
+            .map(|v| Tensor::from_vec(v, x.shape(), dev))
+            .transpose()?;
+        let dw = need_dw
+            .then(|| Tensor::from_vec(grads.dw, w.shape(), dev))
+            .transpose()?;
+        let db = b
+            .track_op()
+            .then(|| Tensor::from_vec(grads.db, b.shape(), dev))
+            .transpose()?;
         Ok((dx, dw, db))
     }
 }
@@ -90,11 +123,23 @@ impl CustomOp3 for ConvOp {
         }
         let y = match xs {
             CpuStorage::F32(_) => {
-                let y = kernels::forward(&g, slice(xs, xl)?, slice(ws, wl)?, slice(bs, bl)?, self.relu);
+                let y = kernels::forward(
+                    &g,
+                    slice(xs, xl)?,
+                    slice(ws, wl)?,
+                    slice(bs, bl)?,
+                    self.relu,
+                );
                 CpuStorage::F32(y)
             }
             CpuStorage::F64(_) => {
-                let y = kernels::forward(&g, slice(xs, xl)?, slice(ws, wl)?, slice(bs, bl)?, self.relu);
+                let y = kernels::forward(
+                    &g,
+                    slice(xs, xl)?,
+                    slice(ws, wl)?,
+                    slice(bs, bl)?,
+                    self.relu,
+                );
                 CpuStorage::F64(y)
             }
             _ => bail!("conv2d: f32 or f64 only"),

@@ -18,26 +18,45 @@ const SHAPES: [(usize, usize, usize, usize, usize, usize, usize); 10] = [
     (20, 4, 4, 4, 3, 1, 1),
 ];
 
-fn conv(shape: (usize, usize, usize, usize, usize, usize, usize), dt: DType) -> Result<(Conv2d, Tensor)> {
+fn conv(
+    shape: (usize, usize, usize, usize, usize, usize, usize),
+    dt: DType,
+) -> Result<(Conv2d, Tensor)> {
     let (n, cin, h, w, cout, kh, kw) = shape;
     let dev = &Device::Cpu;
-    let weight = Var::from_tensor(&Tensor::randn(0f64, 1., (cout, cin, kh, kw), dev)?.to_dtype(dt)?)?;
+    let weight =
+        Var::from_tensor(&Tensor::randn(0f64, 1., (cout, cin, kh, kw), dev)?.to_dtype(dt)?)?;
     let bias = Var::from_tensor(&Tensor::randn(0f64, 1., cout, dev)?.to_dtype(dt)?)?;
     let x = Tensor::randn(0f64, 1., (n, cin, h, w), dev)?.to_dtype(dt)?;
-    let conv = Conv2d { weight: weight.as_tensor().clone(), bias: bias.as_tensor().clone() };
+    let conv = Conv2d {
+        weight: weight.as_tensor().clone(),
+        bias: bias.as_tensor().clone(),
+    };
     Ok((conv, x))
 }
 
 /// max |a - b| / max(max |b|, 1).
 fn rel_err(a: &Tensor, b: &Tensor) -> Result<f64> {
     assert_eq!(a.dims(), b.dims());
-    let diff = (a - b)?.abs()?.max_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()?;
-    let scale = b.abs()?.max_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+    let diff = (a - b)?
+        .abs()?
+        .max_all()?
+        .to_dtype(DType::F64)?
+        .to_scalar::<f64>()?;
+    let scale = b
+        .abs()?
+        .max_all()?
+        .to_dtype(DType::F64)?
+        .to_scalar::<f64>()?;
     Ok(diff / scale.max(1.0))
 }
 
 fn tol(dt: DType) -> f64 {
-    if dt == DType::F32 { 1e-4 } else { 1e-10 }
+    if dt == DType::F32 {
+        1e-4
+    } else {
+        1e-10
+    }
 }
 
 #[test]
@@ -89,7 +108,10 @@ fn gradients_match_candle() -> Result<()> {
 fn input_without_gradient() -> Result<()> {
     let (conv, x) = conv((4, 3, 7, 7, 5, 3, 3), DType::F32)?;
     let w = Var::from_tensor(&conv.weight)?;
-    let conv = Conv2d { weight: w.as_tensor().clone(), bias: conv.bias.clone() };
+    let conv = Conv2d {
+        weight: w.as_tensor().clone(),
+        bias: conv.bias.clone(),
+    };
     let g = conv.forward_relu(&x)?.sum_all()?.backward()?;
     assert!(g.get(&x).is_none());
     let gw = g.get(w.as_tensor()).expect("weight gradient");
@@ -101,11 +123,17 @@ fn input_without_gradient() -> Result<()> {
 
 #[test]
 fn finite_differences_f64() -> Result<()> {
-    for shape in [(2, 3, 6, 5, 2, 3, 3), (2, 3, 7, 4, 2, 3, 1), (2, 3, 3, 4, 2, 1, 1)] {
+    for shape in [
+        (2, 3, 6, 5, 2, 3, 3),
+        (2, 3, 7, 4, 2, 3, 1),
+        (2, 3, 3, 4, 2, 1, 1),
+    ] {
         let (conv, x) = conv(shape, DType::F64)?;
         let x = Var::from_tensor(&x)?;
         let r = Tensor::randn(0f64, 1., conv.forward(&x)?.shape(), &Device::Cpu)?;
-        let loss = |x: &Tensor, c: &Conv2d| -> Result<f64> { (c.forward(x)? * &r)?.sum_all()?.to_scalar::<f64>() };
+        let loss = |x: &Tensor, c: &Conv2d| -> Result<f64> {
+            (c.forward(x)? * &r)?.sum_all()?.to_scalar::<f64>()
+        };
         let g = (conv.forward(x.as_tensor())? * &r)?.sum_all()?.backward()?;
         let eps = 1e-4;
         // Perturbs element i of one of (x, weight, bias).
@@ -120,13 +148,29 @@ fn finite_differences_f64() -> Result<()> {
                     let t = Tensor::from_vec(p, base.shape(), &Device::Cpu)?;
                     match which {
                         0 => loss(&t, &conv),
-                        1 => loss(x.as_tensor(), &Conv2d { weight: t, bias: conv.bias.clone() }),
-                        _ => loss(x.as_tensor(), &Conv2d { weight: conv.weight.clone(), bias: t }),
+                        1 => loss(
+                            x.as_tensor(),
+                            &Conv2d {
+                                weight: t,
+                                bias: conv.bias.clone(),
+                            },
+                        ),
+                        _ => loss(
+                            x.as_tensor(),
+                            &Conv2d {
+                                weight: conv.weight.clone(),
+                                bias: t,
+                            },
+                        ),
                     }
                 };
                 let fd = (at(eps)? - at(-eps)?) / (2.0 * eps);
                 let e = (fd - analytic[i]).abs() / analytic[i].abs().max(1.0);
-                assert!(e < 1e-7, "{shape:?} arg {which} element {i}: fd {fd} vs {}", analytic[i]);
+                assert!(
+                    e < 1e-7,
+                    "{shape:?} arg {which} element {i}: fd {fd} vs {}",
+                    analytic[i]
+                );
             }
         }
     }
@@ -141,10 +185,20 @@ fn gradient_accumulates_through_skip() -> Result<()> {
     let (c2, _) = conv((3, 6, 7, 7, 6, 3, 3), DType::F64)?;
     let x = Var::from_tensor(&x)?;
     let run = |reference: bool| -> Result<Vec<Tensor>> {
-        let f = |c: &Conv2d, t: &Tensor| if reference { c.forward_reference(t)?.relu() } else { c.forward_relu(t) };
+        let f = |c: &Conv2d, t: &Tensor| {
+            if reference {
+                c.forward_reference(t)?.relu()
+            } else {
+                c.forward_relu(t)
+            }
+        };
         let a = f(&c1, x.as_tensor())?; // [3, 6, 7, 7]
         let b = (f(&c2, &a.narrow(3, 1, 6)?)? + a.narrow(2, 1, 5)?.narrow(3, 2, 4)?)?; // [3, 6, 5, 4]
-        let skip = x.as_tensor().narrow(1, 0, 1)?.narrow(2, 0, 1)?.narrow(3, 2, 5)?; // [3, 1, 1, 5]
+        let skip = x
+            .as_tensor()
+            .narrow(1, 0, 1)?
+            .narrow(2, 0, 1)?
+            .narrow(3, 2, 5)?; // [3, 1, 1, 5]
         let out = c2.forward(&a)?.narrow(2, 0, 1)?.broadcast_add(&skip)?; // [3, 6, 1, 5]
         let loss = (b.sqr()?.sum_all()? + out.sin()?.sum_all()?)?;
         let g = loss.backward()?;
@@ -169,7 +223,10 @@ fn gradients_are_deterministic() -> Result<()> {
     for _ in 0..3 {
         let again = grads(&x, &conv, |x| conv.forward_relu(x))?;
         for (a, b) in first.iter().zip(&again) {
-            assert_eq!(a.flatten_all()?.to_vec1::<f32>()?, b.flatten_all()?.to_vec1::<f32>()?);
+            assert_eq!(
+                a.flatten_all()?.to_vec1::<f32>()?,
+                b.flatten_all()?.to_vec1::<f32>()?
+            );
         }
     }
     Ok(())

@@ -8,6 +8,7 @@ use crate::geometry::{apply_h, plane_homography};
 use crate::inputs::{level_camera, PyramidSource};
 use crate::sweep::{sample_bilinear, IN_FRONT_EPS};
 use glam::{DMat3, DVec2};
+use rayon::prelude::*;
 
 /// What to do with one block of output pixels.
 #[derive(Clone, Debug, PartialEq)]
@@ -232,8 +233,9 @@ impl<'a> Pruner<'a> {
             all_seen: true,
         };
         let v = self.sources.len();
-        let mut raw = vec![f32::NAN; rays.len() * nz];
-        let mut rgb = vec![[0f32; 3]; v];
+        let np = rays.len();
+        // Colours [sample, plane, source] (alpha-normalized; `None` where unseen).
+        let mut col = vec![None; np * nz * v];
         for (p, n) in rays.iter().enumerate() {
             for z in z0..=z1 {
                 let mut cnt = 0usize;
@@ -246,47 +248,75 @@ impl<'a> Pruner<'a> {
                     let uv = cam.intrinsics.project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
                     let c = sample_bilinear(&s.images[self.level], uv.x, uv.y);
                     if c[3] > MIN_ALPHA {
-                        rgb[cnt] = [c[0] / c[3], c[1] / c[3], c[2] / c[3]];
+                        let rgb = [c[0] / c[3], c[1] / c[3], c[2] / c[3]];
+                        for ch in 0..3 {
+                            out.lo[ch] = out.lo[ch].min(rgb[ch]);
+                            out.hi[ch] = out.hi[ch].max(rgb[ch]);
+                            out.sum[ch] += rgb[ch];
+                        }
+                        col[(p * nz + z - z0) * v + k] = Some(rgb);
                         cnt += 1;
                     }
                 }
+                out.count += cnt;
                 if cnt == 0 {
                     out.all_seen = false;
                 }
-                let mut mean = [0f32; 3];
-                for c in &rgb[..cnt] {
-                    for ch in 0..3 {
-                        mean[ch] += c[ch] / cnt as f32;
-                        out.lo[ch] = out.lo[ch].min(c[ch]);
-                        out.hi[ch] = out.hi[ch].max(c[ch]);
-                        out.sum[ch] += c[ch];
-                    }
-                }
-                out.count += cnt;
-                if cnt >= 2 {
-                    raw[p * nz + z - z0] = pair_cost(&rgb[..cnt]);
-                }
             }
         }
-        // Aggregate over a window of neighbouring samples (NaN-aware mean).
-        let r = self.opts.window as isize;
-        let ny = rays.len() / nx.max(1);
-        for p in 0..rays.len() {
-            let (px, py) = ((p % nx) as isize, (p / nx) as isize);
-            for z in 0..nz {
-                let (mut acc, mut n) = (0f32, 0f32);
-                for qy in (py - r).max(0)..(py + r + 1).min(ny as isize) {
-                    for qx in (px - r).max(0)..(px + r + 1).min(nx as isize) {
-                        let c = raw[(qy as usize * nx + qx as usize) * nz + z];
-                        if !c.is_nan() {
-                            acc += c;
-                            n += 1.0;
+        let ny = np / nx.max(1);
+        let r = self.opts.window;
+        let costs: Vec<Vec<f32>> = (0..nz)
+            .into_par_iter()
+            .map(|zi| {
+                let mut best = vec![f32::NAN; np];
+                let mut acc = vec![[0f32; 10]; np];
+                for a in 0..v {
+                    for b in a + 1..v {
+                        for (p, m) in acc.iter_mut().enumerate() {
+                            *m = match (col[(p * nz + zi) * v + a], col[(p * nz + zi) * v + b]) {
+                                (Some(x), Some(y)) => [
+                                    1.0,
+                                    x[0],
+                                    x[1],
+                                    x[2],
+                                    y[0],
+                                    y[1],
+                                    y[2],
+                                    x.iter().map(|c| c * c).sum(),
+                                    y.iter().map(|c| c * c).sum(),
+                                    (0..3).map(|c| x[c] * y[c]).sum(),
+                                ],
+                                _ => [0.0; 10],
+                            };
+                        }
+                        let sums = box_sum(&acc, nx, ny, r);
+                        let full = ((2 * r + 1) * (2 * r + 1)) as f32;
+                        for (p, m) in sums.iter().enumerate() {
+                            let n = m[0];
+                            if n < 3.0 || n < 0.5 * full.min((nx * ny) as f32) {
+                                continue;
+                            }
+                            let va = m[7] - (m[1] * m[1] + m[2] * m[2] + m[3] * m[3]) / n;
+                            let vb = m[8] - (m[4] * m[4] + m[5] * m[5] + m[6] * m[6]) / n;
+                            let cov = m[9] - (m[1] * m[4] + m[2] * m[5] + m[3] * m[6]) / n;
+                            let floor = TEXTURE_VAR * 3.0 * n;
+                            if va < floor || vb < floor {
+                                continue; // textureless here: NCC says nothing
+                            }
+                            let c = 1.0 - cov / (va * vb).sqrt();
+                            if !(best[p] <= c) {
+                                best[p] = c;
+                            }
                         }
                     }
                 }
-                if n > 0.0 {
-                    out.cost[p * nz + z] = acc / n;
-                }
+                best
+            })
+            .collect();
+        for (zi, c) in costs.iter().enumerate() {
+            for p in 0..np {
+                out.cost[p * nz + zi] = c[p];
             }
         }
         out
@@ -359,6 +389,36 @@ impl<'a> Pruner<'a> {
             .filter(|&z| (z.saturating_sub(m)..=(z + m).min(self.planes - 1)).any(|q| want[q]))
             .collect()
     }
+}
+
+/// Per-element colour variance below which a window counts as textureless.
+const TEXTURE_VAR: f32 = 1e-4;
+
+/// Sums of `[f32; 10]` over the `(2r+1)^2` window around each sample of an `nx x ny`
+/// grid (clipped at the borders).
+fn box_sum(x: &[[f32; 10]], nx: usize, ny: usize, r: usize) -> Vec<[f32; 10]> {
+    let add = |a: &mut [f32; 10], b: &[f32; 10]| a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+    let mut rows = vec![[0f32; 10]; x.len()];
+    for y in 0..ny {
+        for i in 0..nx {
+            let mut m = [0f32; 10];
+            for j in i.saturating_sub(r)..(i + r + 1).min(nx) {
+                add(&mut m, &x[y * nx + j]);
+            }
+            rows[y * nx + i] = m;
+        }
+    }
+    let mut out = vec![[0f32; 10]; x.len()];
+    for y in 0..ny {
+        for i in 0..nx {
+            let mut m = [0f32; 10];
+            for j in y.saturating_sub(r)..(y + r + 1).min(ny) {
+                add(&mut m, &rows[j * nx + i]);
+            }
+            out[y * nx + i] = m;
+        }
+    }
+    out
 }
 
 /// Photo-consistency of the colours one point gets from the sources that see it, robust
