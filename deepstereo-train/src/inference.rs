@@ -9,8 +9,9 @@ use deepstereo_core::geometry::inverse_depths;
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::metrics::{psnr, ssim};
-use deepstereo_core::render::{render_view, Backend, CandleBackend, Rendered};
-use deepstereo_core::scene::Scene;
+use deepstereo_core::prune::{plane_range_from_points, rank_views, PruneOptions, PruneStats, Pruner};
+use deepstereo_core::render::{render_view, render_view_pruned, Backend, CandleBackend, Rendered};
+use deepstereo_core::scene::{nearest_to_point, Scene};
 use deepstereo_core::sweep::Source;
 use deepstereo_core::weights;
 use serde::Serialize;
@@ -49,6 +50,23 @@ pub struct RenderSettings {
     pub views: Option<usize>,
     /// Output tile side for rendering (bounded memory).
     pub tile: usize,
+    /// What to leave out (`deepstereo_core::prune`).
+    pub prune: PruneOptions,
+}
+
+/// The `k` source views for `target` (`exclude`: its own index in the scene, if any):
+/// the nearest with pruning off; with pruning on, those that see most of the target
+/// frustum for their distance ([`rank_views`]).
+pub fn pick_sources(scene: &Scene, target: &Camera, exclude: Option<usize>, k: usize, settings: &RenderSettings) -> Vec<usize> {
+    if settings.prune.is_on() && std::env::var("PRUNE_NOVIEWS").is_err() {
+        let cams: Vec<Camera> = scene.views.iter().map(|v| v.camera).collect();
+        rank_views(&cams, target, k, exclude, scene.near, scene.far).0
+    } else {
+        match exclude {
+            Some(t) => scene.nearest_views(t, k),
+            None => nearest_to_point(&scene.views, target.pose.centre(), k, None),
+        }
+    }
 }
 
 /// A scene's views prepared for rendering (pyramids built once).
@@ -99,7 +117,13 @@ pub fn render_camera(
         prepared.get(scene, i, cfg.levels)?;
     }
     let srcs: Vec<&PyramidSource> = sources.iter().filter_map(|&i| prepared.pyramids[i].as_ref()).collect();
-    let r = render_view(backend, target, &srcs, &inv, settings.tile, progress)?;
+    let r = if settings.prune.is_on() {
+        let range = plane_range_from_points(target, &scene.points, &inv);
+        let pruner = Pruner::new(&cfg, target, &srcs, &inv, range, &settings.prune);
+        render_view_pruned(backend, target, &srcs, &inv, settings.tile, Some(&pruner), progress)?
+    } else {
+        render_view(backend, target, &srcs, &inv, settings.tile, progress)?
+    };
     Ok((r, inv))
 }
 
@@ -133,6 +157,9 @@ pub struct ViewResult {
     pub ssim: f64,
     pub seconds: f64,
     pub baselines: Baselines,
+    /// What pruning left out (absent with `--prune off`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub prune: Option<PruneStats>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -151,6 +178,8 @@ pub struct EvalReport {
     pub backend: String,
     pub planes: usize,
     pub views: usize,
+    /// `off` or `auto`.
+    pub prune: String,
     pub per_view: Vec<ViewResult>,
     pub mean: Mean,
 }
@@ -173,8 +202,8 @@ pub fn evaluate(
             bail!("held-out view {t} is out of range: the scene has {} views", scene.views.len());
         }
         let truth = scene.load_image(t)?;
-        let srcs = scene.nearest_views(t, cfg.views);
         let cam = scene.views[t].camera;
+        let srcs = pick_sources(scene, &cam, Some(t), cfg.views, settings);
         let t0 = Instant::now();
         let (r, inv) = render_camera(backend, scene, &mut prepared, &cam, &srcs, settings, &|_, _| {})?;
         let seconds = t0.elapsed().as_secs_f64();
@@ -201,6 +230,7 @@ pub fn evaluate(
                 nearest: near_score,
                 plane_sweep: Score { psnr: psnr(&ps, &truth), ssim: ssim(&ps, &truth), seconds: Some(ps_secs) },
             },
+            prune: r.prune.clone(),
         };
         on_view(&v, &ViewImages { truth: &truth, rendered: &r, nearest: &nearest, plane_sweep: &ps });
         per_view.push(v);
@@ -229,6 +259,7 @@ pub fn evaluate(
         backend: backend.name().to_string(),
         planes,
         views: cfg.views,
+        prune: settings.prune.mode.name().to_string(),
         per_view,
         mean,
     })

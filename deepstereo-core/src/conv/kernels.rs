@@ -194,7 +194,7 @@ pub(crate) fn backward<T: WithDType>(
             }
         }
     };
-    let run = |chunks: &[Chunk]| for_each_chunk(chunks, reduction_blocks(), &scratch, &acc, &step);
+    let run = |chunks: &[Chunk]| for_each_chunk(chunks, reduction_blocks(), scratch, acc, step);
     let accs = if need_dx && !g.direct() {
         let phase = |i: usize| {
             chunks

@@ -84,7 +84,7 @@ impl<'a> Pruner<'a> {
         let range = range.map_or((0, d.saturating_sub(1)), |(a, b)| (a.min(d - 1), b.min(d - 1)));
         Self {
             opts: opts.clone(),
-            margin: opts.margin_for(cfg),
+            margin: opts.margin,
             sources,
             planes: d,
             range,
@@ -270,24 +270,13 @@ impl<'a> Pruner<'a> {
             .into_par_iter()
             .map(|zi| {
                 let mut best = vec![f32::NAN; np];
-                let mut acc = vec![[0f32; 10]; np];
+                let mut acc = vec![[0f32; 2]; np];
                 for a in 0..v {
                     for b in a + 1..v {
                         for (p, m) in acc.iter_mut().enumerate() {
                             *m = match (col[(p * nz + zi) * v + a], col[(p * nz + zi) * v + b]) {
-                                (Some(x), Some(y)) => [
-                                    1.0,
-                                    x[0],
-                                    x[1],
-                                    x[2],
-                                    y[0],
-                                    y[1],
-                                    y[2],
-                                    x.iter().map(|c| c * c).sum(),
-                                    y.iter().map(|c| c * c).sum(),
-                                    (0..3).map(|c| x[c] * y[c]).sum(),
-                                ],
-                                _ => [0.0; 10],
+                                (Some(x), Some(y)) => [1.0, (0..3).map(|c| (x[c] - y[c]).powi(2)).sum()],
+                                _ => [0.0; 2],
                             };
                         }
                         let sums = box_sum(&acc, nx, ny, r);
@@ -297,14 +286,8 @@ impl<'a> Pruner<'a> {
                             if n < 3.0 || n < 0.5 * full.min((nx * ny) as f32) {
                                 continue;
                             }
-                            let va = m[7] - (m[1] * m[1] + m[2] * m[2] + m[3] * m[3]) / n;
-                            let vb = m[8] - (m[4] * m[4] + m[5] * m[5] + m[6] * m[6]) / n;
-                            let cov = m[9] - (m[1] * m[4] + m[2] * m[5] + m[3] * m[6]) / n;
-                            let floor = TEXTURE_VAR * 3.0 * n;
-                            if va < floor || vb < floor {
-                                continue; // textureless here: NCC says nothing
-                            }
-                            let c = 1.0 - cov / (va * vb).sqrt();
+                            // Mean squared colour difference of the pair over the window.
+                            let c = m[1] / (3.0 * n);
                             if !(best[p] <= c) {
                                 best[p] = c;
                             }
@@ -338,14 +321,15 @@ impl<'a> Pruner<'a> {
         })
     }
 
-    /// The planes the samples `idx` need: each informative sample's candidate planes
-    /// (cost within the tolerance of its least), less the planes too few samples want
-    /// ([`PruneOptions::mass`]), widened by the margin on each side.
+    /// The planes the samples `idx` need. Each informative sample finds plausible the
+    /// planes whose cost lies within the tolerance of its least; the kept planes are a
+    /// small set (chosen greedily, the plane most samples find plausible first) such that
+    /// [`PruneOptions::mass`] of the informative samples find one of them plausible,
+    /// widened by the margin on each side.
     fn needed(&self, s: &Samples, idx: &[usize]) -> Vec<usize> {
         let (z0, z1) = self.range;
-        let mut support = vec![0usize; s.nz];
         let mut total = vec![0f32; s.nz];
-        let mut informative = 0usize;
+        let mut good: Vec<Vec<usize>> = Vec::new();
         for &p in idx {
             let c = &s.cost[p * s.nz..(p + 1) * s.nz];
             let known = || c.iter().enumerate().filter(|(_, x)| !x.is_nan());
@@ -356,25 +340,38 @@ impl<'a> Pruner<'a> {
                 }
                 continue;
             }
-            informative += 1;
             let cut = lo + self.opts.tolerance * (hi - lo);
-            for (z, _) in known().filter(|(_, &x)| x <= cut) {
-                support[z] += 1;
-            }
+            good.push(known().filter(|(_, &x)| x <= cut).map(|(z, _)| z).collect());
         }
         let mut want = vec![false; self.planes];
-        if informative > 0 {
-            // The most supported planes holding `mass` of the support.
-            let mut order: Vec<usize> = (0..s.nz).filter(|&z| support[z] > 0).collect();
-            order.sort_by(|&a, &b| support[b].cmp(&support[a]).then(a.cmp(&b)));
-            let all: usize = support.iter().sum();
-            let mut acc = 0usize;
-            for z in order {
-                if acc as f64 >= self.opts.mass as f64 * all as f64 {
-                    break;
+        if !good.is_empty() {
+            let need = (self.opts.mass as f64 * good.len() as f64).ceil() as usize;
+            let mut covered = vec![false; good.len()];
+            let mut done = 0usize;
+            while done < need {
+                // The plane most uncovered samples find plausible (ties: the plane they
+                // find plausible among fewest others, then the nearer).
+                let mut count = vec![(0usize, 0f32); s.nz];
+                for (g, c) in good.iter().zip(&covered) {
+                    if !c {
+                        for &z in g {
+                            count[z].0 += 1;
+                            count[z].1 += 1.0 / g.len() as f32;
+                        }
+                    }
                 }
-                acc += support[z];
-                want[z0 + z] = true;
+                let Some(best) = (0..s.nz).filter(|&z| count[z].0 > 0).max_by(|&a, &b| {
+                    count[a].0.cmp(&count[b].0).then(count[a].1.total_cmp(&count[b].1)).then(b.cmp(&a))
+                }) else {
+                    break;
+                };
+                want[z0 + best] = true;
+                for (g, c) in good.iter().zip(covered.iter_mut()) {
+                    if !*c && g.contains(&best) {
+                        *c = true;
+                        done += 1;
+                    }
+                }
             }
         } else {
             // Nothing here tells depths apart: the plane of least total cost, or every
@@ -391,27 +388,24 @@ impl<'a> Pruner<'a> {
     }
 }
 
-/// Per-element colour variance below which a window counts as textureless.
-const TEXTURE_VAR: f32 = 1e-4;
-
-/// Sums of `[f32; 10]` over the `(2r+1)^2` window around each sample of an `nx x ny`
+/// Sums of `[f32; 2]` over the `(2r+1)^2` window around each sample of an `nx x ny`
 /// grid (clipped at the borders).
-fn box_sum(x: &[[f32; 10]], nx: usize, ny: usize, r: usize) -> Vec<[f32; 10]> {
-    let add = |a: &mut [f32; 10], b: &[f32; 10]| a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
-    let mut rows = vec![[0f32; 10]; x.len()];
+fn box_sum(x: &[[f32; 2]], nx: usize, ny: usize, r: usize) -> Vec<[f32; 2]> {
+    let add = |a: &mut [f32; 2], b: &[f32; 2]| a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
+    let mut rows = vec![[0f32; 2]; x.len()];
     for y in 0..ny {
         for i in 0..nx {
-            let mut m = [0f32; 10];
+            let mut m = [0f32; 2];
             for j in i.saturating_sub(r)..(i + r + 1).min(nx) {
                 add(&mut m, &x[y * nx + j]);
             }
             rows[y * nx + i] = m;
         }
     }
-    let mut out = vec![[0f32; 10]; x.len()];
+    let mut out = vec![[0f32; 2]; x.len()];
     for y in 0..ny {
         for i in 0..nx {
-            let mut m = [0f32; 10];
+            let mut m = [0f32; 2];
             for j in y.saturating_sub(r)..(y + r + 1).min(ny) {
                 add(&mut m, &rows[j * nx + i]);
             }
@@ -419,20 +413,6 @@ fn box_sum(x: &[[f32; 10]], nx: usize, ny: usize, r: usize) -> Vec<[f32; 10]> {
         }
     }
     out
-}
-
-/// Photo-consistency of the colours one point gets from the sources that see it, robust
-/// to occlusion: the smallest squared difference between two of them (per channel), so
-/// that two sources agreeing make a surface likely whatever the others see.
-fn pair_cost(rgb: &[[f32; 3]]) -> f32 {
-    let mut best = f32::INFINITY;
-    for (i, a) in rgb.iter().enumerate() {
-        for b in &rgb[i + 1..] {
-            let d: f32 = (0..3).map(|ch| (a[ch] - b[ch]).powi(2)).sum();
-            best = best.min(d / 3.0);
-        }
-    }
-    best
 }
 
 /// The coarse pass's view of a tile.

@@ -49,42 +49,39 @@ fn small_backend(views: usize) -> CandleBackend {
     CandleBackend { model: t.model, device: Device::Cpu }
 }
 
-/// Whether the surface at pixel `(x, y)` of view `t` can be told from the images: seen
-/// (not occluded, inside the image) by at least two of `sources`, and textured (the
-/// colour varies by at least [`MIN_TEXTURE`] in its 5x5 neighbourhood).
-fn identifiable(s: &SynthScene, t: usize, sources: &[usize], x: usize, y: usize) -> bool {
-    let img = &s.images[t];
-    let (w, h) = (img.width as usize, img.height as usize);
-    let d = s.depths[t][y * w + x] as f64;
-    let p = s.cameras[t].unproject(glam::DVec2::new(x as f64 + 0.5, y as f64 + 0.5), d);
-    let seen = sources
-        .iter()
-        .filter(|&&k| {
-            let (uv, zk) = s.cameras[k].project(p);
-            let (sw, sh) = (s.images[k].width as f64, s.images[k].height as f64);
-            zk > 0.0 && uv.x >= 1.0 && uv.y >= 1.0 && uv.x < sw - 1.0 && uv.y < sh - 1.0 && {
-                let dk = s.depths[k][uv.y as usize * sw as usize + uv.x as usize] as f64;
-                (dk - zk).abs() < 0.02 * zk
-            }
-        })
-        .count();
-    let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-    for yy in y.saturating_sub(2)..(y + 3).min(h) {
-        for xx in x.saturating_sub(2)..(x + 3).min(w) {
-            let c = img.pixel(xx as u32, yy as u32);
-            for ch in 0..3 {
-                lo[ch] = lo[ch].min(c[ch]);
-                hi[ch] = hi[ch].max(c[ch]);
-            }
-        }
-    }
-    seen >= 2 && (0..3).any(|ch| hi[ch] - lo[ch] >= MIN_TEXTURE)
-}
-
-/// Least colour range around a pixel for its surface to count as textured.
+/// The pixels of view `t` whose surface depth the images determine: the classical plane
+/// sweep ([`crate::baseline::plane_sweep`], on the same sources and planes) finds their
+/// true plane within one plane, and they are textured (the colour varies by at least
+/// [`MIN_TEXTURE`] in their 5x5 neighbourhood).
+/// Least colour range around a pixel for it to count as textured.
 const MIN_TEXTURE: f32 = 0.1;
 
-/// For every tile of `target`, the identifiable pixels (see [`identifiable`]) whose true
+fn known_pixels(s: &SynthScene, t: usize, sources: &[usize], inv: &[f64]) -> Vec<bool> {
+    let srcs: Vec<crate::sweep::Source> =
+        sources.iter().map(|&k| crate::sweep::Source { camera: &s.cameras[k], image: &s.images[k] }).collect();
+    let (_, planes) = crate::baseline::plane_sweep(&s.cameras[t], &srcs, inv);
+    let img = &s.images[t];
+    let (w, h) = (img.width as usize, img.height as usize);
+    (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let z = nearest_plane(inv, s.depths[t][i] as f64);
+            let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+            for yy in y.saturating_sub(2)..(y + 3).min(h) {
+                for xx in x.saturating_sub(2)..(x + 3).min(w) {
+                    let c = img.pixel(xx as u32, yy as u32);
+                    for ch in 0..3 {
+                        lo[ch] = lo[ch].min(c[ch]);
+                        hi[ch] = hi[ch].max(c[ch]);
+                    }
+                }
+            }
+            (planes[i] as usize).abs_diff(z) <= 1 && (0..3).any(|ch| hi[ch] - lo[ch] >= MIN_TEXTURE)
+        })
+        .collect()
+}
+
+/// For every tile of `target`, the pixels of known depth (see [`known_pixels`]) whose true
 /// surface plane the plan leaves out; returns (misses, identifiable pixels, plane-pixels
 /// kept, plane-pixels in all).
 fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: &PruneOptions) -> (usize, usize, usize, usize) {
@@ -96,6 +93,7 @@ fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: 
     let cam = &s.cameras[target];
     let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, opts);
     let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+    let known = known_pixels(s, target, &src, &inv);
     let (mut misses, mut checked, mut kept, mut total) = (0, 0, 0, 0);
     for y0 in (0..h).step_by(tile) {
         for x0 in (0..w).step_by(tile) {
@@ -108,16 +106,19 @@ fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: 
                     for x in b.x0..(b.x0 + b.size).min(w) {
                         kept += set.len();
                         total += planes;
-                        if !identifiable(s, target, &src, x, y) {
+                        if !known[y * w + x] {
                             continue;
                         }
                         let z = nearest_plane(&inv, s.depths[target][y * w + x] as f64);
                         checked += 1;
                         if !set.contains(&z) {
                             misses += 1;
-                            if std::env::var("PRUNE_MISS").is_ok() {
+                            if std::env::var("PRUNE_MISS").is_ok() && misses % 200 == 1 {
                                 let gap = set.iter().map(|&q| q.abs_diff(z)).min().unwrap_or(99);
-                                eprintln!("miss gap {gap} plane {z}");
+                                let costs = pruner.debug_costs(x0, y0, tile);
+                                let (_, c) = costs.iter().min_by_key(|(p, _)| p.0.abs_diff(x) + p.1.abs_diff(y)).unwrap();
+                                let line: Vec<String> = c.iter().map(|x| if x.is_nan() { "-".into() } else { format!("{:.0}", x * 100.0) }).collect();
+                                println!("miss at ({x}, {y}) gap {gap} plane {z}, block {}+{} set {set:?}\n   cost {}", b.x0, b.y0, line.join(" "));
                             }
                         }
                     }
@@ -258,7 +259,7 @@ fn prune_skips_uncovered_tiles_with_the_networks_own_output() -> TestResult {
     let mut cam = s.cameras[0];
     cam.intrinsics.width = 192;
     cam.intrinsics.cx += 128.0;
-    let opts = PruneOptions { margin: Some(100), ..PruneOptions::auto() };
+    let opts = PruneOptions { margin: 100, ..PruneOptions::auto() };
     let pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
     let got = render_view_pruned(&backend, &cam, &refs, &inv, 16, Some(&pruner), &|_, _| {})?;
     let stats = got.prune.clone().expect("stats");
@@ -363,7 +364,7 @@ fn prune_calibrate() {
     for tile in [64usize] {
         for &(mass, tol, stride, margin, window) in &grid {
             let contrast = std::env::var("PRUNE_CONTRAST").ok().and_then(|c| c.parse().ok()).unwrap_or(DEFAULT_CONTRAST);
-            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), window, contrast, ..PruneOptions::auto() };
+            let opts = PruneOptions { mass, tolerance: tol, stride, margin, window, contrast, ..PruneOptions::auto() };
             let (mut m, mut n, mut k, mut t) = (0, 0, 0, 0);
             for i in 0..8u64 {
                 let s = scene(4242 + i, Rig::Mixed);
@@ -381,62 +382,6 @@ fn prune_calibrate() {
     }
 }
 
-#[test]
-#[ignore]
-fn prune_debug_costs() {
-    let cfg = Config::tiny();
-    let mut hist = [[0usize; 11]; 2];
-    let mut rel = [[0usize; 11]; 2];
-    for i in 0..8u64 {
-        let s = scene(4242 + i, Rig::Mixed);
-        let t = s.cameras.len() / 2;
-        let src = nearest(&s.cameras, t, cfg.views);
-        let pyr = pyramids(&s, &src, cfg.levels);
-        let refs: Vec<&PyramidSource> = pyr.iter().collect();
-        let inv = inverse_depths(s.near, s.far, 32);
-        let pruner = Pruner::new(&cfg, &s.cameras[t], &refs, &inv, None, &PruneOptions::auto());
-        let (w, h) = (s.images[t].width as usize, s.images[t].height as usize);
-        for y0 in (0..h).step_by(64) {
-            for x0 in (0..w).step_by(64) {
-                for (pos, c) in pruner.debug_costs(x0, y0, 64) {
-                    let d = s.depths[t][pos.1 * w + pos.0] as f64;
-                    let z = nearest_plane(&inv, d);
-                    // Visible in how many sources (depth test against their depth maps)?
-                    let x = s.cameras[t].unproject(glam::DVec2::new(pos.0 as f64 + 0.5, pos.1 as f64 + 0.5), d);
-                    let vis = src
-                        .iter()
-                        .filter(|&&k| {
-                            let (uv, zk) = s.cameras[k].project(x);
-                            let (sw, sh) = (s.images[k].width as f64, s.images[k].height as f64);
-                            uv.x >= 0.0 && uv.y >= 0.0 && uv.x < sw && uv.y < sh && {
-                                let dk = s.depths[k][uv.y as usize * sw as usize + uv.x as usize] as f64;
-                                (dk - zk).abs() < 0.03 * zk
-                            }
-                        })
-                        .count();
-                    let known: Vec<f32> = c.iter().copied().filter(|x| !x.is_nan()).collect();
-                    if known.len() < 2 || c[z].is_nan() {
-                        continue;
-                    }
-                    let lo = known.iter().copied().fold(f32::INFINITY, f32::min);
-                    let hi = known.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-                    if hi - lo < 2e-4 {
-                        continue;
-                    }
-                    // best cost within +-1 plane of the truth
-                    let ct = (z.saturating_sub(1)..=(z + 1).min(31)).filter_map(|q| (!c[q].is_nan()).then_some(c[q])).fold(f32::INFINITY, f32::min);
-                    let rank = known.iter().filter(|&&x| x < ct).count() as f64 / known.len() as f64;
-                    let r = ((ct - lo) / (hi - lo)) as f64;
-                    let g = usize::from(vis >= 2);
-                    hist[g][(rank * 10.0) as usize] += 1;
-                    rel[g][((r * 10.0) as usize).min(10)] += 1;
-                }
-            }
-        }
-    }
-    println!("occluded (<2 sources): rank deciles {:?} relative-cost deciles {:?}", hist[0], rel[0]);
-    println!("visible (>=2 sources): rank deciles {:?} relative-cost deciles {:?}", hist[1], rel[1]);
-}
 
 /// Calibration against a trained network (`PRUNE_MODEL=path.safetensors`): per scene,
 /// the selection mass the plans leave out, the fraction of planes x pixels run, and the
@@ -508,7 +453,7 @@ fn prune_calibrate_network() -> TestResult {
         off_sum += off_psnr;
         for (g, &(mass, tol, stride, margin, window)) in grid.iter().enumerate() {
             let contrast = std::env::var("PRUNE_CONTRAST").ok().and_then(|c| c.parse().ok()).unwrap_or(DEFAULT_CONTRAST);
-            let opts = PruneOptions { mass, tolerance: tol, stride, margin: Some(margin), window, contrast, ..PruneOptions::auto() };
+            let opts = PruneOptions { mass, tolerance: tol, stride, margin, window, contrast, ..PruneOptions::auto() };
             let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, &opts);
             let mut lost = 0.0f64;
             for y0 in (0..h).step_by(tile) {
@@ -546,3 +491,5 @@ fn prune_calibrate_network() -> TestResult {
     }
     Ok(())
 }
+
+

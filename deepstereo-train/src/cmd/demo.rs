@@ -24,10 +24,10 @@ pub struct Args {
     #[arg(long, default_value_t = 0)]
     pub scene_index: usize,
     /// Camera rig of the scene: forward, rosette, ring, handheld, mixed.
-    #[arg(long, default_value = "forward")]
+    #[arg(long, default_value = "mixed")]
     pub rig: Rig,
     /// Image size of the scene, WxH.
-    #[arg(long, default_value = "320x240")]
+    #[arg(long, default_value = "240x180")]
     pub size: String,
 }
 

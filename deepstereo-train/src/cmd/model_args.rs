@@ -2,6 +2,7 @@
 
 use crate::inference::{BackendKind, RenderSettings};
 use anyhow::{bail, Result};
+use deepstereo_core::prune::{PruneMode, PruneOptions, DEFAULT_MARGIN, DEFAULT_MASS, DEFAULT_TOLERANCE};
 use deepstereo_core::render::Backend;
 use std::path::PathBuf;
 
@@ -17,9 +18,27 @@ pub struct ModelArgs {
     #[arg(long)]
     pub views: Option<usize>,
     /// Output tile side in pixels when rendering (bounds memory; rounded up to the model's
-    /// alignment). The result does not depend on it.
+    /// alignment). With --prune off the result does not depend on it.
     #[arg(long, default_value_t = 64)]
     pub tile: usize,
+    /// Leave out what the scene does not need: `auto` runs the network per tile only on
+    /// the planes where a coarse photo-consistency pass finds surfaces (and the depth range
+    /// the scene's sparse points allow), picks the source views that see the target, and
+    /// skips tiles no source covers; `off` runs every plane of every tile from the nearest
+    /// views.
+    #[arg(long, default_value_t = PruneMode::Off)]
+    pub prune: PruneMode,
+    /// --prune auto: fraction of a tile's photo-consistency evidence the kept planes must
+    /// hold (1 keeps every plane any coarse sample finds plausible; lower is faster).
+    #[arg(long, default_value_t = DEFAULT_MASS)]
+    pub prune_mass: f32,
+    /// --prune auto: planes kept on each side of every plane the coarse pass keeps.
+    #[arg(long, default_value_t = DEFAULT_MARGIN)]
+    pub prune_margin: usize,
+    /// --prune auto: a coarse sample finds a plane plausible when its cost is within this
+    /// fraction of its cost range of its best.
+    #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
+    pub prune_tolerance: f32,
     /// Runtime for the network: candle, or ort (onnxruntime on the exported model).
     #[arg(long, value_enum, default_value_t = BackendKind::Candle)]
     pub backend: BackendKind,
@@ -33,7 +52,15 @@ impl ModelArgs {
         if self.planes == Some(0) {
             bail!("--planes must be at least 1");
         }
-        Ok(RenderSettings { planes: self.planes, views: self.views, tile: self.tile })
+        let prune = PruneOptions {
+            mode: self.prune,
+            mass: self.prune_mass,
+            margin: self.prune_margin,
+            tolerance: self.prune_tolerance,
+            ..PruneOptions::default()
+        };
+        prune.validate()?;
+        Ok(RenderSettings { planes: self.planes, views: self.views, tile: self.tile, prune })
     }
 
     pub fn backend(&self) -> Result<Box<dyn Backend>> {

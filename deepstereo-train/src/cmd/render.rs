@@ -2,11 +2,11 @@
 
 use super::model_args::ModelArgs;
 use super::SceneArgs;
-use crate::inference::{render_camera, Prepared};
+use crate::inference::{pick_sources, render_camera, Prepared};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::{Camera, Intrinsics, WorldToCamera};
 use deepstereo_core::render::Rendered;
-use deepstereo_core::scene::{nearest_to_point, Scene};
+use deepstereo_core::scene::Scene;
 use deepstereo_core::scene::npy::write_npy_f32;
 use deepstereo_core::viz::{depth_image, grey_image};
 use glam::{DMat3, DVec3};
@@ -61,7 +61,7 @@ pub fn run(a: Args) -> Result<()> {
             bail!("--frames must be at least 1");
         }
         for (f, cam) in path_cameras(&scene, kind, a.frames)?.iter().enumerate() {
-            let srcs = nearest_to_point(&scene.views, cam.pose.centre(), v, None);
+            let srcs = pick_sources(&scene, cam, None, v, &settings);
             let (r, _) = render_camera(backend.as_ref(), &scene, &mut prepared, cam, &srcs, &settings, &progress)?;
             r.image.save_png(&a.out.join(format!("frame_{f:04}.png")))?;
             eprintln!("frame {}/{}", f + 1, a.frames);
@@ -73,11 +73,12 @@ pub fn run(a: Args) -> Result<()> {
             if t >= scene.views.len() {
                 bail!("--target {t} is out of range: the scene has {} views", scene.views.len());
             }
-            (scene.views[t].camera, scene.nearest_views(t, v))
+            let cam = scene.views[t].camera;
+            (cam, pick_sources(&scene, &cam, Some(t), v, &settings))
         }
         (None, Some(p)) => {
             let cam = read_pose(p)?;
-            (cam, nearest_to_point(&scene.views, cam.pose.centre(), v, None))
+            (cam, pick_sources(&scene, &cam, None, v, &settings))
         }
         _ => bail!("pass one of --target I, --pose FILE or --path KIND"),
     };
@@ -85,6 +86,9 @@ pub fn run(a: Args) -> Result<()> {
     let (r, _) = render_camera(backend.as_ref(), &scene, &mut prepared, &cam, &srcs, &settings, &progress)?;
     bar.finish_and_clear();
     eprintln!("rendered {}x{} in {:.2} s from views {srcs:?}", r.image.width, r.image.height, t0.elapsed().as_secs_f64());
+    if let Some(p) = &r.prune {
+        eprintln!("{}", p.summary());
+    }
     write_outputs(&a.out, &r, scene.near, scene.far)
 }
 

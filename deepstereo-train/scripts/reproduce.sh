@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# Regenerates every result and picture in the README (takes ~15 minutes on 2 cores).
+# Usage: bash deepstereo-train/scripts/reproduce.sh [OUT_DIR]   (needs ../shared/data for the real scenes)
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+OUT="${1:-/tmp/deepstereo-reproduce}"
+FIG=deepstereo-train/assets/readme
+DATA=../shared/data
+mkdir -p "$OUT" "$FIG"
+cargo build --release -p deepstereo-train
+DS=target/release/deepstereo
+
+echo "== procedural scenes (contact sheet, speed)"
+$DS synth --out "$OUT/sheet" --scenes 4 --seed 99 --size 240x180 --sheet "$FIG/synth.png"
+$DS synth --out "$OUT/speed" --scenes 64 --seed 5 --size 160x120
+
+echo "== demo"
+$DS demo --out "$OUT/demo" | tee "$OUT/demo.txt"
+cp "$OUT/demo/comparison.png" "$FIG/demo.png"
+
+echo "== eval on held-out procedural scenes (seeds never used in training)"
+$DS synth --out "$OUT/eval_scenes" --scenes 8 --seed 777 --size 240x180
+$DS eval --scene "$OUT/eval_scenes" --holdout 2,5,8 --json "$OUT/eval_procedural.json"
+
+if [ -d "$DATA" ]; then
+  echo "== eval on the real scenes"
+  $DS eval --scene "$DATA/templeRing" --holdout 5,15,25,35,45 --json "$OUT/eval_temple.json" --images "$OUT/temple"
+  $DS eval --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --json "$OUT/eval_ethiopian.json" --images "$OUT/ethiopian"
+  $DS eval --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24,40,56 --json "$OUT/eval_fox.json" --images "$OUT/fox"
+  $DS report --scene "$DATA/templeRing" --holdout 5,25 --planes-grid 8,16,32,64 --backends candle,ort --out "$OUT/report_temple"
+  cp "$OUT/report_temple/report.png" "$FIG/report_temple.png"
+else
+  echo "note: $DATA not found: real-scene results skipped"
+fi
+
+echo "== error against run time on a procedural scene"
+$DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5,8 --planes-grid 8,16,32,64,96 --backends candle,ort --out "$OUT/report_procedural"
+cp "$OUT/report_procedural/report.png" "$FIG/report_procedural.png"
+echo "results in $OUT, pictures in $FIG"
