@@ -1,7 +1,7 @@
 //! Conv2d speed for every layer shape of `Config::tiny()` (4 tiles) and `Config::paper()`
 //! (8 tiles): forward, and forward + backward (gradients of input, weight and bias), for
-//! the crate's kernels and candle's built-in conv2d; with `/work/main/.venv` present, also
-//! PyTorch and onnxruntime on the same shapes (`python/bench_conv.py`).
+//! the crate's kernels and candle's built-in conv2d; with the workspace's `.venv`
+//! present, also PyTorch and onnxruntime on the same shapes (`python/bench_conv.py`).
 //!
 //! `cargo bench -p deepstereo-core --bench conv`; `CONV_BENCH_REF=0` skips candle's conv2d,
 //! `CONV_BENCH_PY=0` skips Python, `CONV_BENCH_CONFIGS=tiny` picks presets. Times are the

@@ -345,33 +345,24 @@ impl<'a> Pruner<'a> {
         }
         let mut want = vec![false; self.planes];
         if !good.is_empty() {
-            let need = (self.opts.mass as f64 * good.len() as f64).ceil() as usize;
-            let mut covered = vec![false; good.len()];
-            let mut done = 0usize;
-            while done < need {
-                // The plane most uncovered samples find plausible (ties: the plane they
-                // find plausible among fewest others, then the nearer).
-                let mut count = vec![(0usize, 0f32); s.nz];
-                for (g, c) in good.iter().zip(&covered) {
-                    if !c {
-                        for &z in g {
-                            count[z].0 += 1;
-                            count[z].1 += 1.0 / g.len() as f32;
-                        }
-                    }
+            // Each sample spreads a unit of support over its plausible planes; keep the
+            // most supported planes until they hold `mass` of it all.
+            let mut support = vec![0f32; s.nz];
+            for g in &good {
+                for &z in g {
+                    support[z] += 1.0 / g.len() as f32;
                 }
-                let Some(best) = (0..s.nz).filter(|&z| count[z].0 > 0).max_by(|&a, &b| {
-                    count[a].0.cmp(&count[b].0).then(count[a].1.total_cmp(&count[b].1)).then(b.cmp(&a))
-                }) else {
+            }
+            let mut order: Vec<usize> = (0..s.nz).filter(|&z| support[z] > 0.0).collect();
+            order.sort_by(|&a, &b| support[b].total_cmp(&support[a]).then(a.cmp(&b)));
+            let all: f32 = support.iter().sum();
+            let mut acc = 0f32;
+            for z in order {
+                if acc >= self.opts.mass * all {
                     break;
-                };
-                want[z0 + best] = true;
-                for (g, c) in good.iter().zip(covered.iter_mut()) {
-                    if !*c && g.contains(&best) {
-                        *c = true;
-                        done += 1;
-                    }
                 }
+                acc += support[z];
+                want[z0 + z] = true;
             }
         } else {
             // Nothing here tells depths apart: the plane of least total cost, or every
