@@ -85,7 +85,7 @@ pub fn render_view(
 }
 
 /// [`render_view`], with the tiles planned by `pruner` (see [`crate::prune`]): the network
-/// runs only on each tile's band of planes (the selection is 0 outside it), and not at all
+/// runs only on the planes each block of a tile keeps (the selection is 0 elsewhere), and not at all
 /// on tiles no source covers or whose sources are constant there. `None`: every plane of
 /// every tile, exactly [`render_view`].
 pub fn render_view_pruned(

@@ -2,7 +2,7 @@
 
 use crate::inference::{BackendKind, RenderSettings};
 use anyhow::{bail, Result};
-use deepstereo_core::prune::{PruneMode, PruneOptions, DEFAULT_MARGIN, DEFAULT_MASS, DEFAULT_TOLERANCE};
+use deepstereo_core::prune::{PruneMode, PruneOptions, DEFAULT_MARGIN, DEFAULT_MASS, DEFAULT_TOLERANCE, DEFAULT_WINDOW};
 use deepstereo_core::render::Backend;
 use std::path::PathBuf;
 
@@ -39,6 +39,10 @@ pub struct ModelArgs {
     /// fraction of its cost range of its best.
     #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
     pub prune_tolerance: f32,
+    /// --prune auto: radius, in coarse samples (2 pixels apart), of the window the
+    /// photo-consistency cost is averaged over.
+    #[arg(long, default_value_t = DEFAULT_WINDOW)]
+    pub prune_window: usize,
     /// Runtime for the network: candle, or ort (onnxruntime on the exported model).
     #[arg(long, value_enum, default_value_t = BackendKind::Candle)]
     pub backend: BackendKind,
@@ -57,6 +61,7 @@ impl ModelArgs {
             mass: self.prune_mass,
             margin: self.prune_margin,
             tolerance: self.prune_tolerance,
+            window: self.prune_window,
             ..PruneOptions::default()
         };
         prune.validate()?;

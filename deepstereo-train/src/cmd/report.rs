@@ -3,6 +3,7 @@
 use super::model_args::ModelArgs;
 use super::SceneArgs;
 use crate::inference::{evaluate, holdout_list, make_backend, BackendKind, RenderSettings};
+use deepstereo_core::prune::{PruneMode, PruneOptions};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::imageio::write_atomic;
 use deepstereo_core::plot::{pareto_front, plot, Series};
@@ -27,6 +28,10 @@ pub struct Args {
     /// Backends to try, comma-separated (candle, ort).
     #[arg(long, default_value = "candle")]
     pub backends: String,
+    /// Pruning settings to try, comma-separated (off, auto; the thresholds come from the
+    /// --prune-* options).
+    #[arg(long, default_value = "off,auto")]
+    pub prune_grid: String,
     /// Output directory: report.csv, report.md, report.png.
     #[arg(long)]
     pub out: PathBuf,
@@ -35,6 +40,7 @@ pub struct Args {
 struct Row {
     method: String,
     planes: usize,
+    prune: PruneMode,
     psnr: f64,
     ssim: f64,
     seconds: f64,
@@ -58,36 +64,48 @@ pub fn run(a: Args) -> Result<()> {
             o => bail!("--backends: unknown backend '{o}' (candle, ort)"),
         })
         .collect::<Result<_>>()?;
+    let prunes: Vec<PruneMode> = a
+        .prune_grid
+        .split(',')
+        .map(|s| s.trim().parse::<PruneMode>().map_err(|e| anyhow::anyhow!("--prune-grid: {e}")))
+        .collect::<Result<_>>()?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
     let mut rows: Vec<Row> = Vec::new();
     let mut nearest = None;
     for (bi, &kind) in backends.iter().enumerate() {
         let backend = make_backend(kind, a.model.model.as_deref())?;
         for &p in &planes {
-            let settings = RenderSettings { planes: Some(p), ..base.clone() };
-            let r = evaluate(backend.as_ref(), &a.model.name(), &scene, &targets, &settings, |_, _| {})?;
-            eprintln!("{:>6} {:3} planes: PSNR {:.2} SSIM {:.3} {:.2} s/view | plane sweep {:.2} dB {:.2} s", r.backend, p, r.mean.psnr, r.mean.ssim, r.mean.seconds, r.mean.baselines.plane_sweep.psnr, r.mean.baselines.plane_sweep.seconds.unwrap_or(0.0));
-            rows.push(Row { method: format!("deepstereo-{}", r.backend), planes: p, psnr: r.mean.psnr, ssim: r.mean.ssim, seconds: r.mean.seconds });
-            if bi == 0 {
-                let ps = &r.mean.baselines.plane_sweep;
-                rows.push(Row { method: "plane_sweep".into(), planes: p, psnr: ps.psnr, ssim: ps.ssim, seconds: ps.seconds.unwrap_or(0.0) });
-                nearest = Some((r.mean.baselines.nearest.psnr, r.mean.baselines.nearest.ssim));
+            for (pi, &mode) in prunes.iter().enumerate() {
+                let prune = PruneOptions { mode, ..base.prune.clone() };
+                let settings = RenderSettings { planes: Some(p), prune, ..base.clone() };
+                let r = evaluate(backend.as_ref(), &a.model.name(), &scene, &targets, &settings, |_, _| {})?;
+                let method = match mode {
+                    PruneMode::Off => format!("deepstereo-{}", r.backend),
+                    PruneMode::Auto => format!("deepstereo-{}-pruned", r.backend),
+                };
+                eprintln!("{method:>24} {p:3} planes: PSNR {:.2} SSIM {:.3} {:.2} s/view | plane sweep {:.2} dB {:.2} s", r.mean.psnr, r.mean.ssim, r.mean.seconds, r.mean.baselines.plane_sweep.psnr, r.mean.baselines.plane_sweep.seconds.unwrap_or(0.0));
+                rows.push(Row { method, planes: p, prune: mode, psnr: r.mean.psnr, ssim: r.mean.ssim, seconds: r.mean.seconds });
+                if bi == 0 && pi == 0 {
+                    let ps = &r.mean.baselines.plane_sweep;
+                    rows.push(Row { method: "plane_sweep".into(), planes: p, prune: mode, psnr: ps.psnr, ssim: ps.ssim, seconds: ps.seconds.unwrap_or(0.0) });
+                    nearest = Some((r.mean.baselines.nearest.psnr, r.mean.baselines.nearest.ssim));
+                }
             }
         }
     }
     let net: Vec<(f64, f64)> = rows.iter().filter(|r| r.method.starts_with("deepstereo")).map(|r| (r.seconds, r.psnr)).collect();
     let front = pareto_front(&net);
-    let mut csv = String::from("method,planes,psnr,ssim,seconds_per_image\n");
-    let mut md = format!("Scene `{}`, model `{}`, held-out views {targets:?}.\n\n| method | planes | PSNR (dB) | SSIM | s / image |\n|---|---|---|---|---|\n", scene.root.display(), a.model.name());
+    let mut csv = String::from("method,planes,prune,psnr,ssim,seconds_per_image\n");
+    let mut md = format!("Scene `{}`, model `{}`, held-out views {targets:?}.\n\n| method | planes | prune | PSNR (dB) | SSIM | s / image |\n|---|---|---|---|---|---|\n", scene.root.display(), a.model.name());
     for r in &rows {
-        writeln!(csv, "{},{},{:.4},{:.4},{:.4}", r.method, r.planes, r.psnr, r.ssim, r.seconds)?;
-        writeln!(md, "| {} | {} | {:.2} | {:.3} | {:.3} |", r.method, r.planes, r.psnr, r.ssim, r.seconds)?;
+        writeln!(csv, "{},{},{},{:.4},{:.4},{:.4}", r.method, r.planes, r.prune, r.psnr, r.ssim, r.seconds)?;
+        writeln!(md, "| {} | {} | {} | {:.2} | {:.3} | {:.3} |", r.method, r.planes, r.prune, r.psnr, r.ssim, r.seconds)?;
     }
     if let Some((p, s)) = nearest {
-        writeln!(csv, "nearest,0,{p:.4},{s:.4},0")?;
-        writeln!(md, "| nearest source | - | {p:.2} | {s:.3} | - |")?;
+        writeln!(csv, "nearest,0,off,{p:.4},{s:.4},0")?;
+        writeln!(md, "| nearest source | - | - | {p:.2} | {s:.3} | - |")?;
     }
-    let colours = [[0.85, 0.2, 0.1], [0.1, 0.4, 0.85], [0.5, 0.2, 0.7]];
+    let colours = [[0.85, 0.2, 0.1], [0.1, 0.6, 0.2], [0.1, 0.4, 0.85], [0.5, 0.2, 0.7], [0.9, 0.6, 0.0]];
     let mut series: Vec<Series> = Vec::new();
     let methods: Vec<String> = rows.iter().map(|r| r.method.clone()).fold(Vec::new(), |mut v, m| {
         if !v.contains(&m) {
