@@ -12,9 +12,14 @@ fn main() {
             cfg.input_size(0, cfg.tile), cfg.input_size(0, cfg.tile), cfg.receptive_field(),
             cfg.parameters(), cfg.macs_per_pixel() / 1e6
         );
-        println!("| layer | kernel | in | out | params | MACs / output px |\n|---|---|---|---|---|---|");
+        println!(
+            "| layer | kernel | in | out | params | MACs / output px |\n|---|---|---|---|---|---|"
+        );
         for l in cfg.layers() {
-            println!("| `{}` | {} | {} | {} | {} | {:.0} |", l.name, l.kernel, l.in_channels, l.out_channels, l.params, l.macs_per_pixel);
+            println!(
+                "| `{}` | {} | {} | {} | {} | {:.0} |",
+                l.name, l.kernel, l.in_channels, l.out_channels, l.params, l.macs_per_pixel
+            );
         }
     }
 }

@@ -21,8 +21,15 @@ const BAND_ROWS: usize = 32;
 
 /// Classical plane-sweep stereo rendering of `target` from `sources` at `inv_depths`.
 /// Returns the image and the winning plane index per pixel.
-pub fn plane_sweep(target: &Camera, sources: &[Source<'_>], inv_depths: &[f64]) -> (RgbImage, Vec<u16>) {
-    let (w, h) = (target.intrinsics.width as usize, target.intrinsics.height as usize);
+pub fn plane_sweep(
+    target: &Camera,
+    sources: &[Source<'_>],
+    inv_depths: &[f64],
+) -> (RgbImage, Vec<u16>) {
+    let (w, h) = (
+        target.intrinsics.width as usize,
+        target.intrinsics.height as usize,
+    );
     let (d, v) = (inv_depths.len(), sources.len());
     let r = WINDOW_RADIUS;
     let mut img = RgbImage::new(w as u32, h as u32);
@@ -31,7 +38,12 @@ pub fn plane_sweep(target: &Camera, sources: &[Source<'_>], inv_depths: &[f64]) 
     while y0 < h {
         let rows = BAND_ROWS.min(h - y0);
         // Sweep the band plus the window margin.
-        let region = Region { x0: -(r as i64), y0: y0 as i64 - r as i64, width: w + 2 * r, height: rows + 2 * r };
+        let region = Region {
+            x0: -(r as i64),
+            y0: y0 as i64 - r as i64,
+            width: w + 2 * r,
+            height: rows + 2 * r,
+        };
         let n = region.len();
         let mut psv = vec![0f32; d * v * CHANNELS * n];
         sweep_into(target, region, sources, inv_depths, &mut psv);
@@ -77,13 +89,16 @@ pub fn plane_sweep(target: &Camera, sources: &[Source<'_>], inv_depths: &[f64]) 
                         agg[y * w + x] = acc;
                     }
                 }
-                let centre: Vec<[f32; 3]> =
-                    (0..rows * w).map(|i| mean[(i / w + r) * rw + i % w + r]).collect();
+                let centre: Vec<[f32; 3]> = (0..rows * w)
+                    .map(|i| mean[(i / w + r) * rw + i % w + r])
+                    .collect();
                 (agg, centre)
             })
             .collect();
         for i in 0..rows * w {
-            let best = (0..d).min_by(|&a, &b| per_plane[a].0[i].total_cmp(&per_plane[b].0[i])).unwrap_or(0);
+            let best = (0..d)
+                .min_by(|&a, &b| per_plane[a].0[i].total_cmp(&per_plane[b].0[i]))
+                .unwrap_or(0);
             let pix = (y0 + i / w) * w + i % w;
             planes[pix] = best as u16;
             img.data[pix * 3..pix * 3 + 3].copy_from_slice(&per_plane[best].1[i]);

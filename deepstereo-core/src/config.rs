@@ -54,7 +54,9 @@ impl TowerConfig {
     pub fn out_channels(&self, in_channels: usize) -> usize {
         self.merge_convs
             .last()
-            .map_or(self.level_channels(in_channels) * self.levels, |c| c.channels)
+            .map_or(self.level_channels(in_channels) * self.levels, |c| {
+                c.channels
+            })
     }
     /// Level-`l` border (in level-`l` pixels) read on each side of the tile's footprint.
     pub fn pad(&self, l: usize) -> usize {
@@ -215,8 +217,16 @@ impl Config {
                 self.views, self.planes, self.tile
             ));
         }
-        let lists = [&self.select.level_convs, &self.select.merge_convs, &self.depth_convs];
-        if lists.iter().chain([&self.colour.level_convs, &self.colour.merge_convs].iter()).any(|l| l.len() > MAX_CONVS) {
+        let lists = [
+            &self.select.level_convs,
+            &self.select.merge_convs,
+            &self.depth_convs,
+        ];
+        if lists
+            .iter()
+            .chain([&self.colour.level_convs, &self.colour.merge_convs].iter())
+            .any(|l| l.len() > MAX_CONVS)
+        {
             return Err(format!("at most {MAX_CONVS} convolutions per list"));
         }
         if self.levels == 0 || self.levels > 6 {
@@ -224,12 +234,21 @@ impl Config {
         }
         for (name, t) in [("select", &self.select), ("colour", &self.colour)] {
             if t.levels == 0 || t.levels > self.levels {
-                return Err(format!("{name}.levels must be 1..={}, got {}", self.levels, t.levels));
+                return Err(format!(
+                    "{name}.levels must be 1..={}, got {}",
+                    self.levels, t.levels
+                ));
             }
             let convs = t.level_convs.iter().chain(&t.merge_convs);
-            for conv in convs.chain(if name == "select" { self.depth_convs.iter() } else { [].iter() }) {
+            for conv in convs.chain(if name == "select" {
+                self.depth_convs.iter()
+            } else {
+                [].iter()
+            }) {
                 if conv.kernel % 2 == 0 || conv.channels == 0 {
-                    return Err(format!("{name}: kernels must be odd and channels positive, got {conv:?}"));
+                    return Err(format!(
+                        "{name}: kernels must be odd and channels positive, got {conv:?}"
+                    ));
                 }
                 if conv.kernel > MAX_KERNEL || conv.channels > MAX_CHANNELS {
                     return Err(format!(
@@ -242,7 +261,11 @@ impl Config {
             return Err("the last depth conv must have 1 channel".into());
         }
         if self.tile == 0 || !self.tile.is_multiple_of(self.tile_align()) {
-            return Err(format!("tile {} must be a positive multiple of {}", self.tile, self.tile_align()));
+            return Err(format!(
+                "tile {} must be a positive multiple of {}",
+                self.tile,
+                self.tile_align()
+            ));
         }
         Ok(())
     }
@@ -271,8 +294,15 @@ impl Config {
                 let mut ch = cin;
                 for (i, conv) in tower.level_convs.iter().enumerate() {
                     size -= conv.kernel - 1;
-                    let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
-                    out.push(LayerInfo::new(format!("{name}.levels.{l}.{i}"), *conv, ch, size, macs * d / area));
+                    let macs =
+                        (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
+                    out.push(LayerInfo::new(
+                        format!("{name}.levels.{l}.{i}"),
+                        *conv,
+                        ch,
+                        size,
+                        macs * d / area,
+                    ));
                     ch = conv.channels;
                 }
             }
@@ -281,7 +311,13 @@ impl Config {
             for (i, conv) in tower.merge_convs.iter().enumerate() {
                 size -= conv.kernel - 1;
                 let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
-                out.push(LayerInfo::new(format!("{name}.merge.{i}"), *conv, ch, size, macs * d / area));
+                out.push(LayerInfo::new(
+                    format!("{name}.merge.{i}"),
+                    *conv,
+                    ch,
+                    size,
+                    macs * d / area,
+                ));
                 ch = conv.channels;
             }
             if name == "select" {
@@ -294,8 +330,17 @@ impl Config {
                 }
             } else {
                 let cin_out = ch + if self.colour_skip { cin } else { 0 };
-                let conv = Conv { kernel: 1, channels: 3 };
-                out.push(LayerInfo::new("colour.out".into(), conv, cin_out, t, (cin_out * 3) as f64 * d));
+                let conv = Conv {
+                    kernel: 1,
+                    channels: 3,
+                };
+                out.push(LayerInfo::new(
+                    "colour.out".into(),
+                    conv,
+                    cin_out,
+                    t,
+                    (cin_out * 3) as f64 * d,
+                ));
             }
         }
         out

@@ -41,7 +41,10 @@ impl RgbImage {
             .into_dimensions()
             .map_err(|e| Error::image(path, format!("cannot decode header: {e}")))?;
         if w == 0 || h == 0 || w > MAX_IMAGE_SIDE || h > MAX_IMAGE_SIDE {
-            return Err(Error::image(path, format!("unsupported image size {w}x{h}")));
+            return Err(Error::image(
+                path,
+                format!("unsupported image size {w}x{h}"),
+            ));
         }
         let img = image::ImageReader::new(std::io::Cursor::new(&bytes))
             .with_guessed_format()
@@ -117,7 +120,11 @@ impl RgbImage {
         self.data
             .iter()
             .map(|&v| {
-                let v = if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
+                let v = if v.is_finite() {
+                    v.clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
                 (v * 255.0 + 0.5) as u8
             })
             .collect()

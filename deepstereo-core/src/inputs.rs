@@ -53,7 +53,13 @@ pub struct TileInputs {
 /// Checks a tile placement against the config's alignment.
 pub fn check_tile(cfg: &Config, x0: i64, y0: i64, th: usize, tw: usize) -> Result<()> {
     let a = cfg.tile_align();
-    if x0.rem_euclid(a as i64) != 0 || y0.rem_euclid(a as i64) != 0 || !th.is_multiple_of(a) || !tw.is_multiple_of(a) || th == 0 || tw == 0 {
+    if x0.rem_euclid(a as i64) != 0
+        || y0.rem_euclid(a as i64) != 0
+        || !th.is_multiple_of(a)
+        || !tw.is_multiple_of(a)
+        || th == 0
+        || tw == 0
+    {
         return Err(Error::Invalid(format!(
             "tile origin ({x0}, {y0}) and size {th}x{tw} must be positive multiples of {a}"
         )));
@@ -82,7 +88,10 @@ pub fn tile_inputs(
     let mut sizes = Vec::with_capacity(cfg.levels);
     for l in 0..cfg.levels {
         if sources.iter().any(|s| s.images.len() <= l) {
-            return Err(Error::Invalid(format!("source pyramids have fewer than {} levels", l + 1)));
+            return Err(Error::Invalid(format!(
+                "source pyramids have fewer than {} levels",
+                l + 1
+            )));
         }
         let region = Region {
             x0: cfg.input_origin(l, x0),
@@ -90,7 +99,12 @@ pub fn tile_inputs(
             width: cfg.input_size(l, tw),
             height: cfg.input_size(l, th),
         };
-        let tcam = level_camera(target, l, target.intrinsics.width >> l, target.intrinsics.height >> l);
+        let tcam = level_camera(
+            target,
+            l,
+            target.intrinsics.width >> l,
+            target.intrinsics.height >> l,
+        );
         let srcs: Vec<Source> = sources
             .iter()
             .map(|s| Source {

@@ -16,7 +16,12 @@ const SSIM_C2: f64 = 0.03 * 0.03;
 /// Mean squared error over all pixels and channels (sizes must match).
 pub fn mse(a: &RgbImage, b: &RgbImage) -> f64 {
     let n = a.data.len().min(b.data.len()).max(1);
-    a.data.iter().zip(&b.data).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>() / n as f64
+    a.data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| ((x - y) as f64).powi(2))
+        .sum::<f64>()
+        / n as f64
 }
 
 /// Peak signal-to-noise ratio in dB for colours in [0, 1].
@@ -31,7 +36,9 @@ pub fn ssim(a: &RgbImage, b: &RgbImage) -> f64 {
     if w <= 2 * r || h <= 2 * r || b.width as usize != w || b.height as usize != h {
         return f64::NAN;
     }
-    let k: Vec<f64> = (0..=2 * r).map(|i| (-((i as f64 - r as f64).powi(2)) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp()).collect();
+    let k: Vec<f64> = (0..=2 * r)
+        .map(|i| (-((i as f64 - r as f64).powi(2)) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp())
+        .collect();
     let ks: f64 = k.iter().sum();
     let k: Vec<f64> = k.iter().map(|v| v / ks).collect();
     // Separable blur, valid region only.
@@ -53,15 +60,31 @@ pub fn ssim(a: &RgbImage, b: &RgbImage) -> f64 {
     };
     let mut total = 0.0;
     for c in 0..3 {
-        let x: Vec<f64> = a.data.iter().skip(c).step_by(3).map(|&v| v as f64).collect();
-        let y: Vec<f64> = b.data.iter().skip(c).step_by(3).map(|&v| v as f64).collect();
+        let x: Vec<f64> = a
+            .data
+            .iter()
+            .skip(c)
+            .step_by(3)
+            .map(|&v| v as f64)
+            .collect();
+        let y: Vec<f64> = b
+            .data
+            .iter()
+            .skip(c)
+            .step_by(3)
+            .map(|&v| v as f64)
+            .collect();
         let xx: Vec<f64> = x.iter().map(|v| v * v).collect();
         let yy: Vec<f64> = y.iter().map(|v| v * v).collect();
         let xy: Vec<f64> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
         let (mx, my, sxx, syy, sxy) = (blur(&x), blur(&y), blur(&xx), blur(&yy), blur(&xy));
         let mut s = 0.0;
         for i in 0..mx.len() {
-            let (vx, vy, cxy) = (sxx[i] - mx[i] * mx[i], syy[i] - my[i] * my[i], sxy[i] - mx[i] * my[i]);
+            let (vx, vy, cxy) = (
+                sxx[i] - mx[i] * mx[i],
+                syy[i] - my[i] * my[i],
+                sxy[i] - mx[i] * my[i],
+            );
             s += ((2.0 * mx[i] * my[i] + SSIM_C1) * (2.0 * cxy + SSIM_C2))
                 / ((mx[i] * mx[i] + my[i] * my[i] + SSIM_C1) * (vx + vy + SSIM_C2));
         }

@@ -31,7 +31,12 @@ impl Tower {
             let mut ch = in_channels;
             let mut convs = Vec::new();
             for (i, c) in cfg.level_convs.iter().enumerate() {
-                convs.push(Conv2d::new(ch, c.channels, (c.kernel, c.kernel), vbl.pp(i))?);
+                convs.push(Conv2d::new(
+                    ch,
+                    c.channels,
+                    (c.kernel, c.kernel),
+                    vbl.pp(i),
+                )?);
                 ch = c.channels;
             }
             levels.push(convs);
@@ -39,7 +44,12 @@ impl Tower {
         let mut ch = cfg.level_channels(in_channels) * cfg.levels;
         let mut merge = Vec::new();
         for (i, c) in cfg.merge_convs.iter().enumerate() {
-            merge.push(Conv2d::new(ch, c.channels, (c.kernel, c.kernel), vb.pp("merge").pp(i))?);
+            merge.push(Conv2d::new(
+                ch,
+                c.channels,
+                (c.kernel, c.kernel),
+                vb.pp("merge").pp(i),
+            )?);
             ch = c.channels;
         }
         Ok(Self {
@@ -117,7 +127,12 @@ impl DeepStereo {
         let mut ch = cfg.select.out_channels(cin);
         let mut depth = Vec::new();
         for (i, c) in cfg.depth_convs.iter().enumerate() {
-            depth.push(Conv2d::new(ch, c.channels, (c.kernel, 1), vb.pp("select").pp("depth").pp(i))?);
+            depth.push(Conv2d::new(
+                ch,
+                c.channels,
+                (c.kernel, 1),
+                vb.pp("select").pp("depth").pp(i),
+            )?);
             ch = c.channels;
         }
         let log_scale = vb.pp("select").get_with_hints(
@@ -151,7 +166,11 @@ impl DeepStereo {
         }
         let (b, d, cin, h0, w0) = inputs[0].dims5()?;
         if cin != cfg.in_channels() {
-            candle_core::bail!("expected {} input channels (4 x {} views), got {cin}", cfg.in_channels(), cfg.views);
+            candle_core::bail!(
+                "expected {} input channels (4 x {} views), got {cin}",
+                cfg.in_channels(),
+                cfg.views
+            );
         }
         let (th, tw) = (h0 - 2 * cfg.pad(0), w0 - 2 * cfg.pad(0));
         let folded = |t: &TowerConfig| -> Result<Vec<Tensor>> {
@@ -177,18 +196,23 @@ impl DeepStereo {
         for (i, conv) in self.depth.iter().enumerate() {
             let p = cfg.depth_convs[i].kernel / 2;
             let xp = x.pad_with_zeros(2, p, p)?; // [B, C, D + 2p, th*tw]
-            x = if i < last { conv.forward_relu(&xp)? } else { conv.forward(&xp)? }; // [B, C', D, th*tw]
+            x = if i < last {
+                conv.forward_relu(&xp)?
+            } else {
+                conv.forward(&xp)?
+            }; // [B, C', D, th*tw]
         }
         let logits = x.tanh()?.broadcast_mul(&self.log_scale.exp()?)?; // [B, 1, D, th*tw]
         let selection = candle_nn::ops::softmax(&logits, 2)?.reshape((b, d, th, tw))?; // [B, D, th, tw]
-        // Colour tower.
+                                                                                       // Colour tower.
         let mut f = self.colour.forward(&folded(&cfg.colour)?, th, tw)?; // [B*D, C, th, tw]
         if cfg.colour_skip {
             let p = cfg.pad(0);
-            let centre = inputs[0]
-                .narrow(3, p, th)?
-                .narrow(4, p, tw)?
-                .reshape((b * d, cin, th, tw))?; // [B*D, 4V, th, tw]
+            let centre =
+                inputs[0]
+                    .narrow(3, p, th)?
+                    .narrow(4, p, tw)?
+                    .reshape((b * d, cin, th, tw))?; // [B*D, 4V, th, tw]
             f = Tensor::cat(&[f, centre], 1)?;
         }
         let colours = self.colour_out.forward(&f)?.reshape((b, d, 3, th, tw))?; // [B, D, 3, th, tw]

@@ -98,7 +98,12 @@ fn line(img: &mut RgbImage, (x0, y0): (i32, i32), (x1, y1): (i32, i32), c: [f32;
     let n = (x1 - x0).abs().max((y1 - y0).abs()).max(1);
     for i in 0..=n {
         let t = i as f64 / n as f64;
-        put(img, x0 + ((x1 - x0) as f64 * t).round() as i32, y0 + ((y1 - y0) as f64 * t).round() as i32, c);
+        put(
+            img,
+            x0 + ((x1 - x0) as f64 * t).round() as i32,
+            y0 + ((y1 - y0) as f64 * t).round() as i32,
+            c,
+        );
     }
 }
 
@@ -117,7 +122,10 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
     let mut img = RgbImage::new(W as u32, H as u32);
     img.data.iter_mut().for_each(|v| *v = 1.0);
     let tx = |x: f64| if log_x { x.max(1e-12).log10() } else { x };
-    let pts = series.iter().flat_map(|s| s.points.iter()).filter(|p| p.0.is_finite() && p.1.is_finite());
+    let pts = series
+        .iter()
+        .flat_map(|s| s.points.iter())
+        .filter(|p| p.0.is_finite() && p.1.is_finite());
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
     for &(x, y) in pts {
         (x0, x1, y0, y1) = (x0.min(tx(x)), x1.max(tx(x)), y0.min(y), y1.max(y));
@@ -139,17 +147,34 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
         line(&mut img, (gx, TOP), (gx, H - BOTTOM), grey);
         line(&mut img, (LEFT, gy), (W - RIGHT, gy), grey);
         let lx = label(xv);
-        text(&mut img, gx - 3 * lx.len() as i32, H - BOTTOM + 6, &lx, black);
+        text(
+            &mut img,
+            gx - 3 * lx.len() as i32,
+            H - BOTTOM + 6,
+            &lx,
+            black,
+        );
         let ly = label(fy);
         text(&mut img, LEFT - 6 - 6 * ly.len() as i32, gy - 3, &ly, black);
     }
     line(&mut img, (LEFT, H - BOTTOM), (W - RIGHT, H - BOTTOM), black);
     line(&mut img, (LEFT, TOP), (LEFT, H - BOTTOM), black);
     text(&mut img, LEFT, 10, title, black);
-    text(&mut img, (W - 6 * x_title.len() as i32) / 2, H - 18, x_title, black);
+    text(
+        &mut img,
+        (W - 6 * x_title.len() as i32) / 2,
+        H - 18,
+        x_title,
+        black,
+    );
     text(&mut img, 4, TOP - 14, y_title, black);
     for (k, s) in series.iter().enumerate() {
-        let p: Vec<(i32, i32)> = s.points.iter().filter(|p| p.0.is_finite() && p.1.is_finite()).map(|&(x, y)| (sx(x), sy(y))).collect();
+        let p: Vec<(i32, i32)> = s
+            .points
+            .iter()
+            .filter(|p| p.0.is_finite() && p.1.is_finite())
+            .map(|&(x, y)| (sx(x), sy(y)))
+            .collect();
         if s.line {
             for w in p.windows(2) {
                 line(&mut img, w[0], w[1], s.colour);
@@ -175,8 +200,15 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
 
 /// Indices of the points on the Pareto front (lower x and higher y are better).
 pub fn pareto_front(points: &[(f64, f64)]) -> Vec<usize> {
-    let mut idx: Vec<usize> = (0..points.len()).filter(|&i| points[i].0.is_finite() && points[i].1.is_finite()).collect();
-    idx.sort_by(|&a, &b| points[a].0.total_cmp(&points[b].0).then(points[b].1.total_cmp(&points[a].1)));
+    let mut idx: Vec<usize> = (0..points.len())
+        .filter(|&i| points[i].0.is_finite() && points[i].1.is_finite())
+        .collect();
+    idx.sort_by(|&a, &b| {
+        points[a]
+            .0
+            .total_cmp(&points[b].0)
+            .then(points[b].1.total_cmp(&points[a].1))
+    });
     let mut front = Vec::new();
     let mut best = f64::MIN;
     for i in idx {
@@ -194,13 +226,25 @@ mod tests {
 
     #[test]
     fn pareto_front_keeps_only_undominated_points() {
-        let p = [(1.0, 20.0), (2.0, 25.0), (3.0, 24.0), (4.0, 30.0), (0.5, 10.0)];
+        let p = [
+            (1.0, 20.0),
+            (2.0, 25.0),
+            (3.0, 24.0),
+            (4.0, 30.0),
+            (0.5, 10.0),
+        ];
         assert_eq!(pareto_front(&p), vec![4, 0, 1, 3]);
     }
 
     #[test]
     fn plot_draws_something() {
-        let s = Series { label: "a".into(), colour: [1.0, 0.0, 0.0], points: vec![(1.0, 1.0), (2.0, 3.0)], line: true, marker: 2 };
+        let s = Series {
+            label: "a".into(),
+            colour: [1.0, 0.0, 0.0],
+            points: vec![(1.0, 1.0), (2.0, 3.0)],
+            line: true,
+            marker: 2,
+        };
         let img = plot("t", "x", "y", &[s], false);
         assert!(img.data.chunks(3).any(|c| c == [1.0, 0.0, 0.0]));
     }

@@ -48,7 +48,13 @@ impl Backend for CandleBackend {
 }
 
 /// Wraps per-level data `[B * D * C * h * w]` as tensors `[B, D, C, h, w]`.
-pub fn inputs_to_tensors(inputs: &TileInputs, b: usize, d: usize, c: usize, device: &Device) -> Result<Vec<Tensor>> {
+pub fn inputs_to_tensors(
+    inputs: &TileInputs,
+    b: usize,
+    d: usize,
+    c: usize,
+    device: &Device,
+) -> Result<Vec<Tensor>> {
     inputs
         .levels
         .iter()
@@ -100,7 +106,10 @@ pub fn render_view_pruned(
     let cfg = backend.config();
     let a = cfg.tile_align();
     let tile = tile.max(1).div_ceil(a) * a;
-    let (w, h) = (target.intrinsics.width as usize, target.intrinsics.height as usize);
+    let (w, h) = (
+        target.intrinsics.width as usize,
+        target.intrinsics.height as usize,
+    );
     let d = inv_depths.len();
     if d == 0 {
         return Err(Error::Invalid("at least one depth plane is needed".into()));
@@ -115,7 +124,11 @@ pub fn render_view_pruned(
     let (ntx, nty) = (w.div_ceil(tile), h.div_ceil(tile));
     let total = ntx * nty;
     let v = cfg.views;
-    let mut stats = PruneStats { tiles: total, planes_total: total * tile * tile * d, ..PruneStats::default() };
+    let mut stats = PruneStats {
+        tiles: total,
+        planes_total: total * tile * tile * d,
+        ..PruneStats::default()
+    };
     let mut empty: Option<(Vec<f32>, Vec<f32>)> = None;
     for ty in 0..nty {
         for tx in 0..ntx {
@@ -123,10 +136,21 @@ pub fn render_view_pruned(
             let t0 = Instant::now();
             let blocks = match pruner {
                 Some(p) => p.plan(x0, y0, tile),
-                None => vec![Block { x0, y0, size: tile, plan: TilePlan::Planes((0..d).collect()) }],
+                None => vec![Block {
+                    x0,
+                    y0,
+                    size: tile,
+                    plan: TilePlan::Planes((0..d).collect()),
+                }],
             };
             stats.coarse_seconds += t0.elapsed().as_secs_f64();
-            for Block { x0, y0, size: tile, plan } in blocks {
+            for Block {
+                x0,
+                y0,
+                size: tile,
+                plan,
+            } in blocks
+            {
                 let rows = y0..(y0 + tile).min(h);
                 let cols = x0..(x0 + tile).min(w);
                 match plan {
@@ -135,12 +159,16 @@ pub fn render_view_pruned(
                         if empty.is_none() {
                             empty = Some(empty_response(backend, d)?);
                         }
-                        let (img, sel) = empty.as_ref().map(|(i, s)| (i.as_slice(), s.as_slice())).unwrap_or_default();
+                        let (img, sel) = empty
+                            .as_ref()
+                            .map(|(i, s)| (i.as_slice(), s.as_slice()))
+                            .unwrap_or_default();
                         for y in rows.clone() {
                             for x in cols.clone() {
                                 let pix = y * w + x;
                                 out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(img);
-                                let (rho, best) = expectation(inv_depths, 0..d, sel.iter().copied());
+                                let (rho, best) =
+                                    expectation(inv_depths, 0..d, sel.iter().copied());
                                 write_depth(&mut out, pix, rho, best, 0.0);
                             }
                         }
@@ -153,7 +181,8 @@ pub fn render_view_pruned(
                             for x in cols.clone() {
                                 let pix = y * w + x;
                                 out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(&colour);
-                                let (rho, best) = expectation(inv_depths, z0..z1 + 1, (z0..=z1).map(|_| p));
+                                let (rho, best) =
+                                    expectation(inv_depths, z0..z1 + 1, (z0..=z1).map(|_| p));
                                 write_depth(&mut out, pix, rho, best, coverage);
                             }
                         }
@@ -162,7 +191,14 @@ pub fn render_view_pruned(
                         let band: Vec<f64> = planes.iter().map(|&z| inv_depths[z]).collect();
                         let nb = band.len();
                         stats.planes_run += nb * tile * tile;
-                        let inputs = tile_inputs(cfg, target, sources, &band, (x0 as i64, y0 as i64), (tile, tile))?;
+                        let inputs = tile_inputs(
+                            cfg,
+                            target,
+                            sources,
+                            &band,
+                            (x0 as i64, y0 as i64),
+                            (tile, tile),
+                        )?;
                         let (img, sel) = backend.run(&inputs, nb)?;
                         if img.iter().chain(&sel).any(|x| !x.is_finite()) {
                             return Err(Error::Invalid(format!(
@@ -208,7 +244,11 @@ pub fn render_view_pruned(
 }
 
 /// Expected inverse depth and largest probability of a selection over `planes`.
-fn expectation(inv_depths: &[f64], planes: std::ops::Range<usize>, sel: impl Iterator<Item = f32>) -> (f64, f32) {
+fn expectation(
+    inv_depths: &[f64],
+    planes: std::ops::Range<usize>,
+    sel: impl Iterator<Item = f32>,
+) -> (f64, f32) {
     let (mut rho, mut best) = (0.0f64, 0.0f32);
     for (s, r) in sel.zip(&inv_depths[planes]) {
         rho += s as f64 * r;
@@ -218,7 +258,11 @@ fn expectation(inv_depths: &[f64], planes: std::ops::Range<usize>, sel: impl Ite
 }
 
 fn write_depth(out: &mut Rendered, pix: usize, rho: f64, best: f32, coverage: f32) {
-    out.depth[pix] = if rho > 0.0 { (1.0 / rho) as f32 } else { f32::INFINITY };
+    out.depth[pix] = if rho > 0.0 {
+        (1.0 / rho) as f32
+    } else {
+        f32::INFINITY
+    };
     out.confidence[pix] = best;
     out.coverage[pix] = coverage;
 }
@@ -230,9 +274,17 @@ pub fn empty_response(backend: &dyn Backend, planes: usize) -> Result<(Vec<f32>,
     let cfg = backend.config();
     let a = cfg.tile_align();
     let c = cfg.in_channels();
-    let sizes: Vec<(usize, usize)> = (0..cfg.levels).map(|l| (cfg.input_size(l, a), cfg.input_size(l, a))).collect();
-    let levels = sizes.iter().map(|(h, w)| vec![0.0f32; planes * c * h * w]).collect();
+    let sizes: Vec<(usize, usize)> = (0..cfg.levels)
+        .map(|l| (cfg.input_size(l, a), cfg.input_size(l, a)))
+        .collect();
+    let levels = sizes
+        .iter()
+        .map(|(h, w)| vec![0.0f32; planes * c * h * w])
+        .collect();
     let (img, sel) = backend.run(&TileInputs { levels, sizes }, planes)?;
     let n = a * a;
-    Ok(((0..3).map(|ch| img[ch * n].clamp(0.0, 1.0)).collect(), (0..planes).map(|z| sel[z * n]).collect()))
+    Ok((
+        (0..3).map(|ch| img[ch * n].clamp(0.0, 1.0)).collect(),
+        (0..planes).map(|z| sel[z * n]).collect(),
+    ))
 }

@@ -34,7 +34,11 @@ impl NamedArray {
 }
 
 /// Serializes `arrays` with `metadata` and writes them to `path` atomically.
-pub fn write_safetensors(path: &Path, arrays: &[NamedArray], metadata: Option<HashMap<String, String>>) -> Result<()> {
+pub fn write_safetensors(
+    path: &Path,
+    arrays: &[NamedArray],
+    metadata: Option<HashMap<String, String>>,
+) -> Result<()> {
     let views: Vec<(String, TensorView<'_>)> = arrays
         .iter()
         .map(|a| {

@@ -21,7 +21,11 @@ pub fn colour_map(t: f32) -> [f32; 3] {
     let i = (x.floor() as usize).min(COLOURS.len() - 2);
     let f = x - i as f32;
     let (a, b) = (COLOURS[i], COLOURS[i + 1]);
-    [a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2])]
+    [
+        a[0] + f * (b[0] - a[0]),
+        a[1] + f * (b[1] - a[1]),
+        a[2] + f * (b[2] - a[2]),
+    ]
 }
 
 /// Depth map `[H, W]` as a picture: inverse depth between `1/far` (dark) and `1/near`
@@ -30,7 +34,11 @@ pub fn depth_image(depth: &[f32], width: u32, height: u32, near: f64, far: f64) 
     let (lo, hi) = (1.0 / far, 1.0 / near);
     let mut img = RgbImage::new(width, height);
     for (p, &z) in depth.iter().enumerate().take((width * height) as usize) {
-        let t = if z > 0.0 { ((1.0 / z as f64 - lo) / (hi - lo)) as f32 } else { f32::NAN };
+        let t = if z > 0.0 {
+            ((1.0 / z as f64 - lo) / (hi - lo)) as f32
+        } else {
+            f32::NAN
+        };
         img.data[p * 3..p * 3 + 3].copy_from_slice(&colour_map(t));
     }
     img
@@ -40,7 +48,11 @@ pub fn depth_image(depth: &[f32], width: u32, height: u32, near: f64, far: f64) 
 pub fn grey_image(values: &[f32], width: u32, height: u32) -> RgbImage {
     let mut img = RgbImage::new(width, height);
     for (p, &v) in values.iter().enumerate().take((width * height) as usize) {
-        let g = if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
+        let g = if v.is_finite() {
+            v.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         img.data[p * 3..p * 3 + 3].copy_from_slice(&[g, g, g]);
     }
     img
@@ -49,7 +61,8 @@ pub fn grey_image(values: &[f32], width: u32, height: u32) -> RgbImage {
 /// Images side by side (heights may differ; the canvas is as tall as the tallest),
 /// separated by `gap` black pixels.
 pub fn side_by_side(images: &[&RgbImage], gap: u32) -> RgbImage {
-    let w: u32 = images.iter().map(|i| i.width).sum::<u32>() + gap * images.len().saturating_sub(1) as u32;
+    let w: u32 =
+        images.iter().map(|i| i.width).sum::<u32>() + gap * images.len().saturating_sub(1) as u32;
     let h = images.iter().map(|i| i.height).max().unwrap_or(0);
     let mut out = RgbImage::new(w, h);
     let mut x0 = 0u32;

@@ -63,7 +63,10 @@ fn splitmix(z: &mut u64) -> u64 {
 fn reinit(varmap: &VarMap, seed: u64) -> Result<()> {
     let vars = named_vars(varmap);
     for (name, var) in &vars {
-        let Some(stem) = name.strip_suffix(".weight").or_else(|| name.strip_suffix(".bias")) else {
+        let Some(stem) = name
+            .strip_suffix(".weight")
+            .or_else(|| name.strip_suffix(".bias"))
+        else {
             continue;
         };
         let wname = format!("{stem}.weight");
@@ -72,13 +75,19 @@ fn reinit(varmap: &VarMap, seed: u64) -> Result<()> {
             None => continue,
         };
         let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
-        let mut state = seed ^ name.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100_0000_01b3));
+        let mut state = seed
+            ^ name.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+                (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+            });
         let n = var.as_tensor().elem_count();
         let data: Vec<f32> = (0..n)
-            .map(|_| ((splitmix(&mut state) >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0) * bound)
+            .map(|_| {
+                ((splitmix(&mut state) >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0) * bound
+            })
             .map(|v| v as f32)
             .collect();
-        let t = Tensor::from_vec(data, var.as_tensor().dims(), var.device())?.to_dtype(var.dtype())?;
+        let t =
+            Tensor::from_vec(data, var.as_tensor().dims(), var.device())?.to_dtype(var.dtype())?;
         var.set(&t)?;
     }
     Ok(())
@@ -140,7 +149,8 @@ pub fn weight_arrays(varmap: &VarMap) -> Result<Vec<NamedArray>> {
 /// Metadata for a weights file of `cfg`, plus `extra` entries.
 pub fn metadata(cfg: &Config, extra: &[(&str, String)]) -> Result<HashMap<String, String>> {
     let mut m = HashMap::new();
-    let json = serde_json::to_string(cfg).map_err(|e| Error::Invalid(format!("cannot serialize config: {e}")))?;
+    let json = serde_json::to_string(cfg)
+        .map_err(|e| Error::Invalid(format!("cannot serialize config: {e}")))?;
     m.insert(CONFIG_KEY.to_string(), json);
     m.insert(FORMAT_KEY.to_string(), FORMAT_VALUE.to_string());
     for (k, v) in extra {
@@ -159,8 +169,14 @@ pub fn save(path: &Path, cfg: &Config, varmap: &VarMap) -> Result<()> {
 /// Errors if any f32 array holds NaN or infinity.
 pub fn check_finite(path: &Path, arrays: &[NamedArray]) -> Result<()> {
     for a in arrays {
-        if a.bytes.chunks_exact(4).any(|b| !f32::from_le_bytes([b[0], b[1], b[2], b[3]]).is_finite()) {
-            return Err(Error::model(path, format!("tensor '{}' holds non-finite values", a.name)));
+        if a.bytes
+            .chunks_exact(4)
+            .any(|b| !f32::from_le_bytes([b[0], b[1], b[2], b[3]]).is_finite())
+        {
+            return Err(Error::model(
+                path,
+                format!("tensor '{}' holds non-finite values", a.name),
+            ));
         }
     }
     Ok(())
@@ -174,23 +190,40 @@ pub fn read_config(path: &Path, bytes: &[u8]) -> Result<Config> {
         .metadata()
         .as_ref()
         .and_then(|m| m.get(CONFIG_KEY))
-        .ok_or_else(|| Error::model(path, format!("no '{CONFIG_KEY}' in the metadata: not a deepstereo weights file")))?;
-    let cfg: Config =
-        serde_json::from_str(json).map_err(|e| Error::model(path, format!("invalid config in the metadata: {e}")))?;
-    cfg.validate().map_err(|m| Error::model(path, format!("invalid config: {m}")))?;
+        .ok_or_else(|| {
+            Error::model(
+                path,
+                format!("no '{CONFIG_KEY}' in the metadata: not a deepstereo weights file"),
+            )
+        })?;
+    let cfg: Config = serde_json::from_str(json)
+        .map_err(|e| Error::model(path, format!("invalid config in the metadata: {e}")))?;
+    cfg.validate()
+        .map_err(|m| Error::model(path, format!("invalid config: {m}")))?;
     Ok(cfg)
 }
 
 /// Loads a model from safetensors bytes (`path` names them in errors), strictly.
 pub fn load_bytes(path: &Path, bytes: &[u8], device: &Device) -> Result<Trainable> {
     let cfg = read_config(path, bytes)?;
-    let st = SafeTensors::deserialize(bytes).map_err(|e| Error::model(path, format!("not a safetensors file: {e}")))?;
+    let st = SafeTensors::deserialize(bytes)
+        .map_err(|e| Error::model(path, format!("not a safetensors file: {e}")))?;
     check_size(path, &cfg, &st)?;
     let t = init(&cfg, device)?;
     assign(path, &st, &t.varmap, "")?;
     let expected: Vec<String> = named_vars(&t.varmap).into_iter().map(|(n, _)| n).collect();
-    if let Some(extra) = st.names().into_iter().find(|n| !expected.iter().any(|e| e == *n)) {
-        return Err(Error::model(path, format!("unexpected tensor '{extra}' (not part of a '{}' model)", cfg.name)));
+    if let Some(extra) = st
+        .names()
+        .into_iter()
+        .find(|n| !expected.iter().any(|e| e == *n))
+    {
+        return Err(Error::model(
+            path,
+            format!(
+                "unexpected tensor '{extra}' (not part of a '{}' model)",
+                cfg.name
+            ),
+        ));
     }
     Ok(t)
 }
@@ -202,19 +235,32 @@ fn check_size(path: &Path, cfg: &Config, st: &SafeTensors<'_>) -> Result<()> {
     let held = st
         .tensors()
         .iter()
-        .map(|(_, v)| v.shape().iter().try_fold(1usize, |a, &d| a.checked_mul(d)).unwrap_or(usize::MAX))
+        .map(|(_, v)| {
+            v.shape()
+                .iter()
+                .try_fold(1usize, |a, &d| a.checked_mul(d))
+                .unwrap_or(usize::MAX)
+        })
         .fold(0usize, usize::saturating_add);
     let needed = cfg.parameters();
     if needed <= held {
         return Ok(());
     }
-    let names = cfg.layers().into_iter().flat_map(|l| [format!("{}.weight", l.name), format!("{}.bias", l.name)]);
-    let missing = names.chain(["select.log_scale".to_string()]).find(|n| st.tensor(n).is_err());
+    let names = cfg
+        .layers()
+        .into_iter()
+        .flat_map(|l| [format!("{}.weight", l.name), format!("{}.bias", l.name)]);
+    let missing = names
+        .chain(["select.log_scale".to_string()])
+        .find(|n| st.tensor(n).is_err());
     Err(Error::model(
         path,
         match missing {
             Some(n) => format!("missing tensor '{n}'"),
-            None => format!("the '{}' config needs {needed} parameters but the file holds {held} values", cfg.name),
+            None => format!(
+                "the '{}' config needs {needed} parameters but the file holds {held} values",
+                cfg.name
+            ),
         },
     ))
 }
@@ -237,11 +283,17 @@ pub fn assign(path: &Path, st: &SafeTensors<'_>, varmap: &VarMap, prefix: &str) 
         if view.shape() != want.as_slice() {
             return Err(Error::model(
                 path,
-                format!("tensor '{key}' has shape {:?}, the model expects {want:?}", view.shape()),
+                format!(
+                    "tensor '{key}' has shape {:?}, the model expects {want:?}",
+                    view.shape()
+                ),
             ));
         }
         if view.dtype() != safetensors::Dtype::F32 {
-            return Err(Error::model(path, format!("tensor '{key}' is {:?}, expected F32", view.dtype())));
+            return Err(Error::model(
+                path,
+                format!("tensor '{key}' is {:?}, expected F32", view.dtype()),
+            ));
         }
         let data: Vec<f32> = view
             .data()
@@ -249,7 +301,10 @@ pub fn assign(path: &Path, st: &SafeTensors<'_>, varmap: &VarMap, prefix: &str) 
             .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
             .collect();
         if data.iter().any(|v| !v.is_finite()) {
-            return Err(Error::model(path, format!("tensor '{key}' holds non-finite values")));
+            return Err(Error::model(
+                path,
+                format!("tensor '{key}' holds non-finite values"),
+            ));
         }
         let t = Tensor::from_vec(data, want.as_slice(), var.device())?.to_dtype(var.dtype())?;
         var.set(&t)?;

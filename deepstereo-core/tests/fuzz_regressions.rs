@@ -34,8 +34,14 @@ fn regressions_give_errors_not_panics() {
             replayed += 1;
             match result {
                 Err(_) => failures.push(format!("{name}: {} panics", path.display())),
-                Ok(_) if took > MAX_TIME => failures.push(format!("{name}: {} took {took:?}", path.display())),
-                Ok(r) => println!("{name}: {}: {}", path.file_name().unwrap_or_default().to_string_lossy(), r.err().unwrap_or("ok".into())),
+                Ok(_) if took > MAX_TIME => {
+                    failures.push(format!("{name}: {} took {took:?}", path.display()))
+                }
+                Ok(r) => println!(
+                    "{name}: {}: {}",
+                    path.file_name().unwrap_or_default().to_string_lossy(),
+                    r.err().unwrap_or("ok".into())
+                ),
             }
         }
     }
@@ -64,7 +70,10 @@ fn parameter_count_is_exact() {
     use deepstereo_core::config::Config;
     for cfg in [Config::tiny(), Config::paper()] {
         let t = deepstereo_core::weights::init(&cfg, &candle_core::Device::Cpu).expect("init");
-        let n: usize = deepstereo_core::weights::named_vars(&t.varmap).iter().map(|(_, v)| v.as_tensor().elem_count()).sum();
+        let n: usize = deepstereo_core::weights::named_vars(&t.varmap)
+            .iter()
+            .map(|(_, v)| v.as_tensor().elem_count())
+            .sum();
         assert_eq!(cfg.parameters(), n, "{}", cfg.name);
     }
 }

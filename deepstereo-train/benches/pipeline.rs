@@ -19,7 +19,12 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 fn bench(cfg: &Config, batch: usize, reps: usize) -> Result<()> {
-    let opts = SynthOptions { views: 8, width: 160, height: 120, ..SynthOptions::default() };
+    let opts = SynthOptions {
+        views: 8,
+        width: 160,
+        height: 120,
+        ..SynthOptions::default()
+    };
     let scenes = synth_scenes(8, 1, &opts, cfg.levels)?;
     let mut sample_t = Vec::new();
     for b in 0..reps as u64 {

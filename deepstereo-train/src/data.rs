@@ -52,7 +52,13 @@ impl SceneData {
     pub fn load(dir: &Path, levels: usize) -> anyhow::Result<Self> {
         let scene = Scene::load(dir, &LoadOptions::default())?;
         let pyramids = (0..scene.views.len())
-            .map(|i| Ok(PyramidSource::new(&scene.views[i].camera, &scene.load_image(i)?, levels)))
+            .map(|i| {
+                Ok(PyramidSource::new(
+                    &scene.views[i].camera,
+                    &scene.load_image(i)?,
+                    levels,
+                ))
+            })
             .collect::<anyhow::Result<Vec<_>>>()?;
         Ok(Self {
             name: dir.display().to_string(),
@@ -80,12 +86,22 @@ impl SceneData {
 }
 
 /// Generates `count` procedural scenes in parallel (scene `i` from `scene_seed(seed, i)`).
-pub fn synth_scenes(count: usize, seed: u64, opts: &SynthOptions, levels: usize) -> anyhow::Result<Vec<SceneData>> {
+pub fn synth_scenes(
+    count: usize,
+    seed: u64,
+    opts: &SynthOptions,
+    levels: usize,
+) -> anyhow::Result<Vec<SceneData>> {
     (0..count)
         .into_par_iter()
         .map(|i| {
-            let s = generate(scene_seed(seed, i), opts).with_context(|| format!("procedural scene {i}"))?;
-            Ok(SceneData::from_synth(format!("synth-{seed}-{i}"), &s, levels))
+            let s = generate(scene_seed(seed, i), opts)
+                .with_context(|| format!("procedural scene {i}"))?;
+            Ok(SceneData::from_synth(
+                format!("synth-{seed}-{i}"),
+                &s,
+                levels,
+            ))
         })
         .collect()
 }
@@ -109,7 +125,13 @@ pub fn mix(mut z: u64) -> u64 {
 }
 
 /// Builds sample `k` of batch `b`: returns per-level inputs and the target patch.
-fn sample(cfg: &Config, scenes: &[SceneData], seed: u64, b: u64, k: usize) -> anyhow::Result<(Vec<Vec<f32>>, Vec<f32>)> {
+fn sample(
+    cfg: &Config,
+    scenes: &[SceneData],
+    seed: u64,
+    b: u64,
+    k: usize,
+) -> anyhow::Result<(Vec<Vec<f32>>, Vec<f32>)> {
     let mut state = mix(seed ^ mix(b.wrapping_mul(0x1000_0000_01B3) ^ mix(k as u64)));
     let mut next = || {
         state = mix(state);
@@ -118,7 +140,11 @@ fn sample(cfg: &Config, scenes: &[SceneData], seed: u64, b: u64, k: usize) -> an
     let s = &scenes[(next() % scenes.len() as u64) as usize];
     let n = s.cameras.len();
     if n <= cfg.views {
-        bail!("scene {} has {n} views; the model needs {} sources plus a target", s.name, cfg.views);
+        bail!(
+            "scene {} has {n} views; the model needs {} sources plus a target",
+            s.name,
+            cfg.views
+        );
     }
     let target = (next() % n as u64) as usize;
     let src = s.sources(target, cfg.views);
@@ -127,7 +153,10 @@ fn sample(cfg: &Config, scenes: &[SceneData], seed: u64, b: u64, k: usize) -> an
     let cam = &s.cameras[target];
     let (w, h) = (cam.intrinsics.width as u64, cam.intrinsics.height as u64);
     if w < t as u64 || h < t as u64 {
-        bail!("scene {}: images {w}x{h} are smaller than the {t}px training tile", s.name);
+        bail!(
+            "scene {}: images {w}x{h} are smaller than the {t}px training tile",
+            s.name
+        );
     }
     let x0 = (next() % ((w - t as u64) / a + 1)) * a;
     let y0 = (next() % ((h - t as u64) / a + 1)) * a;
@@ -148,19 +177,32 @@ fn sample(cfg: &Config, scenes: &[SceneData], seed: u64, b: u64, k: usize) -> an
 }
 
 /// Builds batch `b` of `batch` samples, samples in parallel.
-pub fn make_batch(cfg: &Config, scenes: &[SceneData], seed: u64, b: u64, batch: usize) -> anyhow::Result<Batch> {
+pub fn make_batch(
+    cfg: &Config,
+    scenes: &[SceneData],
+    seed: u64,
+    b: u64,
+    batch: usize,
+) -> anyhow::Result<Batch> {
     if scenes.is_empty() {
         bail!("no scenes to sample from");
     }
-    let samples: Vec<(Vec<Vec<f32>>, Vec<f32>)> =
-        (0..batch).into_par_iter().map(|k| sample(cfg, scenes, seed, b, k)).collect::<anyhow::Result<_>>()?;
+    let samples: Vec<(Vec<Vec<f32>>, Vec<f32>)> = (0..batch)
+        .into_par_iter()
+        .map(|k| sample(cfg, scenes, seed, b, k))
+        .collect::<anyhow::Result<_>>()?;
     let t = cfg.tile;
     let (d, c) = (cfg.planes, cfg.in_channels());
     let level_shapes: Vec<[usize; 5]> = (0..cfg.levels)
         .map(|l| [batch, d, c, cfg.input_size(l, t), cfg.input_size(l, t)])
         .collect();
     let levels = (0..cfg.levels)
-        .map(|l| samples.iter().flat_map(|s| s.0[l].iter().copied()).collect())
+        .map(|l| {
+            samples
+                .iter()
+                .flat_map(|s| s.0[l].iter().copied())
+                .collect()
+        })
         .collect();
     let target = samples.iter().flat_map(|s| s.1.iter().copied()).collect();
     Ok(Batch {
@@ -194,4 +236,88 @@ pub fn spawn_loader(
         }
     });
     rx
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scenes(cfg: &Config) -> Vec<SceneData> {
+        let opts = SynthOptions {
+            views: 6,
+            width: 64,
+            height: 48,
+            ..SynthOptions::default()
+        };
+        synth_scenes(2, 11, &opts, cfg.levels).expect("scenes")
+    }
+
+    #[test]
+    fn batch_shapes_follow_the_config() -> anyhow::Result<()> {
+        let cfg = Config::tiny();
+        let b = make_batch(&cfg, &scenes(&cfg), 1, 0, 3)?;
+        assert_eq!(b.target_shape, [3, 3, cfg.tile, cfg.tile]);
+        assert_eq!(b.target.len(), 3 * 3 * cfg.tile * cfg.tile);
+        for l in 0..cfg.levels {
+            let s = cfg.input_size(l, cfg.tile);
+            assert_eq!(b.level_shapes[l], [3, cfg.planes, cfg.in_channels(), s, s]);
+            assert_eq!(
+                b.levels[l].len(),
+                b.level_shapes[l].iter().product::<usize>()
+            );
+        }
+        assert!(b.target.iter().all(|v| (0.0..=1.0).contains(v)));
+        Ok(())
+    }
+
+    #[test]
+    fn batches_are_deterministic_and_differ_between_indices() -> anyhow::Result<()> {
+        let cfg = Config::tiny();
+        let sc = scenes(&cfg);
+        let a = make_batch(&cfg, &sc, 5, 7, 2)?;
+        let b = make_batch(&cfg, &sc, 5, 7, 2)?;
+        let c = make_batch(&cfg, &sc, 5, 8, 2)?;
+        assert!(a.levels == b.levels && a.target == b.target);
+        assert!(a.target != c.target);
+        Ok(())
+    }
+
+    /// The coarse level covers an area twice as wide, so near the image border some of
+    /// its pixels fall outside every source: alpha 0 there, and never outside [0, 1].
+    #[test]
+    fn alpha_is_zero_where_sources_do_not_see() -> anyhow::Result<()> {
+        let cfg = Config::tiny();
+        let b = make_batch(&cfg, &scenes(&cfg), 3, 0, 8)?;
+        let l = cfg.levels - 1;
+        let [_, d, c, h, w] = b.level_shapes[l];
+        let plane = h * w;
+        let mut zeros = 0usize;
+        for (i, chunk) in b.levels[l].chunks_exact(plane).enumerate() {
+            if (i % c) % 4 == 3 {
+                assert!(
+                    chunk.iter().all(|a| (0.0..=1.0).contains(a)),
+                    "alpha outside [0, 1]"
+                );
+                zeros += chunk.iter().filter(|&&a| a == 0.0).count();
+            }
+        }
+        assert!(
+            zeros > 0,
+            "expected uncovered pixels at level {l} ({d} planes)"
+        );
+        Ok(())
+    }
+
+    #[test]
+    fn the_target_is_never_a_source() {
+        let cfg = Config::tiny();
+        let sc = scenes(&cfg);
+        for s in &sc {
+            for t in 0..s.cameras.len() {
+                let src = s.sources(t, cfg.views);
+                assert_eq!(src.len(), cfg.views);
+                assert!(!src.contains(&t));
+            }
+        }
+    }
 }

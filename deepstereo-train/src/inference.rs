@@ -9,7 +9,9 @@ use deepstereo_core::geometry::inverse_depths;
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::metrics::{psnr, ssim};
-use deepstereo_core::prune::{plane_range_from_points, rank_views, PruneOptions, PruneStats, Pruner};
+use deepstereo_core::prune::{
+    plane_range_from_points, rank_views, PruneOptions, PruneStats, Pruner,
+};
 use deepstereo_core::render::{render_view, render_view_pruned, Backend, CandleBackend, Rendered};
 use deepstereo_core::scene::{nearest_to_point, Scene};
 use deepstereo_core::sweep::Source;
@@ -38,7 +40,10 @@ pub fn candle_backend(model: Option<&Path>) -> Result<CandleBackend> {
         Some(p) => weights::load(p, &device)?,
         None => weights::load_bytes(Path::new(EMBEDDED_NAME), EMBEDDED_MODEL, &device)?,
     };
-    Ok(CandleBackend { model: t.model, device })
+    Ok(CandleBackend {
+        model: t.model,
+        device,
+    })
 }
 
 /// How to render: shared by `render`, `eval`, `report` and `demo`.
@@ -57,7 +62,13 @@ pub struct RenderSettings {
 /// The `k` source views for `target` (`exclude`: its own index in the scene, if any):
 /// the nearest with pruning off; with pruning on, those that see most of the target
 /// frustum for their distance ([`rank_views`]).
-pub fn pick_sources(scene: &Scene, target: &Camera, exclude: Option<usize>, k: usize, settings: &RenderSettings) -> Vec<usize> {
+pub fn pick_sources(
+    scene: &Scene,
+    target: &Camera,
+    exclude: Option<usize>,
+    k: usize,
+    settings: &RenderSettings,
+) -> Vec<usize> {
     if settings.prune.is_on() && std::env::var("PRUNE_NOVIEWS").is_err() {
         let cams: Vec<Camera> = scene.views.iter().map(|v| v.camera).collect();
         rank_views(&cams, target, k, exclude, scene.near, scene.far).0
@@ -76,7 +87,9 @@ pub struct Prepared {
 
 impl Prepared {
     pub fn new(scene: &Scene) -> Self {
-        Self { pyramids: vec![None; scene.views.len()] }
+        Self {
+            pyramids: vec![None; scene.views.len()],
+        }
     }
 
     /// The pyramid of view `i`, loading its image on first use.
@@ -102,11 +115,18 @@ pub fn render_camera(
     let cfg = backend.config().clone();
     if let Some(v) = settings.views {
         if v != cfg.views {
-            bail!("--views {v}: this model was built for {} source views", cfg.views);
+            bail!(
+                "--views {v}: this model was built for {} source views",
+                cfg.views
+            );
         }
     }
     if sources.len() < cfg.views {
-        bail!("the model needs {} source views, the scene offers {}", cfg.views, sources.len());
+        bail!(
+            "the model needs {} source views, the scene offers {}",
+            cfg.views,
+            sources.len()
+        );
     }
     let planes = settings.planes.unwrap_or(cfg.planes);
     if planes == 0 {
@@ -116,11 +136,22 @@ pub fn render_camera(
     for &i in sources {
         prepared.get(scene, i, cfg.levels)?;
     }
-    let srcs: Vec<&PyramidSource> = sources.iter().filter_map(|&i| prepared.pyramids[i].as_ref()).collect();
+    let srcs: Vec<&PyramidSource> = sources
+        .iter()
+        .filter_map(|&i| prepared.pyramids[i].as_ref())
+        .collect();
     let r = if settings.prune.is_on() {
         let range = plane_range_from_points(target, &scene.points, &inv);
         let pruner = Pruner::new(&cfg, target, &srcs, &inv, range, &settings.prune);
-        render_view_pruned(backend, target, &srcs, &inv, settings.tile, Some(&pruner), progress)?
+        render_view_pruned(
+            backend,
+            target,
+            &srcs,
+            &inv,
+            settings.tile,
+            Some(&pruner),
+            progress,
+        )?
     } else {
         render_view(backend, target, &srcs, &inv, settings.tile, progress)?
     };
@@ -199,24 +230,48 @@ pub fn evaluate(
     let mut per_view = Vec::new();
     for &t in targets {
         if t >= scene.views.len() {
-            bail!("held-out view {t} is out of range: the scene has {} views", scene.views.len());
+            bail!(
+                "held-out view {t} is out of range: the scene has {} views",
+                scene.views.len()
+            );
         }
         let truth = scene.load_image(t)?;
         let cam = scene.views[t].camera;
         let srcs = pick_sources(scene, &cam, Some(t), cfg.views, settings);
         let t0 = Instant::now();
-        let (r, inv) = render_camera(backend, scene, &mut prepared, &cam, &srcs, settings, &|_, _| {})?;
+        let (r, inv) = render_camera(
+            backend,
+            scene,
+            &mut prepared,
+            &cam,
+            &srcs,
+            settings,
+            &|_, _| {},
+        )?;
         let seconds = t0.elapsed().as_secs_f64();
         let nearest = scene.load_image(srcs[0])?;
         let near_score = if nearest.width == truth.width && nearest.height == truth.height {
-            Score { psnr: psnr(&nearest, &truth), ssim: ssim(&nearest, &truth), seconds: None }
+            Score {
+                psnr: psnr(&nearest, &truth),
+                ssim: ssim(&nearest, &truth),
+                seconds: None,
+            }
         } else {
-            Score { psnr: f64::NAN, ssim: f64::NAN, seconds: None }
+            Score {
+                psnr: f64::NAN,
+                ssim: f64::NAN,
+                seconds: None,
+            }
         };
         let t1 = Instant::now();
         let sources: Vec<Source<'_>> = srcs
             .iter()
-            .filter_map(|&i| prepared.pyramids[i].as_ref().map(|p| Source { camera: &p.cameras[0], image: &p.images[0] }))
+            .filter_map(|&i| {
+                prepared.pyramids[i].as_ref().map(|p| Source {
+                    camera: &p.cameras[0],
+                    image: &p.images[0],
+                })
+            })
             .collect();
         let (ps, _) = plane_sweep(&cam, &sources, &inv);
         let ps_secs = t1.elapsed().as_secs_f64();
@@ -228,11 +283,23 @@ pub fn evaluate(
             seconds,
             baselines: Baselines {
                 nearest: near_score,
-                plane_sweep: Score { psnr: psnr(&ps, &truth), ssim: ssim(&ps, &truth), seconds: Some(ps_secs) },
+                plane_sweep: Score {
+                    psnr: psnr(&ps, &truth),
+                    ssim: ssim(&ps, &truth),
+                    seconds: Some(ps_secs),
+                },
             },
             prune: r.prune.clone(),
         };
-        on_view(&v, &ViewImages { truth: &truth, rendered: &r, nearest: &nearest, plane_sweep: &ps });
+        on_view(
+            &v,
+            &ViewImages {
+                truth: &truth,
+                rendered: &r,
+                nearest: &nearest,
+                plane_sweep: &ps,
+            },
+        );
         per_view.push(v);
     }
     if per_view.is_empty() {
@@ -245,7 +312,11 @@ pub fn evaluate(
         ssim: avg(&|v| v.ssim),
         seconds: avg(&|v| v.seconds),
         baselines: Baselines {
-            nearest: Score { psnr: avg(&|v| v.baselines.nearest.psnr), ssim: avg(&|v| v.baselines.nearest.ssim), seconds: None },
+            nearest: Score {
+                psnr: avg(&|v| v.baselines.nearest.psnr),
+                ssim: avg(&|v| v.baselines.nearest.ssim),
+                seconds: None,
+            },
             plane_sweep: Score {
                 psnr: avg(&|v| v.baselines.plane_sweep.psnr),
                 ssim: avg(&|v| v.baselines.plane_sweep.ssim),
@@ -266,11 +337,19 @@ pub fn evaluate(
 }
 
 /// Held-out view indices from `--holdout 0,8,16` or `--llffhold N` (every Nth view).
-pub fn holdout_list(holdout: Option<&str>, llffhold: Option<usize>, n: usize) -> Result<Vec<usize>> {
+pub fn holdout_list(
+    holdout: Option<&str>,
+    llffhold: Option<usize>,
+    n: usize,
+) -> Result<Vec<usize>> {
     match (holdout, llffhold) {
         (Some(h), None) => h
             .split(',')
-            .map(|s| s.trim().parse::<usize>().with_context(|| format!("--holdout: '{s}' is not a view index")))
+            .map(|s| {
+                s.trim()
+                    .parse::<usize>()
+                    .with_context(|| format!("--holdout: '{s}' is not a view index"))
+            })
             .collect(),
         (None, Some(0)) => bail!("--llffhold must be at least 1"),
         (None, Some(k)) => Ok((0..n).step_by(k).collect()),
@@ -281,13 +360,17 @@ pub fn holdout_list(holdout: Option<&str>, llffhold: Option<usize>, n: usize) ->
 
 /// Model name for reports.
 pub fn model_name(model: Option<&PathBuf>) -> String {
-    model.map(|p| p.display().to_string()).unwrap_or_else(|| EMBEDDED_NAME.to_string())
+    model
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|| EMBEDDED_NAME.to_string())
 }
 
 /// The backend of `kind` for `model` (`None`: the embedded default).
 pub fn make_backend(kind: BackendKind, model: Option<&Path>) -> Result<Box<dyn Backend>> {
     match kind {
         BackendKind::Candle => Ok(Box::new(candle_backend(model)?)),
-        BackendKind::Ort => Ok(Box::new(deepstereo_export::OrtBackend::from_model(&crate::cmd::export::load_model(model)?)?)),
+        BackendKind::Ort => Ok(Box::new(deepstereo_export::OrtBackend::from_model(
+            &crate::cmd::export::load_model(model)?,
+        )?)),
     }
 }

@@ -39,9 +39,15 @@ impl Optimizer {
             bail!("the learning rate must be finite and positive, got {lr}");
         }
         let zeros = |v: &Var| v.as_tensor().zeros_like();
-        let first = vars.iter().map(|(_, v)| zeros(v)).collect::<candle_core::Result<Vec<_>>>()?;
+        let first = vars
+            .iter()
+            .map(|(_, v)| zeros(v))
+            .collect::<candle_core::Result<Vec<_>>>()?;
         let second = match kind {
-            OptimizerKind::Adam => vars.iter().map(|(_, v)| zeros(v)).collect::<candle_core::Result<Vec<_>>>()?,
+            OptimizerKind::Adam => vars
+                .iter()
+                .map(|(_, v)| zeros(v))
+                .collect::<candle_core::Result<Vec<_>>>()?,
             OptimizerKind::Adagrad => Vec::new(),
         };
         Ok(Self {
@@ -59,7 +65,11 @@ impl Optimizer {
         let mut sq = 0f64;
         for (_, v) in &self.vars {
             if let Some(g) = grads.get(v.as_tensor()) {
-                sq += g.sqr()?.sum_all()?.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?;
+                sq += g
+                    .sqr()?
+                    .sum_all()?
+                    .to_dtype(candle_core::DType::F64)?
+                    .to_scalar::<f64>()?;
             }
         }
         Ok(sq.sqrt())
@@ -70,7 +80,9 @@ impl Optimizer {
         self.steps += 1;
         let t = self.steps as i32;
         for (i, (_, v)) in self.vars.iter().enumerate() {
-            let Some(g) = grads.get(v.as_tensor()) else { continue };
+            let Some(g) = grads.get(v.as_tensor()) else {
+                continue;
+            };
             let w = v.as_tensor();
             match self.kind {
                 OptimizerKind::Adagrad => {

@@ -82,7 +82,11 @@ pub fn batch_tensors(b: &Batch, device: &Device) -> Result<(Vec<Tensor>, Tensor)
 }
 
 /// Mean PSNR (dB, colours in [0, 1]) of the model over validation batches.
-pub fn validate(model: &deepstereo_core::model::DeepStereo, batches: &[Batch], device: &Device) -> Result<f64> {
+pub fn validate(
+    model: &deepstereo_core::model::DeepStereo,
+    batches: &[Batch],
+    device: &Device,
+) -> Result<f64> {
     let (mut se, mut n) = (0f64, 0usize);
     for b in batches {
         let (x, y) = batch_tensors(b, device)?;
@@ -110,7 +114,9 @@ fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<SceneData>)> {
     let mut train = Vec::new();
     for dir in &run.data {
         for d in crate::cmd::scene_dirs(dir)? {
-            train.push(SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?);
+            train.push(
+                SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?,
+            );
         }
     }
     if run.synthetic > 0 {
@@ -128,7 +134,13 @@ fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<SceneData>)> {
 }
 
 /// Trains (or resumes) a run in `out`. Returns the log lines written in this call.
-pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop: Arc<AtomicBool>) -> Result<Vec<LogLine>> {
+pub fn train(
+    run: &RunOptions,
+    sched: &Schedule,
+    out: &Path,
+    resume: bool,
+    stop: Arc<AtomicBool>,
+) -> Result<Vec<LogLine>> {
     run.config.validate().map_err(anyhow::Error::msg)?;
     if run.batch == 0 {
         bail!("--batch must be at least 1");
@@ -146,21 +158,43 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
         truncate_log(&log_path, start)?;
         eprintln!("resuming {} at step {start}", out.display());
     } else if ckpt.exists() {
-        bail!("{} already holds a checkpoint: pass --resume to continue it, or choose another --out", out.display());
+        bail!(
+            "{} already holds a checkpoint: pass --resume to continue it, or choose another --out",
+            out.display()
+        );
     } else {
         write_atomic(&log_path, b"")?;
     }
     let t0 = Instant::now();
     let (train_scenes, val_scenes) = load_scenes(run)?;
-    eprintln!("{} training scenes, {} validation scenes ({:.1} s)", train_scenes.len(), val_scenes.len(), t0.elapsed().as_secs_f64());
-    let val_src = if val_scenes.is_empty() { &train_scenes } else { &val_scenes };
+    eprintln!(
+        "{} training scenes, {} validation scenes ({:.1} s)",
+        train_scenes.len(),
+        val_scenes.len(),
+        t0.elapsed().as_secs_f64()
+    );
+    let val_src = if val_scenes.is_empty() {
+        &train_scenes
+    } else {
+        &val_scenes
+    };
     let val_seed = run.seed ^ VALIDATION_SALT;
     let val: Vec<Batch> = (0..run.val_batches as u64)
         .map(|b| make_batch(&run.config, val_src, val_seed, b, run.batch))
         .collect::<Result<_>>()?;
-    let rx = spawn_loader(run.config.clone(), Arc::new(train_scenes), run.seed, start, run.batch, 2);
+    let rx = spawn_loader(
+        run.config.clone(),
+        Arc::new(train_scenes),
+        run.seed,
+        start,
+        run.batch,
+        2,
+    );
     let bar = progress_bar(sched, start);
-    let mut log = std::fs::OpenOptions::new().append(true).create(true).open(&log_path)?;
+    let mut log = std::fs::OpenOptions::new()
+        .append(true)
+        .create(true)
+        .open(&log_path)?;
     let (mut bad, mut lines) = (0u32, Vec::new());
     let (mut window_t, mut window_n) = (Instant::now(), 0usize);
     let mut step = start;
@@ -177,7 +211,9 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
         let skipped = !(loss_v.is_finite() && gnorm.is_finite());
         if skipped {
             bad += 1;
-            eprintln!("step {step}: non-finite loss {loss_v} or gradient norm {gnorm}: step skipped");
+            eprintln!(
+                "step {step}: non-finite loss {loss_v} or gradient norm {gnorm}: step skipped"
+            );
             if bad >= MAX_CONSECUTIVE_BAD_STEPS {
                 bail!("{bad} consecutive non-finite steps: training stopped; the last good checkpoint is {}", ckpt.display());
             }
@@ -194,7 +230,11 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
                 lr: run.lr,
                 samples_per_s: window_n as f64 / secs.max(1e-9),
                 grad_norm: gnorm.is_finite().then_some(gnorm),
-                val_psnr: if validate_now { Some(validate(&t.model, &val, &device)?) } else { None },
+                val_psnr: if validate_now {
+                    Some(validate(&t.model, &val, &device)?)
+                } else {
+                    None
+                },
                 skipped,
                 seconds: t0.elapsed().as_secs_f64(),
             };
@@ -203,10 +243,18 @@ pub fn train(run: &RunOptions, sched: &Schedule, out: &Path, resume: bool, stop:
             bar.set_message(format!(
                 "loss {loss_v:.4}  {:.1} samples/s{}",
                 line.samples_per_s,
-                line.val_psnr.map(|p| format!("  val {p:.2} dB")).unwrap_or_default()
+                line.val_psnr
+                    .map(|p| format!("  val {p:.2} dB"))
+                    .unwrap_or_default()
             ));
             if !sched.progress {
-                eprintln!("step {step}: loss {loss_v:.5} ({:.1} samples/s){}", line.samples_per_s, line.val_psnr.map(|p| format!(" val {p:.2} dB")).unwrap_or_default());
+                eprintln!(
+                    "step {step}: loss {loss_v:.5} ({:.1} samples/s){}",
+                    line.samples_per_s,
+                    line.val_psnr
+                        .map(|p| format!(" val {p:.2} dB"))
+                        .unwrap_or_default()
+                );
             }
             lines.push(line);
             (window_t, window_n) = (Instant::now(), 0);
@@ -245,7 +293,14 @@ fn progress_bar(sched: &Schedule, start: u64) -> indicatif::ProgressBar {
 }
 
 /// Writes the checkpoint and the weights-only model, both atomically.
-pub fn save_checkpoint(ckpt: &Path, model: &Path, run: &RunOptions, t: &Trainable, opt: &Optimizer, step: u64) -> Result<()> {
+pub fn save_checkpoint(
+    ckpt: &Path,
+    model: &Path,
+    run: &RunOptions,
+    t: &Trainable,
+    opt: &Optimizer,
+    step: u64,
+) -> Result<()> {
     let mut arrays = weights::weight_arrays(&t.varmap)?;
     weights::check_finite(ckpt, &arrays)?;
     for (name, tensor) in opt.state() {
@@ -253,7 +308,11 @@ pub fn save_checkpoint(ckpt: &Path, model: &Path, run: &RunOptions, t: &Trainabl
     }
     let meta = metadata(
         &run.config,
-        &[(RUN_KEY, serde_json::to_string(run)?), (STEP_KEY, step.to_string()), ("optimizer.steps", opt.steps.to_string())],
+        &[
+            (RUN_KEY, serde_json::to_string(run)?),
+            (STEP_KEY, step.to_string()),
+            ("optimizer.steps", opt.steps.to_string()),
+        ],
     )?;
     write_safetensors(ckpt, &arrays, Some(meta))?;
     weights::save(model, &run.config, &t.varmap)?;
@@ -262,21 +321,36 @@ pub fn save_checkpoint(ckpt: &Path, model: &Path, run: &RunOptions, t: &Trainabl
 
 /// Restores weights and optimizer state; returns the step to continue from.
 fn restore(ckpt: &Path, run: &RunOptions, t: &Trainable, opt: &mut Optimizer) -> Result<u64> {
-    let bytes = std::fs::read(ckpt).with_context(|| format!("--resume: cannot read {}", ckpt.display()))?;
-    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", ckpt.display()))?;
+    let bytes =
+        std::fs::read(ckpt).with_context(|| format!("--resume: cannot read {}", ckpt.display()))?;
+    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", ckpt.display()))?;
     let m = meta.metadata().clone().unwrap_or_default();
     let saved: RunOptions = serde_json::from_str(m.get(RUN_KEY).map(String::as_str).unwrap_or(""))
         .with_context(|| format!("{}: no run options in the checkpoint", ckpt.display()))?;
     if &saved != run {
         bail!("{}: the checkpoint was made with different options:\n  saved: {saved:?}\n  now:   {run:?}", ckpt.display());
     }
-    let step: u64 = m.get(STEP_KEY).and_then(|s| s.parse().ok()).context("checkpoint has no step")?;
-    let osteps: u64 = m.get("optimizer.steps").and_then(|s| s.parse().ok()).unwrap_or(step);
-    let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", ckpt.display()))?;
+    let step: u64 = m
+        .get(STEP_KEY)
+        .and_then(|s| s.parse().ok())
+        .context("checkpoint has no step")?;
+    let osteps: u64 = m
+        .get("optimizer.steps")
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(step);
+    let st = safetensors::SafeTensors::deserialize(&bytes)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", ckpt.display()))?;
     weights::assign(ckpt, &st, &t.varmap, "")?;
     opt.restore(osteps, |name| {
-        let v = st.tensor(name).map_err(|_| anyhow::anyhow!("{}: missing '{name}'", ckpt.display()))?;
-        let data: Vec<f32> = v.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        let v = st
+            .tensor(name)
+            .map_err(|_| anyhow::anyhow!("{}: missing '{name}'", ckpt.display()))?;
+        let data: Vec<f32> = v
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
         Ok(Tensor::from_vec(data, v.shape(), &Device::Cpu)?)
     })?;
     Ok(step)
@@ -287,7 +361,11 @@ fn truncate_log(path: &Path, step: u64) -> Result<()> {
     let text = std::fs::read_to_string(path).unwrap_or_default();
     let kept: String = text
         .lines()
-        .filter(|l| serde_json::from_str::<LogLine>(l).map(|x| x.step <= step).unwrap_or(false))
+        .filter(|l| {
+            serde_json::from_str::<LogLine>(l)
+                .map(|x| x.step <= step)
+                .unwrap_or(false)
+        })
         .map(|l| format!("{l}\n"))
         .collect();
     write_atomic(path, kept.as_bytes())?;
@@ -297,15 +375,57 @@ fn truncate_log(path: &Path, step: u64) -> Result<()> {
 /// Plots a run's training loss and validation PSNR against steps, side by side.
 pub fn plot_log(log: &Path, png: &Path) -> Result<()> {
     use deepstereo_core::plot::{plot, Series};
-    let text = std::fs::read_to_string(log).with_context(|| format!("cannot read {}", log.display()))?;
-    let lines: Vec<LogLine> = text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
-    let loss: Vec<(f64, f64)> = lines.iter().filter_map(|l| l.loss.map(|v| (l.step as f64, v))).collect();
+    let text =
+        std::fs::read_to_string(log).with_context(|| format!("cannot read {}", log.display()))?;
+    let lines: Vec<LogLine> = text
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    let loss: Vec<(f64, f64)> = lines
+        .iter()
+        .filter_map(|l| l.loss.map(|v| (l.step as f64, v)))
+        .collect();
     // Smooth the loss over a window of log lines for readability.
     let k = (loss.len() / 50).max(1);
-    let smooth: Vec<(f64, f64)> = loss.chunks(k).map(|c| (c[c.len() - 1].0, c.iter().map(|p| p.1).sum::<f64>() / c.len() as f64)).collect();
-    let val: Vec<(f64, f64)> = lines.iter().filter_map(|l| l.val_psnr.map(|v| (l.step as f64, v))).collect();
-    let a = plot("training L1 loss", "step", "L1", &[Series { label: "train loss".into(), colour: [0.85, 0.2, 0.1], points: smooth, line: true, marker: 0 }], false);
-    let b = plot("validation PSNR (held-out scenes)", "step", "PSNR dB", &[Series { label: "validation".into(), colour: [0.1, 0.4, 0.85], points: val, line: true, marker: 2 }], false);
+    let smooth: Vec<(f64, f64)> = loss
+        .chunks(k)
+        .map(|c| {
+            (
+                c[c.len() - 1].0,
+                c.iter().map(|p| p.1).sum::<f64>() / c.len() as f64,
+            )
+        })
+        .collect();
+    let val: Vec<(f64, f64)> = lines
+        .iter()
+        .filter_map(|l| l.val_psnr.map(|v| (l.step as f64, v)))
+        .collect();
+    let a = plot(
+        "training L1 loss",
+        "step",
+        "L1",
+        &[Series {
+            label: "train loss".into(),
+            colour: [0.85, 0.2, 0.1],
+            points: smooth,
+            line: true,
+            marker: 0,
+        }],
+        false,
+    );
+    let b = plot(
+        "validation PSNR (held-out scenes)",
+        "step",
+        "PSNR dB",
+        &[Series {
+            label: "validation".into(),
+            colour: [0.1, 0.4, 0.85],
+            points: val,
+            line: true,
+            marker: 2,
+        }],
+        false,
+    );
     deepstereo_core::viz::side_by_side(&[&a, &b], 0).save_png(png)?;
     Ok(())
 }

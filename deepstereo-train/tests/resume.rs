@@ -10,10 +10,36 @@ const BIN: &str = env!("CARGO_BIN_EXE_deepstereo");
 fn args(out: &Path) -> Vec<String> {
     let s = |x: &str| x.to_string();
     vec![
-        s("train"), s("--synthetic"), s("3"), s("--synth-size"), s("64x48"), s("--synth-views"), s("6"),
-        s("--steps"), s("8"), s("--batch"), s("2"), s("--checkpoint-every"), s("2"), s("--log-every"), s("1"),
-        s("--validate-every"), s("4"), s("--val-scenes"), s("1"), s("--val-batches"), s("1"), s("--no-progress"),
-        s("--optimizer"), s("adam"), s("--lr"), s("1e-3"), s("--seed"), s("3"), s("--out"), out.display().to_string(),
+        s("train"),
+        s("--synthetic"),
+        s("3"),
+        s("--synth-size"),
+        s("64x48"),
+        s("--synth-views"),
+        s("6"),
+        s("--steps"),
+        s("8"),
+        s("--batch"),
+        s("2"),
+        s("--checkpoint-every"),
+        s("2"),
+        s("--log-every"),
+        s("1"),
+        s("--validate-every"),
+        s("4"),
+        s("--val-scenes"),
+        s("1"),
+        s("--val-batches"),
+        s("1"),
+        s("--no-progress"),
+        s("--optimizer"),
+        s("adam"),
+        s("--lr"),
+        s("1e-3"),
+        s("--seed"),
+        s("3"),
+        s("--out"),
+        out.display().to_string(),
     ]
 }
 
@@ -22,7 +48,10 @@ fn losses(out: &Path) -> Result<Vec<(u64, f64)>> {
     text.lines()
         .map(|l| {
             let v: serde_json::Value = serde_json::from_str(l)?;
-            Ok((v["step"].as_u64().unwrap_or(0), v["loss"].as_f64().unwrap_or(f64::NAN)))
+            Ok((
+                v["step"].as_u64().unwrap_or(0),
+                v["loss"].as_f64().unwrap_or(f64::NAN),
+            ))
         })
         .collect()
 }
@@ -31,9 +60,15 @@ fn losses(out: &Path) -> Result<Vec<(u64, f64)>> {
 fn sigkill_then_resume_gives_identical_losses() -> Result<()> {
     let dir = tempfile::tempdir()?;
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
-    let st = Command::new(BIN).args(args(&a)).stderr(Stdio::null()).status()?;
+    let st = Command::new(BIN)
+        .args(args(&a))
+        .stderr(Stdio::null())
+        .status()?;
     ensure!(st.success(), "uninterrupted run failed");
-    let mut child = Command::new(BIN).args(args(&b)).stderr(Stdio::null()).spawn()?;
+    let mut child = Command::new(BIN)
+        .args(args(&b))
+        .stderr(Stdio::null())
+        .spawn()?;
     let t0 = Instant::now();
     loop {
         let n = losses(&b).map(|l| l.len()).unwrap_or(0);
@@ -50,7 +85,10 @@ fn sigkill_then_resume_gives_identical_losses() -> Result<()> {
     let before = losses(&b)?.len();
     let mut resume = args(&b);
     resume.push("--resume".into());
-    let st = Command::new(BIN).args(&resume).stderr(Stdio::null()).status()?;
+    let st = Command::new(BIN)
+        .args(&resume)
+        .stderr(Stdio::null())
+        .status()?;
     ensure!(st.success(), "resumed run failed");
     let (la, lb) = (losses(&a)?, losses(&b)?);
     println!("killed after {before} log lines; uninterrupted {la:?}\nresumed {lb:?}");
@@ -60,7 +98,10 @@ fn sigkill_then_resume_gives_identical_losses() -> Result<()> {
     // state or data order changes losses in the second or third digit.
     ensure!(la.len() == lb.len(), "log lengths differ:\n{la:?}\n{lb:?}");
     for ((sa, a), (sb, b)) in la.iter().zip(&lb) {
-        ensure!(sa == sb && (a - b).abs() <= 1e-6 * a.abs(), "losses differ at step {sa}:\n{la:?}\n{lb:?}");
+        ensure!(
+            sa == sb && (a - b).abs() <= 1e-6 * a.abs(),
+            "losses differ at step {sa}:\n{la:?}\n{lb:?}"
+        );
     }
     ensure!(la.len() == 8, "expected 8 log lines, got {}", la.len());
     Ok(())
@@ -72,7 +113,11 @@ fn resume_refuses_different_options() -> Result<()> {
     let out = dir.path().join("r");
     let mut a = args(&out);
     a[8] = "2".into(); // --steps 2
-    ensure!(Command::new(BIN).args(&a).stderr(Stdio::null()).status()?.success());
+    ensure!(Command::new(BIN)
+        .args(&a)
+        .stderr(Stdio::null())
+        .status()?
+        .success());
     let mut b = args(&out);
     b.push("--resume".into());
     let i = b.iter().position(|x| x == "--seed").unwrap_or(0);

@@ -9,7 +9,9 @@
 #![allow(dead_code)]
 
 use deepstereo_core::config::{Config, Conv, TowerConfig};
-use deepstereo_core::scene::{self, colmap, llff, middlebury, nerf, npy, LoadOptions, RawScene, Scene, SceneFormat};
+use deepstereo_core::scene::{
+    self, colmap, llff, middlebury, nerf, npy, LoadOptions, RawScene, Scene, SceneFormat,
+};
 use std::path::{Path, PathBuf};
 
 /// Every target, by name (also the folder names under `regressions/` and `corpus/`).
@@ -39,13 +41,16 @@ pub struct Fixture {
 
 impl Fixture {
     pub fn new() -> Self {
-        let n = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+        let n = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos());
         let dir = std::env::temp_dir().join(format!("deepstereo-fuzz-{}-{n}", std::process::id()));
         std::fs::create_dir_all(&dir).expect("create the fixture folder");
         let (w, h) = IMAGE_SIZE;
         let rgb: Vec<u8> = (0..w * h * 3).map(|i| (i * 37 % 251) as u8).collect();
         for name in IMAGES {
-            deepstereo_core::imageio::save_rgb8_png(&dir.join(name), w, h, &rgb).expect("write a fixture image");
+            deepstereo_core::imageio::save_rgb8_png(&dir.join(name), w, h, &rgb)
+                .expect("write a fixture image");
         }
         Self { dir }
     }
@@ -65,7 +70,11 @@ fn msg<T, E: std::fmt::Display>(r: Result<T, E>) -> Result<T, String> {
 /// file gives none), then exercises what callers do next.
 fn finish(fx: &Fixture, format: SceneFormat, raw: RawScene) -> Result<(), String> {
     let _ = scene::bounds_from_points(&raw.views, &raw.points);
-    let opts = LoadOptions { near: Some(0.5), far: Some(100.0), ..Default::default() };
+    let opts = LoadOptions {
+        near: Some(0.5),
+        far: Some(100.0),
+        ..Default::default()
+    };
     let s = msg(Scene::from_raw(&fx.dir, format, raw, &opts))?;
     for i in 0..s.views.len().min(4) {
         let _ = s.nearest_views(i, 4);
@@ -84,17 +93,27 @@ pub fn run(name: &str, data: &[u8], fx: &Fixture) -> Result<(), String> {
             Ok(())
         }
         "llff_poses_bounds" => {
-            let rows = npy::parse_npy(&p("poses_bounds.npy"), data).map_or(2, |a| a.rows_cols().0.min(64));
+            let rows =
+                npy::parse_npy(&p("poses_bounds.npy"), data).map_or(2, |a| a.rows_cols().0.min(64));
             let images = (0..rows).map(|i| p(&format!("{i:03}.png"))).collect();
-            let raw = msg(llff::parse_poses_bounds(&p("poses_bounds.npy"), data, images, IMAGE_SIZE))?;
+            let raw = msg(llff::parse_poses_bounds(
+                &p("poses_bounds.npy"),
+                data,
+                images,
+                IMAGE_SIZE,
+            ))?;
             finish(fx, SceneFormat::Llff, raw)
         }
         "colmap_cameras_txt" => msg(colmap::parse_cameras_txt(&p("cameras.txt"), data)).map(drop),
         "colmap_images_txt" => msg(colmap::parse_images_txt(&p("images.txt"), data)).map(drop),
-        "colmap_points3d_txt" => msg(colmap::parse_points3d_txt(&p("points3D.txt"), data)).map(drop),
+        "colmap_points3d_txt" => {
+            msg(colmap::parse_points3d_txt(&p("points3D.txt"), data)).map(drop)
+        }
         "colmap_cameras_bin" => msg(colmap::parse_cameras_bin(&p("cameras.bin"), data)).map(drop),
         "colmap_images_bin" => msg(colmap::parse_images_bin(&p("images.bin"), data)).map(drop),
-        "colmap_points3d_bin" => msg(colmap::parse_points3d_bin(&p("points3D.bin"), data)).map(drop),
+        "colmap_points3d_bin" => {
+            msg(colmap::parse_points3d_bin(&p("points3D.bin"), data)).map(drop)
+        }
         "nerf_transforms" => {
             let raw = msg(nerf::parse_transforms(&p("transforms.json"), data))?;
             finish(fx, SceneFormat::Nerf, raw)
@@ -105,15 +124,27 @@ pub fn run(name: &str, data: &[u8], fx: &Fixture) -> Result<(), String> {
         }
         "weights" => {
             let dev = candle_core::Device::Cpu;
-            let t = msg(deepstereo_core::weights::load_bytes(&p("model.safetensors"), data, &dev))?;
+            let t = msg(deepstereo_core::weights::load_bytes(
+                &p("model.safetensors"),
+                data,
+                &dev,
+            ))?;
             forward_once(&t.model).map_err(|e| format!("forward: {e}"))
         }
         "config_json" => {
             let cfg: Config = msg(serde_json::from_slice(data))?;
             cfg.validate()?;
-            let _ = (cfg.parameters(), cfg.macs_per_pixel(), cfg.receptive_field(), cfg.layers());
+            let _ = (
+                cfg.parameters(),
+                cfg.macs_per_pixel(),
+                cfg.receptive_field(),
+                cfg.layers(),
+            );
             for l in 0..cfg.levels {
-                let _ = (cfg.input_size(l, cfg.tile), cfg.input_origin(l, -(cfg.tile as i64)));
+                let _ = (
+                    cfg.input_size(l, cfg.tile),
+                    cfg.input_origin(l, -(cfg.tile as i64)),
+                );
             }
             Ok(())
         }
@@ -132,7 +163,11 @@ fn forward_once(m: &deepstereo_core::model::DeepStereo) -> candle_core::Result<(
     let inputs = (0..cfg.levels)
         .map(|l| {
             let s = cfg.input_size(l, th);
-            candle_core::Tensor::full(0.5f32, (1, 1, cfg.in_channels(), s, s), &candle_core::Device::Cpu)
+            candle_core::Tensor::full(
+                0.5f32,
+                (1, 1, cfg.in_channels(), s, s),
+                &candle_core::Device::Cpu,
+            )
         })
         .collect::<candle_core::Result<Vec<_>>>()?;
     let o = m.forward(&inputs)?;
@@ -162,7 +197,9 @@ fn llff_rows(n: usize) -> Vec<f64> {
         .flat_map(|i| {
             let c = [0.1 * i as f64, 0.0, 0.0];
             let (h, w, f) = (6.0, 8.0, 7.5);
-            [0.0, 1.0, 0.0, c[0], h, 1.0, 0.0, 0.0, c[1], w, 0.0, 0.0, -1.0, c[2], f, 1.5, 20.0]
+            [
+                0.0, 1.0, 0.0, c[0], h, 1.0, 0.0, 0.0, c[1], w, 0.0, 0.0, -1.0, c[2], f, 1.5, 20.0,
+            ]
         })
         .collect()
 }
@@ -172,16 +209,27 @@ fn le(out: &mut Vec<u8>, parts: &[&[u8]]) {
 }
 
 fn small_config(levels: usize, skip: bool) -> Config {
-    let c = |k, ch| Conv { kernel: k, channels: ch };
+    let c = |k, ch| Conv {
+        kernel: k,
+        channels: ch,
+    };
     Config {
         name: "fuzz".into(),
         views: 2,
         planes: 4,
         levels,
         tile: 4,
-        select: TowerConfig { levels, level_convs: vec![c(3, 3)], merge_convs: vec![c(3, 3)] },
+        select: TowerConfig {
+            levels,
+            level_convs: vec![c(3, 3)],
+            merge_convs: vec![c(3, 3)],
+        },
         depth_convs: vec![c(3, 2), c(3, 1)],
-        colour: TowerConfig { levels: 1, level_convs: vec![c(1, 3)], merge_convs: vec![] },
+        colour: TowerConfig {
+            levels: 1,
+            level_convs: vec![c(1, 3)],
+            merge_convs: vec![],
+        },
         colour_skip: skip,
     }
 }
@@ -260,7 +308,11 @@ pub fn seeds(name: &str, fx: &Fixture) -> Vec<Vec<u8>> {
 /// The regression inputs kept for `name` under `root` (`regressions/<name>/*`), sorted.
 pub fn regressions(root: &Path, name: &str) -> Vec<PathBuf> {
     let mut v: Vec<PathBuf> = std::fs::read_dir(root.join(name))
-        .map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_file()).collect())
+        .map(|d| {
+            d.filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_file())
+                .collect()
+        })
         .unwrap_or_default();
     v.sort();
     v

@@ -41,9 +41,9 @@
 //! With [`PruneMode::Off`] nothing of this runs and the renderer is the unpruned one.
 
 mod plan;
-mod views;
 #[cfg(test)]
 mod tests;
+mod views;
 
 pub use plan::{Block, Pruner, TilePlan};
 pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
@@ -86,7 +86,9 @@ impl std::str::FromStr for PruneMode {
         match s.to_ascii_lowercase().as_str() {
             "off" => Ok(PruneMode::Off),
             "auto" => Ok(PruneMode::Auto),
-            o => Err(Error::Invalid(format!("unknown prune mode '{o}' (expected off or auto)"))),
+            o => Err(Error::Invalid(format!(
+                "unknown prune mode '{o}' (expected off or auto)"
+            ))),
         }
     }
 }
@@ -165,7 +167,10 @@ impl PruneOptions {
 
     /// Pruning on, default thresholds.
     pub fn auto() -> Self {
-        Self { mode: PruneMode::Auto, ..Self::default() }
+        Self {
+            mode: PruneMode::Auto,
+            ..Self::default()
+        }
     }
 
     pub fn is_on(&self) -> bool {
@@ -179,7 +184,10 @@ impl PruneOptions {
             return bad(format!("--prune-mass must be in (0, 1], got {}", self.mass));
         }
         if !(self.tolerance >= 0.0 && self.tolerance <= 1.0) {
-            return bad(format!("--prune-tolerance must be in [0, 1], got {}", self.tolerance));
+            return bad(format!(
+                "--prune-tolerance must be in [0, 1], got {}",
+                self.tolerance
+            ));
         }
         if self.stride == 0 {
             return bad("--prune-stride must be at least 1".into());
@@ -189,7 +197,6 @@ impl PruneOptions {
         }
         Ok(())
     }
-
 }
 
 /// How far (in planes) the selection tower's convolutions along depth look on each side.
@@ -255,13 +262,20 @@ pub const POINT_MARGIN: f64 = 0.1;
 /// depths (robust quantiles, widened by [`POINT_MARGIN`]), plus the plane just outside
 /// on each side. Fewer than [`MIN_CLOUD_POINTS`] points are taken as a hull: every point
 /// in front of the camera counts, in view or not. `None` when the points say nothing.
-pub fn plane_range_from_points(target: &Camera, points: &[DVec3], inv_depths: &[f64]) -> Option<(usize, usize)> {
+pub fn plane_range_from_points(
+    target: &Camera,
+    points: &[DVec3],
+    inv_depths: &[f64],
+) -> Option<(usize, usize)> {
     let d = inv_depths.len();
     if d == 0 || points.is_empty() {
         return None;
     }
     let cloud = points.len() >= MIN_CLOUD_POINTS;
-    let (w, h) = (target.intrinsics.width as f64, target.intrinsics.height as f64);
+    let (w, h) = (
+        target.intrinsics.width as f64,
+        target.intrinsics.height as f64,
+    );
     let mut depths: Vec<f64> = points
         .iter()
         .filter_map(|&p| {
@@ -283,10 +297,24 @@ pub fn plane_range_from_points(target: &Camera, points: &[DVec3], inv_depths: &[
     }
     depths.sort_by(f64::total_cmp);
     let q = |f: f64| depths[((depths.len() - 1) as f64 * f).round() as usize];
-    let (lo, hi) = if cloud { (q(POINT_QUANTILES.0), q(POINT_QUANTILES.1)) } else { (depths[0], depths[depths.len() - 1]) };
-    let (rho_hi, rho_lo) = (1.0 / (lo * (1.0 - POINT_MARGIN)), 1.0 / (hi * (1.0 + POINT_MARGIN)));
+    let (lo, hi) = if cloud {
+        (q(POINT_QUANTILES.0), q(POINT_QUANTILES.1))
+    } else {
+        (depths[0], depths[depths.len() - 1])
+    };
+    let (rho_hi, rho_lo) = (
+        1.0 / (lo * (1.0 - POINT_MARGIN)),
+        1.0 / (hi * (1.0 + POINT_MARGIN)),
+    );
     // Planes inside [rho_lo, rho_hi], plus one outside on each side.
-    let first = inv_depths.iter().position(|&r| r <= rho_hi).unwrap_or(d - 1).saturating_sub(1);
-    let last = inv_depths.iter().rposition(|&r| r >= rho_lo).map_or(0, |z| (z + 1).min(d - 1));
+    let first = inv_depths
+        .iter()
+        .position(|&r| r <= rho_hi)
+        .unwrap_or(d - 1)
+        .saturating_sub(1);
+    let last = inv_depths
+        .iter()
+        .rposition(|&r| r >= rho_lo)
+        .map_or(0, |z| (z + 1).min(d - 1));
     (first <= last).then_some((first, last))
 }

@@ -69,7 +69,14 @@ impl<'a> Pruner<'a> {
         opts: &PruneOptions,
     ) -> Self {
         let d = inv_depths.len();
-        let level = opts.level.min(cfg.levels - 1).min(sources.iter().map(|s| s.images.len()).min().unwrap_or(1).saturating_sub(1));
+        let level = opts.level.min(cfg.levels - 1).min(
+            sources
+                .iter()
+                .map(|s| s.images.len())
+                .min()
+                .unwrap_or(1)
+                .saturating_sub(1),
+        );
         let (w, h) = (target.intrinsics.width, target.intrinsics.height);
         let homs = sources
             .iter()
@@ -80,8 +87,12 @@ impl<'a> Pruner<'a> {
             .collect();
         let footprint = (0..cfg.levels).map(|l| cfg.pad(l) << l).max().unwrap_or(0);
         let pinhole = target.intrinsics.distortion.is_none()
-            && sources.iter().all(|s| s.cameras.iter().all(|c| c.intrinsics.distortion.is_none()));
-        let range = range.map_or((0, d.saturating_sub(1)), |(a, b)| (a.min(d - 1), b.min(d - 1)));
+            && sources
+                .iter()
+                .all(|s| s.cameras.iter().all(|c| c.intrinsics.distortion.is_none()));
+        let range = range.map_or((0, d.saturating_sub(1)), |(a, b)| {
+            (a.min(d - 1), b.min(d - 1))
+        });
         Self {
             opts: opts.clone(),
             margin: opts.margin,
@@ -112,12 +123,18 @@ impl<'a> Pruner<'a> {
             return true;
         }
         let f = self.footprint as f64;
-        let (a, b) = ((x0 as f64 - f, y0 as f64 - f), ((x0 + tile) as f64 + f, (y0 + tile) as f64 + f));
+        let (a, b) = (
+            (x0 as f64 - f, y0 as f64 - f),
+            ((x0 + tile) as f64 + f, (y0 + tile) as f64 + f),
+        );
         let corners = [(a.0, a.1), (b.0, a.1), (a.0, b.1), (b.0, b.1)]
             .map(|(u, v)| self.target.intrinsics.unproject_pixel(DVec2::new(u, v)));
         for (k, s) in self.sources.iter().enumerate() {
             let intr = &s.cameras[0].intrinsics;
-            let (w, h) = (intr.width as f64 + self.reach, intr.height as f64 + self.reach);
+            let (w, h) = (
+                intr.width as f64 + self.reach,
+                intr.height as f64 + self.reach,
+            );
             for z in 0..self.planes {
                 let hm = &self.homs[k * self.planes + z];
                 let q = corners.map(|n| apply_h(hm, n.x, n.y));
@@ -129,7 +146,9 @@ impl<'a> Pruner<'a> {
                     return true;
                 }
                 let p = q.map(|q| intr.project_normalized(DVec2::new(q.x / q.z, q.y / q.z)));
-                let (lo, hi) = p.iter().fold((DVec2::MAX, DVec2::MIN), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+                let (lo, hi) = p.iter().fold((DVec2::MAX, DVec2::MIN), |(lo, hi), p| {
+                    (lo.min(*p), hi.max(*p))
+                });
                 if hi.x > -self.reach && hi.y > -self.reach && lo.x < w && lo.y < h {
                     return true;
                 }
@@ -143,7 +162,14 @@ impl<'a> Pruner<'a> {
     /// inputs' borders cost less than the planes saved) quadrants down to
     /// [`PruneOptions::min_block`], each with its own planes.
     pub fn plan(&self, x0: usize, y0: usize, tile: usize) -> Vec<Block> {
-        let whole = |plan| vec![Block { x0, y0, size: tile, plan }];
+        let whole = |plan| {
+            vec![Block {
+                x0,
+                y0,
+                size: tile,
+                plan,
+            }]
+        };
         if !self.covered(x0, y0, tile) {
             return whole(TilePlan::Uncovered);
         }
@@ -158,23 +184,38 @@ impl<'a> Pruner<'a> {
     /// Cost of running the network on `planes` planes of a block of side `size`: the
     /// level-0 input area times the planes.
     fn cost(&self, size: usize, planes: usize) -> f64 {
-        let side = (size + 2 * self.pad0) as f64;
+        let side = (size + self.pad0) as f64;
         side * side * planes as f64
     }
 
     /// The cheapest blocks for the samples `idx` of the block at `(x0, y0)`.
-    fn split(&self, s: &Samples, idx: &[usize], x0: usize, y0: usize, size: usize) -> (f64, Vec<Block>) {
+    fn split(
+        &self,
+        s: &Samples,
+        idx: &[usize],
+        x0: usize,
+        y0: usize,
+        size: usize,
+    ) -> (f64, Vec<Block>) {
         let planes = self.needed(s, idx);
         let here = self.cost(size, planes.len());
         let half = size / 2;
         if half >= self.opts.min_block.max(1) && half % self.align == 0 {
             let mut total = 0.0;
             let mut blocks = Vec::new();
-            for (qx, qy) in [(x0, y0), (x0 + half, y0), (x0, y0 + half), (x0 + half, y0 + half)] {
+            for (qx, qy) in [
+                (x0, y0),
+                (x0 + half, y0),
+                (x0, y0 + half),
+                (x0 + half, y0 + half),
+            ] {
                 let sub: Vec<usize> = idx
                     .iter()
                     .copied()
-                    .filter(|&i| (qx..qx + half).contains(&s.pos[i].0) && (qy..qy + half).contains(&s.pos[i].1))
+                    .filter(|&i| {
+                        (qx..qx + half).contains(&s.pos[i].0)
+                            && (qy..qy + half).contains(&s.pos[i].1)
+                    })
                     .collect();
                 if sub.is_empty() {
                     continue; // outside the image
@@ -187,7 +228,15 @@ impl<'a> Pruner<'a> {
                 return (total, blocks);
             }
         }
-        (here, vec![Block { x0, y0, size, plan: TilePlan::Planes(planes) }])
+        (
+            here,
+            vec![Block {
+                x0,
+                y0,
+                size,
+                plan: TilePlan::Planes(planes),
+            }],
+        )
     }
 
     /// Level-0 positions and normalized rays of the coarse samples of a tile: every
@@ -196,7 +245,10 @@ impl<'a> Pruner<'a> {
         let intr = &self.coarse_target.intrinsics;
         let f = 1usize << self.level;
         let s = (self.opts.stride >> self.level).max(1);
-        let (tw, th) = (self.target.intrinsics.width as usize, self.target.intrinsics.height as usize);
+        let (tw, th) = (
+            self.target.intrinsics.width as usize,
+            self.target.intrinsics.height as usize,
+        );
         let span = |a: usize, n: usize| -> Vec<usize> {
             let (lo, hi) = (a / f, (a + tile).min(n).div_ceil(f));
             let mut v: Vec<usize> = (lo..hi).skip(s / 2).step_by(s).collect();
@@ -245,7 +297,9 @@ impl<'a> Pruner<'a> {
                         continue;
                     }
                     let cam = &s.cameras[self.level];
-                    let uv = cam.intrinsics.project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
+                    let uv = cam
+                        .intrinsics
+                        .project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
                     let c = sample_bilinear(&s.images[self.level], uv.x, uv.y);
                     if c[3] > MIN_ALPHA {
                         let rgb = [c[0] / c[3], c[1] / c[3], c[2] / c[3]];
@@ -275,7 +329,9 @@ impl<'a> Pruner<'a> {
                     for b in a + 1..v {
                         for (p, m) in acc.iter_mut().enumerate() {
                             *m = match (col[(p * nz + zi) * v + a], col[(p * nz + zi) * v + b]) {
-                                (Some(x), Some(y)) => [1.0, (0..3).map(|c| (x[c] - y[c]).powi(2)).sum()],
+                                (Some(x), Some(y)) => {
+                                    [1.0, (0..3).map(|c| (x[c] - y[c]).powi(2)).sum()]
+                                }
                                 _ => [0.0; 2],
                             };
                         }
@@ -307,9 +363,18 @@ impl<'a> Pruner<'a> {
 
     /// Per sample of a tile, its level-0 position and its cost per plane of the range.
     #[cfg(test)]
-    pub(crate) fn debug_costs(&self, x0: usize, y0: usize, tile: usize) -> Vec<((usize, usize), Vec<f32>)> {
+    pub(crate) fn debug_costs(
+        &self,
+        x0: usize,
+        y0: usize,
+        tile: usize,
+    ) -> Vec<((usize, usize), Vec<f32>)> {
         let s = self.coarse(x0, y0, tile);
-        s.pos.iter().enumerate().map(|(p, &xy)| (xy, s.cost[p * s.nz..(p + 1) * s.nz].to_vec())).collect()
+        s.pos
+            .iter()
+            .enumerate()
+            .map(|(p, &xy)| (xy, s.cost[p * s.nz..(p + 1) * s.nz].to_vec()))
+            .collect()
     }
 
     /// The flat plan when every sampled source colour is the same.
@@ -333,7 +398,9 @@ impl<'a> Pruner<'a> {
         for &p in idx {
             let c = &s.cost[p * s.nz..(p + 1) * s.nz];
             let known = || c.iter().enumerate().filter(|(_, x)| !x.is_nan());
-            let (lo, hi) = known().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), (_, &x)| (a.min(x), b.max(x)));
+            let (lo, hi) = known().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), (_, &x)| {
+                (a.min(x), b.max(x))
+            });
             if known().count() < 2 || hi - lo < self.opts.contrast {
                 for (z, &x) in known() {
                     total[z] += x;
@@ -367,7 +434,12 @@ impl<'a> Pruner<'a> {
         } else {
             // Nothing here tells depths apart: the plane of least total cost, or every
             // plane of the range when no source sees any sample.
-            match total.iter().enumerate().filter(|(_, x)| **x > 0.0).min_by(|a, b| a.1.total_cmp(b.1)) {
+            match total
+                .iter()
+                .enumerate()
+                .filter(|(_, x)| **x > 0.0)
+                .min_by(|a, b| a.1.total_cmp(b.1))
+            {
                 Some((z, _)) => want[z0 + z] = true,
                 None => want[z0..=z1].iter_mut().for_each(|w| *w = true),
             }

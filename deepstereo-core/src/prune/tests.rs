@@ -16,38 +16,58 @@ type TestResult = std::result::Result<(), Box<dyn std::error::Error>>;
 
 fn nearest(cams: &[Camera], t: usize, k: usize) -> Vec<usize> {
     let c = cams[t].pose.centre();
-    let mut idx: Vec<(f64, usize)> =
-        (0..cams.len()).filter(|&i| i != t).map(|i| (cams[i].pose.centre().distance_squared(c), i)).collect();
+    let mut idx: Vec<(f64, usize)> = (0..cams.len())
+        .filter(|&i| i != t)
+        .map(|i| (cams[i].pose.centre().distance_squared(c), i))
+        .collect();
     idx.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     idx.into_iter().take(k).map(|(_, i)| i).collect()
 }
 
 fn pyramids(s: &SynthScene, idx: &[usize], levels: usize) -> Vec<PyramidSource> {
-    idx.iter().map(|&i| PyramidSource::new(&s.cameras[i], &s.images[i], levels)).collect()
+    idx.iter()
+        .map(|&i| PyramidSource::new(&s.cameras[i], &s.images[i], levels))
+        .collect()
 }
 
 /// Index of the plane (of decreasing `inv`) nearest in inverse depth to `depth`.
 fn nearest_plane(inv: &[f64], depth: f64) -> usize {
     let r = 1.0 / depth;
-    (0..inv.len()).min_by(|&a, &b| (inv[a] - r).abs().total_cmp(&(inv[b] - r).abs())).unwrap_or(0)
+    (0..inv.len())
+        .min_by(|&a, &b| (inv[a] - r).abs().total_cmp(&(inv[b] - r).abs()))
+        .unwrap_or(0)
 }
 
 /// A small model with the tiny preset's structure (2 levels, 3 depth convs).
 fn small_backend(views: usize) -> CandleBackend {
-    let c = |k, ch| Conv { kernel: k, channels: ch };
+    let c = |k, ch| Conv {
+        kernel: k,
+        channels: ch,
+    };
     let cfg = Config {
         name: "prune-test".into(),
         views,
         planes: 12,
         levels: 2,
         tile: 8,
-        select: TowerConfig { levels: 2, level_convs: vec![c(3, 4)], merge_convs: vec![c(3, 4)] },
+        select: TowerConfig {
+            levels: 2,
+            level_convs: vec![c(3, 4)],
+            merge_convs: vec![c(3, 4)],
+        },
         depth_convs: vec![c(3, 4), c(3, 4), c(3, 1)],
-        colour: TowerConfig { levels: 1, level_convs: vec![c(1, 4)], merge_convs: vec![c(1, 4)] },
+        colour: TowerConfig {
+            levels: 1,
+            level_convs: vec![c(1, 4)],
+            merge_convs: vec![c(1, 4)],
+        },
         colour_skip: true,
     };
     let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 7).expect("model");
-    CandleBackend { model: t.model, device: Device::Cpu }
+    CandleBackend {
+        model: t.model,
+        device: Device::Cpu,
+    }
 }
 
 /// The pixels of view `t` whose surface depth the images determine: the classical plane
@@ -58,8 +78,13 @@ fn small_backend(views: usize) -> CandleBackend {
 const MIN_TEXTURE: f32 = 0.1;
 
 fn known_pixels(s: &SynthScene, t: usize, sources: &[usize], inv: &[f64]) -> Vec<bool> {
-    let srcs: Vec<crate::sweep::Source> =
-        sources.iter().map(|&k| crate::sweep::Source { camera: &s.cameras[k], image: &s.images[k] }).collect();
+    let srcs: Vec<crate::sweep::Source> = sources
+        .iter()
+        .map(|&k| crate::sweep::Source {
+            camera: &s.cameras[k],
+            image: &s.images[k],
+        })
+        .collect();
     let (_, planes) = crate::baseline::plane_sweep(&s.cameras[t], &srcs, inv);
     let img = &s.images[t];
     let (w, h) = (img.width as usize, img.height as usize);
@@ -85,7 +110,13 @@ fn known_pixels(s: &SynthScene, t: usize, sources: &[usize], inv: &[f64]) -> Vec
 /// For every tile of `target`, the pixels of known depth (see [`known_pixels`]) whose true
 /// surface plane the plan leaves out; returns (misses, identifiable pixels, plane-pixels
 /// kept, plane-pixels in all).
-fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: &PruneOptions) -> (usize, usize, usize, usize) {
+fn check_bands(
+    s: &SynthScene,
+    target: usize,
+    planes: usize,
+    tile: usize,
+    opts: &PruneOptions,
+) -> (usize, usize, usize, usize) {
     let cfg = Config::tiny();
     let src = nearest(&s.cameras, target, cfg.views);
     let pyr = pyramids(s, &src, cfg.levels);
@@ -93,7 +124,10 @@ fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: 
     let inv = inverse_depths(s.near, s.far, planes);
     let cam = &s.cameras[target];
     let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, opts);
-    let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+    let (w, h) = (
+        cam.intrinsics.width as usize,
+        cam.intrinsics.height as usize,
+    );
     let known = known_pixels(s, target, &src, &inv);
     let (mut misses, mut checked, mut kept, mut total) = (0, 0, 0, 0);
     for y0 in (0..h).step_by(tile) {
@@ -117,8 +151,20 @@ fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: 
                             if std::env::var("PRUNE_MISS").is_ok() && misses % 200 == 1 {
                                 let gap = set.iter().map(|&q| q.abs_diff(z)).min().unwrap_or(99);
                                 let costs = pruner.debug_costs(x0, y0, tile);
-                                let (_, c) = costs.iter().min_by_key(|(p, _)| p.0.abs_diff(x) + p.1.abs_diff(y)).unwrap();
-                                let line: Vec<String> = c.iter().map(|x| if x.is_nan() { "-".into() } else { format!("{:.0}", x * 100.0) }).collect();
+                                let (_, c) = costs
+                                    .iter()
+                                    .min_by_key(|(p, _)| p.0.abs_diff(x) + p.1.abs_diff(y))
+                                    .unwrap();
+                                let line: Vec<String> = c
+                                    .iter()
+                                    .map(|x| {
+                                        if x.is_nan() {
+                                            "-".into()
+                                        } else {
+                                            format!("{:.0}", x * 100.0)
+                                        }
+                                    })
+                                    .collect();
                                 println!("miss at ({x}, {y}) gap {gap} plane {z}, block {}+{} set {set:?}\n   cost {}", b.x0, b.y0, line.join(" "));
                             }
                         }
@@ -131,8 +177,18 @@ fn check_bands(s: &SynthScene, target: usize, planes: usize, tile: usize, opts: 
 }
 
 fn scene(seed: u64, rig: Rig) -> SynthScene {
-    generate(seed, &SynthOptions { views: 8, width: 128, height: 96, rig, supersample: 2, textures: Vec::new() })
-        .expect("scene")
+    generate(
+        seed,
+        &SynthOptions {
+            views: 8,
+            width: 128,
+            height: 96,
+            rig,
+            supersample: 2,
+            textures: Vec::new(),
+        },
+    )
+    .expect("scene")
 }
 
 /// Fewest known-depth pixels (of all rigs together) whose true plane pruning must keep.
@@ -146,7 +202,10 @@ fn prune_keeps_the_true_surface_plane_of_known_pixels() {
         let s = scene(9100 + i as u64, rig);
         let target = s.cameras.len() / 2;
         let (m, n, k, t) = check_bands(&s, target, 32, 64, &opts);
-        println!("{rig}: {m} of {n} known pixels lost their plane; {:.0}% of planes x pixels kept", 100.0 * k as f64 / t as f64);
+        println!(
+            "{rig}: {m} of {n} known pixels lost their plane; {:.0}% of planes x pixels kept",
+            100.0 * k as f64 / t as f64
+        );
         assert!(n > 100, "{rig}: too few pixels of known depth ({n})");
         misses += m;
         checked += n;
@@ -154,9 +213,16 @@ fn prune_keeps_the_true_surface_plane_of_known_pixels() {
         total += t;
     }
     let frac = 1.0 - misses as f64 / checked as f64;
-    assert!(frac >= MIN_KEPT_KNOWN, "only {:.1}% of known pixels keep their plane", 100.0 * frac);
+    assert!(
+        frac >= MIN_KEPT_KNOWN,
+        "only {:.1}% of known pixels keep their plane",
+        100.0 * frac
+    );
     // Pruning must also leave something out.
-    assert!((kept as f64) < 0.8 * total as f64, "kept {kept} of {total} plane-pixels");
+    assert!(
+        (kept as f64) < 0.8 * total as f64,
+        "kept {kept} of {total} plane-pixels"
+    );
 }
 
 #[test]
@@ -165,30 +231,50 @@ fn prune_depth_range_from_points_keeps_the_points() {
     let cam = s.cameras[0];
     let inv = inverse_depths(s.near, s.far, 32);
     // Points on the true surfaces of the middle of the image.
-    let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+    let (w, h) = (
+        cam.intrinsics.width as usize,
+        cam.intrinsics.height as usize,
+    );
     let pts: Vec<_> = (0..200)
         .map(|i| {
             let (x, y) = (w / 4 + (i * 37) % (w / 2), h / 4 + (i * 53) % (h / 2));
-            cam.unproject(glam::DVec2::new(x as f64 + 0.5, y as f64 + 0.5), s.depths[0][y * w + x] as f64)
+            cam.unproject(
+                glam::DVec2::new(x as f64 + 0.5, y as f64 + 0.5),
+                s.depths[0][y * w + x] as f64,
+            )
         })
         .collect();
     let (first, last) = plane_range_from_points(&cam, &pts, &inv).expect("a range");
     for p in &pts {
         let z = nearest_plane(&inv, cam.pose.transform_point(*p).z);
-        assert!(first <= z && z <= last, "plane {z} outside {first}..={last}");
+        assert!(
+            first <= z && z <= last,
+            "plane {z} outside {first}..={last}"
+        );
     }
     // Too few points say nothing; points behind the camera neither.
     assert_eq!(plane_range_from_points(&cam, &pts[..1], &inv), None);
-    let behind: Vec<_> = (0..40).map(|i| cam.unproject(glam::DVec2::new(10.0 + i as f64, 10.0), -1.0 - i as f64)).collect();
+    let behind: Vec<_> = (0..40)
+        .map(|i| cam.unproject(glam::DVec2::new(10.0 + i as f64, 10.0), -1.0 - i as f64))
+        .collect();
     assert_eq!(plane_range_from_points(&cam, &behind, &inv), None);
 }
 
 /// The renderer as it was before pruning, kept here as the reference.
-fn reference_render(backend: &dyn Backend, target: &Camera, sources: &[&PyramidSource], inv: &[f64], tile: usize) -> Rendered {
+fn reference_render(
+    backend: &dyn Backend,
+    target: &Camera,
+    sources: &[&PyramidSource],
+    inv: &[f64],
+    tile: usize,
+) -> Rendered {
     let cfg = backend.config();
     let a = cfg.tile_align();
     let tile = tile.max(1).div_ceil(a) * a;
-    let (w, h) = (target.intrinsics.width as usize, target.intrinsics.height as usize);
+    let (w, h) = (
+        target.intrinsics.width as usize,
+        target.intrinsics.height as usize,
+    );
     let mut out = Rendered {
         image: crate::imageio::RgbImage::new(w as u32, h as u32),
         depth: vec![0.0; w * h],
@@ -199,7 +285,15 @@ fn reference_render(backend: &dyn Backend, target: &Camera, sources: &[&PyramidS
     let v = cfg.views;
     for y0 in (0..h).step_by(tile) {
         for x0 in (0..w).step_by(tile) {
-            let inputs = tile_inputs(cfg, target, sources, inv, (x0 as i64, y0 as i64), (tile, tile)).unwrap();
+            let inputs = tile_inputs(
+                cfg,
+                target,
+                sources,
+                inv,
+                (x0 as i64, y0 as i64),
+                (tile, tile),
+            )
+            .unwrap();
             let (img, sel) = backend.run(&inputs, inv.len()).unwrap();
             let (ih, iw) = inputs.sizes[0];
             let p = cfg.pad(0);
@@ -223,7 +317,11 @@ fn reference_render(backend: &dyn Backend, target: &Camera, sources: &[&PyramidS
                         }
                         cov += s * alpha / v as f32;
                     }
-                    out.depth[pix] = if rho > 0.0 { (1.0 / rho) as f32 } else { f32::INFINITY };
+                    out.depth[pix] = if rho > 0.0 {
+                        (1.0 / rho) as f32
+                    } else {
+                        f32::INFINITY
+                    };
                     out.confidence[pix] = best;
                     out.coverage[pix] = cov;
                 }
@@ -234,13 +332,30 @@ fn reference_render(backend: &dyn Backend, target: &Camera, sources: &[&PyramidS
 }
 
 fn bits(r: &Rendered) -> Vec<u32> {
-    r.image.data.iter().chain(&r.depth).chain(&r.confidence).chain(&r.coverage).map(|x| x.to_bits()).collect()
+    r.image
+        .data
+        .iter()
+        .chain(&r.depth)
+        .chain(&r.confidence)
+        .chain(&r.coverage)
+        .map(|x| x.to_bits())
+        .collect()
 }
 
 #[test]
 fn prune_off_is_bit_identical_to_the_unpruned_renderer() -> TestResult {
     let backend = small_backend(3);
-    let s = generate(5, &SynthOptions { views: 5, width: 44, height: 30, rig: Rig::Forward, supersample: 1, textures: Vec::new() })?;
+    let s = generate(
+        5,
+        &SynthOptions {
+            views: 5,
+            width: 44,
+            height: 30,
+            rig: Rig::Forward,
+            supersample: 1,
+            textures: Vec::new(),
+        },
+    )?;
     let src = nearest(&s.cameras, 2, 3);
     let pyr = pyramids(&s, &src, 2);
     let refs: Vec<&PyramidSource> = pyr.iter().collect();
@@ -257,7 +372,17 @@ fn prune_off_is_bit_identical_to_the_unpruned_renderer() -> TestResult {
 #[test]
 fn prune_skips_uncovered_tiles_with_the_networks_own_output() -> TestResult {
     let backend = small_backend(2);
-    let s = generate(8, &SynthOptions { views: 3, width: 64, height: 48, rig: Rig::Forward, supersample: 1, textures: Vec::new() })?;
+    let s = generate(
+        8,
+        &SynthOptions {
+            views: 3,
+            width: 64,
+            height: 48,
+            rig: Rig::Forward,
+            supersample: 1,
+            textures: Vec::new(),
+        },
+    )?;
     let src = [1usize, 2];
     let pyr = pyramids(&s, &src, 2);
     let refs: Vec<&PyramidSource> = pyr.iter().collect();
@@ -267,17 +392,31 @@ fn prune_skips_uncovered_tiles_with_the_networks_own_output() -> TestResult {
     let mut cam = s.cameras[0];
     cam.intrinsics.width = 192;
     cam.intrinsics.cx += 128.0;
-    let opts = PruneOptions { margin: 100, ..PruneOptions::auto() };
+    let opts = PruneOptions {
+        margin: 100,
+        ..PruneOptions::auto()
+    };
     let pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
     let got = render_view_pruned(&backend, &cam, &refs, &inv, 16, Some(&pruner), &|_, _| {})?;
     let stats = got.prune.clone().expect("stats");
     assert!(stats.uncovered > 0, "{stats:?}");
-    assert!(got.image.data.iter().chain(&got.confidence).chain(&got.coverage).all(|x| x.is_finite()));
+    assert!(got
+        .image
+        .data
+        .iter()
+        .chain(&got.confidence)
+        .chain(&got.coverage)
+        .all(|x| x.is_finite()));
     assert!(got.depth.iter().all(|x| !x.is_nan()));
     // The skipped tiles hold exactly what the network gives there (the kept planes, with a
     // margin covering every plane, leaves the others equal too).
     let want = render_view(&backend, &cam, &refs, &inv, 16, &|_, _| {})?;
-    let diff = got.image.data.iter().zip(&want.image.data).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    let diff = got
+        .image
+        .data
+        .iter()
+        .zip(&want.image.data)
+        .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
     assert!(diff < 1e-5, "max difference {diff}");
     let (w, tile) = (192usize, 16usize);
     let mut skipped_pixels = 0;
@@ -286,7 +425,10 @@ fn prune_skips_uncovered_tiles_with_the_networks_own_output() -> TestResult {
             if !pruner.covered(x / tile * tile, y / tile * tile, tile) {
                 skipped_pixels += 1;
                 let p = y * w + x;
-                assert_eq!(got.image.data[p * 3..p * 3 + 3], want.image.data[p * 3..p * 3 + 3]);
+                assert_eq!(
+                    got.image.data[p * 3..p * 3 + 3],
+                    want.image.data[p * 3..p * 3 + 3]
+                );
                 assert_eq!(got.coverage[p], 0.0);
             }
         }
@@ -304,15 +446,23 @@ fn prune_views_prefer_views_that_see_the_target() {
     let (chosen, ranks) = rank_views(cams, &cams[t], k, Some(t), s.near, s.far);
     assert_eq!(chosen.len(), k);
     assert!(!chosen.contains(&t));
-    let useful = ranks.iter().filter(|r| r.coverage >= MIN_VIEW_COVERAGE).count();
+    let useful = ranks
+        .iter()
+        .filter(|r| r.coverage >= MIN_VIEW_COVERAGE)
+        .count();
     for &c in &chosen {
         let r = ranks.iter().find(|r| r.index == c).expect("ranked");
-        assert!(r.coverage >= MIN_VIEW_COVERAGE || useful < k, "view {c} sees {:.2}", r.coverage);
+        assert!(
+            r.coverage >= MIN_VIEW_COVERAGE || useful < k,
+            "view {c} sees {:.2}",
+            r.coverage
+        );
     }
     // A view looking the opposite way sees nothing of the frustum.
     let mut back = cams[t];
     back.pose.rotation = glam::DMat3::from_rotation_y(std::f64::consts::PI) * back.pose.rotation;
-    back.pose.translation = glam::DMat3::from_rotation_y(std::f64::consts::PI) * back.pose.translation;
+    back.pose.translation =
+        glam::DMat3::from_rotation_y(std::f64::consts::PI) * back.pose.translation;
     assert_eq!(view_coverage(&cams[t], &back, s.near, s.far), 0.0);
     assert!(view_coverage(&cams[t], &cams[t], s.near, s.far) > 0.99);
 }
@@ -332,7 +482,10 @@ fn prune_calibrate() {
             let s = scene(4242 + i, Rig::Mixed);
             let target = s.cameras.len() / 2;
             let inv = inverse_depths(s.near, s.far, planes);
-            let (w, h) = (s.images[target].width as usize, s.images[target].height as usize);
+            let (w, h) = (
+                s.images[target].width as usize,
+                s.images[target].height as usize,
+            );
             for y0 in (0..h).step_by(tile) {
                 for x0 in (0..w).step_by(tile) {
                     let (mut lo, mut hi) = (planes, 0);
@@ -346,7 +499,11 @@ fn prune_calibrate() {
                         }
                     }
                     for (m, u) in union.iter_mut().enumerate() {
-                        *u += (0..planes).filter(|&z| (z.saturating_sub(m)..=(z + m).min(planes - 1)).any(|q| used[q])).count();
+                        *u += (0..planes)
+                            .filter(|&z| {
+                                (z.saturating_sub(m)..=(z + m).min(planes - 1)).any(|q| used[q])
+                            })
+                            .count();
                     }
                     k += hi + 1 - lo;
                     k3 += (hi + 3).min(planes - 1) + 1 - lo.saturating_sub(3);
@@ -355,7 +512,10 @@ fn prune_calibrate() {
                 }
             }
         }
-        println!("tile {tile}: ground-truth union with margin 0..3 keeps {:?}%", union.map(|u| (1000 * u / t) as f64 / 10.0));
+        println!(
+            "tile {tile}: ground-truth union with margin 0..3 keeps {:?}%",
+            union.map(|u| (1000 * u / t) as f64 / 10.0)
+        );
         println!("tile {tile}: ground-truth hull keeps {:.1}%, with margin 3 {:.1}%; widths by eighths {hist:?}", 100.0 * k as f64 / t as f64, 100.0 * k3 as f64 / t as f64);
     }
     let grid: Vec<(f32, f32, usize, usize, usize)> = std::env::var("PRUNE_GRID")
@@ -364,15 +524,32 @@ fn prune_calibrate() {
             g.split(';')
                 .map(|t| {
                     let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
-                    (v[0] as f32, v[1] as f32, v[2] as usize, v[3] as usize, v.get(4).map_or(1, |&x| x as usize))
+                    (
+                        v[0] as f32,
+                        v[1] as f32,
+                        v[2] as usize,
+                        v[3] as usize,
+                        v.get(4).map_or(1, |&x| x as usize),
+                    )
                 })
                 .collect()
         })
         .unwrap_or_else(|| vec![(1.0, 0.1, 2, 1, 1)]);
     for tile in [64usize] {
         for &(mass, tol, stride, margin, window) in &grid {
-            let contrast = std::env::var("PRUNE_CONTRAST").ok().and_then(|c| c.parse().ok()).unwrap_or(DEFAULT_CONTRAST);
-            let opts = PruneOptions { mass, tolerance: tol, stride, margin, window, contrast, ..PruneOptions::auto() };
+            let contrast = std::env::var("PRUNE_CONTRAST")
+                .ok()
+                .and_then(|c| c.parse().ok())
+                .unwrap_or(DEFAULT_CONTRAST);
+            let opts = PruneOptions {
+                mass,
+                tolerance: tol,
+                stride,
+                margin,
+                window,
+                contrast,
+                ..PruneOptions::auto()
+            };
             let (mut m, mut n, mut k, mut t) = (0, 0, 0, 0);
             for i in 0..8u64 {
                 let s = scene(4242 + i, Rig::Mixed);
@@ -390,16 +567,20 @@ fn prune_calibrate() {
     }
 }
 
-
 /// Calibration against a trained network (`PRUNE_MODEL=path.safetensors`): per scene,
 /// the selection mass the plans leave out, the fraction of planes x pixels run, and the
 /// PSNR of the pruned and unpruned renders against the truth.
 #[test]
 #[ignore]
 fn prune_calibrate_network() -> TestResult {
-    let Ok(path) = std::env::var("PRUNE_MODEL") else { return Ok(()) };
+    let Ok(path) = std::env::var("PRUNE_MODEL") else {
+        return Ok(());
+    };
     let t = crate::weights::load(std::path::Path::new(&path), &Device::Cpu)?;
-    let backend = CandleBackend { model: t.model, device: Device::Cpu };
+    let backend = CandleBackend {
+        model: t.model,
+        device: Device::Cpu,
+    };
     let cfg = backend.config().clone();
     let grid: Vec<(f32, f32, usize, usize, usize)> = std::env::var("PRUNE_GRID")
         .ok()
@@ -407,32 +588,55 @@ fn prune_calibrate_network() -> TestResult {
             g.split(';')
                 .map(|t| {
                     let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
-                    (v[0] as f32, v[1] as f32, v[2] as usize, v[3] as usize, v.get(4).map_or(1, |&x| x as usize))
+                    (
+                        v[0] as f32,
+                        v[1] as f32,
+                        v[2] as usize,
+                        v[3] as usize,
+                        v.get(4).map_or(1, |&x| x as usize),
+                    )
                 })
                 .collect()
         })
         .unwrap_or_else(|| vec![(1.0, 0.05, 2, 1, 1)]);
-    let scenes: usize = std::env::var("PRUNE_SCENES").ok().and_then(|s| s.parse().ok()).unwrap_or(3);
+    let scenes: usize = std::env::var("PRUNE_SCENES")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(3);
     let mut sums = vec![(0.0f64, 0.0f64, 0.0f64, 0.0f64); grid.len()];
     let mut off_sum = 0.0;
     let mut mass_need = [0.0f64; 3];
     let mut npix = 0.0;
     for i in 0..scenes as u64 {
-        let s = generate(4242 + i, &SynthOptions { views: 10, width: 160, height: 120, rig: Rig::Mixed, supersample: 2, textures: Vec::new() })?;
+        let s = generate(
+            4242 + i,
+            &SynthOptions {
+                views: 10,
+                width: 160,
+                height: 120,
+                rig: Rig::Mixed,
+                supersample: 2,
+                textures: Vec::new(),
+            },
+        )?;
         let target = s.cameras.len() / 2;
         let src = nearest(&s.cameras, target, cfg.views);
         let pyr = pyramids(&s, &src, cfg.levels);
         let refs: Vec<&PyramidSource> = pyr.iter().collect();
         let inv = inverse_depths(s.near, s.far, cfg.planes);
         let cam = &s.cameras[target];
-        let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+        let (w, h) = (
+            cam.intrinsics.width as usize,
+            cam.intrinsics.height as usize,
+        );
         // Full selections per pixel.
         let d = inv.len();
         let mut sel_full = vec![0f32; w * h * d];
         let tile = 64;
         for y0 in (0..h).step_by(tile) {
             for x0 in (0..w).step_by(tile) {
-                let inputs = tile_inputs(&cfg, cam, &refs, &inv, (x0 as i64, y0 as i64), (tile, tile))?;
+                let inputs =
+                    tile_inputs(&cfg, cam, &refs, &inv, (x0 as i64, y0 as i64), (tile, tile))?;
                 let (_, sel) = backend.run(&inputs, d)?;
                 for y in y0..(y0 + tile).min(h) {
                     for x in x0..(x0 + tile).min(w) {
@@ -460,8 +664,19 @@ fn prune_calibrate_network() -> TestResult {
         let off_psnr = crate::metrics::psnr(&off.image, &s.images[target]);
         off_sum += off_psnr;
         for (g, &(mass, tol, stride, margin, window)) in grid.iter().enumerate() {
-            let contrast = std::env::var("PRUNE_CONTRAST").ok().and_then(|c| c.parse().ok()).unwrap_or(DEFAULT_CONTRAST);
-            let opts = PruneOptions { mass, tolerance: tol, stride, margin, window, contrast, ..PruneOptions::auto() };
+            let contrast = std::env::var("PRUNE_CONTRAST")
+                .ok()
+                .and_then(|c| c.parse().ok())
+                .unwrap_or(DEFAULT_CONTRAST);
+            let opts = PruneOptions {
+                mass,
+                tolerance: tol,
+                stride,
+                margin,
+                window,
+                contrast,
+                ..PruneOptions::auto()
+            };
             let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, &opts);
             let mut lost = 0.0f64;
             for y0 in (0..h).step_by(tile) {
@@ -473,14 +688,18 @@ fn prune_calibrate_network() -> TestResult {
                         };
                         for y in b.y0..(b.y0 + b.size).min(h) {
                             for x in b.x0..(b.x0 + b.size).min(w) {
-                                let m: f32 = (0..d).filter(|z| !keep.contains(z)).map(|z| sel_full[(y * w + x) * d + z]).sum();
+                                let m: f32 = (0..d)
+                                    .filter(|z| !keep.contains(z))
+                                    .map(|z| sel_full[(y * w + x) * d + z])
+                                    .sum();
                                 lost += m as f64;
                             }
                         }
                     }
                 }
             }
-            let r = render_view_pruned(&backend, cam, &refs, &inv, tile, Some(&pruner), &|_, _| {})?;
+            let r =
+                render_view_pruned(&backend, cam, &refs, &inv, tile, Some(&pruner), &|_, _| {})?;
             let p = crate::metrics::psnr(&r.image, &s.images[target]);
             let vs_off = crate::metrics::psnr(&r.image, &off.image);
             let st = r.prune.expect("stats");
@@ -492,15 +711,23 @@ fn prune_calibrate_network() -> TestResult {
         }
     }
     let n = scenes as f64;
-    println!("network needs planes for 90/95/99% mass: {:?} of {}", mass_need.map(|m| (m / npix * 10.0).round() / 10.0), cfg.planes);
+    println!(
+        "network needs planes for 90/95/99% mass: {:?} of {}",
+        mass_need.map(|m| (m / npix * 10.0).round() / 10.0),
+        cfg.planes
+    );
     println!("off mean PSNR {:.2}", off_sum / n);
     for (g, s) in grid.iter().zip(&sums) {
-        println!("{g:?}: PSNR change {:+.3} dB, planes {:.1}%, lost mass {:.3}, vs off {:.1} dB", s.0 / n, 100.0 * s.1 / n, s.2 / n, s.3 / n);
+        println!(
+            "{g:?}: PSNR change {:+.3} dB, planes {:.1}%, lost mass {:.3}, vs off {:.1} dB",
+            s.0 / n,
+            100.0 * s.1 / n,
+            s.2 / n,
+            s.3 / n
+        );
     }
     Ok(())
 }
-
-
 
 /// Timing of one network call per block size and plane count (for the split cost model).
 #[test]
@@ -508,8 +735,21 @@ fn prune_calibrate_network() -> TestResult {
 fn prune_time_blocks() -> TestResult {
     let cfg = Config::tiny();
     let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 1)?;
-    let backend = CandleBackend { model: t.model, device: Device::Cpu };
-    let s = generate(3, &SynthOptions { views: 6, width: 128, height: 128, rig: Rig::Forward, supersample: 1, textures: Vec::new() })?;
+    let backend = CandleBackend {
+        model: t.model,
+        device: Device::Cpu,
+    };
+    let s = generate(
+        3,
+        &SynthOptions {
+            views: 6,
+            width: 128,
+            height: 128,
+            rig: Rig::Forward,
+            supersample: 1,
+            textures: Vec::new(),
+        },
+    )?;
     let src = nearest(&s.cameras, 0, cfg.views);
     let pyr = pyramids(&s, &src, cfg.levels);
     let refs: Vec<&PyramidSource> = pyr.iter().collect();
@@ -521,12 +761,132 @@ fn prune_time_blocks() -> TestResult {
             let mut warp = 0.0;
             for r in 0..reps {
                 let w0 = std::time::Instant::now();
-                let inputs = tile_inputs(&cfg, &s.cameras[0], &refs, &inv[..planes], ((r % 2 * size) as i64, 0), (size, size))?;
+                let inputs = tile_inputs(
+                    &cfg,
+                    &s.cameras[0],
+                    &refs,
+                    &inv[..planes],
+                    ((r % 2 * size) as i64, 0),
+                    (size, size),
+                )?;
                 warp += w0.elapsed().as_secs_f64();
                 backend.run(&inputs, planes)?;
             }
             let per = t0.elapsed().as_secs_f64() / reps as f64;
             println!("block {size:2} planes {planes:2}: {:.2} ms per call ({:.2} ms warping), {:.1} us per plane x pixel", per * 1e3, warp / reps as f64 * 1e3, per * 1e6 / (planes * size * size) as f64 * 1e3 / 1e3);
+        }
+    }
+    Ok(())
+}
+
+/// A crop of a real scene's held-out view, rendered off and pruned
+/// (`PRUNE_MODEL=... PRUNE_SCENE=dir PRUNE_CROP=target,x0,y0,size`).
+#[test]
+#[ignore]
+fn prune_real_crop() -> TestResult {
+    let (Ok(path), Ok(dir), Ok(crop)) = (
+        std::env::var("PRUNE_MODEL"),
+        std::env::var("PRUNE_SCENE"),
+        std::env::var("PRUNE_CROP"),
+    ) else {
+        return Ok(());
+    };
+    let c: Vec<usize> = crop.split(',').map(|x| x.parse().unwrap()).collect();
+    let (t, x0, y0, size) = (c[0], c[1], c[2], c[3]);
+    let tr = crate::weights::load(std::path::Path::new(&path), &Device::Cpu)?;
+    let backend = CandleBackend {
+        model: tr.model,
+        device: Device::Cpu,
+    };
+    let cfg = backend.config().clone();
+    let scene = crate::scene::Scene::load(std::path::Path::new(&dir), &Default::default())?;
+    let truth = scene.load_image(t)?;
+    let mut cam = scene.views[t].camera;
+    cam.intrinsics.cx -= x0 as f64;
+    cam.intrinsics.cy -= y0 as f64;
+    cam.intrinsics.width = size as u32;
+    cam.intrinsics.height = size as u32;
+    let mut want = crate::imageio::RgbImage::new(size as u32, size as u32);
+    for y in 0..size {
+        for x in 0..size {
+            let p = truth.pixel((x0 + x) as u32, (y0 + y) as u32);
+            want.data[(y * size + x) * 3..(y * size + x) * 3 + 3].copy_from_slice(&p);
+        }
+    }
+    let inv = inverse_depths(scene.near, scene.far, cfg.planes);
+    let grid: Vec<(f32, f32, usize, usize, f32)> = std::env::var("PRUNE_GRID")
+        .ok()
+        .map(|g| {
+            g.split(';')
+                .map(|t| {
+                    let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
+                    (
+                        v[0] as f32,
+                        v[1] as f32,
+                        v[2] as usize,
+                        v[3] as usize,
+                        v.get(4).map_or(DEFAULT_CONTRAST, |&x| x as f32),
+                    )
+                })
+                .collect()
+        })
+        .unwrap_or_else(|| {
+            vec![(
+                DEFAULT_MASS,
+                DEFAULT_TOLERANCE,
+                DEFAULT_MARGIN,
+                DEFAULT_WINDOW,
+                DEFAULT_CONTRAST,
+            )]
+        });
+    for ranked in [false, true] {
+        let src = if ranked {
+            let cams: Vec<Camera> = scene.views.iter().map(|v| v.camera).collect();
+            rank_views(&cams, &cam, cfg.views, Some(t), scene.near, scene.far).0
+        } else {
+            scene.nearest_views(t, cfg.views)
+        };
+        let pyr: Vec<PyramidSource> = src
+            .iter()
+            .map(|&i| {
+                PyramidSource::new(
+                    &scene.views[i].camera,
+                    &scene.load_image(i).unwrap(),
+                    cfg.levels,
+                )
+            })
+            .collect();
+        let refs: Vec<&PyramidSource> = pyr.iter().collect();
+        let t0 = std::time::Instant::now();
+        let off = render_view(&backend, &cam, &refs, &inv, 64, &|_, _| {})?;
+        let toff = t0.elapsed().as_secs_f64();
+        println!(
+            "sources {src:?}: off {:.2} dB {toff:.2} s",
+            crate::metrics::psnr(&off.image, &want)
+        );
+        for &(mass, tolerance, margin, window, contrast) in &grid {
+            let opts = PruneOptions {
+                mass,
+                tolerance,
+                margin,
+                window,
+                contrast,
+                ..PruneOptions::auto()
+            };
+            let range = plane_range_from_points(&cam, &scene.points, &inv);
+            let pruner = Pruner::new(&cfg, &cam, &refs, &inv, range, &opts);
+            let t0 = std::time::Instant::now();
+            let r = render_view_pruned(&backend, &cam, &refs, &inv, 64, Some(&pruner), &|_, _| {})?;
+            let st = r.prune.clone().unwrap();
+            println!(
+                "  {:?}: {:.2} dB {:.2} s ({:.1}x), planes {:.1}%, coarse {:.2} s",
+                (mass, tolerance, margin, window, contrast),
+                crate::metrics::psnr(&r.image, &want),
+                t0.elapsed().as_secs_f64(),
+                toff / t0.elapsed().as_secs_f64(),
+                100.0 * st.planes_fraction(),
+                st.coarse_seconds
+            );
         }
     }
     Ok(())

@@ -26,19 +26,30 @@ pub struct ViewRank {
 /// infinite), that land inside `source`'s image in front of it.
 pub fn view_coverage(target: &Camera, source: &Camera, near: f64, far: f64) -> f64 {
     let rel = target.pose.relative_to(&source.pose);
-    let (tw, th) = (target.intrinsics.width as f64, target.intrinsics.height as f64);
-    let (sw, sh) = (source.intrinsics.width as f64, source.intrinsics.height as f64);
+    let (tw, th) = (
+        target.intrinsics.width as f64,
+        target.intrinsics.height as f64,
+    );
+    let (sw, sh) = (
+        source.intrinsics.width as f64,
+        source.intrinsics.height as f64,
+    );
     let mut seen = 0usize;
     let inv = inverse_depths(near, far, DEPTHS);
     for &rho in &inv {
         let h = plane_homography(&rel, rho);
         for j in 0..GRID {
             for i in 0..GRID {
-                let uv = DVec2::new((i as f64 + 0.5) * tw / GRID as f64, (j as f64 + 0.5) * th / GRID as f64);
+                let uv = DVec2::new(
+                    (i as f64 + 0.5) * tw / GRID as f64,
+                    (j as f64 + 0.5) * th / GRID as f64,
+                );
                 let n = target.intrinsics.unproject_pixel(uv);
                 let q = apply_h(&h, n.x, n.y);
                 if q.z > 1e-9 * q.length() {
-                    let p = source.intrinsics.project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
+                    let p = source
+                        .intrinsics
+                        .project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
                     if p.x >= 0.0 && p.y >= 0.0 && p.x < sw && p.y < sh {
                         seen += 1;
                     }
@@ -74,9 +85,16 @@ pub fn rank_views(
             coverage: view_coverage(target, cam, near, far),
         })
         .collect();
-    ranks.sort_by(|a, b| a.distance.total_cmp(&b.distance).then(a.index.cmp(&b.index)));
+    ranks.sort_by(|a, b| {
+        a.distance
+            .total_cmp(&b.distance)
+            .then(a.index.cmp(&b.index))
+    });
     let key = |r: &ViewRank| r.distance / r.coverage.max(1e-9);
-    let mut useful: Vec<&ViewRank> = ranks.iter().filter(|r| r.coverage >= MIN_VIEW_COVERAGE).collect();
+    let mut useful: Vec<&ViewRank> = ranks
+        .iter()
+        .filter(|r| r.coverage >= MIN_VIEW_COVERAGE)
+        .collect();
     useful.sort_by(|a, b| key(a).total_cmp(&key(b)).then(a.index.cmp(&b.index)));
     let mut chosen: Vec<&ViewRank> = useful.into_iter().take(k).collect();
     for r in &ranks {
@@ -87,6 +105,10 @@ pub fn rank_views(
             chosen.push(r);
         }
     }
-    chosen.sort_by(|a, b| a.distance.total_cmp(&b.distance).then(a.index.cmp(&b.index)));
+    chosen.sort_by(|a, b| {
+        a.distance
+            .total_cmp(&b.distance)
+            .then(a.index.cmp(&b.index))
+    });
     (chosen.iter().map(|r| r.index).collect(), ranks)
 }

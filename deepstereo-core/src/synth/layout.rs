@@ -77,7 +77,11 @@ pub(crate) fn build(rng: &mut Rng, rig: &RigLayout, photos: &[RgbImage]) -> Vec<
     let light = Light {
         dir: DVec3::new(rng.sym(0.7), -rng.range(0.3, 1.0), -rng.range(0.2, 1.0)).normalize(),
         ambient: rng.range(AMBIENT.0, AMBIENT.1),
-        tint: [1.0 + rng.sym(TINT), 1.0 + rng.sym(TINT), 1.0 + rng.sym(TINT)],
+        tint: [
+            1.0 + rng.sym(TINT),
+            1.0 + rng.sym(TINT),
+            1.0 + rng.sym(TINT),
+        ],
     };
     let mut out = Vec::new();
     let zb = d0 * rng.range(BACKDROP_RATIO.0, BACKDROP_RATIO.1);
@@ -162,7 +166,12 @@ fn finish(rng: &mut Rng, g: Geometry, role: Role, light: &Light, photos: &[RgbIm
 /// Whether every corner is well in front of every camera and well before the backdrop.
 fn clear(rig: &RigLayout, g: &Geometry, backdrop_z: f64) -> bool {
     let (u, v) = (g.axis_u * g.half_u, g.axis_v * g.half_v);
-    let corners = [g.centre - u - v, g.centre + u - v, g.centre + u + v, g.centre - u + v];
+    let corners = [
+        g.centre - u - v,
+        g.centre + u - v,
+        g.centre + u + v,
+        g.centre - u + v,
+    ];
     corners.iter().all(|p| {
         p.z < 0.5 * backdrop_z
             && rig
@@ -173,10 +182,18 @@ fn clear(rig: &RigLayout, g: &Geometry, backdrop_z: f64) -> bool {
 }
 
 /// A random camera, a random point of its view (with a margin) and its world axes.
-fn view_point<'a>(rng: &mut Rng, rig: &'a RigLayout, margin: f64, depth: f64) -> (DVec3, DMat3, &'a Camera) {
+fn view_point<'a>(
+    rng: &mut Rng,
+    rig: &'a RigLayout,
+    margin: f64,
+    depth: f64,
+) -> (DVec3, DMat3, &'a Camera) {
     let cam = &rig.cameras[rng.below(rig.cameras.len())];
     let (w, h) = (cam.intrinsics.width as f64, cam.intrinsics.height as f64);
-    let uv = DVec2::new(rng.range(-margin, 1.0 + margin) * w, rng.range(-margin, 1.0 + margin) * h);
+    let uv = DVec2::new(
+        rng.range(-margin, 1.0 + margin) * w,
+        rng.range(-margin, 1.0 + margin) * h,
+    );
     (cam.unproject(uv, depth), cam.pose.rotation.transpose(), cam)
 }
 
@@ -215,7 +232,14 @@ fn view_panel(rng: &mut Rng, rig: &RigLayout) -> Geometry {
     let (axis_u, axis_v) = oriented_axes(rng, -r_c2w.z_axis);
     let half = z * (k.width as f64 / k.fx) * rng.range(PANEL_SIZE.0, PANEL_SIZE.1);
     let aspect = rng.range(PANEL_ASPECT.0, PANEL_ASPECT.1);
-    Geometry { centre, axis_u, axis_v, half_u: half, half_v: half * aspect, px_per_unit: k.fx / z }
+    Geometry {
+        centre,
+        axis_u,
+        axis_v,
+        half_u: half,
+        half_v: half * aspect,
+        px_per_unit: k.fx / z,
+    }
 }
 
 /// A rectangle in the ring rig's central cluster, facing one of the cameras.
@@ -227,7 +251,14 @@ fn cluster_panel(rng: &mut Rng, rig: &RigLayout, focus: DVec3, radius: f64) -> G
     let half = radius * rng.range(0.15, 0.5);
     let aspect = rng.range(PANEL_ASPECT.0, PANEL_ASPECT.1);
     let z = cam.pose.transform_point(centre).z.max(rig.d0);
-    Geometry { centre, axis_u, axis_v, half_u: half, half_v: half * aspect, px_per_unit: cam.intrinsics.fx / z }
+    Geometry {
+        centre,
+        axis_u,
+        axis_v,
+        half_u: half,
+        half_v: half * aspect,
+        px_per_unit: cam.intrinsics.fx / z,
+    }
 }
 
 /// A pole (vertical) or bar (horizontal) a few pixels wide.
@@ -246,5 +277,12 @@ fn thin_structure(rng: &mut Rng, rig: &RigLayout) -> Geometry {
     let normal = DMat3::from_axis_angle(axis_u, rng.sym(30f64.to_radians())) * -fwd;
     let axis_v = normal.cross(axis_u).normalize();
     let half_w = 0.5 * z * rng.range(THIN_WIDTH_PX.0, THIN_WIDTH_PX.1) / k.fx;
-    Geometry { centre, axis_u, axis_v, half_u: half_len, half_v: half_w, px_per_unit: k.fx / z }
+    Geometry {
+        centre,
+        axis_u,
+        axis_v,
+        half_u: half_len,
+        half_v: half_w,
+        px_per_unit: k.fx / z,
+    }
 }

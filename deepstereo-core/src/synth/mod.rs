@@ -26,14 +26,16 @@ mod noise;
 mod raytrace;
 mod rig;
 mod rng;
-mod texture;
-mod write;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]
 mod tests_sweep;
+mod texture;
+mod write;
 
-pub use write::{contact_sheet, load_textures, scene_dir, write_scene, write_scenes, write_scenes_progress};
+pub use write::{
+    contact_sheet, load_textures, scene_dir, write_scene, write_scenes, write_scenes_progress,
+};
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
@@ -120,7 +122,14 @@ pub struct SynthOptions {
 
 impl Default for SynthOptions {
     fn default() -> Self {
-        Self { views: 10, width: 160, height: 120, rig: Rig::Mixed, supersample: 3, textures: Vec::new() }
+        Self {
+            views: 10,
+            width: 160,
+            height: 120,
+            rig: Rig::Mixed,
+            supersample: 3,
+            textures: Vec::new(),
+        }
     }
 }
 
@@ -128,9 +137,16 @@ impl SynthOptions {
     /// Checks the options, with a message naming the bad one.
     pub fn validate(&self) -> Result<()> {
         if self.views < MIN_VIEWS {
-            return Err(Error::Invalid(format!("synth: need at least {MIN_VIEWS} views per scene, got {}", self.views)));
+            return Err(Error::Invalid(format!(
+                "synth: need at least {MIN_VIEWS} views per scene, got {}",
+                self.views
+            )));
         }
-        if self.width == 0 || self.height == 0 || self.width > MAX_IMAGE_SIDE || self.height > MAX_IMAGE_SIDE {
+        if self.width == 0
+            || self.height == 0
+            || self.width > MAX_IMAGE_SIDE
+            || self.height > MAX_IMAGE_SIDE
+        {
             return Err(Error::Invalid(format!(
                 "synth: image size must be between 1x1 and {MAX_IMAGE_SIDE}x{MAX_IMAGE_SIDE}, got {}x{}",
                 self.width, self.height
@@ -142,7 +158,11 @@ impl SynthOptions {
                 self.supersample
             )));
         }
-        if let Some(i) = self.textures.iter().position(|t| t.width == 0 || t.height == 0) {
+        if let Some(i) = self
+            .textures
+            .iter()
+            .position(|t| t.width == 0 || t.height == 0)
+        {
             return Err(Error::Invalid(format!("synth: texture {i} is empty")));
         }
         Ok(())
@@ -166,7 +186,13 @@ pub struct SynthScene {
 
 /// The seed of scene `index` of a set with base seed `base` (a SplitMix64-style hash).
 pub fn scene_seed(base: u64, index: usize) -> u64 {
-    mix64(base ^ mix64((index as u64).wrapping_add(1).wrapping_mul(0xD1B5_4A32_D192_ED03)))
+    mix64(
+        base ^ mix64(
+            (index as u64)
+                .wrapping_add(1)
+                .wrapping_mul(0xD1B5_4A32_D192_ED03),
+        ),
+    )
 }
 
 /// Generates one scene; the same seed and options give a bit-identical scene.
@@ -187,7 +213,9 @@ pub fn generate(seed: u64, opts: &SynthOptions) -> Result<SynthScene> {
         .cameras
         .par_iter()
         .zip(gains.par_iter())
-        .map(|(cam, &gain)| raytrace::render(cam, &surfaces, opts.supersample, gain, &opts.textures))
+        .map(|(cam, &gain)| {
+            raytrace::render(cam, &surfaces, opts.supersample, gain, &opts.textures)
+        })
         .collect::<Result<_>>()?;
     let (images, depths): (Vec<_>, Vec<_>) = rendered.into_iter().unzip();
     let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
@@ -196,6 +224,15 @@ pub fn generate(seed: u64, opts: &SynthOptions) -> Result<SynthScene> {
         hi = hi.max(z as f64);
     }
     let (near, far) = (lo * NEAR_MARGIN, hi * FAR_MARGIN);
-    crate::scene::check_bounds(near, far).map_err(|m| Error::Invalid(format!("synth: seed {seed}: {m}")))?;
-    Ok(SynthScene { cameras: layout.cameras, images, depths, near, far, rig, seed })
+    crate::scene::check_bounds(near, far)
+        .map_err(|m| Error::Invalid(format!("synth: seed {seed}: {m}")))?;
+    Ok(SynthScene {
+        cameras: layout.cameras,
+        images,
+        depths,
+        near,
+        far,
+        rig,
+        seed,
+    })
 }

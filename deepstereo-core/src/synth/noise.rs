@@ -46,7 +46,8 @@ fn hash2(x: i32, y: i32, seed: u32) -> u32 {
 fn value_noise(x: f32, y: f32, seed: u32) -> f32 {
     let ((fx, ix), (fy, iy)) = (floor_i(x), floor_i(y));
     let (tx, ty) = (quintic(x - fx), quintic(y - fy));
-    let l = |dx: i32, dy: i32| (hash2(ix + dx, iy + dy, seed) >> 8) as f32 * (2.0 / 16_777_216.0) - 1.0;
+    let l =
+        |dx: i32, dy: i32| (hash2(ix + dx, iy + dy, seed) >> 8) as f32 * (2.0 / 16_777_216.0) - 1.0;
     let a = l(0, 0) + (l(1, 0) - l(0, 0)) * tx;
     let b = l(0, 1) + (l(1, 1) - l(0, 1)) * tx;
     a + (b - a) * ty
@@ -56,7 +57,16 @@ fn value_noise(x: f32, y: f32, seed: u32) -> f32 {
 #[inline]
 fn gradient_noise(x: f32, y: f32, seed: u32) -> f32 {
     const D: f32 = std::f32::consts::FRAC_1_SQRT_2;
-    const DIRS: [[f32; 2]; 8] = [[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0], [D, D], [-D, D], [D, -D], [-D, -D]];
+    const DIRS: [[f32; 2]; 8] = [
+        [1.0, 0.0],
+        [-1.0, 0.0],
+        [0.0, 1.0],
+        [0.0, -1.0],
+        [D, D],
+        [-D, D],
+        [D, -D],
+        [-D, -D],
+    ];
     let ((fx, ix), (fy, iy)) = (floor_i(x), floor_i(y));
     let (rx, ry) = (x - fx, y - fy);
     let g = |dx: i32, dy: i32| {
@@ -98,14 +108,22 @@ impl Fbm {
             if w > 0.0 {
                 let (ox, oy) = (x * f + 17.31 * o as f32, y * f - 9.73 * o as f32);
                 let seed = self.seed.wrapping_add(o.wrapping_mul(0x9E37_79B9));
-                let n = if self.gradient { gradient_noise(ox, oy, seed) } else { value_noise(ox, oy, seed) };
+                let n = if self.gradient {
+                    gradient_noise(ox, oy, seed)
+                } else {
+                    value_noise(ox, oy, seed)
+                };
                 sum += amp * w * n;
             }
             norm += amp;
             amp *= self.gain;
             f *= LACUNARITY;
         }
-        if norm > 0.0 { sum / norm } else { 0.0 }
+        if norm > 0.0 {
+            sum / norm
+        } else {
+            0.0
+        }
     }
 }
 
@@ -120,7 +138,6 @@ pub(crate) fn box_square(x: f32, w: f32, duty: f32) -> f32 {
     let (fa, fb) = (floor_i(a).0, floor_i(b).0);
     (((fb - fa) * duty + (b - fb).min(duty) - (a - fa).min(duty)) / w).clamp(0.0, 1.0)
 }
-
 
 #[cfg(test)]
 mod tests {

@@ -43,10 +43,20 @@ fn localize<'a>(cam: &Camera, s: &'a Surface) -> Option<Local<'a>> {
     let (u, v, n) = (r * s.axis_u, r * s.axis_v, r * s.normal);
     let k = &cam.intrinsics;
     let (w, h) = (k.width as f64, k.height as f64);
-    let full = [f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY];
+    let full = [
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+    ];
     // Rays through the image have |d| <= d_max, and hit the plane at distance >= |n . c|.
     let corner = |u: f64, v: f64| k.unproject_pixel(DVec2::new(u, v)).length_squared();
-    let d_max = (1.0 + corner(0.0, 0.0).max(corner(w, 0.0)).max(corner(0.0, h)).max(corner(w, h))).sqrt();
+    let d_max = (1.0
+        + corner(0.0, 0.0)
+            .max(corner(w, 0.0))
+            .max(corner(0.0, h))
+            .max(corner(w, h)))
+    .sqrt();
     let mut zmin = n.dot(c).abs() / d_max;
     let bbox = if s.half_u.is_finite() && s.half_v.is_finite() {
         let (du, dv) = (u * s.half_u, v * s.half_v);
@@ -59,12 +69,22 @@ fn localize<'a>(cam: &Camera, s: &'a Surface) -> Option<Local<'a>> {
         if corners.iter().any(|p| p.z <= BEHIND_EPS) {
             full
         } else {
-            let mut b = [f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY];
+            let mut b = [
+                f64::INFINITY,
+                f64::NEG_INFINITY,
+                f64::INFINITY,
+                f64::NEG_INFINITY,
+            ];
             for p in corners {
                 let (x, y) = (k.fx * p.x / p.z + k.cx, k.fy * p.y / p.z + k.cy);
                 b = [b[0].min(x), b[1].max(x), b[2].min(y), b[3].max(y)];
             }
-            [b[0] - BOX_MARGIN, b[1] + BOX_MARGIN, b[2] - BOX_MARGIN, b[3] + BOX_MARGIN]
+            [
+                b[0] - BOX_MARGIN,
+                b[1] + BOX_MARGIN,
+                b[2] - BOX_MARGIN,
+                b[3] + BOX_MARGIN,
+            ]
         }
     } else {
         full
@@ -72,7 +92,18 @@ fn localize<'a>(cam: &Camera, s: &'a Surface) -> Option<Local<'a>> {
     if bbox[1] < 0.0 || bbox[0] > w || bbox[3] < 0.0 || bbox[2] > h {
         return None;
     }
-    Some(Local { c, u, v, n, nc: n.dot(c), hu: s.half_u, hv: s.half_v, bbox, zmin, surf: s })
+    Some(Local {
+        c,
+        u,
+        v,
+        n,
+        nc: n.dot(c),
+        hu: s.half_u,
+        hv: s.half_v,
+        bbox,
+        zmin,
+        surf: s,
+    })
 }
 
 /// Nearest hit of the ray `d = (x, y, 1)` among `locals[cands]` (sorted by `zmin`): its
@@ -135,17 +166,28 @@ pub(crate) fn render(
         let n = k.unproject_pixel(DVec2::new(x, y));
         DVec3::new(n.x, n.y, 1.0)
     };
-    let missed = |px: usize, py: usize| Error::Invalid(format!("synth: a ray through pixel ({px}, {py}) hit nothing"));
+    let missed = |px: usize, py: usize| {
+        Error::Invalid(format!(
+            "synth: a ray through pixel ({px}, {py}) hit nothing"
+        ))
+    };
     for py in 0..h {
         let (y0, y1) = (py as f64, py as f64 + 1.0);
         row.clear();
-        row.extend((0..locals.len()).filter(|&i| locals[i].bbox[2] <= y1 && locals[i].bbox[3] >= y0));
+        row.extend(
+            (0..locals.len()).filter(|&i| locals[i].bbox[2] <= y1 && locals[i].bbox[3] >= y0),
+        );
         for px in 0..w {
             let (x0, x1) = (px as f64, px as f64 + 1.0);
             cands.clear();
-            cands.extend(row.iter().copied().filter(|&i| locals[i].bbox[0] <= x1 && locals[i].bbox[1] >= x0));
+            cands.extend(
+                row.iter()
+                    .copied()
+                    .filter(|&i| locals[i].bbox[0] <= x1 && locals[i].bbox[1] >= x0),
+            );
             if ss.is_multiple_of(2) {
-                let (t, _) = trace(ray(x0 + 0.5, y0 + 0.5), &locals, &cands).ok_or_else(|| missed(px, py))?;
+                let (t, _) = trace(ray(x0 + 0.5, y0 + 0.5), &locals, &cands)
+                    .ok_or_else(|| missed(px, py))?;
                 depth[py * w + px] = t as f32;
             }
             let mut acc = [0f32; 3];
@@ -173,7 +215,11 @@ pub(crate) fn render(
                 }
             }
             for &(i, sum, n) in &groups {
-                add(&mut acc, shade(sum / n as f64, &locals[i], pixel_angle, photos), n as f32);
+                add(
+                    &mut acc,
+                    shade(sum / n as f64, &locals[i], pixel_angle, photos),
+                    n as f32,
+                );
             }
             let o = (py * w + px) * 3;
             for (out, a) in image.data[o..o + 3].iter_mut().zip(acc) {

@@ -104,7 +104,13 @@ fn frame_intrinsics(rng: &mut Rng, k: &Intrinsics) -> Intrinsics {
 
 /// Builds the cameras of a concrete rig (the caller resolves [`Rig::Mixed`]; here it
 /// falls back to handheld).
-pub(crate) fn build(rig: Rig, rng: &mut Rng, views: usize, width: u32, height: u32) -> Result<RigLayout> {
+pub(crate) fn build(
+    rig: Rig,
+    rng: &mut Rng,
+    views: usize,
+    width: u32,
+    height: u32,
+) -> Result<RigLayout> {
     let base = base_intrinsics(rng, width, height);
     let disp = rng.range(NEIGHBOUR_DISPARITY.0, NEIGHBOUR_DISPARITY.1) * width.max(height) as f64;
     let f = base.fx;
@@ -119,7 +125,11 @@ pub(crate) fn build(rig: Rig, rng: &mut Rng, views: usize, width: u32, height: u
     for (i, (centre, r_c2w)) in poses.into_iter().enumerate() {
         let intrinsics = frame_intrinsics(rng, &base);
         let pose = CameraToWorld::new_checked(r_c2w, centre)
-            .map_err(|m| Error::Invalid(format!("synth: {rig} rig made a bad pose for view {i}: {m}")))?
+            .map_err(|m| {
+                Error::Invalid(format!(
+                    "synth: {rig} rig made a bad pose for view {i}: {m}"
+                ))
+            })?
             .inverse();
         let cam = Camera { intrinsics, pose };
         check_rays(&cam).map_err(|m| Error::Invalid(format!("synth: {rig} rig, view {i}: {m}")))?;
@@ -134,11 +144,19 @@ fn check_rays(cam: &Camera) -> std::result::Result<(), String> {
     let (w, h) = (k.width as f64, k.height as f64);
     let r_c2w = cam.pose.rotation.transpose();
     let min_z = deg(90.0 - MAX_RAY_TILT_DEG).sin();
-    for uv in [DVec2::ZERO, DVec2::new(w, 0.0), DVec2::new(0.0, h), DVec2::new(w, h)] {
+    for uv in [
+        DVec2::ZERO,
+        DVec2::new(w, 0.0),
+        DVec2::new(0.0, h),
+        DVec2::new(w, h),
+    ] {
         let n = k.unproject_pixel(uv);
         let d = (r_c2w * DVec3::new(n.x, n.y, 1.0)).normalize();
         if d.z < min_z {
-            return Err(format!("a corner ray points {:.1} deg away from +z", d.z.acos().to_degrees()));
+            return Err(format!(
+                "a corner ray points {:.1} deg away from +z",
+                d.z.acos().to_degrees()
+            ));
         }
     }
     Ok(())
@@ -230,7 +248,11 @@ fn handheld(rng: &mut Rng, views: usize, f: f64, disp: f64) -> Poses {
     let b = d0 * disp / f;
     let lim = HANDHELD_ANGLES_DEG.map(deg);
     let mut heading = rng.range(0.0, std::f64::consts::TAU);
-    let mut angles = [rng.sym(lim[0] * 0.6), rng.sym(lim[1] * 0.6), rng.sym(lim[2] * 0.6)];
+    let mut angles = [
+        rng.sym(lim[0] * 0.6),
+        rng.sym(lim[1] * 0.6),
+        rng.sym(lim[2] * 0.6),
+    ];
     let mut pos = DVec3::ZERO;
     let mut poses = Vec::with_capacity(views);
     for _ in 0..views {

@@ -26,7 +26,9 @@ pub struct Rng {
 
 impl Rng {
     pub fn new(seed: u64) -> Self {
-        Self { state: mix64(seed ^ GOLDEN_GAMMA) }
+        Self {
+            state: mix64(seed ^ GOLDEN_GAMMA),
+        }
     }
 
     #[inline]

@@ -11,7 +11,14 @@ use std::path::Path;
 pub(super) type TestResult = std::result::Result<(), Box<dyn std::error::Error>>;
 
 pub(super) fn small(rig: Rig, views: usize, width: u32, height: u32) -> SynthOptions {
-    SynthOptions { views, width, height, rig, supersample: 2, textures: Vec::new() }
+    SynthOptions {
+        views,
+        width,
+        height,
+        rig,
+        supersample: 2,
+        textures: Vec::new(),
+    }
 }
 
 /// Indices of the `k` cameras nearest to camera `t` by centre (ties by index).
@@ -52,11 +59,19 @@ fn synth_is_deterministic() -> TestResult {
     let opts = small(Rig::Mixed, 4, 48, 36);
     let (a, b) = (generate(11, &opts)?, generate(11, &opts)?);
     let bits = |s: &SynthScene| -> Vec<u32> {
-        s.images.iter().flat_map(|i| i.data.iter()).chain(s.depths.iter().flatten()).map(|v| v.to_bits()).collect()
+        s.images
+            .iter()
+            .flat_map(|i| i.data.iter())
+            .chain(s.depths.iter().flatten())
+            .map(|v| v.to_bits())
+            .collect()
     };
     assert_eq!(bits(&a), bits(&b));
     assert_eq!(a.cameras, b.cameras);
-    assert_eq!((a.near.to_bits(), a.far.to_bits(), a.rig), (b.near.to_bits(), b.far.to_bits(), b.rig));
+    assert_eq!(
+        (a.near.to_bits(), a.far.to_bits(), a.rig),
+        (b.near.to_bits(), b.far.to_bits(), b.rig)
+    );
     assert_ne!(bits(&a), bits(&generate(12, &opts)?));
     let (d1, d2) = (tempfile::tempdir()?, tempfile::tempdir()?);
     write_scene(d1.path(), &a)?;
@@ -65,7 +80,12 @@ fn synth_is_deterministic() -> TestResult {
     assert_eq!(files, files_under(d2.path()));
     assert_eq!(files.len(), 2 * opts.views + 1);
     for f in &files {
-        assert_eq!(std::fs::read(d1.path().join(f))?, std::fs::read(d2.path().join(f))?, "{}", f.display());
+        assert_eq!(
+            std::fs::read(d1.path().join(f))?,
+            std::fs::read(d2.path().join(f))?,
+            "{}",
+            f.display()
+        );
     }
     Ok(())
 }
@@ -88,15 +108,26 @@ fn synth_round_trips_through_the_nerf_reader() -> TestResult {
                 assert!((x - y).abs() < 1e-9, "{rig}: intrinsics {x} vs {y}");
             }
             let (p, q) = (&c.pose, &v.camera.pose);
-            let dr = (p.rotation - q.rotation).to_cols_array().iter().fold(0.0f64, |m, d| m.max(d.abs()));
-            assert!(dr < 1e-9 && (p.translation - q.translation).length() < 1e-9, "{rig}: pose");
+            let dr = (p.rotation - q.rotation)
+                .to_cols_array()
+                .iter()
+                .fold(0.0f64, |m, d| m.max(d.abs()));
+            assert!(
+                dr < 1e-9 && (p.translation - q.translation).length() < 1e-9,
+                "{rig}: pose"
+            );
             let img = loaded.load_image(0)?;
             assert_eq!((img.width, img.height), (k.width, k.height));
         }
         let depth = crate::scene::npy::read_npy(&dir.path().join("depth/view_000.npy"))?;
         assert_eq!(depth.shape, vec![30, 40]);
-        assert!(depth.data.iter().zip(&s.depths[0]).all(|(a, b)| *a == *b as f64));
-        let json: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.path().join("transforms.json"))?)?;
+        assert!(depth
+            .data
+            .iter()
+            .zip(&s.depths[0])
+            .all(|(a, b)| *a == *b as f64));
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.path().join("transforms.json"))?)?;
         assert_eq!(json["rig"], rig.name());
         assert_eq!(json["seed"], 5);
     }
@@ -131,15 +162,35 @@ fn reprojection_error(s: &SynthScene, a: usize, b: usize) -> (f64, f64) {
 #[test]
 fn synth_depths_poses_and_pixels_agree() -> TestResult {
     for rig in Rig::CONCRETE {
-        let s = generate(21, &SynthOptions { supersample: 3, ..small(rig, 6, 96, 72) })?;
-        let lo = s.depths.iter().flatten().fold(f32::INFINITY, |m, &z| m.min(z)) as f64;
+        let s = generate(
+            21,
+            &SynthOptions {
+                supersample: 3,
+                ..small(rig, 6, 96, 72)
+            },
+        )?;
+        let lo = s
+            .depths
+            .iter()
+            .flatten()
+            .fold(f32::INFINITY, |m, &z| m.min(z)) as f64;
         let hi = s.depths.iter().flatten().fold(0.0f32, |m, &z| m.max(z)) as f64;
         assert!(s.near < lo && s.far > hi && s.near > 0.0, "{rig}: bounds");
-        assert!(s.images.iter().flat_map(|i| &i.data).all(|v| (0.0..=1.0).contains(v)));
+        assert!(s
+            .images
+            .iter()
+            .flat_map(|i| &i.data)
+            .all(|v| (0.0..=1.0).contains(v)));
         for b in nearest(&s.cameras, 0, 2) {
             let (err, seen) = reprojection_error(&s, 0, b);
-            println!("{rig}: view 0 -> {b}: mean abs diff {err:.4} over {:.0}% of pixels", 100.0 * seen);
-            assert!(seen > 0.3, "{rig}: only {seen} of view 0 is visible in view {b}");
+            println!(
+                "{rig}: view 0 -> {b}: mean abs diff {err:.4} over {:.0}% of pixels",
+                100.0 * seen
+            );
+            assert!(
+                seen > 0.3,
+                "{rig}: only {seen} of view 0 is visible in view {b}"
+            );
             assert!(err < 0.05, "{rig}: colours disagree ({err})");
         }
     }
@@ -148,17 +199,38 @@ fn synth_depths_poses_and_pixels_agree() -> TestResult {
 
 #[test]
 fn synth_options_and_rigs_are_checked() {
-    for rig in [Rig::Forward, Rig::Rosette, Rig::Ring, Rig::Handheld, Rig::Mixed] {
+    for rig in [
+        Rig::Forward,
+        Rig::Rosette,
+        Rig::Ring,
+        Rig::Handheld,
+        Rig::Mixed,
+    ] {
         assert_eq!(rig.to_string().parse::<Rig>().ok(), Some(rig));
     }
     assert!("orbit".parse::<Rig>().is_err());
     let base = small(Rig::Forward, 3, 16, 12);
     for bad in [
-        SynthOptions { views: 1, ..base.clone() },
-        SynthOptions { width: 0, ..base.clone() },
-        SynthOptions { height: 0, ..base.clone() },
-        SynthOptions { supersample: 0, ..base.clone() },
-        SynthOptions { supersample: MAX_SUPERSAMPLE + 1, ..base.clone() },
+        SynthOptions {
+            views: 1,
+            ..base.clone()
+        },
+        SynthOptions {
+            width: 0,
+            ..base.clone()
+        },
+        SynthOptions {
+            height: 0,
+            ..base.clone()
+        },
+        SynthOptions {
+            supersample: 0,
+            ..base.clone()
+        },
+        SynthOptions {
+            supersample: MAX_SUPERSAMPLE + 1,
+            ..base.clone()
+        },
     ] {
         assert!(generate(1, &bad).is_err(), "{bad:?}");
     }
@@ -179,10 +251,22 @@ fn synth_photo_textures_and_sets() -> TestResult {
     let textures = load_textures(dir.path())?;
     assert_eq!(textures.len(), 1);
     std::fs::write(dir.path().join("b.jpg"), b"not a jpeg")?;
-    let e = load_textures(dir.path()).err().map(|e| e.to_string()).unwrap_or_default();
+    let e = load_textures(dir.path())
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
     assert!(e.contains("b.jpg"), "{e}");
-    let s = generate(3, &SynthOptions { textures, ..small(Rig::Mixed, 3, 32, 24) })?;
-    let (lo, hi) = s.images[0].data.iter().fold((1.0f32, 0.0f32), |(a, b), &v| (a.min(v), b.max(v)));
+    let s = generate(
+        3,
+        &SynthOptions {
+            textures,
+            ..small(Rig::Mixed, 3, 32, 24)
+        },
+    )?;
+    let (lo, hi) = s.images[0]
+        .data
+        .iter()
+        .fold((1.0f32, 0.0f32), |(a, b), &v| (a.min(v), b.max(v)));
     assert!(hi - lo > 0.1, "photo-textured view is flat");
 
     let out = tempfile::tempdir()?;
@@ -192,9 +276,14 @@ fn synth_photo_textures_and_sets() -> TestResult {
         let loaded = Scene::load(&scene_dir(out.path(), i), &LoadOptions::default())?;
         assert_eq!(loaded.views.len(), 3);
     }
-    let scenes: Vec<SynthScene> = (0..2).map(|i| generate(scene_seed(42, i), &opts)).collect::<Result<_>>()?;
+    let scenes: Vec<SynthScene> = (0..2)
+        .map(|i| generate(scene_seed(42, i), &opts))
+        .collect::<Result<_>>()?;
     let sheet = contact_sheet(&scenes, 2);
-    assert_eq!((sheet.width, sheet.height), (2 + 4 * (24 + 2), 2 + 2 * (18 + 2)));
+    assert_eq!(
+        (sheet.width, sheet.height),
+        (2 + 4 * (24 + 2), 2 + 2 * (18 + 2))
+    );
     Ok(())
 }
 
@@ -203,9 +292,22 @@ fn synth_handles_extreme_options() -> TestResult {
     for rig in Rig::CONCRETE {
         for (views, w, h) in [(2, 1, 1), (2, 9, 200), (40, 32, 24), (3, 200, 9)] {
             for seed in 0..3 {
-                let s = generate(seed, &SynthOptions { supersample: 1, ..small(rig, views, w, h) })?;
-                assert_eq!((s.cameras.len(), s.images.len(), s.depths.len()), (views, views, views));
-                assert!(s.depths.iter().flatten().all(|z| z.is_finite() && *z as f64 > s.near));
+                let s = generate(
+                    seed,
+                    &SynthOptions {
+                        supersample: 1,
+                        ..small(rig, views, w, h)
+                    },
+                )?;
+                assert_eq!(
+                    (s.cameras.len(), s.images.len(), s.depths.len()),
+                    (views, views, views)
+                );
+                assert!(s
+                    .depths
+                    .iter()
+                    .flatten()
+                    .all(|z| z.is_finite() && *z as f64 > s.near));
             }
         }
     }

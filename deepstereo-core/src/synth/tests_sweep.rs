@@ -14,7 +14,13 @@ const COST_WINDOW: usize = 2;
 /// averaged over a small window, among the planes where the most sources see the pixel),
 /// rendered as their mean there; pixels that fewer than two sources see at every plane
 /// take what one source sees at the farthest such plane.
-fn plane_sweep_render(target: &Camera, sources: &[Source<'_>], near: f64, far: f64, planes: usize) -> RgbImage {
+fn plane_sweep_render(
+    target: &Camera,
+    sources: &[Source<'_>],
+    near: f64,
+    far: f64,
+    planes: usize,
+) -> RgbImage {
     let inv = inverse_depths(near, far, planes);
     let region = Region::full(&target.intrinsics);
     let vol = sweep(target, region, sources, &inv);
@@ -52,7 +58,9 @@ fn plane_sweep_render(target: &Camera, sources: &[Source<'_>], near: f64, far: f
     // A plane where some sources fall outside their images would win just by having
     // fewer colours to disagree: only planes where the most sources see the pixel count.
     for p in 0..hw {
-        let most = (0..inv.len()).map(|d| count[d * hw + p]).fold(0.0f32, f32::max);
+        let most = (0..inv.len())
+            .map(|d| count[d * hw + p])
+            .fold(0.0f32, f32::max);
         for d in 0..inv.len() {
             if count[d * hw + p] < most {
                 cost[d * hw + p] = f32::INFINITY;
@@ -82,7 +90,11 @@ fn plane_sweep_render(target: &Camera, sources: &[Source<'_>], near: f64, far: f
             }
         }
         // Without a plane seen by two sources, the farthest plane any source sees.
-        let plane = if best.1 < inv.len() { Some(best.1) } else { (0..inv.len()).rev().find(|&d| count[d * hw + p] > 0.0) };
+        let plane = if best.1 < inv.len() {
+            Some(best.1)
+        } else {
+            (0..inv.len()).rev().find(|&d| count[d * hw + p] > 0.0)
+        };
         let c = match plane {
             Some(d) => {
                 let i = (d * hw + p) * 3;
@@ -99,12 +111,24 @@ fn plane_sweep_render(target: &Camera, sources: &[Source<'_>], near: f64, far: f
 fn central_view(cams: &[Camera]) -> usize {
     let mean = cams.iter().map(|c| c.pose.centre()).sum::<glam::DVec3>() / cams.len() as f64;
     (0..cams.len())
-        .min_by(|&a, &b| cams[a].pose.centre().distance(mean).total_cmp(&cams[b].pose.centre().distance(mean)))
+        .min_by(|&a, &b| {
+            cams[a]
+                .pose
+                .centre()
+                .distance(mean)
+                .total_cmp(&cams[b].pose.centre().distance(mean))
+        })
         .unwrap_or(0)
 }
 
 fn psnr(a: &RgbImage, b: &RgbImage) -> f64 {
-    let mse = a.data.iter().zip(&b.data).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>() / a.data.len() as f64;
+    let mse = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| ((x - y) as f64).powi(2))
+        .sum::<f64>()
+        / a.data.len() as f64;
     10.0 * (1.0 / mse.max(1e-12)).log10()
 }
 
@@ -116,16 +140,27 @@ fn synth_plane_sweep_beats_nearest_source() -> TestResult {
             let s = generate(seed, &small(rig, 9, 96, 72))?;
             let t = central_view(&s.cameras);
             let src = nearest(&s.cameras, t, 4);
-            let sources: Vec<Source<'_>> =
-                src.iter().map(|&i| Source { camera: &s.cameras[i], image: &s.images[i] }).collect();
+            let sources: Vec<Source<'_>> = src
+                .iter()
+                .map(|&i| Source {
+                    camera: &s.cameras[i],
+                    image: &s.images[i],
+                })
+                .collect();
             let swept = plane_sweep_render(&s.cameras[t], &sources, s.near, s.far, 32);
-            let (p_sweep, p_copy) = (psnr(&swept, &s.images[t]), psnr(&s.images[src[0]], &s.images[t]));
+            let (p_sweep, p_copy) = (
+                psnr(&swept, &s.images[t]),
+                psnr(&s.images[src[0]], &s.images[t]),
+            );
             println!("{rig} seed {seed} view {t}: plane sweep {p_sweep:.2} dB, nearest source {p_copy:.2} dB");
             gains.push(p_sweep - p_copy);
         }
         let mean = gains.iter().sum::<f64>() / gains.len() as f64;
         let worst = gains.iter().fold(f64::INFINITY, |m, &g| m.min(g));
-        assert!(mean > 4.0 && worst > 2.0, "{rig}: plane sweep gains only {gains:?} dB over the nearest source");
+        assert!(
+            mean > 4.0 && worst > 2.0,
+            "{rig}: plane sweep gains only {gains:?} dB over the nearest source"
+        );
     }
     Ok(())
 }
@@ -144,7 +179,11 @@ fn coverage(s: &SynthScene, t: usize) -> (f64, f64) {
             .filter(|&&i| {
                 let k = &s.cameras[i].intrinsics;
                 let (uv, z) = s.cameras[i].project(pt);
-                z > 0.0 && uv.x >= 0.0 && uv.y >= 0.0 && uv.x < k.width as f64 && uv.y < k.height as f64
+                z > 0.0
+                    && uv.x >= 0.0
+                    && uv.y >= 0.0
+                    && uv.x < k.width as f64
+                    && uv.y < k.height as f64
             })
             .count();
         one += usize::from(seen >= 1);
@@ -160,7 +199,13 @@ fn synth_every_rig_has_overlapping_neighbours() -> TestResult {
     for rig in Rig::CONCRETE {
         let (mut min1, mut min2) = (1.0f64, 1.0f64);
         for seed in 0..8 {
-            let s = generate(scene_seed(99, seed), &SynthOptions { supersample: 1, ..small(rig, 10, 64, 48) })?;
+            let s = generate(
+                scene_seed(99, seed),
+                &SynthOptions {
+                    supersample: 1,
+                    ..small(rig, 10, 64, 48)
+                },
+            )?;
             for t in 0..s.cameras.len() {
                 let (one, two) = coverage(&s, t);
                 min1 = min1.min(one);
@@ -171,7 +216,10 @@ fn synth_every_rig_has_overlapping_neighbours() -> TestResult {
         worst.push((rig, min1, min2));
     }
     for (rig, min1, min2) in worst {
-        assert!(min1 > 0.8 && min2 > 0.6, "{rig}: neighbours overlap too little ({min1}, {min2})");
+        assert!(
+            min1 > 0.8 && min2 > 0.6,
+            "{rig}: neighbours overlap too little ({min1}, {min2})"
+        );
     }
     Ok(())
 }

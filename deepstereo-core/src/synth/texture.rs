@@ -41,7 +41,10 @@ impl Palette {
         for (i, c) in colours.iter_mut().take(len).enumerate() {
             let (h, s) = match scheme {
                 0 => (h0 + rng.sym(0.07), rng.range(0.1, 0.55)),
-                1 => (h0 + 0.5 * (i % 2) as f64 + rng.sym(0.04), rng.range(0.05, 0.4)),
+                1 => (
+                    h0 + 0.5 * (i % 2) as f64 + rng.sym(0.04),
+                    rng.range(0.05, 0.4),
+                ),
                 _ => (0.1 * h0 + 0.03 + rng.sym(0.04), rng.range(0.0, 0.25)),
             };
             let k = i as f64 / (len - 1) as f64;
@@ -88,20 +91,38 @@ fn hsv(h: f64, s: f64, v: f64) -> [f32; 3] {
 
 #[inline]
 pub(crate) fn mix(a: [f32; 3], b: [f32; 3], t: f32) -> [f32; 3] {
-    [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
+    [
+        a[0] + (b[0] - a[0]) * t,
+        a[1] + (b[1] - a[1]) * t,
+        a[2] + (b[2] - a[2]) * t,
+    ]
 }
 
 /// The spatial pattern of a texture.
 #[derive(Clone, Debug)]
 pub(crate) enum Pattern {
     Noise(Fbm),
-    Stripes { freq: f32, duty: f32, warp: Fbm, warp_amount: f32 },
-    Checks { fu: f32, fv: f32 },
+    Stripes {
+        freq: f32,
+        duty: f32,
+        warp: Fbm,
+        warp_amount: f32,
+    },
+    Checks {
+        fu: f32,
+        fv: f32,
+    },
     Gradient,
     Smooth,
     /// A square crop of `photos[index]`: corner `(x0, y0)` and side `size` in pixels,
     /// mirrored outside [0, 1].
-    Photo { index: usize, x0: f32, y0: f32, size: f32, flip: bool },
+    Photo {
+        index: usize,
+        x0: f32,
+        y0: f32,
+        size: f32,
+        flip: bool,
+    },
 }
 
 /// A texture: a pattern coloured by a palette, rotated and shifted in its plane, with a
@@ -139,7 +160,10 @@ impl Texture {
             },
             2 => {
                 let fu = rng.log_range(1.5, 8.0);
-                Pattern::Checks { fu: fu as f32, fv: (fu * rng.range(0.7, 1.4)) as f32 }
+                Pattern::Checks {
+                    fu: fu as f32,
+                    fv: (fu * rng.range(0.7, 1.4)) as f32,
+                }
             }
             3 => Pattern::Gradient,
             _ => Pattern::Smooth,
@@ -195,7 +219,12 @@ impl Texture {
         let p = &self.palette;
         let base = match &self.pattern {
             Pattern::Noise(f) => p.at(0.5 + 0.5 * NOISE_CONTRAST * f.eval(x, y, fp)),
-            Pattern::Stripes { freq, duty, warp, warp_amount } => {
+            Pattern::Stripes {
+                freq,
+                duty,
+                warp,
+                warp_amount,
+            } => {
                 let phase = x * freq + warp_amount * warp.eval(x, y, fp);
                 mix(p.first(), p.last(), box_square(phase, fp * freq, *duty))
             }
@@ -206,7 +235,13 @@ impl Texture {
             }
             Pattern::Gradient => p.at(cu * self.rot[0] + cv * self.rot[1] + 0.5),
             Pattern::Smooth => p.at(0.5),
-            Pattern::Photo { index, x0, y0, size, flip } => {
+            Pattern::Photo {
+                index,
+                x0,
+                y0,
+                size,
+                flip,
+            } => {
                 let uu = if *flip { 1.0 - u } else { u };
                 match photos.get(*index) {
                     Some(img) => sample_photo(img, x0 + mirror(uu) * size, y0 + mirror(v) * size),
@@ -227,7 +262,11 @@ impl Texture {
 #[inline]
 fn mirror(t: f32) -> f32 {
     let r = t.rem_euclid(2.0);
-    if r > 1.0 { 2.0 - r } else { r }
+    if r > 1.0 {
+        2.0 - r
+    } else {
+        r
+    }
 }
 
 /// Bilinear sample at pixel coordinates (centres at `i + 0.5`), clamped to the edges.
@@ -262,10 +301,12 @@ mod tests {
                 let t = Texture::procedural(&mut rng, role);
                 for k in 0..50 {
                     let c = t.eval(k as f32 * 0.37 - 3.0, k as f32 * 0.11, 0.01 * k as f32, &[]);
-                    assert!(c.iter().all(|v| v.is_finite() && *v >= 0.0 && *v < 1.3), "{c:?}");
+                    assert!(
+                        c.iter().all(|v| v.is_finite() && *v >= 0.0 && *v < 1.3),
+                        "{c:?}"
+                    );
                 }
             }
         }
     }
 }
-

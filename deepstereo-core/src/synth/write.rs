@@ -48,7 +48,13 @@ pub fn write_scene(dir: &Path, scene: &SynthScene) -> Result<()> {
     }
     let gl_axes = DMat3::from_diagonal(DVec3::new(1.0, -1.0, -1.0));
     let mut frames = Vec::with_capacity(n);
-    for (i, ((cam, img), depth)) in scene.cameras.iter().zip(&scene.images).zip(&scene.depths).enumerate() {
+    for (i, ((cam, img), depth)) in scene
+        .cameras
+        .iter()
+        .zip(&scene.images)
+        .zip(&scene.depths)
+        .enumerate()
+    {
         let k = &cam.intrinsics;
         let (w, h) = (k.width as usize, k.height as usize);
         if img.width != k.width || img.height != k.height || depth.len() != w * h {
@@ -124,13 +130,18 @@ pub fn load_textures(dir: &Path) -> Result<Vec<RgbImage>> {
     let mut paths = Vec::new();
     for entry in entries {
         let path = entry.map_err(|e| Error::io(dir, e))?.path();
-        let ext = path.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
+        let ext = path
+            .extension()
+            .map(|e| e.to_string_lossy().to_ascii_lowercase());
         if path.is_file() && ext.is_some_and(|e| TEXTURE_EXTENSIONS.contains(&e.as_str())) {
             paths.push(path);
         }
     }
     if paths.is_empty() {
-        return Err(Error::format(dir, "no PNG or JPEG texture images in this folder"));
+        return Err(Error::format(
+            dir,
+            "no PNG or JPEG texture images in this folder",
+        ));
     }
     paths.sort();
     paths
@@ -154,16 +165,31 @@ pub fn load_textures(dir: &Path) -> Result<Vec<RgbImage>> {
 /// The inverse-depth colour of depth `z` for a scene spanning `[near, far]`.
 fn depth_colour(z: f32, near: f64, far: f64) -> [f32; 3] {
     let (a, b) = (1.0 / far, 1.0 / near);
-    let t = if z > 0.0 && b > a { ((1.0 / z as f64 - a) / (b - a)).clamp(0.0, 1.0) as f32 } else { 0.0 };
+    let t = if z > 0.0 && b > a {
+        ((1.0 / z as f64 - a) / (b - a)).clamp(0.0, 1.0) as f32
+    } else {
+        0.0
+    };
     let x = t * (DEPTH_COLOURS.len() - 1) as f32;
     let i = (x as usize).min(DEPTH_COLOURS.len() - 2);
     let f = x - i as f32;
     let (c0, c1) = (DEPTH_COLOURS[i], DEPTH_COLOURS[i + 1]);
-    [c0[0] + (c1[0] - c0[0]) * f, c0[1] + (c1[1] - c0[1]) * f, c0[2] + (c1[2] - c0[2]) * f]
+    [
+        c0[0] + (c1[0] - c0[0]) * f,
+        c0[1] + (c1[1] - c0[1]) * f,
+        c0[2] + (c1[2] - c0[2]) * f,
+    ]
 }
 
 /// Copies `w x h` pixels given by `colour(x, y)` into `sheet` at `(x0, y0)`.
-fn blit(sheet: &mut RgbImage, x0: u32, y0: u32, w: u32, h: u32, colour: impl Fn(usize) -> [f32; 3]) {
+fn blit(
+    sheet: &mut RgbImage,
+    x0: u32,
+    y0: u32,
+    w: u32,
+    h: u32,
+    colour: impl Fn(usize) -> [f32; 3],
+) {
     for y in 0..h.min(sheet.height.saturating_sub(y0)) {
         for x in 0..w.min(sheet.width.saturating_sub(x0)) {
             let c = colour((y * w + x) as usize);
@@ -176,8 +202,18 @@ fn blit(sheet: &mut RgbImage, x0: u32, y0: u32, w: u32, h: u32, colour: impl Fn(
 /// A grid with one row per scene: `per_scene` of its views (spread over the set), each
 /// followed by its colour-mapped inverse depth (bright = near).
 pub fn contact_sheet(scenes: &[SynthScene], per_scene: usize) -> RgbImage {
-    let cw = scenes.iter().flat_map(|s| &s.images).map(|i| i.width).max().unwrap_or(0);
-    let ch = scenes.iter().flat_map(|s| &s.images).map(|i| i.height).max().unwrap_or(0);
+    let cw = scenes
+        .iter()
+        .flat_map(|s| &s.images)
+        .map(|i| i.width)
+        .max()
+        .unwrap_or(0);
+    let ch = scenes
+        .iter()
+        .flat_map(|s| &s.images)
+        .map(|i| i.height)
+        .max()
+        .unwrap_or(0);
     let cols = (2 * per_scene) as u32;
     let width = SHEET_GAP + cols * (cw + SHEET_GAP);
     let height = SHEET_GAP + scenes.len() as u32 * (ch + SHEET_GAP);
@@ -192,10 +228,14 @@ pub fn contact_sheet(scenes: &[SynthScene], per_scene: usize) -> RgbImage {
             let (w, h) = (img.width, img.height);
             let x0 = SHEET_GAP + 2 * j as u32 * (cw + SHEET_GAP);
             blit(&mut sheet, x0, y0, w, h, |p| {
-                img.data.get(3 * p..3 * p + 3).map_or([0.0; 3], |c| [c[0], c[1], c[2]])
+                img.data
+                    .get(3 * p..3 * p + 3)
+                    .map_or([0.0; 3], |c| [c[0], c[1], c[2]])
             });
             blit(&mut sheet, x0 + cw + SHEET_GAP, y0, w, h, |p| {
-                depth.get(p).map_or([0.0; 3], |&z| depth_colour(z, s.near, s.far))
+                depth
+                    .get(p)
+                    .map_or([0.0; 3], |&z| depth_colour(z, s.near, s.far))
             });
         }
     }

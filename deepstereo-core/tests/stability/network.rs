@@ -15,45 +15,72 @@ const SUM_TOL: f64 = 1e-6;
 
 /// A small config with every part of the model (2 levels, merge, depth convs, skip).
 pub fn small() -> Config {
-    let c = |k, ch| Conv { kernel: k, channels: ch };
+    let c = |k, ch| Conv {
+        kernel: k,
+        channels: ch,
+    };
     Config {
         name: "small".into(),
         views: 2,
         planes: 5,
         levels: 2,
         tile: 4,
-        select: TowerConfig { levels: 2, level_convs: vec![c(3, 4)], merge_convs: vec![c(3, 4)] },
+        select: TowerConfig {
+            levels: 2,
+            level_convs: vec![c(3, 4)],
+            merge_convs: vec![c(3, 4)],
+        },
         depth_convs: vec![c(3, 3), c(3, 1)],
-        colour: TowerConfig { levels: 1, level_convs: vec![c(1, 3)], merge_convs: vec![c(3, 3)] },
+        colour: TowerConfig {
+            levels: 1,
+            level_convs: vec![c(1, 3)],
+            merge_convs: vec![c(3, 3)],
+        },
         colour_skip: true,
     }
 }
 
 /// Uniform values in [0, 1) from a seed (LCG).
 pub fn rand01(seed: u64) -> impl FnMut() -> f32 {
-    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut s = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
     move || {
-        s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        s = s
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (s >> 40) as f32 / (1u64 << 24) as f32
     }
 }
 
 /// Input levels `[B, D, 4V, H_l, W_l]` for a tile of `th`, each value from
 /// `fill(is_alpha, uniform)`.
-pub fn inputs(cfg: &Config, b: usize, d: usize, th: usize, seed: u64, fill: impl Fn(bool, f32) -> f32) -> Result<Vec<Tensor>> {
+pub fn inputs(
+    cfg: &Config,
+    b: usize,
+    d: usize,
+    th: usize,
+    seed: u64,
+    fill: impl Fn(bool, f32) -> f32,
+) -> Result<Vec<Tensor>> {
     let mut u = rand01(seed);
     (0..cfg.levels)
         .map(|l| {
             let s = cfg.input_size(l, th);
             let c = cfg.in_channels();
-            let data: Vec<f32> = (0..b * d * c * s * s).map(|i| fill((i / (s * s)) % c % 4 == 3, u())).collect();
+            let data: Vec<f32> = (0..b * d * c * s * s)
+                .map(|i| fill((i / (s * s)) % c % 4 == 3, u()))
+                .collect();
             Ok(Tensor::from_vec(data, (b, d, c, s, s), &Device::Cpu)?)
         })
         .collect()
 }
 
 fn set_log_scale(t: &Trainable, v: f32) -> Result<()> {
-    let (_, var) = named_vars(&t.varmap).into_iter().find(|(n, _)| n == "select.log_scale").expect("log_scale");
+    let (_, var) = named_vars(&t.varmap)
+        .into_iter()
+        .find(|(n, _)| n == "select.log_scale")
+        .expect("log_scale");
     var.set(&Tensor::new(&[v], &Device::Cpu)?)?;
     Ok(())
 }
@@ -77,26 +104,58 @@ fn worst_sum(sel: &Tensor) -> Result<f64> {
 }
 
 /// Forward and backward; asserts finite outputs and gradients and the selection sum.
-fn check(name: &str, cfg: &Config, d: usize, log_scale: Option<f32>, fill: impl Fn(bool, f32) -> f32) -> Result<()> {
+fn check(
+    name: &str,
+    cfg: &Config,
+    d: usize,
+    log_scale: Option<f32>,
+    fill: impl Fn(bool, f32) -> f32,
+) -> Result<()> {
     let t = init(cfg, &Device::Cpu)?;
     if let Some(v) = log_scale {
         set_log_scale(&t, v)?;
     }
     let x = inputs(cfg, 2, d, cfg.tile, 42, fill)?;
     let o = t.model.forward(&x)?;
-    assert!(flat(&o.image)?.iter().all(|v| v.is_finite()), "{name}: non-finite image");
-    assert!(flat(&o.selection)?.iter().all(|v| v.is_finite() && *v >= 0.0), "{name}: bad selection");
+    assert!(
+        flat(&o.image)?.iter().all(|v| v.is_finite()),
+        "{name}: non-finite image"
+    );
+    assert!(
+        flat(&o.selection)?
+            .iter()
+            .all(|v| v.is_finite() && *v >= 0.0),
+        "{name}: bad selection"
+    );
     let worst = worst_sum(&o.selection)?;
     let target = o.image.ones_like()?.affine(0.5, 0.0)?;
-    let weights = Tensor::from_vec((0..o.selection.elem_count()).map(|i| (i % 7) as f32 - 3.0).collect::<Vec<_>>(), o.selection.dims(), &Device::Cpu)?;
+    let weights = Tensor::from_vec(
+        (0..o.selection.elem_count())
+            .map(|i| (i % 7) as f32 - 3.0)
+            .collect::<Vec<_>>(),
+        o.selection.dims(),
+        &Device::Cpu,
+    )?;
     let loss = (l1_loss(&o.image, &target)? + (o.selection * weights)?.mean_all()?)?;
-    assert!(loss.to_scalar::<f32>()?.is_finite(), "{name}: non-finite loss");
+    assert!(
+        loss.to_scalar::<f32>()?.is_finite(),
+        "{name}: non-finite loss"
+    );
     let grads = loss.backward()?;
     for (n, v) in named_vars(&t.varmap) {
-        let g = grads.get(v.as_tensor()).ok_or_else(|| anyhow::anyhow!("{name}: no gradient for {n}"))?;
-        assert!(flat(g)?.iter().all(|x| x.is_finite()), "{name}: non-finite gradient of {n}");
+        let g = grads
+            .get(v.as_tensor())
+            .ok_or_else(|| anyhow::anyhow!("{name}: no gradient for {n}"))?;
+        assert!(
+            flat(g)?.iter().all(|x| x.is_finite()),
+            "{name}: non-finite gradient of {n}"
+        );
     }
-    row(name, "outputs and gradients finite; max abs(sum over depth of selection - 1)", worst);
+    row(
+        name,
+        "outputs and gradients finite; max abs(sum over depth of selection - 1)",
+        worst,
+    );
     assert!(worst <= SUM_TOL, "{name}: selection sums off by {worst:e}");
     Ok(())
 }
@@ -105,33 +164,85 @@ fn check(name: &str, cfg: &Config, d: usize, log_scale: Option<f32>, fill: impl 
 fn n01_saturated_tanh() -> Result<()> {
     let cfg = small();
     check("control: random RGBA in [0, 1]", &cfg, 5, None, |_, u| u)?;
-    check("saturated tanh: inputs of +-1e4", &cfg, 5, None, |_, u| (u - 0.5) * 2e4)?;
-    check("saturated tanh: inputs of +-1e8", &cfg, 5, None, |_, u| (u - 0.5) * 2e8)
+    check("saturated tanh: inputs of +-1e4", &cfg, 5, None, |_, u| {
+        (u - 0.5) * 2e4
+    })?;
+    check("saturated tanh: inputs of +-1e8", &cfg, 5, None, |_, u| {
+        (u - 0.5) * 2e8
+    })
 }
 
 #[test]
 fn n02_peaked_and_flat_softmax() -> Result<()> {
     let cfg = small();
-    check("very peaked softmax: log_scale 20 (logits to +-5e8)", &cfg, 5, Some(20.0), |_, u| u)?;
-    check("very peaked softmax: log_scale 88 (logits to +-1.7e38)", &cfg, 5, Some(88.0), |_, u| u)?;
-    check("very flat softmax: log_scale -30 (logits to +-1e-13)", &cfg, 5, Some(-30.0), |_, u| u)?;
+    check(
+        "very peaked softmax: log_scale 20 (logits to +-5e8)",
+        &cfg,
+        5,
+        Some(20.0),
+        |_, u| u,
+    )?;
+    check(
+        "very peaked softmax: log_scale 88 (logits to +-1.7e38)",
+        &cfg,
+        5,
+        Some(88.0),
+        |_, u| u,
+    )?;
+    check(
+        "very flat softmax: log_scale -30 (logits to +-1e-13)",
+        &cfg,
+        5,
+        Some(-30.0),
+        |_, u| u,
+    )?;
     // The limit, documented rather than asserted: exp(log_scale) overflows f32 above 88.72,
     // and a logit with tanh = 0 then becomes 0 * inf = NaN.
     let t = init(&cfg, &Device::Cpu)?;
     set_log_scale(&t, 89.0)?;
-    let sel = flat(&t.model.forward(&inputs(&cfg, 2, 5, cfg.tile, 42, |_, u| u)?)?.selection)?;
+    let sel = flat(
+        &t.model
+            .forward(&inputs(&cfg, 2, 5, cfg.tile, 42, |_, u| u)?)?
+            .selection,
+    )?;
     let bad = sel.iter().filter(|v| !v.is_finite()).count();
-    let what = if bad == 0 { "finite".to_string() } else { format!("{bad} of {} selection values NaN", sel.len()) };
-    row_text("limit: log_scale 89 (exp overflows f32)", "not asserted: is the selection finite?", &what);
+    let what = if bad == 0 {
+        "finite".to_string()
+    } else {
+        format!("{bad} of {} selection values NaN", sel.len())
+    };
+    row_text(
+        "limit: log_scale 89 (exp overflows f32)",
+        "not asserted: is the selection finite?",
+        &what,
+    );
     Ok(())
 }
 
 #[test]
 fn n03_degenerate_inputs() -> Result<()> {
     let cfg = small();
-    check("all alpha zero (no source covers the pixel)", &cfg, 5, None, |_, _| 0.0)?;
-    check("constant images (RGB 0.5, alpha 1)", &cfg, 5, None, |a, _| if a { 1.0 } else { 0.5 })?;
-    check("colours at 0 and 1 (alpha 1)", &cfg, 5, None, |a, u| if a || u > 0.5 { 1.0 } else { 0.0 })
+    check(
+        "all alpha zero (no source covers the pixel)",
+        &cfg,
+        5,
+        None,
+        |_, _| 0.0,
+    )?;
+    check(
+        "constant images (RGB 0.5, alpha 1)",
+        &cfg,
+        5,
+        None,
+        |a, _| if a { 1.0 } else { 0.5 },
+    )?;
+    check("colours at 0 and 1 (alpha 1)", &cfg, 5, None, |a, u| {
+        if a || u > 0.5 {
+            1.0
+        } else {
+            0.0
+        }
+    })
 }
 
 #[test]
@@ -139,7 +250,13 @@ fn n04_one_and_256_planes() -> Result<()> {
     let cfg = small();
     check("one plane (D = 1)", &cfg, 1, None, |_, u| u)?;
     check("256 planes", &cfg, 256, None, |_, u| u)?;
-    check("256 planes, flat softmax (log_scale -30)", &cfg, 256, Some(-30.0), |_, u| u)
+    check(
+        "256 planes, flat softmax (log_scale -30)",
+        &cfg,
+        256,
+        Some(-30.0),
+        |_, u| u,
+    )
 }
 
 /// The same model with its weights converted by `to_dtype`.
@@ -148,31 +265,63 @@ fn converted(cfg: &Config, t: &Trainable, dtype: DType) -> Result<DeepStereo> {
         .into_iter()
         .map(|(n, v)| Ok((n, v.as_tensor().to_dtype(dtype)?)))
         .collect::<Result<_>>()?;
-    Ok(DeepStereo::new(cfg, candle_nn::VarBuilder::from_tensors(ts, dtype, &Device::Cpu))?)
+    Ok(DeepStereo::new(
+        cfg,
+        candle_nn::VarBuilder::from_tensors(ts, dtype, &Device::Cpu),
+    )?)
 }
 
 #[test]
 fn n05_reduced_precision() -> Result<()> {
     let cfg = Config::tiny();
     let t = init(&cfg, &Device::Cpu)?;
-    let x = inputs(&cfg, 1, cfg.planes, 16, 7, |a, u| if a { (u * 4.0).min(1.0) } else { u })?;
+    let x = inputs(&cfg, 1, cfg.planes, 16, 7, |a, u| {
+        if a {
+            (u * 4.0).min(1.0)
+        } else {
+            u
+        }
+    })?;
     let o32 = t.model.forward(&x)?;
     let (img32, sel32) = (flat(&o32.image)?, flat(&o32.selection)?);
     for (dtype, name) in [(DType::F16, "f16"), (DType::BF16, "bf16")] {
         let m = converted(&cfg, &t, dtype)?;
-        let xs = x.iter().map(|v| v.to_dtype(dtype)).collect::<candle_core::Result<Vec<_>>>()?;
+        let xs = x
+            .iter()
+            .map(|v| v.to_dtype(dtype))
+            .collect::<candle_core::Result<Vec<_>>>()?;
         let case = format!("{name} inference vs f32 (tiny preset, 32 planes, 16x16 tile)");
         match m.forward(&xs) {
             Ok(o) => {
-                let err = |a: &[f32], b: &[f32]| a.iter().zip(b).fold(0f64, |m, (p, q)| m.max((p - q).abs() as f64));
+                let err = |a: &[f32], b: &[f32]| {
+                    a.iter()
+                        .zip(b)
+                        .fold(0f64, |m, (p, q)| m.max((p - q).abs() as f64))
+                };
                 let (img, sel) = (flat(&o.image)?, flat(&o.selection)?);
-                assert!(img.iter().chain(&sel).all(|v| v.is_finite()), "{name}: non-finite output");
-                row(&case, "max abs error of the image (colours in [0, 1])", err(&img, &img32));
+                assert!(
+                    img.iter().chain(&sel).all(|v| v.is_finite()),
+                    "{name}: non-finite output"
+                );
+                row(
+                    &case,
+                    "max abs error of the image (colours in [0, 1])",
+                    err(&img, &img32),
+                );
                 row(&case, "max abs error of the selection", err(&sel, &sel32));
-                row(&case, "max abs(sum over depth of selection - 1), in that dtype", worst_sum(&o.selection)?);
+                row(
+                    &case,
+                    "max abs(sum over depth of selection - 1), in that dtype",
+                    worst_sum(&o.selection)?,
+                );
             }
             Err(e) => {
-                let msg = e.to_string().lines().next().unwrap_or_default().replace('|', "/");
+                let msg = e
+                    .to_string()
+                    .lines()
+                    .next()
+                    .unwrap_or_default()
+                    .replace('|', "/");
                 row_text(&case, "forward on the CPU", &format!("unsupported: {msg}"));
             }
         }

@@ -17,7 +17,10 @@ fn flat(t: &Tensor) -> Result<Vec<f64>> {
 #[test]
 fn t01_large_learning_rates() -> Result<()> {
     let cfg = small();
-    for (kind, name, eps) in [(OptimizerKind::Adagrad, "Adagrad", ADAGRAD_EPS), (OptimizerKind::Adam, "Adam", ADAM_EPS)] {
+    for (kind, name, eps) in [
+        (OptimizerKind::Adagrad, "Adagrad", ADAGRAD_EPS),
+        (OptimizerKind::Adam, "Adam", ADAM_EPS),
+    ] {
         let lr = 1e3;
         let t = init(&cfg, &Device::Cpu)?;
         let vars = named_vars(&t.varmap);
@@ -36,11 +39,17 @@ fn t01_large_learning_rates() -> Result<()> {
                 flagged += 1; // the trainer's guard skips such a step
                 continue;
             }
-            let before: Vec<Vec<f64>> = vars.iter().map(|(_, v)| flat(v.as_tensor())).collect::<Result<_>>()?;
+            let before: Vec<Vec<f64>> = vars
+                .iter()
+                .map(|(_, v)| flat(v.as_tensor()))
+                .collect::<Result<_>>()?;
             opt.step(&grads)?;
             for ((_, v), w0) in vars.iter().zip(&before) {
                 let w1 = flat(v.as_tensor())?;
-                assert!(w1.iter().all(|x| x.is_finite()), "{case}: non-finite weight after step {step}");
+                assert!(
+                    w1.iter().all(|x| x.is_finite()),
+                    "{case}: non-finite weight after step {step}"
+                );
                 if step == 0 {
                     // First step of both: w -= lr * g / (|g| + eps).
                     let g = flat(grads.get(v.as_tensor()).expect("gradient"))?;
@@ -52,8 +61,16 @@ fn t01_large_learning_rates() -> Result<()> {
                 }
             }
         }
-        row(&case, "first step moves each weight by lr * g / (abs(g) + eps); relative error", worst);
-        row_text(&case, "5 steps: weights stay finite; non-finite loss or norm flagged", &format!("{flagged} of 5 steps flagged"));
+        row(
+            &case,
+            "first step moves each weight by lr * g / (abs(g) + eps); relative error",
+            worst,
+        );
+        row_text(
+            &case,
+            "5 steps: weights stay finite; non-finite loss or norm flagged",
+            &format!("{flagged} of 5 steps flagged"),
+        );
         assert!(worst < 1e-6, "{case}: {worst:e}");
     }
     Ok(())
@@ -61,7 +78,11 @@ fn t01_large_learning_rates() -> Result<()> {
 
 /// A vector variable and an optimizer over it; the loss `sum(w * c)` has gradient `c`.
 fn linear(kind: OptimizerKind, n: usize) -> Result<(Var, Optimizer)> {
-    let w = Var::from_tensor(&Tensor::from_vec((0..n).map(|i| 1.0 + i as f32).collect::<Vec<_>>(), n, &Device::Cpu)?)?;
+    let w = Var::from_tensor(&Tensor::from_vec(
+        (0..n).map(|i| 1.0 + i as f32).collect::<Vec<_>>(),
+        n,
+        &Device::Cpu,
+    )?)?;
     let opt = Optimizer::new(kind, 0.1, vec![("w".into(), w.clone())])?;
     Ok((w, opt))
 }
@@ -76,18 +97,33 @@ fn step_with(w: &Var, opt: &mut Optimizer, c: &[f32]) -> Result<f64> {
 
 #[test]
 fn t02_zero_gradients_in_accumulators() -> Result<()> {
-    for (kind, name) in [(OptimizerKind::Adagrad, "Adagrad"), (OptimizerKind::Adam, "Adam")] {
+    for (kind, name) in [
+        (OptimizerKind::Adagrad, "Adagrad"),
+        (OptimizerKind::Adam, "Adam"),
+    ] {
         let (w, mut opt) = linear(kind, 4)?;
         let w0 = flat(w.as_tensor())?;
         let mut worst = 0f64;
         for _ in 0..3 {
             step_with(&w, &mut opt, &[0.0; 4])?;
             let w1 = flat(w.as_tensor())?;
-            worst = w1.iter().zip(&w0).fold(worst, |m, (a, b)| m.max((a - b).abs()));
+            worst = w1
+                .iter()
+                .zip(&w0)
+                .fold(worst, |m, (a, b)| m.max((a - b).abs()));
         }
         let state = opt.state();
-        assert!(state.iter().all(|(_, t)| flat(t).unwrap().iter().all(|v| *v == 0.0)), "{name}: state moved");
-        row(&format!("{name}, zero gradients on zero accumulators (3 steps)"), "weights unchanged, state stays 0 (exact)", worst);
+        assert!(
+            state
+                .iter()
+                .all(|(_, t)| flat(t).unwrap().iter().all(|v| *v == 0.0)),
+            "{name}: state moved"
+        );
+        row(
+            &format!("{name}, zero gradients on zero accumulators (3 steps)"),
+            "weights unchanged, state stays 0 (exact)",
+            worst,
+        );
         assert_eq!(worst, 0.0);
         // Gradients whose square underflows f32 (1e-30, a subnormal 1e-45) and a mix with 0.
         let before = flat(w.as_tensor())?;
@@ -96,21 +132,38 @@ fn t02_zero_gradients_in_accumulators() -> Result<()> {
         assert!(after.iter().all(|v| v.is_finite()), "{name}: {after:?}");
         let moved = (before[3] - after[3]).abs();
         let case = format!("{name}, gradients 1e-30 and 1e-45 (square underflows f32)");
-        let err = after.iter().zip(&before).take(3).fold(0f64, |m, (a, b)| m.max((a - b).abs()));
-        row(&case, "finite; weights with g below 1e-29 move by at most lr * 1e-20", err);
+        let err = after
+            .iter()
+            .zip(&before)
+            .take(3)
+            .fold(0f64, |m, (a, b)| m.max((a - b).abs()));
+        row(
+            &case,
+            "finite; weights with g below 1e-29 move by at most lr * 1e-20",
+            err,
+        );
         // The weight with g = 1: Adagrad's accumulator was 0 (step = lr); Adam is at t = 4.
         let want = match kind {
             OptimizerKind::Adagrad => 0.1,
-            OptimizerKind::Adam => 0.1 * (0.1 / (1.0 - 0.9f64.powi(4))) / ((1e-3 / (1.0 - 0.999f64.powi(4))).sqrt() + ADAM_EPS),
+            OptimizerKind::Adam => {
+                0.1 * (0.1 / (1.0 - 0.9f64.powi(4)))
+                    / ((1e-3 / (1.0 - 0.999f64.powi(4))).sqrt() + ADAM_EPS)
+            }
         };
-        assert!(err <= 0.1 * 1e-20 * 1.01 && (moved - want).abs() < 2e-6, "{name}: {err:e} {moved} vs {want}");
+        assert!(
+            err <= 0.1 * 1e-20 * 1.01 && (moved - want).abs() < 2e-6,
+            "{name}: {err:e} {moved} vs {want}"
+        );
     }
     Ok(())
 }
 
 #[test]
 fn t03_exploding_gradients() -> Result<()> {
-    for (kind, name) in [(OptimizerKind::Adagrad, "Adagrad"), (OptimizerKind::Adam, "Adam")] {
+    for (kind, name) in [
+        (OptimizerKind::Adagrad, "Adagrad"),
+        (OptimizerKind::Adam, "Adam"),
+    ] {
         let mut flagged = 0;
         let cases: [(f32, &str); 3] = [(1e20, "1e20"), (f32::INFINITY, "inf"), (f32::NAN, "NaN")];
         for (g, _) in cases {
@@ -137,7 +190,11 @@ fn t03_exploding_gradients() -> Result<()> {
         row_text(
             &format!("{name}, one unguarded step on a 1e20 gradient"),
             "weights stay finite; does that weight still move on the next step?",
-            if frozen { "no: frozen (infinite second moment)" } else { "yes" },
+            if frozen {
+                "no: frozen (infinite second moment)"
+            } else {
+                "yes"
+            },
         );
     }
     Ok(())

@@ -34,39 +34,86 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     let settings = a.model.settings()?;
     let (width, height) = super::train::parse_size(&a.size)?;
-    let opts = SynthOptions { views: 10, width, height, rig: a.rig, ..SynthOptions::default() };
+    let opts = SynthOptions {
+        views: 10,
+        width,
+        height,
+        rig: a.rig,
+        ..SynthOptions::default()
+    };
     let t0 = std::time::Instant::now();
     let synth = generate(scene_seed(DEMO_SEED, a.scene_index), &opts)?;
     let dir = a.out.join("scene");
-    write_scene(&dir, &synth).with_context(|| format!("writing the demo scene to {}", dir.display()))?;
-    eprintln!("procedural scene ({} views, {width}x{height}) in {:.2} s: {}", synth.cameras.len(), t0.elapsed().as_secs_f64(), dir.display());
+    write_scene(&dir, &synth)
+        .with_context(|| format!("writing the demo scene to {}", dir.display()))?;
+    eprintln!(
+        "procedural scene ({} views, {width}x{height}) in {:.2} s: {}",
+        synth.cameras.len(),
+        t0.elapsed().as_secs_f64(),
+        dir.display()
+    );
     let scene = Scene::load(&dir, &LoadOptions::default())?;
     let target = scene.views.len() / 2;
     let backend = a.model.backend()?;
-    let name = if a.model.model.is_some() { a.model.name() } else { EMBEDDED_NAME.to_string() };
+    let name = if a.model.model.is_some() {
+        a.model.name()
+    } else {
+        EMBEDDED_NAME.to_string()
+    };
     let mut saved: Result<()> = Ok(());
     let out = a.out.clone();
     let (near, far) = (scene.near, scene.far);
-    let report = evaluate(backend.as_ref(), &name, &scene, &[target], &settings, |_, imgs| {
-        let r = imgs.rendered;
-        let depth = depth_image(&r.depth, r.image.width, r.image.height, near, far);
-        saved = (|| {
-            r.image.save_png(&out.join("image.png"))?;
-            depth.save_png(&out.join("depth.png"))?;
-            side_by_side(&[imgs.truth, imgs.nearest, imgs.plane_sweep, &r.image, &depth], 4)
+    let report = evaluate(
+        backend.as_ref(),
+        &name,
+        &scene,
+        &[target],
+        &settings,
+        |_, imgs| {
+            let r = imgs.rendered;
+            let depth = depth_image(&r.depth, r.image.width, r.image.height, near, far);
+            saved = (|| {
+                r.image.save_png(&out.join("image.png"))?;
+                depth.save_png(&out.join("depth.png"))?;
+                side_by_side(
+                    &[imgs.truth, imgs.nearest, imgs.plane_sweep, &r.image, &depth],
+                    4,
+                )
                 .save_png(&out.join("comparison.png"))?;
-            Ok(())
-        })();
-    })?;
+                Ok(())
+            })();
+        },
+    )?;
     saved?;
     let v = &report.per_view[0];
-    println!("held-out view {} of a procedural scene, {} planes, {} source views", v.target, report.planes, report.views);
-    println!("{:<22} {:>8} {:>7} {:>9}", "method", "PSNR dB", "SSIM", "seconds");
-    println!("{:<22} {:>8.2} {:>7.3} {:>9.2}", format!("DeepStereo ({})", report.backend), v.psnr, v.ssim, v.seconds);
+    println!(
+        "held-out view {} of a procedural scene, {} planes, {} source views",
+        v.target, report.planes, report.views
+    );
+    println!(
+        "{:<22} {:>8} {:>7} {:>9}",
+        "method", "PSNR dB", "SSIM", "seconds"
+    );
+    println!(
+        "{:<22} {:>8.2} {:>7.3} {:>9.2}",
+        format!("DeepStereo ({})", report.backend),
+        v.psnr,
+        v.ssim,
+        v.seconds
+    );
     let ps = &v.baselines.plane_sweep;
-    println!("{:<22} {:>8.2} {:>7.3} {:>9.2}", "plane sweep (classical)", ps.psnr, ps.ssim, ps.seconds.unwrap_or(0.0));
+    println!(
+        "{:<22} {:>8.2} {:>7.3} {:>9.2}",
+        "plane sweep (classical)",
+        ps.psnr,
+        ps.ssim,
+        ps.seconds.unwrap_or(0.0)
+    );
     let nn = &v.baselines.nearest;
-    println!("{:<22} {:>8.2} {:>7.3} {:>9}", "nearest source view", nn.psnr, nn.ssim, "-");
+    println!(
+        "{:<22} {:>8.2} {:>7.3} {:>9}",
+        "nearest source view", nn.psnr, nn.ssim, "-"
+    );
     println!("wrote {0}/image.png, {0}/depth.png and {0}/comparison.png (truth | nearest | plane sweep | DeepStereo | depth)", a.out.display());
     Ok(())
 }

@@ -29,26 +29,50 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let settings = a.model.settings()?;
-    let dirs = if a.scene.format.is_some() { vec![a.scene.scene.clone()] } else { super::scene_dirs(&a.scene.scene)? };
+    let dirs = if a.scene.format.is_some() {
+        vec![a.scene.scene.clone()]
+    } else {
+        super::scene_dirs(&a.scene.scene)?
+    };
     let backend = a.model.backend()?;
     let mut reports = Vec::new();
     for dir in &dirs {
-        let sa = SceneArgs { scene: dir.clone(), ..a.scene.clone() };
+        let sa = SceneArgs {
+            scene: dir.clone(),
+            ..a.scene.clone()
+        };
         let scene = sa.load()?;
         let targets = holdout_list(a.holdout.as_deref(), a.llffhold, scene.views.len())?;
-        let images = a.images.as_ref().map(|d| if dirs.len() > 1 { d.join(dir.file_name().unwrap_or_default()) } else { d.clone() });
+        let images = a.images.as_ref().map(|d| {
+            if dirs.len() > 1 {
+                d.join(dir.file_name().unwrap_or_default())
+            } else {
+                d.clone()
+            }
+        });
         let mut err = None;
-        let report = evaluate(backend.as_ref(), &a.model.name(), &scene, &targets, &settings, |v, imgs| {
-            eprintln!(
+        let report = evaluate(
+            backend.as_ref(),
+            &a.model.name(),
+            &scene,
+            &targets,
+            &settings,
+            |v, imgs| {
+                eprintln!(
                 "view {:3} {:<20} PSNR {:6.2} SSIM {:.3} ({:.2} s) | nearest {:6.2} | plane sweep {:6.2}",
                 v.target, v.name, v.psnr, v.ssim, v.seconds, v.baselines.nearest.psnr, v.baselines.plane_sweep.psnr
             );
-            if let Some(dir) = &images {
-                if let Err(e) = imgs.rendered.image.save_png(&dir.join(format!("view_{:03}.png", v.target))) {
-                    err = Some(e);
+                if let Some(dir) = &images {
+                    if let Err(e) = imgs
+                        .rendered
+                        .image
+                        .save_png(&dir.join(format!("view_{:03}.png", v.target)))
+                    {
+                        err = Some(e);
+                    }
                 }
-            }
-        })?;
+            },
+        )?;
         if let Some(e) = err {
             return Err(e.into());
         }
@@ -87,7 +111,11 @@ fn mean_of(reports: &[EvalReport]) -> Mean {
         ssim: avg(&|m| m.ssim),
         seconds: avg(&|m| m.seconds),
         baselines: Baselines {
-            nearest: Score { psnr: avg(&|m| m.baselines.nearest.psnr), ssim: avg(&|m| m.baselines.nearest.ssim), seconds: None },
+            nearest: Score {
+                psnr: avg(&|m| m.baselines.nearest.psnr),
+                ssim: avg(&|m| m.baselines.nearest.ssim),
+                seconds: None,
+            },
             plane_sweep: Score {
                 psnr: avg(&|m| m.baselines.plane_sweep.psnr),
                 ssim: avg(&|m| m.baselines.plane_sweep.ssim),

@@ -22,7 +22,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let k = &v.camera.intrinsics;
             let r = v.camera.pose.rotation;
             let t = v.camera.pose.translation;
-            let rows: Vec<f64> = (0..3).flat_map(|i| [r.x_axis[i], r.y_axis[i], r.z_axis[i]]).collect();
+            let rows: Vec<f64> = (0..3)
+                .flat_map(|i| [r.x_axis[i], r.y_axis[i], r.z_axis[i]])
+                .collect();
             let d = k.distortion;
             json!({
                 "name": v.name, "width": k.width, "height": k.height,
@@ -32,7 +34,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             })
         })
         .collect();
-    let far = if scene.far.is_finite() { json!(scene.far) } else { json!("inf") };
+    let far = if scene.far.is_finite() {
+        json!(scene.far)
+    } else {
+        json!("inf")
+    };
     if args.json {
         let out = json!({
             "format": scene.format.name(), "near": scene.near, "far": far,
@@ -44,7 +50,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!("scene   {}", scene.root.display());
     println!("format  {}", scene.format.name());
     println!("views   {}", scene.views.len());
-    println!("near    {:.6}  far {}  (from {:?})", scene.near, scene.far, scene.bounds_source);
+    println!(
+        "near    {:.6}  far {}  (from {:?})",
+        scene.near, scene.far, scene.bounds_source
+    );
     for (i, v) in scene.views.iter().enumerate() {
         let k = &v.camera.intrinsics;
         let c = v.camera.pose.centre();

@@ -1,16 +1,16 @@
 //! Subcommands of the `deepstereo` binary, one module each, and the options they share.
 
-pub mod inspect;
-pub mod sweep;
-pub mod train;
 pub mod demo;
 pub mod eval;
 pub mod export;
 pub mod forward;
+pub mod inspect;
 pub mod model_args;
 pub mod render;
 pub mod report;
+pub mod sweep;
 pub mod synth;
+pub mod train;
 
 use clap::{Args, Parser, Subcommand};
 use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat};
@@ -121,7 +121,10 @@ pub fn scene_dirs(dir: &std::path::Path) -> anyhow::Result<Vec<PathBuf>> {
         .collect();
     out.sort();
     if out.is_empty() {
-        anyhow::bail!("{}: neither a scene nor a directory of scenes", dir.display());
+        anyhow::bail!(
+            "{}: neither a scene nor a directory of scenes",
+            dir.display()
+        );
     }
     Ok(out)
 }

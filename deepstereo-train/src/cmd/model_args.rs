@@ -2,7 +2,9 @@
 
 use crate::inference::{BackendKind, RenderSettings};
 use anyhow::{bail, Result};
-use deepstereo_core::prune::{PruneMode, PruneOptions, DEFAULT_MARGIN, DEFAULT_MASS, DEFAULT_TOLERANCE, DEFAULT_WINDOW};
+use deepstereo_core::prune::{
+    PruneMode, PruneOptions, DEFAULT_MARGIN, DEFAULT_MASS, DEFAULT_TOLERANCE, DEFAULT_WINDOW,
+};
 use deepstereo_core::render::Backend;
 use std::path::PathBuf;
 
@@ -65,7 +67,12 @@ impl ModelArgs {
             ..PruneOptions::default()
         };
         prune.validate()?;
-        Ok(RenderSettings { planes: self.planes, views: self.views, tile: self.tile, prune })
+        Ok(RenderSettings {
+            planes: self.planes,
+            views: self.views,
+            tile: self.tile,
+            prune,
+        })
     }
 
     pub fn backend(&self) -> Result<Box<dyn Backend>> {

@@ -6,8 +6,8 @@ use crate::inference::{pick_sources, render_camera, Prepared};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::{Camera, Intrinsics, WorldToCamera};
 use deepstereo_core::render::Rendered;
-use deepstereo_core::scene::Scene;
 use deepstereo_core::scene::npy::write_npy_f32;
+use deepstereo_core::scene::Scene;
 use deepstereo_core::viz::{depth_image, grey_image};
 use glam::{DMat3, DVec3};
 use std::path::{Path, PathBuf};
@@ -55,14 +55,23 @@ pub fn run(a: Args) -> Result<()> {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     };
-    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create {}", a.out.display()))?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
     if let Some(kind) = a.path {
         if a.frames == 0 {
             bail!("--frames must be at least 1");
         }
         for (f, cam) in path_cameras(&scene, kind, a.frames)?.iter().enumerate() {
             let srcs = pick_sources(&scene, cam, None, v, &settings);
-            let (r, _) = render_camera(backend.as_ref(), &scene, &mut prepared, cam, &srcs, &settings, &progress)?;
+            let (r, _) = render_camera(
+                backend.as_ref(),
+                &scene,
+                &mut prepared,
+                cam,
+                &srcs,
+                &settings,
+                &progress,
+            )?;
             r.image.save_png(&a.out.join(format!("frame_{f:04}.png")))?;
             eprintln!("frame {}/{}", f + 1, a.frames);
         }
@@ -71,7 +80,10 @@ pub fn run(a: Args) -> Result<()> {
     let (cam, srcs) = match (a.target, &a.pose) {
         (Some(t), None) => {
             if t >= scene.views.len() {
-                bail!("--target {t} is out of range: the scene has {} views", scene.views.len());
+                bail!(
+                    "--target {t} is out of range: the scene has {} views",
+                    scene.views.len()
+                );
             }
             let cam = scene.views[t].camera;
             (cam, pick_sources(&scene, &cam, Some(t), v, &settings))
@@ -83,9 +95,22 @@ pub fn run(a: Args) -> Result<()> {
         _ => bail!("pass one of --target I, --pose FILE or --path KIND"),
     };
     let t0 = std::time::Instant::now();
-    let (r, _) = render_camera(backend.as_ref(), &scene, &mut prepared, &cam, &srcs, &settings, &progress)?;
+    let (r, _) = render_camera(
+        backend.as_ref(),
+        &scene,
+        &mut prepared,
+        &cam,
+        &srcs,
+        &settings,
+        &progress,
+    )?;
     bar.finish_and_clear();
-    eprintln!("rendered {}x{} in {:.2} s from views {srcs:?}", r.image.width, r.image.height, t0.elapsed().as_secs_f64());
+    eprintln!(
+        "rendered {}x{} in {:.2} s from views {srcs:?}",
+        r.image.width,
+        r.image.height,
+        t0.elapsed().as_secs_f64()
+    );
     if let Some(p) = &r.prune {
         eprintln!("{}", p.summary());
     }
@@ -96,21 +121,32 @@ pub fn run(a: Args) -> Result<()> {
 pub fn write_outputs(dir: &Path, r: &Rendered, near: f64, far: f64) -> Result<()> {
     let (w, h) = (r.image.width, r.image.height);
     r.image.save_png(&dir.join("image.png"))?;
-    write_npy_f32(&dir.join("image.npy"), &[h as usize, w as usize, 3], &r.image.data)?;
+    write_npy_f32(
+        &dir.join("image.npy"),
+        &[h as usize, w as usize, 3],
+        &r.image.data,
+    )?;
     depth_image(&r.depth, w, h, near, far).save_png(&dir.join("depth.png"))?;
     write_npy_f32(&dir.join("depth.npy"), &[h as usize, w as usize], &r.depth)?;
     grey_image(&r.confidence, w, h).save_png(&dir.join("confidence.png"))?;
     grey_image(&r.coverage, w, h).save_png(&dir.join("coverage.png"))?;
-    eprintln!("wrote image.png, image.npy, depth.png, depth.npy, confidence.png, coverage.png to {}", dir.display());
+    eprintln!(
+        "wrote image.png, image.npy, depth.png, depth.npy, confidence.png, coverage.png to {}",
+        dir.display()
+    );
     Ok(())
 }
 
 /// Reads a camera from a JSON file (world-to-camera, OpenCV axes).
 pub fn read_pose(path: &Path) -> Result<Camera> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let j: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: invalid JSON", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let j: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{}: invalid JSON", path.display()))?;
     let num = |k: &str| -> Result<f64> {
-        j.get(k).and_then(|v| v.as_f64()).with_context(|| format!("{}: missing or non-numeric '{k}'", path.display()))
+        j.get(k)
+            .and_then(|v| v.as_f64())
+            .with_context(|| format!("{}: missing or non-numeric '{k}'", path.display()))
     };
     let arr = |k: &str, n: usize| -> Result<Vec<f64>> {
         let a: Vec<f64> = j
@@ -127,22 +163,50 @@ pub fn read_pose(path: &Path) -> Result<Camera> {
     if !(w >= 1.0 && h >= 1.0 && w <= 32768.0 && h <= 32768.0) {
         bail!("{}: width and height must be 1..=32768", path.display());
     }
-    let intr = Intrinsics::pinhole(num("fx")?, num("fy")?, num("cx")?, num("cy")?, w as u32, h as u32);
-    intr.validate().map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
+    let intr = Intrinsics::pinhole(
+        num("fx")?,
+        num("fy")?,
+        num("cx")?,
+        num("cy")?,
+        w as u32,
+        h as u32,
+    );
+    intr.validate()
+        .map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
     let r = arr("R", 9)?;
     let t = arr("t", 3)?;
-    let rot = DMat3::from_cols(DVec3::new(r[0], r[3], r[6]), DVec3::new(r[1], r[4], r[7]), DVec3::new(r[2], r[5], r[8]));
-    let pose = WorldToCamera::new_checked(rot, DVec3::new(t[0], t[1], t[2])).map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
-    Ok(Camera { intrinsics: intr, pose })
+    let rot = DMat3::from_cols(
+        DVec3::new(r[0], r[3], r[6]),
+        DVec3::new(r[1], r[4], r[7]),
+        DVec3::new(r[2], r[5], r[8]),
+    );
+    let pose = WorldToCamera::new_checked(rot, DVec3::new(t[0], t[1], t[2]))
+        .map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
+    Ok(Camera {
+        intrinsics: intr,
+        pose,
+    })
 }
 
 /// Cameras along a path through the views: the mean orientation of the views, centres
 /// offset from the mean centre in that frame by the spread of the views.
 pub fn path_cameras(scene: &Scene, kind: PathKind, frames: usize) -> Result<Vec<Camera>> {
     let n = scene.views.len() as f64;
-    let centre = scene.views.iter().map(|v| v.camera.pose.centre()).sum::<DVec3>() / n;
+    let centre = scene
+        .views
+        .iter()
+        .map(|v| v.camera.pose.centre())
+        .sum::<DVec3>()
+        / n;
     // Mean camera axes (rows of R are the camera axes in world coordinates).
-    let axis = |i: usize| scene.views.iter().map(|v| v.camera.pose.rotation.row(i)).sum::<DVec3>().normalize_or_zero();
+    let axis = |i: usize| {
+        scene
+            .views
+            .iter()
+            .map(|v| v.camera.pose.rotation.row(i))
+            .sum::<DVec3>()
+            .normalize_or_zero()
+    };
     let (x, z0) = (axis(0), axis(2));
     let z = z0;
     let y = z.cross(x).normalize_or_zero();
@@ -150,7 +214,11 @@ pub fn path_cameras(scene: &Scene, kind: PathKind, frames: usize) -> Result<Vec<
     if !(x.is_finite() && y.is_finite() && z.is_finite()) || x.length() < 0.5 {
         bail!("cannot build a path: the views' orientations average to nothing");
     }
-    let mut d: Vec<f64> = scene.views.iter().map(|v| (v.camera.pose.centre() - centre).length()).collect();
+    let mut d: Vec<f64> = scene
+        .views
+        .iter()
+        .map(|v| (v.camera.pose.centre() - centre).length())
+        .collect();
     d.sort_by(f64::total_cmp);
     let radius = d[(d.len() * 9 / 10).min(d.len() - 1)].max(1e-9) * 0.5;
     let rot = DMat3::from_cols(x, y, z).transpose(); // world-to-camera: rows are axes
@@ -166,7 +234,10 @@ pub fn path_cameras(scene: &Scene, kind: PathKind, frames: usize) -> Result<Vec<
             };
             let c = centre + off * radius;
             let pose = WorldToCamera::new_checked(rot, -(rot * c)).map_err(anyhow::Error::msg)?;
-            Ok(Camera { intrinsics: intr, pose })
+            Ok(Camera {
+                intrinsics: intr,
+                pose,
+            })
         })
         .collect()
 }

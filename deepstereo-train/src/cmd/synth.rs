@@ -3,8 +3,8 @@
 
 use anyhow::{bail, Context};
 use deepstereo_core::synth::{
-    contact_sheet, generate, load_textures, scene_seed, write_scenes_progress, Rig, SynthOptions, MAX_SUPERSAMPLE,
-    MIN_VIEWS,
+    contact_sheet, generate, load_textures, scene_seed, write_scenes_progress, Rig, SynthOptions,
+    MAX_SUPERSAMPLE, MIN_VIEWS,
 };
 use std::path::PathBuf;
 
@@ -52,7 +52,8 @@ pub struct Args {
 
 /// Parses `WIDTHxHEIGHT` (positive whole numbers).
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let bad = || format!("expected WIDTHxHEIGHT with positive whole numbers, such as 160x120, got '{s}'");
+    let bad =
+        || format!("expected WIDTHxHEIGHT with positive whole numbers, such as 160x120, got '{s}'");
     let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
     let w: u32 = w.trim().parse().map_err(|_| bad())?;
     let h: u32 = h.trim().parse().map_err(|_| bad())?;
@@ -67,21 +68,35 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bail!("--scenes must be at least 1");
     }
     if args.views < MIN_VIEWS {
-        bail!("--views must be at least {MIN_VIEWS} (a target and a source), got {}", args.views);
+        bail!(
+            "--views must be at least {MIN_VIEWS} (a target and a source), got {}",
+            args.views
+        );
     }
     if args.supersample == 0 || args.supersample > MAX_SUPERSAMPLE {
-        bail!("--supersample must be between 1 and {MAX_SUPERSAMPLE}, got {}", args.supersample);
+        bail!(
+            "--supersample must be between 1 and {MAX_SUPERSAMPLE}, got {}",
+            args.supersample
+        );
     }
     let textures = match &args.textures {
         Some(dir) => {
-            let t = load_textures(dir).with_context(|| format!("cannot load --textures {}", dir.display()))?;
+            let t = load_textures(dir)
+                .with_context(|| format!("cannot load --textures {}", dir.display()))?;
             eprintln!("loaded {} texture photos from {}", t.len(), dir.display());
             t
         }
         None => Vec::new(),
     };
     let (width, height) = args.size;
-    let opts = SynthOptions { views: args.views, width, height, rig: args.rig, supersample: args.supersample, textures };
+    let opts = SynthOptions {
+        views: args.views,
+        width,
+        height,
+        rig: args.rig,
+        supersample: args.supersample,
+        textures,
+    };
     opts.validate()?;
     let bar = indicatif::ProgressBar::new(args.scenes as u64);
     let t0 = std::time::Instant::now();

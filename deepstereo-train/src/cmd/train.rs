@@ -69,8 +69,17 @@ pub struct Args {
 
 /// Parses `WxH`.
 pub fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
-    let (w, h) = s.split_once(['x', 'X']).with_context(|| format!("size '{s}' is not WxH"))?;
-    let (w, h): (u32, u32) = (w.trim().parse().with_context(|| format!("bad width in '{s}'"))?, h.trim().parse().with_context(|| format!("bad height in '{s}'"))?);
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .with_context(|| format!("size '{s}' is not WxH"))?;
+    let (w, h): (u32, u32) = (
+        w.trim()
+            .parse()
+            .with_context(|| format!("bad width in '{s}'"))?,
+        h.trim()
+            .parse()
+            .with_context(|| format!("bad height in '{s}'"))?,
+    );
     if w == 0 || h == 0 {
         bail!("size '{s}' must be positive");
     }
@@ -83,15 +92,23 @@ pub fn load_config(s: &str) -> anyhow::Result<Config> {
         return Ok(c);
     }
     let p = Path::new(s);
-    let text = std::fs::read_to_string(p).with_context(|| format!("--config '{s}' is neither a preset (tiny, paper) nor a readable file"))?;
-    let c: Config = serde_json::from_str(&text).with_context(|| format!("{}: invalid config JSON", p.display()))?;
-    c.validate().map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?;
+    let text = std::fs::read_to_string(p).with_context(|| {
+        format!("--config '{s}' is neither a preset (tiny, paper) nor a readable file")
+    })?;
+    let c: Config = serde_json::from_str(&text)
+        .with_context(|| format!("{}: invalid config JSON", p.display()))?;
+    c.validate()
+        .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?;
     Ok(c)
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let (w, h) = parse_size(&a.synth_size)?;
-    for (name, v) in [("--checkpoint-every", a.checkpoint_every), ("--validate-every", a.validate_every), ("--log-every", a.log_every)] {
+    for (name, v) in [
+        ("--checkpoint-every", a.checkpoint_every),
+        ("--validate-every", a.validate_every),
+        ("--log-every", a.log_every),
+    ] {
         if v == 0 {
             bail!("{name} must be at least 1");
         }
@@ -123,7 +140,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
     let lines = train(&run, &sched, &a.out, a.resume, stop)?;
     if let Some(last) = lines.last() {
-        eprintln!("step {}: loss {:?}, validation PSNR {:?}", last.step, last.loss, last.val_psnr);
+        eprintln!(
+            "step {}: loss {:?}, validation PSNR {:?}",
+            last.step, last.loss, last.val_psnr
+        );
     }
     eprintln!("model: {}", a.out.join("model.safetensors").display());
     Ok(())
