@@ -10,7 +10,7 @@ use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::prune::{
-    plane_range_from_points, rank_views, PruneOptions, PruneStats, Pruner,
+    plane_range_from_bounds, plane_range_from_points, rank_views, PruneOptions, PruneStats, Pruner,
 };
 use deepstereo_core::render::{render_view, render_view_pruned, Backend, CandleBackend, Rendered};
 use deepstereo_core::scene::{nearest_to_point, Scene};
@@ -141,7 +141,10 @@ pub fn render_camera(
         .filter_map(|&i| prepared.pyramids[i].as_ref())
         .collect();
     let r = if settings.prune.is_on() {
-        let range = plane_range_from_points(target, &scene.points, &inv);
+        let bounds: Vec<Option<(f64, f64)>> =
+            sources.iter().map(|&i| scene.views[i].bounds).collect();
+        let range = plane_range_from_points(target, &scene.points, &inv)
+            .or_else(|| plane_range_from_bounds(&bounds, &inv));
         let pruner = Pruner::new(&cfg, target, &srcs, &inv, range, &settings.prune);
         render_view_pruned(
             backend,

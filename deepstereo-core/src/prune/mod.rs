@@ -4,8 +4,10 @@
 //! no surface, some candidate sources do not see the target, and some tiles are seen by
 //! no source. With pruning on, the renderer:
 //!
-//! - **Depth range** ([`plane_range_from_points`]): when the scene has sparse points,
-//!   considers only the planes between the nearest and farthest points the target sees.
+//! - **Depth range** ([`plane_range_from_points`], [`plane_range_from_bounds`]): when the
+//!   scene has sparse points, considers only the planes between the nearest and farthest
+//!   points the target sees; else, when the views have their own depth bounds (LLFF), only
+//!   the planes within the sources' bounds.
 //!   The plane grid (uniform in inverse depth between the scene's near and far) is not
 //!   changed, so every plane the network runs on is a plane of the unpruned render.
 //! - **Planes** ([`Pruner::plan`]): per output tile, a coarse photo-consistency pass
@@ -302,11 +304,42 @@ pub fn plane_range_from_points(
     } else {
         (depths[0], depths[depths.len() - 1])
     };
-    let (rho_hi, rho_lo) = (
-        1.0 / (lo * (1.0 - POINT_MARGIN)),
-        1.0 / (hi * (1.0 + POINT_MARGIN)),
-    );
-    // Planes inside [rho_lo, rho_hi], plus one outside on each side.
+    planes_between(
+        lo * (1.0 - POINT_MARGIN),
+        hi * (1.0 + POINT_MARGIN),
+        inv_depths,
+    )
+}
+
+/// The planes the per-view depth bounds of the sources (LLFF's `poses_bounds.npy`) allow:
+/// between the least near and the largest far of the sources, plus the plane just outside
+/// on each side. The sources' bounds stand for the target's, which holds for sources near
+/// the target (the target's own bounds are not used: a held-out view's bounds come from
+/// its own photograph). `None` when a source has no bounds.
+pub fn plane_range_from_bounds(
+    bounds: &[Option<(f64, f64)>],
+    inv_depths: &[f64],
+) -> Option<(usize, usize)> {
+    if bounds.is_empty() || inv_depths.is_empty() {
+        return None;
+    }
+    let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+    for b in bounds {
+        let (n, f) = (*b)?;
+        if !(n > 0.0 && f > n) {
+            return None;
+        }
+        lo = lo.min(n);
+        hi = hi.max(f);
+    }
+    planes_between(lo, hi, inv_depths)
+}
+
+/// The planes (of decreasing `inv_depths`) with depths in `[near, far]`, plus the plane
+/// just outside on each side.
+fn planes_between(near: f64, far: f64, inv_depths: &[f64]) -> Option<(usize, usize)> {
+    let d = inv_depths.len();
+    let (rho_hi, rho_lo) = (1.0 / near, 1.0 / far);
     let first = inv_depths
         .iter()
         .position(|&r| r <= rho_hi)

@@ -200,7 +200,7 @@ impl<'a> Pruner<'a> {
         let planes = self.needed(s, idx);
         let here = self.cost(size, planes.len());
         let half = size / 2;
-        if half >= self.opts.min_block.max(1) && half % self.align == 0 {
+        if half >= self.opts.min_block.max(1) && half.is_multiple_of(self.align) {
             let mut total = 0.0;
             let mut blocks = Vec::new();
             for (qx, qy) in [
@@ -303,10 +303,10 @@ impl<'a> Pruner<'a> {
                     let c = sample_bilinear(&s.images[self.level], uv.x, uv.y);
                     if c[3] > MIN_ALPHA {
                         let rgb = [c[0] / c[3], c[1] / c[3], c[2] / c[3]];
-                        for ch in 0..3 {
-                            out.lo[ch] = out.lo[ch].min(rgb[ch]);
-                            out.hi[ch] = out.hi[ch].max(rgb[ch]);
-                            out.sum[ch] += rgb[ch];
+                        for (ch, &x) in rgb.iter().enumerate() {
+                            out.lo[ch] = out.lo[ch].min(x);
+                            out.hi[ch] = out.hi[ch].max(x);
+                            out.sum[ch] += x;
                         }
                         col[(p * nz + z - z0) * v + k] = Some(rgb);
                         cnt += 1;
@@ -344,7 +344,7 @@ impl<'a> Pruner<'a> {
                             }
                             // Mean squared colour difference of the pair over the window.
                             let c = m[1] / (3.0 * n);
-                            if !(best[p] <= c) {
+                            if best[p].is_nan() || best[p] > c {
                                 best[p] = c;
                             }
                         }
@@ -354,8 +354,8 @@ impl<'a> Pruner<'a> {
             })
             .collect();
         for (zi, c) in costs.iter().enumerate() {
-            for p in 0..np {
-                out.cost[p * nz + zi] = c[p];
+            for (p, &v) in c.iter().enumerate().take(np) {
+                out.cost[p * nz + zi] = v;
             }
         }
         out

@@ -873,7 +873,13 @@ fn prune_real_crop() -> TestResult {
                 contrast,
                 ..PruneOptions::auto()
             };
-            let range = plane_range_from_points(&cam, &scene.points, &inv);
+            let range = std::env::var("PRUNE_RANGE")
+                .ok()
+                .map(|r| {
+                    let v: Vec<usize> = r.split(',').map(|x| x.parse().unwrap()).collect();
+                    (v[0], v[1])
+                })
+                .or_else(|| plane_range_from_points(&cam, &scene.points, &inv));
             let pruner = Pruner::new(&cfg, &cam, &refs, &inv, range, &opts);
             let t0 = std::time::Instant::now();
             let r = render_view_pruned(&backend, &cam, &refs, &inv, 64, Some(&pruner), &|_, _| {})?;
