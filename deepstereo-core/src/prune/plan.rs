@@ -278,6 +278,7 @@ impl<'a> Pruner<'a> {
             nz,
             pos,
             cost: vec![f32::NAN; rays.len() * nz],
+            cost0: vec![f32::NAN; rays.len() * nz],
             lo: [f32::INFINITY; 3],
             hi: [f32::NEG_INFINITY; 3],
             sum: [0.0; 3],
@@ -320,10 +321,11 @@ impl<'a> Pruner<'a> {
         }
         let ny = np / nx.max(1);
         let r = self.opts.window;
-        let costs: Vec<Vec<f32>> = (0..nz)
+        let costs: Vec<(Vec<f32>, Vec<f32>)> = (0..nz)
             .into_par_iter()
             .map(|zi| {
                 let mut best = vec![f32::NAN; np];
+                let mut best0 = vec![f32::NAN; np];
                 let mut acc = vec![[0f32; 2]; np];
                 for a in 0..v {
                     for b in a + 1..v {
@@ -334,6 +336,9 @@ impl<'a> Pruner<'a> {
                                 }
                                 _ => [0.0; 2],
                             };
+                            if m[0] > 0.0 && !(best0[p] <= m[1] / 3.0) {
+                                best0[p] = m[1] / 3.0;
+                            }
                         }
                         let sums = box_sum(&acc, nx, ny, r);
                         let full = ((2 * r + 1) * (2 * r + 1)) as f32;
@@ -350,12 +355,13 @@ impl<'a> Pruner<'a> {
                         }
                     }
                 }
-                best
+                (best, best0)
             })
             .collect();
-        for (zi, c) in costs.iter().enumerate() {
-            for (p, &v) in c.iter().enumerate().take(np) {
-                out.cost[p * nz + zi] = v;
+        for (zi, (c, c0)) in costs.iter().enumerate() {
+            for p in 0..np {
+                out.cost[p * nz + zi] = c[p];
+                out.cost0[p * nz + zi] = c0[p];
             }
         }
         out
@@ -395,7 +401,19 @@ impl<'a> Pruner<'a> {
         let (z0, z1) = self.range;
         let mut total = vec![0f32; s.nz];
         let mut good: Vec<Vec<usize>> = Vec::new();
+        let r0: f32 = std::env::var("PRUNE_R0").ok().and_then(|x| x.parse().ok()).unwrap_or(0.25);
         for &p in idx {
+            // The sample alone, when its best plane stands out: thin structures that the
+            // window averages away.
+            let c0 = &s.cost0[p * s.nz..(p + 1) * s.nz];
+            let mut k0: Vec<(usize, f32)> = c0.iter().copied().enumerate().filter(|(_, x)| !x.is_nan()).collect();
+            if k0.len() >= 3 {
+                k0.sort_by(|a, b| a.1.total_cmp(&b.1));
+                let (best, lo0, med0) = (k0[0].0, k0[0].1, k0[k0.len() / 2].1);
+                if med0 - lo0 >= self.opts.contrast && lo0 <= r0 * med0 {
+                    good.push(vec![best]);
+                }
+            }
             let c = &s.cost[p * s.nz..(p + 1) * s.nz];
             let known = || c.iter().enumerate().filter(|(_, x)| !x.is_nan());
             let (lo, hi) = known().fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), (_, &x)| {
@@ -444,10 +462,9 @@ impl<'a> Pruner<'a> {
                 None => want[z0..=z1].iter_mut().for_each(|w| *w = true),
             }
         }
+        // The margin stays inside the depth range: nothing is beyond it.
         let m = self.margin;
-        (0..self.planes)
-            .filter(|&z| (z.saturating_sub(m)..=(z + m).min(self.planes - 1)).any(|q| want[q]))
-            .collect()
+        (z0..=z1).filter(|&z| (z.saturating_sub(m)..=(z + m).min(z1)).any(|q| want[q])).collect()
     }
 }
 
@@ -487,6 +504,8 @@ struct Samples {
     /// `[sample, plane]` colour variance across the sources that see the point (NaN
     /// where fewer than two do).
     cost: Vec<f32>,
+    /// The same cost of the sample alone (no window).
+    cost0: Vec<f32>,
     /// Per channel, the least and largest source colour seen, and the sum and count.
     lo: [f32; 3],
     hi: [f32; 3],
