@@ -69,7 +69,7 @@ pub fn pick_sources(
     k: usize,
     settings: &RenderSettings,
 ) -> Vec<usize> {
-    if settings.prune.is_on() && std::env::var("PRUNE_NOVIEWS").is_err() {
+    if settings.prune.is_on() {
         let cams: Vec<Camera> = scene.views.iter().map(|v| v.camera).collect();
         rank_views(&cams, target, k, exclude, scene.near, scene.far).0
     } else {

@@ -11,17 +11,19 @@
 //!   The plane grid (uniform in inverse depth between the scene's near and far) is not
 //!   changed, so every plane the network runs on is a plane of the unpruned render.
 //! - **Planes** ([`Pruner::plan`]): per output tile, a coarse photo-consistency pass
-//!   samples every second pixel of the tile at pyramid level 1 on every plane, scores
-//!   each sample and plane by the smallest mean squared colour difference between two
-//!   sources over a small window (two sources agreeing is enough, so occlusion in the
-//!   others does not hide a surface), and keeps each sample's best planes
-//!   ([`PruneOptions::tolerance`]; 0: its best one), [`PruneOptions::margin`] planes on
-//!   each side, over all samples whose cost tells depths apart. The network runs once per
-//!   block on the union of those planes (in order: the selection tower accepts any list
-//!   of planes), and a tile whose parts need different planes is split into quadrants
-//!   (down to [`PruneOptions::min_block`] pixels) when the smaller blocks' wider borders
-//!   cost less than the planes they save. Only the kept planes are warped; the selection
-//!   is 0 elsewhere, so the depth and confidence maps keep their meaning.
+//!   samples every second pixel of the tile at pyramid level 1 on every plane of the
+//!   range and scores each sample and plane by the smallest mean squared colour
+//!   difference between two sources over a window of samples (two sources agreeing is
+//!   enough, so occlusion in the others does not hide a surface). Each sample whose score
+//!   tells depths apart keeps its best plane ([`PruneOptions::tolerance`] widens that to
+//!   the planes near its best score), and also its best plane without the window when
+//!   that one stands out ([`PruneOptions::standout`]: thin structures); the kept planes,
+//!   with [`PruneOptions::margin`] planes on each side, are the union over the samples.
+//!   The network runs once per block on those planes, in order (the selection tower
+//!   accepts any list of planes), and a tile whose parts need different planes is split
+//!   into quadrants (down to [`PruneOptions::min_block`] pixels) when that costs less.
+//!   Only the kept planes are warped; the selection is 0 elsewhere, so the depth and
+//!   confidence maps keep their meaning.
 //!   A contiguous band of planes per tile does not work: a 64-pixel tile of a procedural
 //!   scene holds on average surfaces spanning 81% of the depth range (measured from the
 //!   true depths), while the planes those surfaces are on are 26% of it.
@@ -104,7 +106,9 @@ pub const DEFAULT_TOLERANCE: f32 = 0.0;
 /// Default of [`PruneOptions::stride`].
 pub const DEFAULT_STRIDE: usize = 2;
 /// Default of [`PruneOptions::window`].
-pub const DEFAULT_WINDOW: usize = 1;
+pub const DEFAULT_WINDOW: usize = 2;
+/// Default of [`PruneOptions::standout`].
+pub const DEFAULT_STANDOUT: f32 = 0.1;
 /// Default of [`PruneOptions::flat`].
 pub const DEFAULT_FLAT: f32 = 1.0 / 255.0;
 /// Default of [`PruneOptions::min_block`].
@@ -140,6 +144,9 @@ pub struct PruneOptions {
     pub flat: f32,
     /// Radius, in coarse samples, of the window costs are averaged over.
     pub window: usize,
+    /// A sample also keeps its own best plane, without the window, when that plane's cost
+    /// is at most `standout` x its median cost: thin structures the window averages away.
+    pub standout: f32,
     /// Smallest block a tile is split into when its parts need different planes.
     pub min_block: usize,
 }
@@ -157,6 +164,7 @@ impl Default for PruneOptions {
             flat: DEFAULT_FLAT,
             min_block: DEFAULT_MIN_BLOCK,
             window: DEFAULT_WINDOW,
+            standout: DEFAULT_STANDOUT,
         }
     }
 }

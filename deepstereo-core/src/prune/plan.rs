@@ -55,11 +55,15 @@ pub struct Pruner<'a> {
     reach: f64,
     /// Whether the exact coverage test applies (no lens distortion anywhere).
     pinhole: bool,
+    /// The pairs of sources whose photo-consistency says something about depth: those
+    /// with a baseline (two views from one place agree at every depth).
+    pairs: Vec<(usize, usize)>,
 }
 
 impl<'a> Pruner<'a> {
-    /// `range`: the planes the scene can need at all (from [`super::plane_range_from_points`]);
-    /// `None`: all of them.
+    /// `range`: the planes the scene can need at all, `first..=last` (from
+    /// [`super::plane_range_from_points`] or [`super::plane_range_from_bounds`]); `None`:
+    /// all of them.
     pub fn new(
         cfg: &Config,
         target: &Camera,
@@ -90,9 +94,8 @@ impl<'a> Pruner<'a> {
             && sources
                 .iter()
                 .all(|s| s.cameras.iter().all(|c| c.intrinsics.distortion.is_none()));
-        let range = range.map_or((0, d.saturating_sub(1)), |(a, b)| {
-            (a.min(d - 1), b.min(d - 1))
-        });
+        let last = d.saturating_sub(1);
+        let range = range.map_or((0, last), |(a, b)| (a.min(b).min(last), b.max(a).min(last)));
         Self {
             opts: opts.clone(),
             margin: opts.margin,
@@ -108,6 +111,7 @@ impl<'a> Pruner<'a> {
             align: cfg.tile_align(),
             reach: (1u64 << (cfg.levels - 1)) as f64 + 1.0,
             pinhole,
+            pairs: depth_pairs(sources),
         }
     }
 
@@ -327,8 +331,8 @@ impl<'a> Pruner<'a> {
                 let mut best = vec![f32::NAN; np];
                 let mut best0 = vec![f32::NAN; np];
                 let mut acc = vec![[0f32; 2]; np];
-                for a in 0..v {
-                    for b in a + 1..v {
+                for &(a, b) in &self.pairs {
+                    {
                         for (p, m) in acc.iter_mut().enumerate() {
                             *m = match (col[(p * nz + zi) * v + a], col[(p * nz + zi) * v + b]) {
                                 (Some(x), Some(y)) => {
@@ -336,7 +340,7 @@ impl<'a> Pruner<'a> {
                                 }
                                 _ => [0.0; 2],
                             };
-                            if m[0] > 0.0 && !(best0[p] <= m[1] / 3.0) {
+                            if m[0] > 0.0 && (best0[p].is_nan() || best0[p] > m[1] / 3.0) {
                                 best0[p] = m[1] / 3.0;
                             }
                         }
@@ -401,16 +405,20 @@ impl<'a> Pruner<'a> {
         let (z0, z1) = self.range;
         let mut total = vec![0f32; s.nz];
         let mut good: Vec<Vec<usize>> = Vec::new();
-        let r0: f32 = std::env::var("PRUNE_R0").ok().and_then(|x| x.parse().ok()).unwrap_or(0.25);
         for &p in idx {
             // The sample alone, when its best plane stands out: thin structures that the
             // window averages away.
             let c0 = &s.cost0[p * s.nz..(p + 1) * s.nz];
-            let mut k0: Vec<(usize, f32)> = c0.iter().copied().enumerate().filter(|(_, x)| !x.is_nan()).collect();
+            let mut k0: Vec<(usize, f32)> = c0
+                .iter()
+                .copied()
+                .enumerate()
+                .filter(|(_, x)| !x.is_nan())
+                .collect();
             if k0.len() >= 3 {
                 k0.sort_by(|a, b| a.1.total_cmp(&b.1));
                 let (best, lo0, med0) = (k0[0].0, k0[0].1, k0[k0.len() / 2].1);
-                if med0 - lo0 >= self.opts.contrast && lo0 <= r0 * med0 {
+                if med0 - lo0 >= self.opts.contrast && lo0 <= self.opts.standout * med0 {
                     good.push(vec![best]);
                 }
             }
@@ -464,7 +472,35 @@ impl<'a> Pruner<'a> {
         }
         // The margin stays inside the depth range: nothing is beyond it.
         let m = self.margin;
-        (z0..=z1).filter(|&z| (z.saturating_sub(m)..=(z + m).min(z1)).any(|q| want[q])).collect()
+        (z0..=z1)
+            .filter(|&z| (z.saturating_sub(m)..=(z + m).min(z1)).any(|q| want[q]))
+            .collect()
+    }
+}
+
+/// Least baseline of a pair of sources, relative to the largest baseline between any two,
+/// for its photo-consistency to count.
+const MIN_BASELINE: f64 = 0.02;
+
+/// The pairs of sources with a baseline (see [`Pruner`]); every pair when none has.
+fn depth_pairs(sources: &[&PyramidSource]) -> Vec<(usize, usize)> {
+    let c: Vec<_> = sources.iter().map(|s| s.cameras[0].pose.centre()).collect();
+    let all: Vec<(usize, usize)> = (0..c.len())
+        .flat_map(|a| (a + 1..c.len()).map(move |b| (a, b)))
+        .collect();
+    let longest = all
+        .iter()
+        .map(|&(a, b)| c[a].distance(c[b]))
+        .fold(0.0, f64::max);
+    let with: Vec<(usize, usize)> = all
+        .iter()
+        .copied()
+        .filter(|&(a, b)| c[a].distance(c[b]) > MIN_BASELINE * longest)
+        .collect();
+    if with.is_empty() {
+        all
+    } else {
+        with
     }
 }
 
