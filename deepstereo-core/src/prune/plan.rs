@@ -1,14 +1,14 @@
 //! Per-tile decisions: which planes the network runs on, or whether it runs at all.
 
+mod coarse;
+
 use super::PruneOptions;
-use crate::baseline::MIN_ALPHA;
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::geometry::{apply_h, plane_homography};
 use crate::inputs::{level_camera, PyramidSource};
-use crate::sweep::{sample_bilinear, IN_FRONT_EPS};
+use coarse::{depth_pairs, Samples};
 use glam::{DMat3, DVec2};
-use rayon::prelude::*;
 
 /// What to do with one block of output pixels.
 #[derive(Clone, Debug, PartialEq)]
@@ -182,7 +182,7 @@ impl<'a> Pruner<'a> {
             return whole(plan);
         }
         let all: Vec<usize> = (0..samples.pos.len()).collect();
-        self.split(&samples, &all, x0, y0, tile).1
+        self.split(&samples, &all, x0, y0, tile, None).1
     }
 
     /// Cost of running the network on `planes` planes of a block of side `size`: the
@@ -200,8 +200,15 @@ impl<'a> Pruner<'a> {
         x0: usize,
         y0: usize,
         size: usize,
+        parent: Option<&[usize]>,
     ) -> (f64, Vec<Block>) {
-        let planes = self.needed(s, idx);
+        // A block none of whose samples tells depths apart (textureless) takes the planes
+        // of the block around it: its depth is most likely that of the surfaces nearby.
+        let planes = match (self.needed(s, idx), parent) {
+            (Some(p), _) => p,
+            (None, Some(p)) => p.to_vec(),
+            (None, None) => self.fallback(s, idx),
+        };
         let here = self.cost(size, planes.len());
         let half = size / 2;
         if half >= self.opts.min_block.max(1) && half.is_multiple_of(self.align) {
@@ -224,7 +231,7 @@ impl<'a> Pruner<'a> {
                 if sub.is_empty() {
                     continue; // outside the image
                 }
-                let (c, b) = self.split(s, &sub, qx, qy, half);
+                let (c, b) = self.split(s, &sub, qx, qy, half, Some(&planes));
                 total += c;
                 blocks.extend(b);
             }
@@ -243,150 +250,6 @@ impl<'a> Pruner<'a> {
         )
     }
 
-    /// Level-0 positions and normalized rays of the coarse samples of a tile: every
-    /// `stride`-th pixel of the coarse level inside the image, and the first and last.
-    fn rays(&self, x0: usize, y0: usize, tile: usize) -> (Vec<(usize, usize)>, Vec<DVec2>, usize) {
-        let intr = &self.coarse_target.intrinsics;
-        let f = 1usize << self.level;
-        let s = (self.opts.stride >> self.level).max(1);
-        let (tw, th) = (
-            self.target.intrinsics.width as usize,
-            self.target.intrinsics.height as usize,
-        );
-        let span = |a: usize, n: usize| -> Vec<usize> {
-            let (lo, hi) = (a / f, (a + tile).min(n).div_ceil(f));
-            let mut v: Vec<usize> = (lo..hi).skip(s / 2).step_by(s).collect();
-            v.extend([lo, hi.saturating_sub(1)].into_iter().filter(|&i| i < hi));
-            v.sort_unstable();
-            v.dedup();
-            v
-        };
-        let (xs, ys) = (span(x0, tw), span(y0, th));
-        let mut pos = Vec::with_capacity(xs.len() * ys.len());
-        let mut rays = Vec::with_capacity(xs.len() * ys.len());
-        for &j in &ys {
-            for &i in &xs {
-                pos.push((i * f, j * f));
-                rays.push(intr.unproject_pixel(DVec2::new(i as f64 + 0.5, j as f64 + 0.5)));
-            }
-        }
-        (pos, rays, xs.len())
-    }
-
-    /// The coarse cost volume of a tile.
-    fn coarse(&self, x0: usize, y0: usize, tile: usize) -> Samples {
-        let (pos, rays, nx) = self.rays(x0, y0, tile);
-        let (z0, z1) = self.range;
-        let nz = z1 + 1 - z0;
-        let mut out = Samples {
-            nz,
-            pos,
-            cost: vec![f32::NAN; rays.len() * nz],
-            cost0: vec![f32::NAN; rays.len() * nz],
-            lo: [f32::INFINITY; 3],
-            hi: [f32::NEG_INFINITY; 3],
-            sum: [0.0; 3],
-            count: 0,
-            all_seen: true,
-        };
-        let v = self.sources.len();
-        let np = rays.len();
-        // Colours [sample, plane, source] (alpha-normalized; `None` where unseen).
-        let mut col = vec![None; np * nz * v];
-        for (p, n) in rays.iter().enumerate() {
-            for z in z0..=z1 {
-                let mut cnt = 0usize;
-                for (k, s) in self.sources.iter().enumerate() {
-                    let q = apply_h(&self.homs[k * self.planes + z], n.x, n.y);
-                    if q.z <= IN_FRONT_EPS * q.length() {
-                        continue;
-                    }
-                    let cam = &s.cameras[self.level];
-                    let uv = cam
-                        .intrinsics
-                        .project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
-                    let c = sample_bilinear(&s.images[self.level], uv.x, uv.y);
-                    if c[3] > MIN_ALPHA {
-                        let rgb = [c[0] / c[3], c[1] / c[3], c[2] / c[3]];
-                        for (ch, &x) in rgb.iter().enumerate() {
-                            out.lo[ch] = out.lo[ch].min(x);
-                            out.hi[ch] = out.hi[ch].max(x);
-                            out.sum[ch] += x;
-                        }
-                        col[(p * nz + z - z0) * v + k] = Some(rgb);
-                        cnt += 1;
-                    }
-                }
-                out.count += cnt;
-                if cnt == 0 {
-                    out.all_seen = false;
-                }
-            }
-        }
-        let ny = np / nx.max(1);
-        let r = self.opts.window;
-        let costs: Vec<(Vec<f32>, Vec<f32>)> = (0..nz)
-            .into_par_iter()
-            .map(|zi| {
-                let mut best = vec![f32::NAN; np];
-                let mut best0 = vec![f32::NAN; np];
-                let mut acc = vec![[0f32; 2]; np];
-                for &(a, b) in &self.pairs {
-                    {
-                        for (p, m) in acc.iter_mut().enumerate() {
-                            *m = match (col[(p * nz + zi) * v + a], col[(p * nz + zi) * v + b]) {
-                                (Some(x), Some(y)) => {
-                                    [1.0, (0..3).map(|c| (x[c] - y[c]).powi(2)).sum()]
-                                }
-                                _ => [0.0; 2],
-                            };
-                            if m[0] > 0.0 && (best0[p].is_nan() || best0[p] > m[1] / 3.0) {
-                                best0[p] = m[1] / 3.0;
-                            }
-                        }
-                        let sums = box_sum(&acc, nx, ny, r);
-                        let full = ((2 * r + 1) * (2 * r + 1)) as f32;
-                        for (p, m) in sums.iter().enumerate() {
-                            let n = m[0];
-                            if n < 3.0 || n < 0.5 * full.min((nx * ny) as f32) {
-                                continue;
-                            }
-                            // Mean squared colour difference of the pair over the window.
-                            let c = m[1] / (3.0 * n);
-                            if best[p].is_nan() || best[p] > c {
-                                best[p] = c;
-                            }
-                        }
-                    }
-                }
-                (best, best0)
-            })
-            .collect();
-        for (zi, (c, c0)) in costs.iter().enumerate() {
-            for p in 0..np {
-                out.cost[p * nz + zi] = c[p];
-                out.cost0[p * nz + zi] = c0[p];
-            }
-        }
-        out
-    }
-
-    /// Per sample of a tile, its level-0 position and its cost per plane of the range.
-    #[cfg(test)]
-    pub(crate) fn debug_costs(
-        &self,
-        x0: usize,
-        y0: usize,
-        tile: usize,
-    ) -> Vec<((usize, usize), Vec<f32>)> {
-        let s = self.coarse(x0, y0, tile);
-        s.pos
-            .iter()
-            .enumerate()
-            .map(|(p, &xy)| (xy, s.cost[p * s.nz..(p + 1) * s.nz].to_vec()))
-            .collect()
-    }
-
     /// The flat plan when every sampled source colour is the same.
     fn flat(&self, s: &Samples) -> Option<TilePlan> {
         let flat = (0..3).all(|ch| s.hi[ch] - s.lo[ch] <= 2.0 * self.opts.flat);
@@ -396,14 +259,13 @@ impl<'a> Pruner<'a> {
         })
     }
 
-    /// The planes the samples `idx` need. Each informative sample finds plausible the
-    /// planes whose cost lies within the tolerance of its least; the kept planes are a
-    /// small set (chosen greedily, the plane most samples find plausible first) such that
-    /// [`PruneOptions::mass`] of the informative samples find one of them plausible,
-    /// widened by the margin on each side.
-    fn needed(&self, s: &Samples, idx: &[usize]) -> Vec<usize> {
-        let (z0, z1) = self.range;
-        let mut total = vec![0f32; s.nz];
+    /// The planes the samples `idx` need: each sample that tells depths apart spreads a
+    /// unit of support over its plausible planes (those within the tolerance of its least
+    /// cost, and its own best plane when that stands out); the most supported planes
+    /// holding [`PruneOptions::mass`] of the support are kept, widened by the margin.
+    /// `None` when no sample tells depths apart.
+    fn needed(&self, s: &Samples, idx: &[usize]) -> Option<Vec<usize>> {
+        let z0 = self.range.0;
         let mut good: Vec<Vec<usize>> = Vec::new();
         for &p in idx {
             // The sample alone, when its best plane stands out: thin structures that the
@@ -428,125 +290,70 @@ impl<'a> Pruner<'a> {
                 (a.min(x), b.max(x))
             });
             if known().count() < 2 || hi - lo < self.opts.contrast {
-                for (z, &x) in known() {
-                    total[z] += x;
-                }
                 continue;
             }
             let cut = lo + self.opts.tolerance * (hi - lo);
             good.push(known().filter(|(_, &x)| x <= cut).map(|(z, _)| z).collect());
         }
-        let mut want = vec![false; self.planes];
-        if !good.is_empty() {
-            // Each sample spreads a unit of support over its plausible planes; keep the
-            // most supported planes until they hold `mass` of it all.
-            let mut support = vec![0f32; s.nz];
-            for g in &good {
-                for &z in g {
-                    support[z] += 1.0 / g.len() as f32;
-                }
-            }
-            let mut order: Vec<usize> = (0..s.nz).filter(|&z| support[z] > 0.0).collect();
-            order.sort_by(|&a, &b| support[b].total_cmp(&support[a]).then(a.cmp(&b)));
-            let all: f32 = support.iter().sum();
-            let mut acc = 0f32;
-            for z in order {
-                if acc >= self.opts.mass * all {
-                    break;
-                }
-                acc += support[z];
-                want[z0 + z] = true;
-            }
-        } else {
-            // Nothing here tells depths apart: the plane of least total cost, or every
-            // plane of the range when no source sees any sample.
-            match total
-                .iter()
-                .enumerate()
-                .filter(|(_, x)| **x > 0.0)
-                .min_by(|a, b| a.1.total_cmp(b.1))
-            {
-                Some((z, _)) => want[z0 + z] = true,
-                None => want[z0..=z1].iter_mut().for_each(|w| *w = true),
+        if good.is_empty() {
+            return None;
+        }
+        // Each sample spreads a unit of support over its plausible planes; keep the most
+        // supported planes until they hold `mass` of it all.
+        let mut support = vec![0f32; s.nz];
+        for g in &good {
+            for &z in g {
+                support[z] += 1.0 / g.len() as f32;
             }
         }
+        let mut order: Vec<usize> = (0..s.nz).filter(|&z| support[z] > 0.0).collect();
+        order.sort_by(|&a, &b| support[b].total_cmp(&support[a]).then(a.cmp(&b)));
+        let all: f32 = support.iter().sum();
+        let mut acc = 0f32;
+        let mut want = vec![false; self.planes];
+        for z in order {
+            if acc >= self.opts.mass * all {
+                break;
+            }
+            acc += support[z];
+            want[z0 + z] = true;
+        }
+        Some(self.widen(&want))
+    }
+
+    /// The planes of a tile none of whose samples tells depths apart: the plane of least
+    /// total cost (the colour there hardly depends on depth), or every plane of the range
+    /// when no source sees any sample.
+    fn fallback(&self, s: &Samples, idx: &[usize]) -> Vec<usize> {
+        let (z0, z1) = self.range;
+        let mut total = vec![0f32; s.nz];
+        for &p in idx {
+            for (z, &x) in s.cost[p * s.nz..(p + 1) * s.nz].iter().enumerate() {
+                if !x.is_nan() {
+                    total[z] += x;
+                }
+            }
+        }
+        let mut want = vec![false; self.planes];
+        match total
+            .iter()
+            .enumerate()
+            .filter(|(_, x)| **x > 0.0)
+            .min_by(|a, b| a.1.total_cmp(b.1))
+        {
+            Some((z, _)) => want[z0 + z] = true,
+            None => want[z0..=z1].iter_mut().for_each(|w| *w = true),
+        }
+        self.widen(&want)
+    }
+
+    /// The wanted planes and [`PruneOptions::margin`] planes on each side of each.
+    fn widen(&self, want: &[bool]) -> Vec<usize> {
+        let (z0, z1) = self.range;
         // The margin stays inside the depth range: nothing is beyond it.
         let m = self.margin;
         (z0..=z1)
             .filter(|&z| (z.saturating_sub(m)..=(z + m).min(z1)).any(|q| want[q]))
             .collect()
     }
-}
-
-/// Least baseline of a pair of sources, relative to the largest baseline between any two,
-/// for its photo-consistency to count.
-const MIN_BASELINE: f64 = 0.02;
-
-/// The pairs of sources with a baseline (see [`Pruner`]); every pair when none has.
-fn depth_pairs(sources: &[&PyramidSource]) -> Vec<(usize, usize)> {
-    let c: Vec<_> = sources.iter().map(|s| s.cameras[0].pose.centre()).collect();
-    let all: Vec<(usize, usize)> = (0..c.len())
-        .flat_map(|a| (a + 1..c.len()).map(move |b| (a, b)))
-        .collect();
-    let longest = all
-        .iter()
-        .map(|&(a, b)| c[a].distance(c[b]))
-        .fold(0.0, f64::max);
-    let with: Vec<(usize, usize)> = all
-        .iter()
-        .copied()
-        .filter(|&(a, b)| c[a].distance(c[b]) > MIN_BASELINE * longest)
-        .collect();
-    if with.is_empty() {
-        all
-    } else {
-        with
-    }
-}
-
-/// Sums of `[f32; 2]` over the `(2r+1)^2` window around each sample of an `nx x ny`
-/// grid (clipped at the borders).
-fn box_sum(x: &[[f32; 2]], nx: usize, ny: usize, r: usize) -> Vec<[f32; 2]> {
-    let add = |a: &mut [f32; 2], b: &[f32; 2]| a.iter_mut().zip(b).for_each(|(a, b)| *a += b);
-    let mut rows = vec![[0f32; 2]; x.len()];
-    for y in 0..ny {
-        for i in 0..nx {
-            let mut m = [0f32; 2];
-            for j in i.saturating_sub(r)..(i + r + 1).min(nx) {
-                add(&mut m, &x[y * nx + j]);
-            }
-            rows[y * nx + i] = m;
-        }
-    }
-    let mut out = vec![[0f32; 2]; x.len()];
-    for y in 0..ny {
-        for i in 0..nx {
-            let mut m = [0f32; 2];
-            for j in y.saturating_sub(r)..(y + r + 1).min(ny) {
-                add(&mut m, &rows[j * nx + i]);
-            }
-            out[y * nx + i] = m;
-        }
-    }
-    out
-}
-
-/// The coarse pass's view of a tile.
-struct Samples {
-    /// Planes of the range.
-    nz: usize,
-    /// Level-0 position of each sample (the top-left of its coarse pixel).
-    pos: Vec<(usize, usize)>,
-    /// `[sample, plane]` colour variance across the sources that see the point (NaN
-    /// where fewer than two do).
-    cost: Vec<f32>,
-    /// The same cost of the sample alone (no window).
-    cost0: Vec<f32>,
-    /// Per channel, the least and largest source colour seen, and the sum and count.
-    lo: [f32; 3],
-    hi: [f32; 3],
-    sum: [f32; 3],
-    count: usize,
-    /// Whether every sample and plane had at least one source.
-    all_seen: bool,
 }

@@ -1,0 +1,105 @@
+//! The planes a target can need at all, from the scene's sparse points or per-view bounds.
+
+use crate::camera::Camera;
+use glam::DVec3;
+
+/// Fewest points a point set needs to be treated as a cloud (in-frustum filtering);
+/// smaller sets (such as the 8 corners of a bounding box) bound the scene as a hull.
+pub const MIN_CLOUD_POINTS: usize = 16;
+/// Quantiles of the in-frustum point depths taken as the target's depth range.
+pub const POINT_QUANTILES: (f64, f64) = (0.005, 0.995);
+/// Relative margin on the target's point depth range (near x (1 - m), far x (1 + m)).
+pub const POINT_MARGIN: f64 = 0.1;
+
+/// The planes (`first..=last` of `inv_depths`, which decrease) that the scene's sparse
+/// `points` seen by `target` need: the planes between the nearest and farthest point
+/// depths (robust quantiles, widened by [`POINT_MARGIN`]), plus the plane just outside
+/// on each side. Fewer than [`MIN_CLOUD_POINTS`] points are taken as a hull: every point
+/// in front of the camera counts, in view or not. `None` when the points say nothing.
+pub fn plane_range_from_points(
+    target: &Camera,
+    points: &[DVec3],
+    inv_depths: &[f64],
+) -> Option<(usize, usize)> {
+    let d = inv_depths.len();
+    if d == 0 || points.is_empty() {
+        return None;
+    }
+    let cloud = points.len() >= MIN_CLOUD_POINTS;
+    let (w, h) = (
+        target.intrinsics.width as f64,
+        target.intrinsics.height as f64,
+    );
+    let mut depths: Vec<f64> = points
+        .iter()
+        .filter_map(|&p| {
+            let pc = target.pose.transform_point(p);
+            if !(pc.z > 0.0 && pc.z.is_finite()) {
+                return None;
+            }
+            if cloud {
+                let (uv, _) = target.project(p);
+                if !(uv.x >= 0.0 && uv.y >= 0.0 && uv.x < w && uv.y < h) {
+                    return None;
+                }
+            }
+            Some(pc.z)
+        })
+        .collect();
+    if depths.len() < if cloud { 8 } else { 2 } {
+        return None;
+    }
+    depths.sort_by(f64::total_cmp);
+    let q = |f: f64| depths[((depths.len() - 1) as f64 * f).round() as usize];
+    let (lo, hi) = if cloud {
+        (q(POINT_QUANTILES.0), q(POINT_QUANTILES.1))
+    } else {
+        (depths[0], depths[depths.len() - 1])
+    };
+    planes_between(
+        lo * (1.0 - POINT_MARGIN),
+        hi * (1.0 + POINT_MARGIN),
+        inv_depths,
+    )
+}
+
+/// The planes the per-view depth bounds of the sources (LLFF's `poses_bounds.npy`) allow:
+/// between the least near and the largest far of the sources, plus the plane just outside
+/// on each side. The sources' bounds stand for the target's, which holds for sources near
+/// the target (the target's own bounds are not used: a held-out view's bounds come from
+/// its own photograph). `None` when a source has no bounds.
+pub fn plane_range_from_bounds(
+    bounds: &[Option<(f64, f64)>],
+    inv_depths: &[f64],
+) -> Option<(usize, usize)> {
+    if bounds.is_empty() || inv_depths.is_empty() {
+        return None;
+    }
+    let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+    for b in bounds {
+        let (n, f) = (*b)?;
+        if !(n > 0.0 && f > n) {
+            return None;
+        }
+        lo = lo.min(n);
+        hi = hi.max(f);
+    }
+    planes_between(lo, hi, inv_depths)
+}
+
+/// The planes (of decreasing `inv_depths`) with depths in `[near, far]`, plus the plane
+/// just outside on each side.
+fn planes_between(near: f64, far: f64, inv_depths: &[f64]) -> Option<(usize, usize)> {
+    let d = inv_depths.len();
+    let (rho_hi, rho_lo) = (1.0 / near, 1.0 / far);
+    let first = inv_depths
+        .iter()
+        .position(|&r| r <= rho_hi)
+        .unwrap_or(d - 1)
+        .saturating_sub(1);
+    let last = inv_depths
+        .iter()
+        .rposition(|&r| r >= rho_lo)
+        .map_or(0, |z| (z + 1).min(d - 1));
+    (first <= last).then_some((first, last))
+}
