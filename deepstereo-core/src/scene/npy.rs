@@ -23,8 +23,10 @@ const PREAMBLE_LEN: usize = MAGIC.len() + 2;
 const HEADER_ALIGN: usize = 64;
 /// Longest header accepted (NumPy itself writes far less).
 const MAX_HEADER_LEN: usize = 1 << 20;
-/// Most dimensions accepted.
+/// Most dimensions accepted when reading (the readers need tables and vectors).
 const MAX_DIMS: usize = 2;
+/// Most dimensions written (images are `[H, W, 3]`, sweeps `[D, H, W, 4]`).
+const MAX_WRITE_DIMS: usize = 8;
 
 /// Element type of an `.npy` file.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -255,9 +257,9 @@ fn npy_bytes(dtype: NpyDtype, shape: &[usize], payload: &[u8]) -> Vec<u8> {
 
 fn check_shape(path: &Path, shape: &[usize], len: usize) -> Result<()> {
     let count = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
-    if shape.is_empty() || shape.len() > MAX_DIMS || count != Some(len) {
+    if shape.is_empty() || shape.len() > MAX_WRITE_DIMS || count != Some(len) {
         return Err(Error::Invalid(format!(
-            "{}: cannot write {len} values with shape {shape:?} (1-D or 2-D, sizes must match)",
+            "{}: cannot write {len} values with shape {shape:?} (1 to {MAX_WRITE_DIMS} dimensions whose product is the value count)",
             path.display()
         )));
     }
@@ -293,6 +295,23 @@ mod tests {
         assert_eq!(a.row(2), None);
         let b = npy_bytes(NpyDtype::F32, &[5], &[0u8; 20]);
         assert_eq!(parse_npy(p, &b).unwrap().shape, vec![5]);
+    }
+
+    #[test]
+    fn writes_images_of_three_dimensions() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("image.npy");
+        let data: Vec<f32> = (0..24).map(|i| i as f32).collect();
+        write_npy_f32(&p, &[2, 4, 3], &data).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        let text = String::from_utf8_lossy(&bytes[..HEADER_ALIGN * 2]).into_owned();
+        assert!(text.contains("'shape': (2, 4, 3)"), "{text}");
+        assert_eq!(bytes.len() % HEADER_ALIGN, (24 * 4) % HEADER_ALIGN);
+        let tail = &bytes[bytes.len() - 4..];
+        assert_eq!(f32::from_le_bytes(tail.try_into().unwrap()), 23.0);
+        // Counts that do not match the shape, and empty shapes, are refused.
+        assert!(write_npy_f32(&p, &[2, 4, 4], &data).is_err());
+        assert!(write_npy_f32(&p, &[], &data).is_err());
     }
 
     #[test]

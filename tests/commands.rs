@@ -1,0 +1,217 @@
+//! The user-facing commands end to end on a small generated scene, with the embedded
+//! model: `render` (by view, along a path), `eval --json`, `report` and `demo` write what
+//! their help and the README promise, with finite values of the documented shapes.
+
+use deepstereo_tests::*;
+use std::path::{Path, PathBuf};
+
+const W: usize = 64;
+const H: usize = 48;
+
+/// A procedural scene of 6 views at W x H in `dir/scene_0000`.
+fn scene(dir: &Path) -> PathBuf {
+    let res = run_deepstereo([
+        "synth",
+        "--out",
+        &dir.to_string_lossy(),
+        "--scenes",
+        "1",
+        "--views",
+        "6",
+        "--seed",
+        "31",
+        "--size",
+        &format!("{W}x{H}"),
+        "--supersample",
+        "1",
+    ]);
+    assert_eq!(res.code, Some(0), "synth failed: {}", res.stderr);
+    dir.join("scene_0000")
+}
+
+fn ok(args: &[&str]) -> CmdOutput {
+    let res = run_deepstereo(args);
+    assert_eq!(
+        res.code,
+        Some(0),
+        "deepstereo {} failed:\n{}",
+        args.join(" "),
+        res.stderr
+    );
+    res
+}
+
+/// Shape and values of a little-endian f32 `.npy` file.
+fn read_npy_f32(path: &Path) -> (Vec<usize>, Vec<f32>) {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    assert_eq!(
+        &bytes[..6],
+        b"\x93NUMPY",
+        "{}: not an npy file",
+        path.display()
+    );
+    let len = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let header = String::from_utf8_lossy(&bytes[10..10 + len]).into_owned();
+    assert!(header.contains("'<f4'"), "{header}");
+    let inner = header
+        .split("'shape': (")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .expect("shape");
+    let shape: Vec<usize> = inner
+        .split(',')
+        .filter(|s| !s.trim().is_empty())
+        .map(|s| s.trim().parse().expect("dimension"))
+        .collect();
+    let data: Vec<f32> = bytes[10 + len..]
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    assert_eq!(data.len(), shape.iter().product::<usize>(), "{header}");
+    (shape, data)
+}
+
+fn png_size(path: &Path) -> (u32, u32) {
+    let img = image::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    (img.width(), img.height())
+}
+
+#[test]
+fn render_by_view_writes_image_depth_confidence_and_coverage() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let out = tmp.path().join("render");
+    let sd = s.to_string_lossy().into_owned();
+    let od = out.to_string_lossy().into_owned();
+    ok(&[
+        "render", "--scene", &sd, "--target", "2", "--planes", "8", "--tile", "32", "--out", &od,
+    ]);
+    for png in ["image.png", "depth.png", "confidence.png", "coverage.png"] {
+        assert_eq!(png_size(&out.join(png)), (W as u32, H as u32), "{png}");
+    }
+    let (shape, image) = read_npy_f32(&out.join("image.npy"));
+    assert_eq!(shape, vec![H, W, 3]);
+    assert!(image
+        .iter()
+        .all(|v| v.is_finite() && (-0.5..=1.5).contains(v)));
+    let (shape, depth) = read_npy_f32(&out.join("depth.npy"));
+    assert_eq!(shape, vec![H, W]);
+    assert!(depth.iter().all(|v| v.is_finite() && *v > 0.0));
+    // No temporary files left behind.
+    for e in std::fs::read_dir(&out).expect("out dir") {
+        let name = e.expect("entry").file_name().to_string_lossy().into_owned();
+        assert!(!name.contains(".tmp"), "left over: {name}");
+    }
+}
+
+#[test]
+fn render_along_a_path_writes_a_numbered_sequence() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let out = tmp.path().join("path");
+    ok(&[
+        "render",
+        "--scene",
+        &s.to_string_lossy(),
+        "--path",
+        "circle",
+        "--frames",
+        "2",
+        "--planes",
+        "8",
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    let mut pngs: Vec<String> = std::fs::read_dir(&out)
+        .expect("out dir")
+        .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".png"))
+        .collect();
+    pngs.sort();
+    assert!(pngs.len() >= 2, "{pngs:?}");
+}
+
+#[test]
+fn eval_json_has_the_documented_layout() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let res = ok(&[
+        "eval",
+        "--scene",
+        &s.to_string_lossy(),
+        "--holdout",
+        "1,4",
+        "--planes",
+        "8",
+        "--json",
+        "-",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&res.stdout).expect("JSON on stdout");
+    for k in [
+        "scene", "model", "backend", "planes", "views", "per_view", "mean",
+    ] {
+        assert!(v.get(k).is_some(), "missing key {k}: {v}");
+    }
+    let per_view = v["per_view"].as_array().expect("per_view");
+    assert_eq!(per_view.len(), 2);
+    for (pv, target) in per_view.iter().zip([1, 4]) {
+        assert_eq!(pv["target"], target);
+        for k in ["name", "psnr", "ssim", "seconds"] {
+            assert!(pv.get(k).is_some(), "missing per_view.{k}");
+        }
+        let psnr = pv["psnr"].as_f64().expect("psnr");
+        assert!(psnr.is_finite() && psnr > 5.0, "psnr {psnr}");
+        let ssim = pv["ssim"].as_f64().expect("ssim");
+        assert!((-1.0..=1.0).contains(&ssim));
+        assert!(pv["baselines"]["nearest"]["psnr"].as_f64().is_some());
+        assert!(pv["baselines"]["plane_sweep"]["seconds"].as_f64().is_some());
+    }
+    let mean = &v["mean"];
+    let avg = (per_view[0]["psnr"].as_f64().unwrap() + per_view[1]["psnr"].as_f64().unwrap()) / 2.0;
+    assert!((mean["psnr"].as_f64().expect("mean psnr") - avg).abs() < 1e-6);
+    assert!(mean["baselines"]["plane_sweep"]["ssim"].as_f64().is_some());
+}
+
+#[test]
+fn report_writes_csv_markdown_and_plot() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let out = tmp.path().join("report");
+    ok(&[
+        "report",
+        "--scene",
+        &s.to_string_lossy(),
+        "--holdout",
+        "2",
+        "--planes-grid",
+        "4,8",
+        "--prune-grid",
+        "off",
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    let csv = std::fs::read_to_string(out.join("report.csv")).expect("report.csv");
+    let rows: Vec<&str> = csv.lines().collect();
+    // Header, two network rows, the plane sweep at both plane counts, nearest.
+    assert!(rows.len() >= 5, "{csv}");
+    let cols = rows[0].split(',').count();
+    assert!(rows.iter().all(|r| r.split(',').count() == cols), "{csv}");
+    let md = std::fs::read_to_string(out.join("report.md")).expect("report.md");
+    assert!(md.contains("| method |"), "{md}");
+    let (w, h) = png_size(&out.join("report.png"));
+    assert!(w > 100 && h > 100);
+}
+
+#[test]
+fn demo_scores_the_embedded_model_against_both_baselines() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("demo");
+    let res = ok(&["demo", "--size", "96x72", "--out", &out.to_string_lossy()]);
+    for k in ["DeepStereo", "plane sweep", "nearest source"] {
+        assert!(res.stdout.contains(k), "missing {k}:\n{}", res.stdout);
+    }
+    for png in ["image.png", "depth.png", "comparison.png"] {
+        assert!(out.join(png).is_file(), "{png}");
+    }
+    assert_eq!(png_size(&out.join("image.png")), (96, 72));
+}
