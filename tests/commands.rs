@@ -187,13 +187,20 @@ fn report_writes_csv_markdown_and_plot() {
         "4,8",
         "--prune-grid",
         "off",
+        "--downscale-grid",
+        "1,2",
         "--out",
         &out.to_string_lossy(),
     ]);
     let csv = std::fs::read_to_string(out.join("report.csv")).expect("report.csv");
     let rows: Vec<&str> = csv.lines().collect();
-    // Header, two network rows, the plane sweep at both plane counts, nearest.
-    assert!(rows.len() >= 5, "{csv}");
+    // Header; the network and the plane sweep at 2 plane counts x 2 scales; nearest.
+    assert_eq!(rows.len(), 10, "{csv}");
+    assert_eq!(
+        rows.iter().filter(|r| r.starts_with("deepstereo-candle-1/2,")).count(),
+        2,
+        "{csv}"
+    );
     let cols = rows[0].split(',').count();
     assert!(rows.iter().all(|r| r.split(',').count() == cols), "{csv}");
     let md = std::fs::read_to_string(out.join("report.md")).expect("report.md");
@@ -214,4 +221,37 @@ fn demo_scores_the_embedded_model_against_both_baselines() {
         assert!(out.join(png).is_file(), "{png}");
     }
     assert_eq!(png_size(&out.join("image.png")), (96, 72));
+}
+
+#[test]
+fn report_rejects_impossible_grids_by_name() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let out = tmp.path().join("report");
+    for (opt, val) in [
+        ("--downscale-grid", "3"),
+        ("--planes-grid", "0"),
+        ("--backends", "gpu"),
+        ("--prune-grid", "sometimes"),
+    ] {
+        let res = run_deepstereo([
+            "report",
+            "--scene",
+            &s.to_string_lossy(),
+            "--holdout",
+            "2",
+            opt,
+            val,
+            "--out",
+            &out.to_string_lossy(),
+        ]);
+        assert_ne!(res.code, Some(0), "{opt} {val} was accepted");
+        assert!(!res.timed_out && res.code.is_some(), "{opt} {val}: crashed");
+        assert!(
+            res.stderr.contains(opt),
+            "{opt} {val}: message does not name the option: {}",
+            res.stderr
+        );
+        assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
+    }
 }

@@ -198,7 +198,9 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         "\n{name}: forward of a {tile}x{tile} tile, {} planes, {} views ({:.2} GFLOP); training step: batch {batch}, {}x{} patches (~{:.2} GFLOP)",
         cfg.planes, cfg.views, fwd_flop * 1e-9, cfg.tile, cfg.tile, step_flop * 1e-9
     );
-    println!("| what | runtime | ms | GFLOP/s | of matmul ({mm:.0} GFLOP/s) | its time / candle's |");
+    println!(
+        "| what | runtime | ms | GFLOP/s | of matmul ({mm:.0} GFLOP/s) | its time / candle's |"
+    );
     println!("|---|---|---|---|---|---|");
     let row = |what: &str, rt: &str, s: f64, flop: f64, ours: f64| {
         println!(

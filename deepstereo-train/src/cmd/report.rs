@@ -5,8 +5,12 @@ use super::SceneArgs;
 use crate::inference::{evaluate, holdout_list, make_backend, BackendKind, RenderSettings};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::imageio::write_atomic;
+use deepstereo_core::imageio::RgbImage;
+use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::plot::{pareto_front, plot, Series};
 use deepstereo_core::prune::{PruneMode, PruneOptions};
+use deepstereo_core::render::Backend;
+use deepstereo_core::scene::Scene;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
@@ -28,6 +32,11 @@ pub struct Args {
     /// Backends to try, comma-separated (candle, ort).
     #[arg(long, default_value = "candle")]
     pub backends: String,
+    /// Image scales to try, comma-separated: 1/N of the scene's resolution (after
+    /// --downscale; N a power of two). Renders at lower scales are upsampled (bilinear)
+    /// and scored against the photographs at the scene's resolution.
+    #[arg(long, default_value = "1")]
+    pub downscale_grid: String,
     /// Pruning settings to try, comma-separated (off, auto; the thresholds come from the
     /// --prune-* options).
     #[arg(long, default_value = "off,auto")]
@@ -40,6 +49,7 @@ pub struct Args {
 struct Row {
     method: String,
     planes: usize,
+    scale: u32,
     prune: PruneMode,
     psnr: f64,
     ssim: f64,
@@ -59,6 +69,35 @@ pub fn run(a: Args) -> Result<()> {
                 .ok()
                 .filter(|&p| p > 0)
                 .with_context(|| format!("--planes-grid: '{s}' is not a positive count"))
+        })
+        .collect::<Result<_>>()?;
+    let scales: Vec<u32> = a
+        .downscale_grid
+        .split(',')
+        .map(|s| {
+            s.trim()
+                .parse::<u32>()
+                .ok()
+                .filter(|n| n.is_power_of_two())
+                .with_context(|| format!("--downscale-grid: '{s}' is not a power of two"))
+        })
+        .collect::<Result<_>>()?;
+    // Each scale's scene: the base scene, or the same files read at 1/N.
+    let base_downscale = a.scene.downscale.unwrap_or(1);
+    let scaled: Vec<(u32, Option<deepstereo_core::scene::Scene>)> = scales
+        .iter()
+        .map(|&n| -> Result<_> {
+            if n == 1 {
+                return Ok((1, None));
+            }
+            let factor = base_downscale
+                .checked_mul(n)
+                .context("--downscale-grid: too large")?;
+            let args = SceneArgs {
+                downscale: Some(factor),
+                ..a.scene.clone()
+            };
+            Ok((n, Some(args.load()?)))
         })
         .collect::<Result<_>>()?;
     let backends: Vec<BackendKind> = a
@@ -85,49 +124,63 @@ pub fn run(a: Args) -> Result<()> {
     let mut nearest = None;
     for (bi, &kind) in backends.iter().enumerate() {
         let backend = make_backend(kind, a.model.model.as_deref())?;
-        for &p in &planes {
-            for (pi, &mode) in prunes.iter().enumerate() {
-                let prune = PruneOptions {
-                    mode,
-                    ..base.prune.clone()
-                };
-                let settings = RenderSettings {
-                    planes: Some(p),
-                    prune,
-                    ..base.clone()
-                };
-                let r = evaluate(
-                    backend.as_ref(),
-                    &a.model.name(),
-                    &scene,
-                    &targets,
-                    &settings,
-                    |_, _| {},
-                )?;
-                let method = match mode {
-                    PruneMode::Off => format!("deepstereo-{}", r.backend),
-                    PruneMode::Auto => format!("deepstereo-{}-pruned", r.backend),
-                };
-                eprintln!("{method:>24} {p:3} planes: PSNR {:.2} SSIM {:.3} {:.2} s/view | plane sweep {:.2} dB {:.2} s", r.mean.psnr, r.mean.ssim, r.mean.seconds, r.mean.baselines.plane_sweep.psnr, r.mean.baselines.plane_sweep.seconds.unwrap_or(0.0));
-                rows.push(Row {
-                    method,
-                    planes: p,
-                    prune: mode,
-                    psnr: r.mean.psnr,
-                    ssim: r.mean.ssim,
-                    seconds: r.mean.seconds,
-                });
-                if bi == 0 && pi == 0 {
-                    let ps = &r.mean.baselines.plane_sweep;
+        for (si, (n, scaled_scene)) in scaled.iter().enumerate() {
+            for &p in &planes {
+                for (pi, &mode) in prunes.iter().enumerate() {
+                    let prune = PruneOptions {
+                        mode,
+                        ..base.prune.clone()
+                    };
+                    let settings = RenderSettings {
+                        planes: Some(p),
+                        prune,
+                        ..base.clone()
+                    };
+                    let pt = point(
+                        backend.as_ref(),
+                        &a.model.name(),
+                        &scene,
+                        scaled_scene.as_ref(),
+                        *n,
+                        &targets,
+                        &settings,
+                    )?;
+                    let mut method = match mode {
+                        PruneMode::Off => format!("deepstereo-{}", pt.backend),
+                        PruneMode::Auto => format!("deepstereo-{}-pruned", pt.backend),
+                    };
+                    let mut ps_method = String::from("plane_sweep");
+                    if *n > 1 {
+                        method = format!("{method}-1/{n}");
+                        ps_method = format!("{ps_method}-1/{n}");
+                    }
+                    eprintln!(
+                    "{method:>28} {p:3} planes: PSNR {:.2} SSIM {:.3} {:.2} s/view | plane sweep {:.2} dB {:.2} s",
+                    pt.net.0, pt.net.1, pt.net.2, pt.plane_sweep.0, pt.plane_sweep.2
+                );
                     rows.push(Row {
-                        method: "plane_sweep".into(),
+                        method,
                         planes: p,
+                        scale: *n,
                         prune: mode,
-                        psnr: ps.psnr,
-                        ssim: ps.ssim,
-                        seconds: ps.seconds.unwrap_or(0.0),
+                        psnr: pt.net.0,
+                        ssim: pt.net.1,
+                        seconds: pt.net.2,
                     });
-                    nearest = Some((r.mean.baselines.nearest.psnr, r.mean.baselines.nearest.ssim));
+                    if bi == 0 && pi == 0 {
+                        rows.push(Row {
+                            method: ps_method,
+                            planes: p,
+                            scale: *n,
+                            prune: mode,
+                            psnr: pt.plane_sweep.0,
+                            ssim: pt.plane_sweep.1,
+                            seconds: pt.plane_sweep.2,
+                        });
+                        if si == 0 {
+                            nearest = Some(pt.nearest);
+                        }
+                    }
                 }
             }
         }
@@ -138,23 +191,23 @@ pub fn run(a: Args) -> Result<()> {
         .map(|r| (r.seconds, r.psnr))
         .collect();
     let front = pareto_front(&net);
-    let mut csv = String::from("method,planes,prune,psnr,ssim,seconds_per_image\n");
-    let mut md = format!("Scene `{}`, model `{}`, held-out views {targets:?}.\n\n| method | planes | prune | PSNR (dB) | SSIM | s / image |\n|---|---|---|---|---|---|\n", scene.root.display(), a.model.name());
+    let mut csv = String::from("method,planes,scale,prune,psnr,ssim,seconds_per_image\n");
+    let mut md = format!("Scene `{}`, model `{}`, held-out views {targets:?}; scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.\n\n| method | planes | scale | prune | PSNR (dB) | SSIM | s / image |\n|---|---|---|---|---|---|---|\n", scene.root.display(), a.model.name());
     for r in &rows {
         writeln!(
             csv,
-            "{},{},{},{:.4},{:.4},{:.4}",
-            r.method, r.planes, r.prune, r.psnr, r.ssim, r.seconds
+            "{},{},{},{},{:.4},{:.4},{:.4}",
+            r.method, r.planes, r.scale, r.prune, r.psnr, r.ssim, r.seconds
         )?;
         writeln!(
             md,
-            "| {} | {} | {} | {:.2} | {:.3} | {:.3} |",
-            r.method, r.planes, r.prune, r.psnr, r.ssim, r.seconds
+            "| {} | {} | 1/{} | {} | {:.2} | {:.3} | {:.3} |",
+            r.method, r.planes, r.scale, r.prune, r.psnr, r.ssim, r.seconds
         )?;
     }
     if let Some((p, s)) = nearest {
-        writeln!(csv, "nearest,0,off,{p:.4},{s:.4},0")?;
-        writeln!(md, "| nearest source | - | - | {p:.2} | {s:.3} | - |")?;
+        writeln!(csv, "nearest,0,1,off,{p:.4},{s:.4},0")?;
+        writeln!(md, "| nearest source | - | - | - | {p:.2} | {s:.3} | - |")?;
     }
     let colours = [
         [0.85, 0.2, 0.1],
@@ -229,4 +282,76 @@ pub fn run(a: Args) -> Result<()> {
         a.out.display()
     );
     Ok(())
+}
+
+/// One setting's mean scores: the network's and the plane sweep's (PSNR, SSIM, seconds)
+/// and the nearest source's (PSNR, SSIM).
+struct Point {
+    backend: String,
+    net: (f64, f64, f64),
+    plane_sweep: (f64, f64, f64),
+    nearest: (f64, f64),
+}
+
+/// Evaluates one setting on `scene`, or, with `scaled` (the scene read at 1/`n`), renders
+/// there and scores the upsampled images against `scene`'s photographs.
+#[allow(clippy::too_many_arguments)]
+fn point(
+    backend: &dyn Backend,
+    model: &str,
+    scene: &Scene,
+    scaled: Option<&Scene>,
+    n: u32,
+    targets: &[usize],
+    settings: &RenderSettings,
+) -> Result<Point> {
+    let Some(small) = scaled else {
+        let r = evaluate(backend, model, scene, targets, settings, |_, _| {})?;
+        let b = &r.mean.baselines;
+        return Ok(Point {
+            backend: r.backend.clone(),
+            net: (r.mean.psnr, r.mean.ssim, r.mean.seconds),
+            plane_sweep: (
+                b.plane_sweep.psnr,
+                b.plane_sweep.ssim,
+                b.plane_sweep.seconds.unwrap_or(0.0),
+            ),
+            nearest: (b.nearest.psnr, b.nearest.ssim),
+        });
+    };
+    // [network, plane sweep, nearest] x (PSNR, SSIM) per view, scored at full resolution.
+    let mut scores: Vec<Result<[(f64, f64); 3]>> = Vec::new();
+    let r = evaluate(backend, model, small, targets, settings, |v, im| {
+        scores.push(
+            scene
+                .load_image(v.target)
+                .map_err(anyhow::Error::from)
+                .map(|truth| {
+                    let score = |img: &RgbImage| {
+                        let up = img.upsample(n, truth.width, truth.height);
+                        (psnr(&up, &truth), ssim(&up, &truth))
+                    };
+                    [
+                        score(&im.rendered.image),
+                        score(im.plane_sweep),
+                        score(im.nearest),
+                    ]
+                }),
+        );
+    })?;
+    let scores: Vec<[(f64, f64); 3]> = scores.into_iter().collect::<Result<_>>()?;
+    let k = scores.len().max(1) as f64;
+    let mean = |i: usize| {
+        let (p, s) = scores
+            .iter()
+            .fold((0.0, 0.0), |acc, v| (acc.0 + v[i].0, acc.1 + v[i].1));
+        (p / k, s / k)
+    };
+    let ((np, ns), (pp, pss), nearest) = (mean(0), mean(1), mean(2));
+    Ok(Point {
+        backend: r.backend.clone(),
+        net: (np, ns, r.mean.seconds),
+        plane_sweep: (pp, pss, r.mean.baselines.plane_sweep.seconds.unwrap_or(0.0)),
+        nearest,
+    })
 }
