@@ -197,7 +197,9 @@ fn report_writes_csv_markdown_and_plot() {
     // Header; the network and the plane sweep at 2 plane counts x 2 scales; nearest.
     assert_eq!(rows.len(), 10, "{csv}");
     assert_eq!(
-        rows.iter().filter(|r| r.starts_with("deepstereo-candle-1/2,")).count(),
+        rows.iter()
+            .filter(|r| r.starts_with("deepstereo-candle-1/2,"))
+            .count(),
         2,
         "{csv}"
     );

@@ -240,6 +240,8 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
 }
 
 fn main() -> Result<()> {
+    // As the `deepstereo` binary does (PyTorch and onnxruntime keep their own pools).
+    deepstereo_train::alloc::tune_allocator();
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let configs = std::env::var("NET_BENCH_CONFIGS").unwrap_or_else(|_| "tiny,paper".into());
     let mm = matmul_gflops()?;

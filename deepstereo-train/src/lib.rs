@@ -3,6 +3,7 @@
 //! Kept apart as in burn's examples: [`data`] (scenes and the online sampler),
 //! [`optim`] (Adagrad, Adam), [`training`] (the loop), [`cmd`] (the subcommands).
 
+pub mod alloc;
 pub mod cmd;
 pub mod data;
 pub mod inference;

@@ -4,6 +4,7 @@
 use clap::Parser;
 
 fn main() {
+    deepstereo_train::alloc::tune_allocator();
     let cli = deepstereo_train::cmd::Cli::parse();
     if let Err(e) = deepstereo_train::cmd::run(cli) {
         eprintln!("error: {e}");
