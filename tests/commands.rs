@@ -257,3 +257,33 @@ fn report_rejects_impossible_grids_by_name() {
         assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
     }
 }
+
+#[test]
+fn eval_with_pruning_reports_what_it_left_out() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let res = ok(&[
+        "eval",
+        "--scene",
+        &s.to_string_lossy(),
+        "--holdout",
+        "3",
+        "--planes",
+        "96",
+        "--prune",
+        "auto",
+        "--json",
+        "-",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&res.stdout).expect("JSON on stdout");
+    assert_eq!(v["prune"], "auto");
+    let pv = &v["per_view"][0];
+    assert!(pv["psnr"].as_f64().expect("psnr").is_finite());
+    let st = &pv["prune"];
+    let run = st["planes_run"].as_u64().expect("planes_run");
+    let total = st["planes_total"].as_u64().expect("planes_total");
+    assert!(run > 0 && run < total, "{st}");
+    for k in ["coarse_seconds", "warp_seconds", "network_seconds", "calls"] {
+        assert!(st.get(k).is_some(), "missing prune.{k}: {st}");
+    }
+}

@@ -191,6 +191,8 @@ pub fn render_view_pruned(
                         let band: Vec<f64> = planes.iter().map(|&z| inv_depths[z]).collect();
                         let nb = band.len();
                         stats.planes_run += nb * tile * tile;
+                        stats.calls += 1;
+                        let t1 = Instant::now();
                         let inputs = tile_inputs(
                             cfg,
                             target,
@@ -199,7 +201,10 @@ pub fn render_view_pruned(
                             (x0 as i64, y0 as i64),
                             (tile, tile),
                         )?;
+                        let t2 = Instant::now();
                         let (img, sel) = backend.run(&inputs, nb)?;
+                        stats.warp_seconds += (t2 - t1).as_secs_f64();
+                        stats.network_seconds += t2.elapsed().as_secs_f64();
                         if img.iter().chain(&sel).any(|x| !x.is_finite()) {
                             return Err(Error::Invalid(format!(
                                 "the network produced non-finite values in the tile at ({x0}, {y0})"
@@ -237,6 +242,7 @@ pub fn render_view_pruned(
         }
     }
     if let Some(p) = pruner {
+        stats.coarse_seconds += p.guide_seconds();
         stats.depth_range = Some(p.range()).filter(|&r| r != (0, d - 1));
         out.prune = Some(stats);
     }

@@ -10,7 +10,8 @@ use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::prune::{
-    plane_range_from_bounds, plane_range_from_points, rank_views, PruneOptions, PruneStats, Pruner,
+    max_plane_step, network_guide, plane_range_from_bounds, plane_range_from_points, rank_views,
+    thin_planes, CoarsePass, PruneOptions, PruneStats, Pruner,
 };
 use deepstereo_core::render::{render_view, render_view_pruned, Backend, CandleBackend, Rendered};
 use deepstereo_core::scene::{nearest_to_point, Scene};
@@ -132,7 +133,7 @@ pub fn render_camera(
     if planes == 0 {
         bail!("--planes must be at least 1");
     }
-    let inv = inverse_depths(scene.near, scene.far, planes);
+    let requested = inverse_depths(scene.near, scene.far, planes);
     for &i in sources {
         prepared.get(scene, i, cfg.levels)?;
     }
@@ -140,12 +141,39 @@ pub fn render_camera(
         .iter()
         .filter_map(|&i| prepared.pyramids[i].as_ref())
         .collect();
-    let r = if settings.prune.is_on() {
+    // Pruning runs every k-th plane when the requested ones are closer than
+    // `max_step` pixels apart in every source (a subset of the requested planes).
+    let inv: Vec<f64> = if settings.prune.is_on() {
+        let cams: Vec<&Camera> = srcs.iter().map(|s| &s.cameras[0]).collect();
+        let step = max_plane_step(target, &cams, &requested);
+        thin_planes(requested.len(), step, settings.prune.max_step)
+            .into_iter()
+            .map(|z| requested[z])
+            .collect()
+    } else {
+        requested.clone()
+    };
+    let mut r = if settings.prune.is_on() {
         let bounds: Vec<Option<(f64, f64)>> =
             sources.iter().map(|&i| scene.views[i].bounds).collect();
         let range = plane_range_from_points(target, &scene.points, &inv)
             .or_else(|| plane_range_from_bounds(&bounds, &inv));
-        let pruner = Pruner::new(&cfg, target, &srcs, &inv, range, &settings.prune);
+        let mut pruner = Pruner::new(&cfg, target, &srcs, &inv, range, &settings.prune);
+        if settings.prune.coarse == CoarsePass::Network {
+            let t0 = Instant::now();
+            let guide = network_guide(
+                backend,
+                target,
+                &srcs,
+                &inv,
+                pruner.range(),
+                settings.prune.guide_level,
+                settings.tile,
+            )?;
+            if let Some(g) = guide {
+                pruner = pruner.with_guide(g, t0.elapsed().as_secs_f64());
+            }
+        }
         render_view_pruned(
             backend,
             target,
@@ -158,7 +186,13 @@ pub fn render_camera(
     } else {
         render_view(backend, target, &srcs, &inv, settings.tile, progress)?
     };
-    Ok((r, inv))
+    if let Some(st) = r.prune.as_mut() {
+        if inv.len() < requested.len() {
+            st.thinned = Some((requested.len(), inv.len()));
+            st.planes_total = st.planes_total / inv.len() * requested.len();
+        }
+    }
+    Ok((r, requested))
 }
 
 /// What a held-out view's evaluation produced, for callers that save pictures.

@@ -10,20 +10,28 @@
 //!   the planes within the sources' bounds.
 //!   The plane grid (uniform in inverse depth between the scene's near and far) is not
 //!   changed, so every plane the network runs on is a plane of the unpruned render.
-//! - **Planes** ([`Pruner::plan`]): per output tile, a coarse photo-consistency pass
-//!   samples every second pixel of the tile at pyramid level 1 on every plane of the
-//!   range and scores each sample and plane by the smallest mean squared colour
-//!   difference between two sources over a window of samples (two sources agreeing is
-//!   enough, so occlusion in the others does not hide a surface). Each sample whose score
-//!   tells depths apart keeps its best plane ([`PruneOptions::tolerance`] widens that to
-//!   the planes near its best score), and also its best plane without the window when
-//!   that one stands out ([`PruneOptions::standout`]: thin structures); the kept planes,
-//!   with [`PruneOptions::margin`] planes on each side, are the union over the samples.
-//!   The network runs once per block on those planes, in order (the selection tower
-//!   accepts any list of planes), and a tile whose parts need different planes is split
-//!   into quadrants (down to [`PruneOptions::min_block`] pixels) when that costs less.
-//!   Only the kept planes are warped; the selection is 0 elsewhere, so the depth and
-//!   confidence maps keep their meaning.
+//! - **Plane spacing** ([`max_plane_step`], [`thin_planes`]): when the requested planes
+//!   are closer than [`PruneOptions::max_step`] pixels of disparity apart in every
+//!   source (measured on a grid of target pixels), only every k-th plane is run: 96
+//!   planes over a scene whose disparity range is 25 pixels need 25 of them.
+//! - **Planes per block** ([`Pruner::plan`]): a coarse pass says which planes each block
+//!   of a tile needs. By default ([`CoarsePass::Network`], [`network_guide`]) it is the
+//!   network itself, run at `1 / 2^guide_level` resolution (1/16 of the pixels) on every
+//!   plane of the depth range: each block keeps, for every coarse pixel under it (and
+//!   one around it), the most probable planes holding [`PruneOptions::keep`] of its
+//!   selection, and [`PruneOptions::margin`] planes on each side.
+//!   [`CoarsePass::Photo`] instead scores planes by photo-consistency: every second
+//!   pixel of the tile at pyramid level 1, on every plane of the range, scored by the
+//!   smallest mean squared colour difference between two sources over a window of
+//!   samples (two sources agreeing is enough, so occlusion in the others does not hide a
+//!   surface); each sample whose score tells depths apart keeps its best plane
+//!   ([`PruneOptions::tolerance`] widens that), and its best plane without the window when
+//!   that one stands out ([`PruneOptions::standout`]: thin structures).
+//!   Either way the network runs once per block on the kept planes, in order (the
+//!   selection tower accepts any list of planes), and a tile whose parts need different
+//!   planes is split into quadrants (down to [`PruneOptions::min_block`] pixels) when that
+//!   costs less, counting a fixed cost per network call. Only the kept planes are warped;
+//!   the selection is 0 elsewhere, so the depth and confidence maps keep their meaning.
 //!   A contiguous band of planes per tile does not work: a 64-pixel tile of a procedural
 //!   scene holds on average surfaces spanning 81% of the depth range (measured from the
 //!   true depths), while the planes those surfaces are on are 26% of it.
@@ -36,26 +44,28 @@
 //!   equal (within [`PruneOptions::flat`]) takes their mean colour, with the selection
 //!   spread uniformly over the depth range.
 //!
-//! Photo-consistency does not find every surface: textureless, repetitive and occluded
-//! parts fool it (the classical plane sweep of [`crate::baseline`] finds the true plane,
-//! within one, for 59% of the textured visible pixels of procedural scenes). A pixel
-//! whose true plane pruning leaves out gets the network's best choice among the kept
-//! planes. The tests bound how often that happens where the depth is knowable.
+//! Neither coarse pass finds every surface: textureless, repetitive and occluded parts
+//! fool photo-consistency, and the coarse network blurs thin structures. A pixel whose
+//! true plane pruning leaves out gets the network's best choice among the kept planes.
+//! The tests bound how often that happens where the depth is knowable (at most 0.5% of
+//! the textured pixels whose depth the classical plane sweep recovers).
 //!
 //! With [`PruneMode::Off`] nothing of this runs and the renderer is the unpruned one.
 
 #[cfg(test)]
 mod calibrate;
+mod guide;
 mod plan;
 mod range;
 #[cfg(test)]
 mod tests;
 mod views;
 
+pub use guide::{network_guide, Guide};
 pub use plan::{Block, Pruner, TilePlan};
 pub use range::{
-    plane_range_from_bounds, plane_range_from_points, MIN_CLOUD_POINTS, POINT_MARGIN,
-    POINT_QUANTILES,
+    max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_planes,
+    MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES,
 };
 pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
 
@@ -105,7 +115,7 @@ impl std::str::FromStr for PruneMode {
 /// Default of [`PruneOptions::mass`].
 pub const DEFAULT_MASS: f32 = 1.0;
 /// Default of [`PruneOptions::margin`].
-pub const DEFAULT_MARGIN: usize = 1;
+pub const DEFAULT_MARGIN: usize = 2;
 /// Default of [`PruneOptions::tolerance`].
 pub const DEFAULT_TOLERANCE: f32 = 0.0;
 /// Default of [`PruneOptions::stride`].
@@ -116,6 +126,39 @@ pub const DEFAULT_WINDOW: usize = 2;
 pub const DEFAULT_STANDOUT: f32 = 0.1;
 /// Default of [`PruneOptions::flat`].
 pub const DEFAULT_FLAT: f32 = 1.0 / 255.0;
+/// Default of [`PruneOptions::keep`].
+pub const DEFAULT_KEEP: f32 = 0.95;
+/// Default of [`PruneOptions::max_step`].
+pub const DEFAULT_MAX_STEP: f64 = 1.0;
+/// Default of [`PruneOptions::guide_level`].
+pub const DEFAULT_GUIDE_LEVEL: usize = 2;
+
+/// Which coarse pass chooses the planes of each block.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CoarsePass {
+    /// The network itself at `1 / 2^guide_level` resolution on every plane of the depth
+    /// range: each block keeps the planes that hold [`PruneOptions::keep`] of the
+    /// selection of the coarse pixels under it.
+    #[default]
+    Network,
+    /// Photo-consistency of the sources at pyramid level [`PruneOptions::level`].
+    Photo,
+}
+
+impl std::str::FromStr for CoarsePass {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s.to_ascii_lowercase().as_str() {
+            "network" => Ok(CoarsePass::Network),
+            "photo" => Ok(CoarsePass::Photo),
+            o => Err(Error::Invalid(format!(
+                "unknown coarse pass '{o}' (expected network or photo)"
+            ))),
+        }
+    }
+}
+
 /// Default of [`PruneOptions::min_block`].
 pub const DEFAULT_MIN_BLOCK: usize = 16;
 /// Default of [`PruneOptions::contrast`].
@@ -125,6 +168,18 @@ pub const DEFAULT_CONTRAST: f32 = 1e-4;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PruneOptions {
     pub mode: PruneMode,
+    /// Which coarse pass picks the planes.
+    pub coarse: CoarsePass,
+    /// [`CoarsePass::Network`]: per coarse pixel, the fraction of its selection
+    /// probability the kept planes must hold (1 keeps every plane).
+    pub keep: f32,
+    /// [`CoarsePass::Network`]: pyramid level of the coarse render (2: a quarter of the
+    /// resolution, 1/16 of the pixels).
+    pub guide_level: usize,
+    /// Largest disparity step, in source pixels, between the planes kept: when the
+    /// requested planes are closer than that in every source, only every k-th is run (0:
+    /// never thin).
+    pub max_step: f64,
     /// Fraction of the coarse samples' support (each informative sample spreads one unit
     /// over its plausible planes) the kept planes must hold, most supported planes first
     /// (1: every plane some sample finds plausible; lower is faster and drops thin
@@ -160,6 +215,10 @@ impl Default for PruneOptions {
     fn default() -> Self {
         Self {
             mode: PruneMode::Off,
+            coarse: CoarsePass::Network,
+            keep: DEFAULT_KEEP,
+            guide_level: DEFAULT_GUIDE_LEVEL,
+            max_step: DEFAULT_MAX_STEP,
             mass: DEFAULT_MASS,
             margin: DEFAULT_MARGIN,
             tolerance: DEFAULT_TOLERANCE,
@@ -198,6 +257,18 @@ impl PruneOptions {
         if !(self.mass > 0.0 && self.mass <= 1.0) {
             return bad(format!("--prune-mass must be in (0, 1], got {}", self.mass));
         }
+        if !(self.keep > 0.0 && self.keep <= 1.0) {
+            return bad(format!("--prune-keep must be in (0, 1], got {}", self.keep));
+        }
+        if !(self.max_step >= 0.0 && self.max_step.is_finite()) {
+            return bad(format!(
+                "--prune-max-step must be a finite number >= 0, got {}",
+                self.max_step
+            ));
+        }
+        if self.guide_level == 0 {
+            return bad("--prune-guide-level must be at least 1".into());
+        }
         if !(self.tolerance >= 0.0 && self.tolerance <= 1.0) {
             return bad(format!(
                 "--prune-tolerance must be in [0, 1], got {}",
@@ -233,8 +304,17 @@ pub struct PruneStats {
     pub planes_total: usize,
     /// The planes the depth range kept (`first..=last`), when the scene had points.
     pub depth_range: Option<(usize, usize)>,
+    /// When the plane grid was thinned (see [`PruneOptions::max_step`]): the planes
+    /// requested and the planes kept.
+    pub thinned: Option<(usize, usize)>,
     /// Seconds in the coarse pass.
     pub coarse_seconds: f64,
+    /// Seconds building the network's inputs (warping the kept planes).
+    pub warp_seconds: f64,
+    /// Seconds in the network.
+    pub network_seconds: f64,
+    /// Network calls (blocks run).
+    pub calls: usize,
 }
 
 impl PruneStats {
@@ -249,17 +329,23 @@ impl PruneStats {
 
     /// A line for people.
     pub fn summary(&self) -> String {
-        let range = match self.depth_range {
+        let mut range = match self.depth_range {
             Some((a, b)) => format!(", depth range planes {a}..={b}"),
             None => String::new(),
         };
+        if let Some((of, kept)) = self.thinned {
+            range = format!(", {kept} of {of} planes by disparity step{range}");
+        }
         format!(
-            "prune: network on {:.0}% of the planes x pixels ({} tiles, {} uncovered, {} flat{range}, coarse pass {:.2} s)",
+            "prune: network on {:.0}% of the planes x pixels ({} tiles, {} uncovered, {} flat{range}; {} network calls; seconds: coarse pass {:.2}, warping {:.2}, network {:.2})",
             100.0 * self.planes_fraction(),
             self.tiles,
             self.uncovered,
             self.flat,
-            self.coarse_seconds
+            self.calls,
+            self.coarse_seconds,
+            self.warp_seconds,
+            self.network_seconds
         )
     }
 }

@@ -2,6 +2,7 @@
 
 mod coarse;
 
+use super::guide::Guide;
 use super::PruneOptions;
 use crate::camera::Camera;
 use crate::config::Config;
@@ -9,6 +10,13 @@ use crate::geometry::{apply_h, plane_homography};
 use crate::inputs::{level_camera, PyramidSource};
 use coarse::{depth_pairs, Samples};
 use glam::{DMat3, DVec2};
+
+/// Guide pixels around a block whose planes it also keeps (the selection at coarse
+/// resolution blurs edges).
+const GUIDE_DILATE: usize = 1;
+/// Side of the block whose one-plane network call costs what a call's fixed overhead
+/// does (see [`Pruner::call_cost`]).
+const CALL_COST_SIDE: usize = 16;
 
 /// What to do with one block of output pixels.
 #[derive(Clone, Debug, PartialEq)]
@@ -58,6 +66,10 @@ pub struct Pruner<'a> {
     /// The pairs of sources whose photo-consistency says something about depth: those
     /// with a baseline (two views from one place agree at every depth).
     pairs: Vec<(usize, usize)>,
+    /// The network's coarse pass, when it replaces the photo-consistency pass.
+    guide: Option<Guide>,
+    /// Seconds the guide took to render.
+    guide_seconds: f64,
 }
 
 impl<'a> Pruner<'a> {
@@ -112,7 +124,23 @@ impl<'a> Pruner<'a> {
             reach: (1u64 << (cfg.levels - 1)) as f64 + 1.0,
             pinhole,
             pairs: depth_pairs(sources),
+            guide: None,
+            guide_seconds: 0.0,
         }
+    }
+
+    /// Plans blocks from the network's own coarse selection (see [`super::network_guide`])
+    /// instead of photo-consistency; `seconds`: what the guide cost, counted in the
+    /// coarse pass's time.
+    pub fn with_guide(mut self, guide: Guide, seconds: f64) -> Self {
+        self.guide = Some(guide);
+        self.guide_seconds = seconds;
+        self
+    }
+
+    /// Seconds spent on the guide (0 without one).
+    pub fn guide_seconds(&self) -> f64 {
+        self.guide_seconds
     }
 
     /// The planes the coarse pass considers (`first..=last`).
@@ -177,6 +205,9 @@ impl<'a> Pruner<'a> {
         if !self.covered(x0, y0, tile) {
             return whole(TilePlan::Uncovered);
         }
+        if let Some(g) = &self.guide {
+            return self.split_guided(g, x0, y0, tile).1;
+        }
         let samples = self.coarse(x0, y0, tile);
         if let Some(plan) = self.flat(&samples) {
             return whole(plan);
@@ -206,6 +237,8 @@ impl<'a> Pruner<'a> {
         // of the block around it: its depth is most likely that of the surfaces nearby.
         let planes = match (self.needed(s, idx), parent) {
             (Some(p), _) => p,
+            (None, Some(p)) if std::env::var("NOINHERIT").is_err() => p.to_vec(),
+            (None, _) if std::env::var("NOINHERIT").is_ok() => self.fallback(s, idx),
             (None, Some(p)) => p.to_vec(),
             (None, None) => self.fallback(s, idx),
         };
@@ -248,6 +281,58 @@ impl<'a> Pruner<'a> {
                 plan: TilePlan::Planes(planes),
             }],
         )
+    }
+
+    /// The cheapest blocks for the block at `(x0, y0)` of side `size`, planes from the
+    /// guide.
+    fn split_guided(&self, g: &Guide, x0: usize, y0: usize, size: usize) -> (f64, Vec<Block>) {
+        let (z0, z1) = self.range;
+        let planes = match g.planes(x0, y0, size, GUIDE_DILATE, self.opts.keep) {
+            Some(want) => self.widen(&want),
+            None => (z0..=z1).collect(),
+        };
+        let here = self.cost(size, planes.len()) + self.call_cost();
+        let half = size / 2;
+        let (w, h) = (
+            self.target.intrinsics.width as usize,
+            self.target.intrinsics.height as usize,
+        );
+        if half >= self.opts.min_block.max(1) && half.is_multiple_of(self.align) {
+            let mut total = 0.0;
+            let mut blocks = Vec::new();
+            for (qx, qy) in [
+                (x0, y0),
+                (x0 + half, y0),
+                (x0, y0 + half),
+                (x0 + half, y0 + half),
+            ] {
+                if qx >= w || qy >= h {
+                    continue; // outside the image
+                }
+                let (c, b) = self.split_guided(g, qx, qy, half);
+                total += c;
+                blocks.extend(b);
+            }
+            if total < here {
+                return (total, blocks);
+            }
+        }
+        (
+            here,
+            vec![Block {
+                x0,
+                y0,
+                size,
+                plan: TilePlan::Planes(planes),
+            }],
+        )
+    }
+
+    /// Fixed cost of one network call, in the units of [`Self::cost`]: measured per
+    /// call, a block of side 16 on one plane costs about as much as 2 planes would.
+    fn call_cost(&self) -> f64 {
+        let side = (CALL_COST_SIDE + self.pad0) as f64;
+        side * side
     }
 
     /// The flat plan when every sampled source colour is the same.

@@ -1,7 +1,9 @@
 //! The planes a target can need at all, from the scene's sparse points or per-view bounds.
 
 use crate::camera::Camera;
-use glam::DVec3;
+use crate::geometry::{apply_h, plane_homography};
+use crate::sweep::IN_FRONT_EPS;
+use glam::{DMat3, DVec2, DVec3};
 
 /// Fewest points a point set needs to be treated as a cloud (in-frustum filtering);
 /// smaller sets (such as the 8 corners of a bounding box) bound the scene as a hull.
@@ -102,4 +104,67 @@ fn planes_between(near: f64, far: f64, inv_depths: &[f64]) -> Option<(usize, usi
         .rposition(|&r| r >= rho_lo)
         .map_or(0, |z| (z + 1).min(d - 1));
     (first <= last).then_some((first, last))
+}
+
+/// Target pixels sampled per image side when measuring plane steps.
+const STEP_SAMPLES: usize = 5;
+
+/// The largest shift, in source pixels, that any sampled target pixel's image in any
+/// source makes between two consecutive planes of `inv_depths` (the disparity step of
+/// the plane grid). Samples behind a source are skipped; 0 when none is seen.
+pub fn max_plane_step(target: &Camera, sources: &[&Camera], inv_depths: &[f64]) -> f64 {
+    let (w, h) = (
+        target.intrinsics.width as f64,
+        target.intrinsics.height as f64,
+    );
+    let mut best = 0.0f64;
+    for s in sources {
+        let rel = target.pose.relative_to(&s.pose);
+        let homs: Vec<DMat3> = inv_depths
+            .iter()
+            .map(|&r| plane_homography(&rel, r))
+            .collect();
+        for j in 0..STEP_SAMPLES {
+            for i in 0..STEP_SAMPLES {
+                let uv = DVec2::new(
+                    w * (i as f64 + 0.5) / STEP_SAMPLES as f64,
+                    h * (j as f64 + 0.5) / STEP_SAMPLES as f64,
+                );
+                let n = target.intrinsics.unproject_pixel(uv);
+                let mut prev: Option<DVec2> = None;
+                for hm in &homs {
+                    let q = apply_h(hm, n.x, n.y);
+                    let p = (q.z > IN_FRONT_EPS * q.length()).then(|| {
+                        s.intrinsics
+                            .project_normalized(DVec2::new(q.x / q.z, q.y / q.z))
+                    });
+                    if let (Some(a), Some(b)) = (prev, p) {
+                        let d = a.distance(b);
+                        if d.is_finite() {
+                            best = best.max(d);
+                        }
+                    }
+                    prev = p;
+                }
+            }
+        }
+    }
+    best
+}
+
+/// Every `k`-th plane of `d` (and the last), `k` the largest whole factor that keeps the
+/// disparity step at most `max_step_px` when the grid's step is `step_px`: the planes a
+/// scene with a small disparity range needs. All planes when `max_step_px` is 0 or the
+/// step is unknown.
+pub fn thin_planes(d: usize, step_px: f64, max_step_px: f64) -> Vec<usize> {
+    let k = if max_step_px > 0.0 && step_px > 0.0 && step_px.is_finite() {
+        ((max_step_px / step_px).floor() as usize).max(1)
+    } else {
+        1
+    };
+    let mut out: Vec<usize> = (0..d).step_by(k).collect();
+    if d > 0 && out.last() != Some(&(d - 1)) {
+        out.push(d - 1);
+    }
+    out
 }

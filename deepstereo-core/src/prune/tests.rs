@@ -118,14 +118,32 @@ pub(super) fn check_bands(
     tile: usize,
     opts: &PruneOptions,
 ) -> (usize, usize, usize, usize) {
-    let cfg = Config::tiny();
+    check_bands_guided(s, target, planes, tile, opts, None)
+}
+
+/// [`check_bands`], with the network's coarse pass of `guide` (a model) when given.
+pub(super) fn check_bands_guided(
+    s: &SynthScene,
+    target: usize,
+    planes: usize,
+    tile: usize,
+    opts: &PruneOptions,
+    guide: Option<&dyn Backend>,
+) -> (usize, usize, usize, usize) {
+    let cfg = guide.map_or_else(Config::tiny, |b| b.config().clone());
     // The sources pruning picks (views that see the target).
     let cam = &s.cameras[target];
     let src = rank_views(&s.cameras, cam, cfg.views, Some(target), s.near, s.far).0;
     let pyr = pyramids(s, &src, cfg.levels);
     let refs: Vec<&PyramidSource> = pyr.iter().collect();
     let inv = inverse_depths(s.near, s.far, planes);
-    let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, opts);
+    let mut pruner = Pruner::new(&cfg, cam, &refs, &inv, None, opts);
+    if let Some(b) = guide {
+        let g = network_guide(b, cam, &refs, &inv, pruner.range(), opts.guide_level, tile)
+            .expect("guide")
+            .expect("image large enough for a guide");
+        pruner = pruner.with_guide(g, 0.0);
+    }
     let (w, h) = (
         cam.intrinsics.width as usize,
         cam.intrinsics.height as usize,
@@ -178,12 +196,20 @@ pub(super) fn scene_sized(seed: u64, rig: Rig, width: u32, height: u32) -> Synth
     .expect("scene")
 }
 
+/// Depth margin the photo-consistency pass was tuned with.
+const PHOTO_MARGIN: usize = 1;
+
 /// Fewest known-depth pixels (of all rigs together) whose true plane pruning must keep.
 const MIN_KEPT_KNOWN: f64 = 0.995;
 
 #[test]
 fn prune_keeps_the_true_surface_plane_of_known_pixels() {
-    let opts = PruneOptions::auto();
+    // The photo-consistency pass at its tuned margin (the guided pass has its own test).
+    let opts = PruneOptions {
+        coarse: CoarsePass::Photo,
+        margin: PHOTO_MARGIN,
+        ..PruneOptions::auto()
+    };
     let (mut misses, mut checked, mut kept, mut total) = (0, 0, 0, 0);
     for (i, rig) in Rig::CONCRETE.into_iter().enumerate() {
         let s = scene_sized(9100 + i as u64, rig, 240, 180);
@@ -478,4 +504,92 @@ fn prune_depth_range_from_bounds_covers_the_sources_bounds() {
         plane_range_from_bounds(&[Some((1.0, 20.0))], &inv),
         Some((0, 32))
     );
+}
+
+/// The trained `tiny` model shipped with the command-line tool.
+fn trained_tiny() -> CandleBackend {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../deepstereo-train/assets/tiny.safetensors");
+    let t = crate::weights::load(&path, &Device::Cpu).expect("trained tiny weights");
+    CandleBackend {
+        model: t.model,
+        device: Device::Cpu,
+    }
+}
+
+#[test]
+fn prune_network_guide_keeps_the_true_surface_plane_of_known_pixels() {
+    let backend = trained_tiny();
+    let opts = PruneOptions::auto();
+    let (mut misses, mut checked, mut kept, mut total) = (0, 0, 0, 0);
+    for (i, rig) in Rig::CONCRETE.into_iter().enumerate() {
+        let s = scene_sized(9100 + i as u64, rig, 240, 180);
+        let target = s.cameras.len() / 2;
+        let (m, n, k, t) = check_bands_guided(&s, target, 32, 64, &opts, Some(&backend));
+        println!(
+            "{rig}: {m} of {n} known pixels lost their plane; {:.0}% of planes x pixels kept",
+            100.0 * k as f64 / t as f64
+        );
+        assert!(n > 100, "{rig}: too few pixels of known depth ({n})");
+        misses += m;
+        checked += n;
+        kept += k;
+        total += t;
+    }
+    let frac = 1.0 - misses as f64 / checked as f64;
+    println!("{:.2}% kept their plane", 100.0 * frac);
+    assert!(
+        frac >= MIN_KEPT_KNOWN,
+        "only {:.1}% of known pixels keep their plane",
+        100.0 * frac
+    );
+    assert!(
+        (kept as f64) < 0.9 * total as f64,
+        "kept {kept} of {total} plane-pixels"
+    );
+}
+
+#[test]
+fn prune_plane_step_is_focal_times_baseline_times_inverse_depth_step() {
+    use crate::camera::{Intrinsics, WorldToCamera};
+    use glam::{DMat3, DVec3};
+    let (f, b, near, far, d) = (100.0, 0.3, 2.0, 50.0, 33);
+    let k = Intrinsics::pinhole(f, f, 64.0, 48.0, 128, 96);
+    let target = Camera {
+        intrinsics: k,
+        pose: WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::ZERO).expect("pose"),
+    };
+    // p_cam = p_world - (b, 0, 0): the source sits b to the right of the target.
+    let source = Camera {
+        intrinsics: k,
+        pose: WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::new(-b, 0.0, 0.0)).expect("pose"),
+    };
+    let inv = inverse_depths(near, far, d);
+    let want = f * b * (1.0 / near - 1.0 / far) / (d - 1) as f64;
+    let got = max_plane_step(&target, &[&source], &inv);
+    assert!((got - want).abs() < 1e-9 * want, "{got} vs {want}");
+    // A source at the target's centre sees no disparity at all.
+    assert_eq!(max_plane_step(&target, &[&target], &inv), 0.0);
+}
+
+#[test]
+fn prune_thin_planes_keeps_every_kth_and_the_last() {
+    let every4: Vec<usize> = (0..96).step_by(4).chain([95]).collect();
+    assert_eq!(thin_planes(96, 0.25, 1.0), every4);
+    // Steps already at or above the limit, unknown steps and a zero limit keep all.
+    for (step, max) in [
+        (1.0, 1.0),
+        (1.5, 1.0),
+        (0.0, 1.0),
+        (f64::NAN, 1.0),
+        (0.1, 0.0),
+    ] {
+        assert_eq!(
+            thin_planes(7, step, max),
+            (0..7).collect::<Vec<_>>(),
+            "{step} {max}"
+        );
+    }
+    assert_eq!(thin_planes(1, 0.01, 1.0), vec![0]);
+    assert!(thin_planes(0, 0.5, 1.0).is_empty());
 }

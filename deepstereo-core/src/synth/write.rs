@@ -123,7 +123,7 @@ pub fn write_scenes_progress(
 }
 
 /// Loads every PNG and JPEG in `dir` (sorted by name) as a texture photo. A file that
-/// cannot be decoded or is smaller than [`MIN_TEXTURE_SIDE`] is an error naming it, and
+/// cannot be decoded or is smaller than `MIN_TEXTURE_SIDE` is an error naming it, and
 /// so is a folder without any.
 pub fn load_textures(dir: &Path) -> Result<Vec<RgbImage>> {
     let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;

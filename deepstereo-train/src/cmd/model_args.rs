@@ -3,7 +3,8 @@
 use crate::inference::{BackendKind, RenderSettings};
 use anyhow::{bail, Result};
 use deepstereo_core::prune::{
-    PruneMode, PruneOptions, DEFAULT_MARGIN, DEFAULT_MASS, DEFAULT_TOLERANCE, DEFAULT_WINDOW,
+    CoarsePass, PruneMode, PruneOptions, DEFAULT_GUIDE_LEVEL, DEFAULT_KEEP, DEFAULT_MARGIN,
+    DEFAULT_MASS, DEFAULT_MAX_STEP, DEFAULT_TOLERANCE, DEFAULT_WINDOW,
 };
 use deepstereo_core::render::Backend;
 use std::path::PathBuf;
@@ -23,25 +24,43 @@ pub struct ModelArgs {
     /// alignment). With --prune off the result does not depend on it.
     #[arg(long, default_value_t = 64)]
     pub tile: usize,
-    /// Leave out what the scene does not need: `auto` runs the network per tile only on
-    /// the planes where a coarse photo-consistency pass finds surfaces (and the depth range
-    /// the scene's sparse points allow), picks the source views that see the target, and
-    /// skips tiles no source covers; `off` runs every plane of every tile from the nearest
-    /// views.
+    /// Leave out what the scene does not need: `auto` keeps the planes within the depth
+    /// range the scene's sparse points (or per-view bounds) allow, runs the network per
+    /// block only on the planes a coarse pass finds surfaces on, picks the source views
+    /// that see the target, and skips tiles no source covers; `off` runs every plane of
+    /// every tile from the nearest views.
     #[arg(long, default_value_t = PruneMode::Off)]
     pub prune: PruneMode,
-    /// --prune auto: fraction of a tile's photo-consistency evidence the kept planes must
-    /// hold (1 keeps every plane any coarse sample finds plausible; lower is faster).
+    /// --prune auto: the coarse pass: `network` (the model itself at low resolution) or
+    /// `photo` (photo-consistency of the sources).
+    #[arg(long, default_value = "network")]
+    pub prune_coarse: CoarsePass,
+    /// --prune auto, network pass: fraction of each coarse pixel's selection probability
+    /// the kept planes must hold (1 keeps every plane; lower is faster).
+    #[arg(long, default_value_t = DEFAULT_KEEP)]
+    pub prune_keep: f32,
+    /// --prune auto, network pass: pyramid level of the coarse render (1: half resolution,
+    /// 2: a quarter).
+    #[arg(long, default_value_t = DEFAULT_GUIDE_LEVEL)]
+    pub prune_guide_level: usize,
+    /// --prune auto: largest disparity step, in source pixels, between the planes run;
+    /// requested planes closer than that in every source are thinned to every k-th (0:
+    /// never thin).
+    #[arg(long, default_value_t = DEFAULT_MAX_STEP)]
+    pub prune_max_step: f64,
+    /// --prune auto, photo pass: fraction of a tile's photo-consistency evidence the kept
+    /// planes must hold (1 keeps every plane any coarse sample finds plausible; lower is
+    /// faster).
     #[arg(long, default_value_t = DEFAULT_MASS)]
     pub prune_mass: f32,
     /// --prune auto: planes kept on each side of every plane the coarse pass keeps.
     #[arg(long, default_value_t = DEFAULT_MARGIN)]
     pub prune_margin: usize,
-    /// --prune auto: a coarse sample finds a plane plausible when its cost is within this
+    /// --prune auto, photo pass: a coarse sample finds a plane plausible when its cost is within this
     /// fraction of its cost range of its best.
     #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
     pub prune_tolerance: f32,
-    /// --prune auto: radius, in coarse samples (2 pixels apart), of the window the
+    /// --prune auto, photo pass: radius, in coarse samples (2 pixels apart), of the window the
     /// photo-consistency cost is averaged over.
     #[arg(long, default_value_t = DEFAULT_WINDOW)]
     pub prune_window: usize,
@@ -60,6 +79,10 @@ impl ModelArgs {
         }
         let prune = PruneOptions {
             mode: self.prune,
+            coarse: self.prune_coarse,
+            keep: self.prune_keep,
+            guide_level: self.prune_guide_level,
+            max_step: self.prune_max_step,
             mass: self.prune_mass,
             margin: self.prune_margin,
             tolerance: self.prune_tolerance,
