@@ -65,12 +65,15 @@ pub struct Series {
     pub line: bool,
     /// Marker half-size in pixels (0: none).
     pub marker: i32,
+    /// A short text drawn next to each point (empty: none; else one per point).
+    pub labels: Vec<String>,
 }
 
-const W: i32 = 720;
+const W: i32 = 900;
 const H: i32 = 480;
 const LEFT: i32 = 70;
-const RIGHT: i32 = 20;
+/// The legend sits right of the plot area, so that it never hides a point.
+const RIGHT: i32 = 220;
 const TOP: i32 = 30;
 const BOTTOM: i32 = 50;
 
@@ -187,13 +190,21 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
                 }
             }
         }
+        let finite = s
+            .points
+            .iter()
+            .zip(&s.labels)
+            .filter(|(p, _)| p.0.is_finite() && p.1.is_finite());
+        for ((x, y), l) in finite {
+            text(&mut img, sx(*x) + s.marker + 2, sy(*y) - 10, l, s.colour);
+        }
         let ly = TOP + 6 + 12 * k as i32;
         for dx in 0..10 {
             for dy in 0..3 {
-                put(&mut img, W - RIGHT - 200 + dx, ly + 2 + dy, s.colour);
+                put(&mut img, W - RIGHT + 10 + dx, ly + 2 + dy, s.colour);
             }
         }
-        text(&mut img, W - RIGHT - 185, ly, &s.label, black);
+        text(&mut img, W - RIGHT + 25, ly, &s.label, black);
     }
     img
 }
@@ -244,6 +255,7 @@ mod tests {
             points: vec![(1.0, 1.0), (2.0, 3.0)],
             line: true,
             marker: 2,
+            labels: Vec::new(),
         };
         let img = plot("t", "x", "y", &[s], false);
         assert!(img.data.chunks(3).any(|c| c == [1.0, 0.0, 0.0]));

@@ -410,6 +410,7 @@ pub fn plot_log(log: &Path, png: &Path) -> Result<()> {
             points: smooth,
             line: true,
             marker: 0,
+            labels: Vec::new(),
         }],
         false,
     );
@@ -423,6 +424,7 @@ pub fn plot_log(log: &Path, png: &Path) -> Result<()> {
             points: val,
             line: true,
             marker: 2,
+            labels: Vec::new(),
         }],
         false,
     );

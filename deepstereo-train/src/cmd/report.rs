@@ -149,7 +149,11 @@ pub fn run(a: Args) -> Result<()> {
                         PruneMode::Off => format!("deepstereo-{}", pt.backend),
                         PruneMode::Auto => format!("deepstereo-{}-pruned", pt.backend),
                     };
-                    let mut ps_method = String::from("plane_sweep");
+                    // The plane sweep runs on the network's sources, which pruning picks.
+                    let mut ps_method = match mode {
+                        PruneMode::Off => String::from("plane_sweep"),
+                        PruneMode::Auto => String::from("plane_sweep-pruned-views"),
+                    };
                     if *n > 1 {
                         method = format!("{method}-1/{n}");
                         ps_method = format!("{ps_method}-1/{n}");
@@ -167,7 +171,7 @@ pub fn run(a: Args) -> Result<()> {
                         ssim: pt.net.1,
                         seconds: pt.net.2,
                     });
-                    if bi == 0 && pi == 0 {
+                    if bi == 0 {
                         rows.push(Row {
                             method: ps_method,
                             planes: p,
@@ -177,7 +181,7 @@ pub fn run(a: Args) -> Result<()> {
                             ssim: pt.plane_sweep.1,
                             seconds: pt.plane_sweep.2,
                         });
-                        if si == 0 {
+                        if si == 0 && pi == 0 {
                             nearest = Some(pt.nearest);
                         }
                     }
@@ -227,17 +231,16 @@ pub fn run(a: Args) -> Result<()> {
                 v
             });
     for (k, m) in methods.iter().enumerate() {
-        let pts: Vec<(f64, f64)> = rows
-            .iter()
-            .filter(|r| &r.method == m)
-            .map(|r| (r.seconds.max(1e-4), r.psnr))
-            .collect();
+        let mine: Vec<&Row> = rows.iter().filter(|r| &r.method == m).collect();
+        let pts: Vec<(f64, f64)> = mine.iter().map(|r| (r.seconds.max(1e-4), r.psnr)).collect();
+        let labels: Vec<String> = mine.iter().map(|r| r.planes.to_string()).collect();
         series.push(Series {
             label: m.clone(),
             colour: colours[k % colours.len()],
             points: pts,
             line: false,
             marker: 3,
+            labels,
         });
     }
     let mut fp: Vec<(f64, f64)> = front
@@ -251,6 +254,7 @@ pub fn run(a: Args) -> Result<()> {
         points: fp,
         line: true,
         marker: 0,
+        labels: Vec::new(),
     });
     if let Some((p, _)) = nearest {
         let xs: Vec<f64> = rows.iter().map(|r| r.seconds.max(1e-4)).collect();
@@ -264,6 +268,7 @@ pub fn run(a: Args) -> Result<()> {
             points: vec![(lo, p), (hi, p)],
             line: true,
             marker: 0,
+            labels: Vec::new(),
         });
     }
     let img = plot(
