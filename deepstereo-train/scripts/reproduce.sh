@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Regenerates every result and picture in the README (takes ~15 minutes on 2 cores).
+# Regenerates every result and picture in the README (takes ~40 minutes on 2 cores).
 # Usage: bash deepstereo-train/scripts/reproduce.sh [OUT_DIR]   (needs ../shared/data for the real scenes)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -27,12 +27,28 @@ if [ -d "$DATA" ]; then
   $DS eval --scene "$DATA/templeRing" --holdout 5,15,25,35,45 --json "$OUT/eval_temple.json" --images "$OUT/temple"
   $DS eval --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --json "$OUT/eval_ethiopian.json" --images "$OUT/ethiopian"
   $DS eval --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24,40,56 --json "$OUT/eval_fox.json" --images "$OUT/fox"
-  $DS report --scene "$DATA/templeRing" --downscale 2 --holdout 5,25 --planes-grid 8,16,32,64 --backends candle,ort --out "$OUT/report_temple"
+  echo "== error against run time, with and without pruning, on real scenes"
+  $DS report --scene "$DATA/templeRing" --downscale 2 --holdout 5,25 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_temple"
+  cp "$OUT/report_temple/report.png" "$FIG/report_temple.png"
+  $DS report --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_fox"
+  cp "$OUT/report_fox/report.png" "$FIG/report_fox.png"
+  echo "== pruning off / auto / fast on every scene (32 planes; 96 on the procedural scenes too)"
+  for prune in "--prune off" "--prune auto" "--prune auto --prune-keep 0.8 --prune-margin 0"; do
+    tag=$(echo "$prune" | tr -cd 'a-z0-9.')
+    $DS eval --scene "$OUT/eval_scenes" --holdout 2,5 --planes 32 $prune --json "$OUT/prune_proc32_$tag.json"
+    $DS eval --scene "$OUT/eval_scenes" --holdout 2,5 --planes 96 $prune --json "$OUT/prune_proc96_$tag.json"
+    $DS eval --scene "$DATA/templeRing" --downscale 2 --holdout 5,25 --planes 32 $prune --json "$OUT/prune_temple_$tag.json"
+    $DS eval --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --planes 32 $prune --json "$OUT/prune_ethiopian_$tag.json"
+    $DS eval --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24 --planes 32 $prune --json "$OUT/prune_fox_$tag.json"
+  done
 else
   echo "note: $DATA not found: real-scene results skipped"
 fi
 
 echo "== error against run time on a procedural scene"
-$DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 8,16,32,64,96 --backends candle,ort --out "$OUT/report_procedural"
+$DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 8,16,32,64,96 --backends candle,ort --prune-grid off,auto --out "$OUT/report_procedural"
+$DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --downscale-grid 1,2,4 --backends ort --prune-grid off --out "$OUT/report_scale"
 cp "$OUT/report_procedural/report.png" "$FIG/report_procedural.png"
+echo "== speed benchmarks (whole network against onnxruntime and PyTorch)"
+cargo bench -p deepstereo-train --bench network | tee "$OUT/bench_network.txt"
 echo "results in $OUT, pictures in $FIG"

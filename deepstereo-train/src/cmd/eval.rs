@@ -62,6 +62,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
                 "view {:3} {:<20} PSNR {:6.2} SSIM {:.3} ({:.2} s) | nearest {:6.2} | plane sweep {:6.2}",
                 v.target, v.name, v.psnr, v.ssim, v.seconds, v.baselines.nearest.psnr, v.baselines.plane_sweep.psnr
             );
+                if let Some(p) = &v.prune {
+                    eprintln!("         {}", p.summary());
+                }
                 if let Some(dir) = &images {
                     if let Err(e) = imgs
                         .rendered
