@@ -287,3 +287,63 @@ fn eval_with_pruning_reports_what_it_left_out() {
         assert!(st.get(k).is_some(), "missing prune.{k}: {st}");
     }
 }
+
+#[test]
+fn fewer_source_views_than_the_model_takes_work_and_more_are_refused() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let sd = s.to_string_lossy().into_owned();
+    let res = ok(&[
+        "eval",
+        "--scene",
+        &sd,
+        "--holdout",
+        "2",
+        "--planes",
+        "8",
+        "--views",
+        "2",
+        "--json",
+        "-",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&res.stdout).expect("JSON on stdout");
+    assert_eq!(v["views"], 2);
+    assert!(v["per_view"][0]["psnr"].as_f64().expect("psnr").is_finite());
+    // The embedded model takes 4 views: 5 (and 0) are refused by name.
+    for bad in ["5", "0"] {
+        let res = run_deepstereo([
+            "eval",
+            "--scene",
+            &sd,
+            "--holdout",
+            "2",
+            "--planes",
+            "8",
+            "--views",
+            bad,
+        ]);
+        assert_ne!(res.code, Some(0), "--views {bad} accepted");
+        assert!(res.stderr.contains("--views"), "{}", res.stderr);
+        assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
+    }
+    // The report's views axis.
+    let out = tmp.path().join("report");
+    ok(&[
+        "report",
+        "--scene",
+        &sd,
+        "--holdout",
+        "2",
+        "--planes-grid",
+        "8",
+        "--views-grid",
+        "1,4",
+        "--prune-grid",
+        "off",
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    let csv = std::fs::read_to_string(out.join("report.csv")).expect("report.csv");
+    assert!(csv.contains("deepstereo-candle-1views,8,1,"), "{csv}");
+    assert!(csv.contains("deepstereo-candle-4views,8,4,"), "{csv}");
+}

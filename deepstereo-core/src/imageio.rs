@@ -79,8 +79,12 @@ impl RgbImage {
     }
 
     /// Halves the resolution with a 2x2 box filter; an odd last row or column is dropped,
-    /// so pixel `i` of the result covers pixels `2i, 2i+1` exactly.
+    /// so pixel `i` of the result covers pixels `2i, 2i+1` exactly. An empty image stays
+    /// empty.
     pub fn downsample2(&self) -> Self {
+        if self.width == 0 || self.height == 0 {
+            return Self::new(0, 0);
+        }
         let (w, h) = ((self.width / 2).max(1), (self.height / 2).max(1));
         let mut out = Self::new(w, h);
         let sw = self.width as usize;

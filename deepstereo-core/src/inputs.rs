@@ -32,6 +32,18 @@ impl PyramidSource {
     }
 }
 
+impl PyramidSource {
+    /// A source that sees nothing: `levels` empty images, so every sample of it has alpha
+    /// 0 (the network's input for a view that is not there). `camera` only fills the
+    /// slot.
+    pub fn empty(camera: &Camera, levels: usize) -> Self {
+        Self {
+            cameras: vec![*camera; levels.max(1)],
+            images: vec![RgbImage::new(0, 0); levels.max(1)],
+        }
+    }
+}
+
 /// The camera of level `l` (`1 / 2^l` resolution) with the given image size.
 pub fn level_camera(camera: &Camera, l: usize, width: u32, height: u32) -> Camera {
     Camera {

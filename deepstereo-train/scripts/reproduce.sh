@@ -48,6 +48,7 @@ fi
 echo "== error against run time on a procedural scene"
 $DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 8,16,32,64,96 --backends candle,ort --prune-grid off,auto --out "$OUT/report_procedural"
 $DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --downscale-grid 1,2,4 --backends ort --prune-grid off --out "$OUT/report_scale"
+$DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --views-grid 1,2,3,4 --backends ort --prune-grid off --out "$OUT/report_views"
 cp "$OUT/report_procedural/report.png" "$FIG/report_procedural.png"
 echo "== speed benchmarks (whole network against onnxruntime and PyTorch)"
 cargo bench -p deepstereo-train --bench network | tee "$OUT/bench_network.txt"

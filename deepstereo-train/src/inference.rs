@@ -5,6 +5,7 @@ use anyhow::{bail, Context, Result};
 use candle_core::Device;
 use deepstereo_core::baseline::plane_sweep;
 use deepstereo_core::camera::Camera;
+use deepstereo_core::config::Config;
 use deepstereo_core::geometry::inverse_depths;
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::PyramidSource;
@@ -52,12 +53,27 @@ pub fn candle_backend(model: Option<&Path>) -> Result<CandleBackend> {
 pub struct RenderSettings {
     /// Planes (`None`: the model's default).
     pub planes: Option<usize>,
-    /// Source views (must equal the model's; `None`: the model's).
+    /// Source views (at most the model's, which is the default; the model's remaining
+    /// inputs are then empty views, alpha 0 everywhere, as for pixels no source sees).
     pub views: Option<usize>,
     /// Output tile side for rendering (bounded memory).
     pub tile: usize,
     /// What to leave out (`deepstereo_core::prune`).
     pub prune: PruneOptions,
+}
+
+impl RenderSettings {
+    /// The number of real source views to use with a model of config `cfg`.
+    pub fn source_count(&self, cfg: &Config) -> Result<usize> {
+        let k = self.views.unwrap_or(cfg.views);
+        if k == 0 || k > cfg.views {
+            bail!(
+                "--views {k}: this model takes 1 to {} source views (fewer leave its other inputs empty)",
+                cfg.views
+            );
+        }
+        Ok(k)
+    }
 }
 
 /// The `k` source views for `target` (`exclude`: its own index in the scene, if any):
@@ -114,21 +130,15 @@ pub fn render_camera(
     progress: &dyn Fn(usize, usize),
 ) -> Result<(Rendered, Vec<f64>)> {
     let cfg = backend.config().clone();
-    if let Some(v) = settings.views {
-        if v != cfg.views {
-            bail!(
-                "--views {v}: this model was built for {} source views",
-                cfg.views
-            );
-        }
-    }
-    if sources.len() < cfg.views {
+    let k = settings.source_count(&cfg)?;
+    if sources.len() < k {
         bail!(
-            "the model needs {} source views, the scene offers {}",
-            cfg.views,
-            sources.len()
+            "{k} source views are needed, the scene offers {} (try --views {})",
+            sources.len(),
+            sources.len().max(1)
         );
     }
+    let sources = &sources[..k];
     let planes = settings.planes.unwrap_or(cfg.planes);
     if planes == 0 {
         bail!("--planes must be at least 1");
@@ -137,10 +147,19 @@ pub fn render_camera(
     for &i in sources {
         prepared.get(scene, i, cfg.levels)?;
     }
-    let srcs: Vec<&PyramidSource> = sources
+    let mut srcs: Vec<&PyramidSource> = sources
         .iter()
         .filter_map(|&i| prepared.pyramids[i].as_ref())
         .collect();
+    // The model's inputs beyond the `k` sources: views that see nothing.
+    let empty = srcs
+        .first()
+        .map(|s| PyramidSource::empty(&s.cameras[0], cfg.levels));
+    if let Some(e) = &empty {
+        while srcs.len() < cfg.views {
+            srcs.push(e);
+        }
+    }
     // Pruning runs every k-th plane when the requested ones are closer than
     // `max_step` pixels apart in every source (a subset of the requested planes).
     let inv: Vec<f64> = if settings.prune.is_on() {
@@ -262,6 +281,7 @@ pub fn evaluate(
     mut on_view: impl FnMut(&ViewResult, &ViewImages<'_>),
 ) -> Result<EvalReport> {
     let cfg = backend.config().clone();
+    let k = settings.source_count(&cfg)?;
     let planes = settings.planes.unwrap_or(cfg.planes);
     let mut prepared = Prepared::new(scene);
     let mut per_view = Vec::new();
@@ -274,7 +294,7 @@ pub fn evaluate(
         }
         let truth = scene.load_image(t)?;
         let cam = scene.views[t].camera;
-        let srcs = pick_sources(scene, &cam, Some(t), cfg.views, settings);
+        let srcs = pick_sources(scene, &cam, Some(t), k, settings);
         let t0 = Instant::now();
         let (r, inv) = render_camera(
             backend,
@@ -366,7 +386,7 @@ pub fn evaluate(
         model: model_name.to_string(),
         backend: backend.name().to_string(),
         planes,
-        views: cfg.views,
+        views: k,
         prune: settings.prune.mode.name().to_string(),
         per_view,
         mean,

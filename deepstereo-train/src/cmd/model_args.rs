@@ -17,7 +17,8 @@ pub struct ModelArgs {
     /// Depth planes, uniform in inverse depth between near and far (default: the model's).
     #[arg(long)]
     pub planes: Option<usize>,
-    /// Source views, the nearest to the target (must equal the model's; default: it).
+    /// Source views, the nearest to the target: at most the model's (its default); with
+    /// fewer, the model's other inputs are empty views (alpha 0).
     #[arg(long)]
     pub views: Option<usize>,
     /// Output tile side in pixels when rendering (bounds memory; rounded up to the model's

@@ -48,7 +48,7 @@ pub fn run(a: Args) -> Result<()> {
     let settings = a.model.settings()?;
     let scene = a.scene.load()?;
     let backend = a.model.backend()?;
-    let v = backend.config().views;
+    let v = settings.source_count(backend.config())?;
     let mut prepared = Prepared::new(&scene);
     let bar = indicatif::ProgressBar::new(0);
     let progress = |done: usize, total: usize| {

@@ -29,6 +29,10 @@ pub struct Args {
     /// Plane counts to try, comma-separated.
     #[arg(long, default_value = "8,16,32,64,96")]
     pub planes_grid: String,
+    /// Source-view counts to try, comma-separated (1 to the model's; default: the
+    /// model's). With fewer views than the model takes, its other inputs are empty.
+    #[arg(long)]
+    pub views_grid: Option<String>,
     /// Backends to try, comma-separated (candle, ort).
     #[arg(long, default_value = "candle")]
     pub backends: String,
@@ -49,6 +53,7 @@ pub struct Args {
 struct Row {
     method: String,
     planes: usize,
+    views: usize,
     scale: u32,
     prune: PruneMode,
     psnr: f64,
@@ -71,6 +76,20 @@ pub fn run(a: Args) -> Result<()> {
                 .with_context(|| format!("--planes-grid: '{s}' is not a positive count"))
         })
         .collect::<Result<_>>()?;
+    let views: Vec<Option<usize>> = match &a.views_grid {
+        None => vec![None],
+        Some(g) => g
+            .split(',')
+            .map(|s| {
+                s.trim()
+                    .parse::<usize>()
+                    .ok()
+                    .filter(|&v| v > 0)
+                    .map(Some)
+                    .with_context(|| format!("--views-grid: '{s}' is not a positive count"))
+            })
+            .collect::<Result<_>>()?,
+    };
     let scales: Vec<u32> = a
         .downscale_grid
         .split(',')
@@ -125,7 +144,10 @@ pub fn run(a: Args) -> Result<()> {
     for (bi, &kind) in backends.iter().enumerate() {
         let backend = make_backend(kind, a.model.model.as_deref())?;
         for (si, (n, scaled_scene)) in scaled.iter().enumerate() {
-            for &p in &planes {
+            for (p, (vi, &nv)) in planes
+                .iter()
+                .flat_map(|&p| views.iter().enumerate().map(move |v| (p, v)))
+            {
                 for (pi, &mode) in prunes.iter().enumerate() {
                     let prune = PruneOptions {
                         mode,
@@ -133,9 +155,11 @@ pub fn run(a: Args) -> Result<()> {
                     };
                     let settings = RenderSettings {
                         planes: Some(p),
+                        views: nv.or(base.views),
                         prune,
                         ..base.clone()
                     };
+                    let k = settings.source_count(backend.config())?;
                     let pt = point(
                         backend.as_ref(),
                         &a.model.name(),
@@ -158,6 +182,10 @@ pub fn run(a: Args) -> Result<()> {
                         method = format!("{method}-1/{n}");
                         ps_method = format!("{ps_method}-1/{n}");
                     }
+                    if views.len() > 1 {
+                        method = format!("{method}-{k}views");
+                        ps_method = format!("{ps_method}-{k}views");
+                    }
                     eprintln!(
                     "{method:>28} {p:3} planes: PSNR {:.2} SSIM {:.3} {:.2} s/view | plane sweep {:.2} dB {:.2} s",
                     pt.net.0, pt.net.1, pt.net.2, pt.plane_sweep.0, pt.plane_sweep.2
@@ -165,6 +193,7 @@ pub fn run(a: Args) -> Result<()> {
                     rows.push(Row {
                         method,
                         planes: p,
+                        views: k,
                         scale: *n,
                         prune: mode,
                         psnr: pt.net.0,
@@ -175,13 +204,14 @@ pub fn run(a: Args) -> Result<()> {
                         rows.push(Row {
                             method: ps_method,
                             planes: p,
+                            views: k,
                             scale: *n,
                             prune: mode,
                             psnr: pt.plane_sweep.0,
                             ssim: pt.plane_sweep.1,
                             seconds: pt.plane_sweep.2,
                         });
-                        if si == 0 && pi == 0 {
+                        if si == 0 && pi == 0 && vi == 0 {
                             nearest = Some(pt.nearest);
                         }
                     }
@@ -195,23 +225,26 @@ pub fn run(a: Args) -> Result<()> {
         .map(|r| (r.seconds, r.psnr))
         .collect();
     let front = pareto_front(&net);
-    let mut csv = String::from("method,planes,scale,prune,psnr,ssim,seconds_per_image\n");
-    let mut md = format!("Scene `{}`, model `{}`, held-out views {targets:?}; scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.\n\n| method | planes | scale | prune | PSNR (dB) | SSIM | s / image |\n|---|---|---|---|---|---|---|\n", scene.root.display(), a.model.name());
+    let mut csv = String::from("method,planes,views,scale,prune,psnr,ssim,seconds_per_image\n");
+    let mut md = format!("Scene `{}`, model `{}`, held-out views {targets:?}; scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.\n\n| method | planes | views | scale | prune | PSNR (dB) | SSIM | s / image |\n|---|---|---|---|---|---|---|---|\n", scene.root.display(), a.model.name());
     for r in &rows {
         writeln!(
             csv,
-            "{},{},{},{},{:.4},{:.4},{:.4}",
-            r.method, r.planes, r.scale, r.prune, r.psnr, r.ssim, r.seconds
+            "{},{},{},{},{},{:.4},{:.4},{:.4}",
+            r.method, r.planes, r.views, r.scale, r.prune, r.psnr, r.ssim, r.seconds
         )?;
         writeln!(
             md,
-            "| {} | {} | 1/{} | {} | {:.2} | {:.3} | {:.3} |",
-            r.method, r.planes, r.scale, r.prune, r.psnr, r.ssim, r.seconds
+            "| {} | {} | {} | 1/{} | {} | {:.2} | {:.3} | {:.3} |",
+            r.method, r.planes, r.views, r.scale, r.prune, r.psnr, r.ssim, r.seconds
         )?;
     }
     if let Some((p, s)) = nearest {
-        writeln!(csv, "nearest,0,1,off,{p:.4},{s:.4},0")?;
-        writeln!(md, "| nearest source | - | - | - | {p:.2} | {s:.3} | - |")?;
+        writeln!(csv, "nearest,0,1,1,off,{p:.4},{s:.4},0")?;
+        writeln!(
+            md,
+            "| nearest source | - | 1 | - | - | {p:.2} | {s:.3} | - |"
+        )?;
     }
     let colours = [
         [0.85, 0.2, 0.1],
