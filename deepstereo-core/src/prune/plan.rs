@@ -138,6 +138,12 @@ impl<'a> Pruner<'a> {
         self
     }
 
+    /// Whether the cheap flat probe finds the tile at `(x0, y0)` constant (tests).
+    #[cfg(test)]
+    pub(crate) fn flat_probe_for_tests(&self, x0: usize, y0: usize, tile: usize) -> bool {
+        self.flat_probe(x0, y0, tile).is_some()
+    }
+
     /// Seconds spent on the guide (0 without one).
     pub fn guide_seconds(&self) -> f64 {
         self.guide_seconds
@@ -206,6 +212,9 @@ impl<'a> Pruner<'a> {
             return whole(TilePlan::Uncovered);
         }
         if let Some(g) = &self.guide {
+            if let Some(plan) = self.flat_probe(x0, y0, tile) {
+                return whole(plan);
+            }
             return self.split_guided(g, x0, y0, tile).1;
         }
         let samples = self.coarse(x0, y0, tile);

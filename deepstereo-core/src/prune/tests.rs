@@ -593,3 +593,80 @@ fn prune_thin_planes_keeps_every_kth_and_the_last() {
     assert_eq!(thin_planes(1, 0.01, 1.0), vec![0]);
     assert!(thin_planes(0, 0.5, 1.0).is_empty());
 }
+
+#[test]
+fn prune_constant_tiles_take_their_colour_without_the_network() -> TestResult {
+    // Sources of one colour everywhere: every tile is flat under both coarse passes, and
+    // the render is that colour; a textured scene has textured tiles that are not.
+    let backend = small_backend(3);
+    let mut s = scene(31, Rig::Forward);
+    let colour = [0.3f32, 0.5, 0.7];
+    for img in &mut s.images {
+        for px in img.data.chunks_exact_mut(3) {
+            px.copy_from_slice(&colour);
+        }
+    }
+    let t = 3;
+    let src = nearest(&s.cameras, t, 3);
+    let pyr = pyramids(&s, &src, 2);
+    let refs: Vec<&PyramidSource> = pyr.iter().collect();
+    let inv = inverse_depths(s.near, s.far, 12);
+    let cam = s.cameras[t];
+    for coarse in [CoarsePass::Photo, CoarsePass::Network] {
+        let opts = PruneOptions {
+            coarse,
+            ..PruneOptions::auto()
+        };
+        let mut pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
+        if coarse == CoarsePass::Network {
+            let g = network_guide(&backend, &cam, &refs, &inv, pruner.range(), 2, 32)?
+                .ok_or("no guide")?;
+            pruner = pruner.with_guide(g, 0.0);
+        }
+        let got = render_view_pruned(&backend, &cam, &refs, &inv, 32, Some(&pruner), &|_, _| {})?;
+        let st = got.prune.clone().ok_or("stats")?;
+        // Tiles at the image border see beyond the sources for some planes (not flat).
+        assert!(st.flat * 2 >= st.tiles, "{coarse:?}: {st:?}");
+        assert!(
+            st.planes_run + st.flat * 32 * 32 * 12 <= st.planes_total,
+            "{st:?}"
+        );
+        let (w, h) = (
+            cam.intrinsics.width as usize,
+            cam.intrinsics.height as usize,
+        );
+        for y in 32..h.min(64) {
+            for x in 32..w.min(64) {
+                let p = got.image.pixel(x as u32, y as u32);
+                for c in 0..3 {
+                    assert!(
+                        (p[c] - colour[c]).abs() < 1e-4,
+                        "{coarse:?} ({x}, {y}): {p:?}"
+                    );
+                }
+            }
+        }
+    }
+    // A textured procedural scene: its textured tiles are never flat.
+    let s = scene(31, Rig::Forward);
+    let pyr = pyramids(&s, &src, 2);
+    let refs: Vec<&PyramidSource> = pyr.iter().collect();
+    let opts = PruneOptions::auto();
+    let pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
+    let known = known_pixels(&s, t, &src, &inv);
+    let (w, h) = (
+        cam.intrinsics.width as usize,
+        cam.intrinsics.height as usize,
+    );
+    for y0 in (0..h).step_by(32) {
+        for x0 in (0..w).step_by(32) {
+            if pruner.flat_probe_for_tests(x0, y0, 32) {
+                let textured = (y0..(y0 + 32).min(h))
+                    .flat_map(|y| (x0..(x0 + 32).min(w)).map(move |x| y * w + x))
+                    .any(|i| known[i]);
+                assert!(!textured, "textured tile ({x0}, {y0}) found flat");
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,6 +1,6 @@
 //! The coarse photo-consistency pass of a tile.
 
-use super::Pruner;
+use super::{Pruner, TilePlan};
 use crate::baseline::MIN_ALPHA;
 use crate::geometry::apply_h;
 use crate::inputs::PyramidSource;
@@ -42,6 +42,56 @@ impl Pruner<'_> {
             }
         }
         (pos, rays, xs.len())
+    }
+
+    /// The flat plan of a tile whose coarse samples (the rays of [`Self::coarse`]) see one
+    /// colour in every source at every plane of the range; `None` as soon as two sampled
+    /// colours differ by more than twice [`super::PruneOptions::flat`], or a sample is seen
+    /// by no source. The colour sampling of the photo-consistency pass without its cost
+    /// volume, for the network-guided pass.
+    pub(super) fn flat_probe(&self, x0: usize, y0: usize, tile: usize) -> Option<TilePlan> {
+        let (_, rays, _) = self.rays(x0, y0, tile);
+        let (z0, z1) = self.range;
+        let limit = 2.0 * self.opts.flat;
+        let (mut lo, mut hi, mut sum) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3], [0f64; 3]);
+        let mut count = 0usize;
+        for n in &rays {
+            for z in z0..=z1 {
+                let mut seen = false;
+                for (k, s) in self.sources.iter().enumerate() {
+                    let q = apply_h(&self.homs[k * self.planes + z], n.x, n.y);
+                    if q.z <= IN_FRONT_EPS * q.length() {
+                        continue;
+                    }
+                    let cam = &s.cameras[self.level];
+                    let uv = cam
+                        .intrinsics
+                        .project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
+                    let c = sample_bilinear(&s.images[self.level], uv.x, uv.y);
+                    if c[3] > MIN_ALPHA {
+                        for ch in 0..3 {
+                            let x = c[ch] / c[3];
+                            lo[ch] = lo[ch].min(x);
+                            hi[ch] = hi[ch].max(x);
+                            sum[ch] += x as f64;
+                            if hi[ch] - lo[ch] > limit {
+                                return None;
+                            }
+                        }
+                        seen = true;
+                        count += 1;
+                    }
+                }
+                if !seen {
+                    return None;
+                }
+            }
+        }
+        let total = rays.len() * (z1 + 1 - z0) * self.sources.len();
+        (count > 0).then(|| TilePlan::Flat {
+            colour: sum.map(|x| (x / count as f64) as f32),
+            coverage: count as f32 / total.max(1) as f32,
+        })
     }
 
     /// The coarse cost volume of a tile.
