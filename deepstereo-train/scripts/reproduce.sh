@@ -32,6 +32,8 @@ if [ -d "$DATA" ]; then
   cp "$OUT/report_temple/report.png" "$FIG/report_temple.png"
   $DS report --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_fox"
   cp "$OUT/report_fox/report.png" "$FIG/report_fox.png"
+  $DS report --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_ethiopian"
+  cp "$OUT/report_ethiopian/report.png" "$FIG/report_ethiopian.png"
   echo "== pruning off / auto / fast on every scene (32 planes; 96 on the procedural scenes too)"
   for prune in "--prune off" "--prune auto" "--prune auto --prune-keep 0.8 --prune-margin 0"; do
     tag=$(echo "$prune" | tr -cd 'a-z0-9.')
