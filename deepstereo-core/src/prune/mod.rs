@@ -59,6 +59,8 @@ mod plan;
 mod range;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_guide;
 mod views;
 
 pub use guide::{network_guide, Guide};

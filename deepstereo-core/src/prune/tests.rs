@@ -40,7 +40,7 @@ pub(super) fn nearest_plane(inv: &[f64], depth: f64) -> usize {
 }
 
 /// A small model with the tiny preset's structure (2 levels, 3 depth convs).
-fn small_backend(views: usize) -> CandleBackend {
+pub(super) fn small_backend(views: usize) -> CandleBackend {
     let c = |k, ch| Conv {
         kernel: k,
         channels: ch,
@@ -200,7 +200,7 @@ pub(super) fn scene_sized(seed: u64, rig: Rig, width: u32, height: u32) -> Synth
 const PHOTO_MARGIN: usize = 1;
 
 /// Fewest known-depth pixels (of all rigs together) whose true plane pruning must keep.
-const MIN_KEPT_KNOWN: f64 = 0.995;
+pub(super) const MIN_KEPT_KNOWN: f64 = 0.995;
 
 #[test]
 fn prune_keeps_the_true_surface_plane_of_known_pixels() {
@@ -504,169 +504,4 @@ fn prune_depth_range_from_bounds_covers_the_sources_bounds() {
         plane_range_from_bounds(&[Some((1.0, 20.0))], &inv),
         Some((0, 32))
     );
-}
-
-/// The trained `tiny` model shipped with the command-line tool.
-fn trained_tiny() -> CandleBackend {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../deepstereo-train/assets/tiny.safetensors");
-    let t = crate::weights::load(&path, &Device::Cpu).expect("trained tiny weights");
-    CandleBackend {
-        model: t.model,
-        device: Device::Cpu,
-    }
-}
-
-#[test]
-fn prune_network_guide_keeps_the_true_surface_plane_of_known_pixels() {
-    let backend = trained_tiny();
-    let opts = PruneOptions::auto();
-    let (mut misses, mut checked, mut kept, mut total) = (0, 0, 0, 0);
-    for (i, rig) in Rig::CONCRETE.into_iter().enumerate() {
-        let s = scene_sized(9100 + i as u64, rig, 240, 180);
-        let target = s.cameras.len() / 2;
-        let (m, n, k, t) = check_bands_guided(&s, target, 32, 64, &opts, Some(&backend));
-        println!(
-            "{rig}: {m} of {n} known pixels lost their plane; {:.0}% of planes x pixels kept",
-            100.0 * k as f64 / t as f64
-        );
-        assert!(n > 100, "{rig}: too few pixels of known depth ({n})");
-        misses += m;
-        checked += n;
-        kept += k;
-        total += t;
-    }
-    let frac = 1.0 - misses as f64 / checked as f64;
-    println!("{:.2}% kept their plane", 100.0 * frac);
-    assert!(
-        frac >= MIN_KEPT_KNOWN,
-        "only {:.1}% of known pixels keep their plane",
-        100.0 * frac
-    );
-    assert!(
-        (kept as f64) < 0.9 * total as f64,
-        "kept {kept} of {total} plane-pixels"
-    );
-}
-
-#[test]
-fn prune_plane_step_is_focal_times_baseline_times_inverse_depth_step() {
-    use crate::camera::{Intrinsics, WorldToCamera};
-    use glam::{DMat3, DVec3};
-    let (f, b, near, far, d) = (100.0, 0.3, 2.0, 50.0, 33);
-    let k = Intrinsics::pinhole(f, f, 64.0, 48.0, 128, 96);
-    let target = Camera {
-        intrinsics: k,
-        pose: WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::ZERO).expect("pose"),
-    };
-    // p_cam = p_world - (b, 0, 0): the source sits b to the right of the target.
-    let source = Camera {
-        intrinsics: k,
-        pose: WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::new(-b, 0.0, 0.0)).expect("pose"),
-    };
-    let inv = inverse_depths(near, far, d);
-    let want = f * b * (1.0 / near - 1.0 / far) / (d - 1) as f64;
-    let got = max_plane_step(&target, &[&source], &inv);
-    assert!((got - want).abs() < 1e-9 * want, "{got} vs {want}");
-    // A source at the target's centre sees no disparity at all.
-    assert_eq!(max_plane_step(&target, &[&target], &inv), 0.0);
-}
-
-#[test]
-fn prune_thin_planes_keeps_every_kth_and_the_last() {
-    let every4: Vec<usize> = (0..96).step_by(4).chain([95]).collect();
-    assert_eq!(thin_planes(96, 0.25, 1.0), every4);
-    // Steps already at or above the limit, unknown steps and a zero limit keep all.
-    for (step, max) in [
-        (1.0, 1.0),
-        (1.5, 1.0),
-        (0.0, 1.0),
-        (f64::NAN, 1.0),
-        (0.1, 0.0),
-    ] {
-        assert_eq!(
-            thin_planes(7, step, max),
-            (0..7).collect::<Vec<_>>(),
-            "{step} {max}"
-        );
-    }
-    assert_eq!(thin_planes(1, 0.01, 1.0), vec![0]);
-    assert!(thin_planes(0, 0.5, 1.0).is_empty());
-}
-
-#[test]
-fn prune_constant_tiles_take_their_colour_without_the_network() -> TestResult {
-    // Sources of one colour everywhere: every tile is flat under both coarse passes, and
-    // the render is that colour; a textured scene has textured tiles that are not.
-    let backend = small_backend(3);
-    let mut s = scene(31, Rig::Forward);
-    let colour = [0.3f32, 0.5, 0.7];
-    for img in &mut s.images {
-        for px in img.data.chunks_exact_mut(3) {
-            px.copy_from_slice(&colour);
-        }
-    }
-    let t = 3;
-    let src = nearest(&s.cameras, t, 3);
-    let pyr = pyramids(&s, &src, 2);
-    let refs: Vec<&PyramidSource> = pyr.iter().collect();
-    let inv = inverse_depths(s.near, s.far, 12);
-    let cam = s.cameras[t];
-    for coarse in [CoarsePass::Photo, CoarsePass::Network] {
-        let opts = PruneOptions {
-            coarse,
-            ..PruneOptions::auto()
-        };
-        let mut pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
-        if coarse == CoarsePass::Network {
-            let g = network_guide(&backend, &cam, &refs, &inv, pruner.range(), 2, 32)?
-                .ok_or("no guide")?;
-            pruner = pruner.with_guide(g, 0.0);
-        }
-        let got = render_view_pruned(&backend, &cam, &refs, &inv, 32, Some(&pruner), &|_, _| {})?;
-        let st = got.prune.clone().ok_or("stats")?;
-        // Tiles at the image border see beyond the sources for some planes (not flat).
-        assert!(st.flat * 2 >= st.tiles, "{coarse:?}: {st:?}");
-        assert!(
-            st.planes_run + st.flat * 32 * 32 * 12 <= st.planes_total,
-            "{st:?}"
-        );
-        let (w, h) = (
-            cam.intrinsics.width as usize,
-            cam.intrinsics.height as usize,
-        );
-        for y in 32..h.min(64) {
-            for x in 32..w.min(64) {
-                let p = got.image.pixel(x as u32, y as u32);
-                for c in 0..3 {
-                    assert!(
-                        (p[c] - colour[c]).abs() < 1e-4,
-                        "{coarse:?} ({x}, {y}): {p:?}"
-                    );
-                }
-            }
-        }
-    }
-    // A textured procedural scene: its textured tiles are never flat.
-    let s = scene(31, Rig::Forward);
-    let pyr = pyramids(&s, &src, 2);
-    let refs: Vec<&PyramidSource> = pyr.iter().collect();
-    let opts = PruneOptions::auto();
-    let pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
-    let known = known_pixels(&s, t, &src, &inv);
-    let (w, h) = (
-        cam.intrinsics.width as usize,
-        cam.intrinsics.height as usize,
-    );
-    for y0 in (0..h).step_by(32) {
-        for x0 in (0..w).step_by(32) {
-            if pruner.flat_probe_for_tests(x0, y0, 32) {
-                let textured = (y0..(y0 + 32).min(h))
-                    .flat_map(|y| (x0..(x0 + 32).min(w)).map(move |x| y * w + x))
-                    .any(|i| known[i]);
-                assert!(!textured, "textured tile ({x0}, {y0}) found flat");
-            }
-        }
-    }
-    Ok(())
 }
