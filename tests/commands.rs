@@ -170,6 +170,25 @@ fn eval_json_has_the_documented_layout() {
     let avg = (per_view[0]["psnr"].as_f64().unwrap() + per_view[1]["psnr"].as_f64().unwrap()) / 2.0;
     assert!((mean["psnr"].as_f64().expect("mean psnr") - avg).abs() < 1e-6);
     assert!(mean["baselines"]["plane_sweep"]["ssim"].as_f64().is_some());
+    // Pruning is on by default; `--prune off` is the plain renderer, with no prune stats.
+    assert_eq!(v["prune"], "auto");
+    assert!(per_view[0].get("prune").is_some());
+    let res = ok(&[
+        "eval",
+        "--scene",
+        &s.to_string_lossy(),
+        "--holdout",
+        "1",
+        "--planes",
+        "8",
+        "--prune",
+        "off",
+        "--json",
+        "-",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&res.stdout).expect("JSON on stdout");
+    assert_eq!(v["prune"], "off");
+    assert!(v["per_view"][0].get("prune").is_none(), "{v}");
 }
 
 #[test]

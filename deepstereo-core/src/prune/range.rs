@@ -65,9 +65,13 @@ pub fn plane_range_from_points(
     )
 }
 
+/// Relative margin on the sources' bounds (LLFF's near bound is a low percentile of
+/// the sparse points' depths, not their minimum).
+pub const BOUNDS_MARGIN: f64 = 0.1;
+
 /// The planes the per-view depth bounds of the sources (LLFF's `poses_bounds.npy`) allow:
-/// between the least near and the largest far of the sources, plus the plane just outside
-/// on each side. The sources' bounds stand for the target's, which holds for sources near
+/// between the least near and the largest far of the sources, widened by
+/// [`BOUNDS_MARGIN`], plus the plane just outside on each side. The sources' bounds stand for the target's, which holds for sources near
 /// the target (the target's own bounds are not used: a held-out view's bounds come from
 /// its own photograph). `None` when a source has no bounds.
 pub fn plane_range_from_bounds(
@@ -86,7 +90,11 @@ pub fn plane_range_from_bounds(
         lo = lo.min(n);
         hi = hi.max(f);
     }
-    planes_between(lo, hi, inv_depths)
+    planes_between(
+        lo * (1.0 - BOUNDS_MARGIN),
+        hi * (1.0 + BOUNDS_MARGIN),
+        inv_depths,
+    )
 }
 
 /// The planes (of decreasing `inv_depths`) with depths in `[near, far]`, plus the plane
