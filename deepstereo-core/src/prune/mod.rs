@@ -47,8 +47,9 @@
 //! Neither coarse pass finds every surface: textureless, repetitive and occluded parts
 //! fool photo-consistency, and the coarse network blurs thin structures. A pixel whose
 //! true plane pruning leaves out gets the network's best choice among the kept planes.
-//! The tests bound how often that happens where the depth is knowable (at most 0.5% of
-//! the textured pixels whose depth the classical plane sweep recovers).
+//! The tests bound how often that happens where the depth is knowable: never for the
+//! textured pixels whose depth the classical plane sweep recovers away from occlusion
+//! edges, and for at most 0.5% of them in all.
 //!
 //! With [`PruneMode::Off`] nothing of this runs and the renderer is the unpruned one.
 
