@@ -67,7 +67,7 @@ mod views;
 pub use guide::{network_guide, Guide};
 pub use plan::{Block, Pruner, TilePlan};
 pub use range::{
-    max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_planes,
+    max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_planes, BOUNDS_MARGIN,
     MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES,
 };
 pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
