@@ -252,44 +252,17 @@ impl<'a> Pruner<'a> {
             (None, None) => self.fallback(s, idx),
         };
         let here = self.cost(size, planes.len());
-        let half = size / 2;
-        if half >= self.opts.min_block.max(1) && half.is_multiple_of(self.align) {
-            let mut total = 0.0;
-            let mut blocks = Vec::new();
-            for (qx, qy) in [
-                (x0, y0),
-                (x0 + half, y0),
-                (x0, y0 + half),
-                (x0 + half, y0 + half),
-            ] {
-                let sub: Vec<usize> = idx
-                    .iter()
-                    .copied()
-                    .filter(|&i| {
-                        (qx..qx + half).contains(&s.pos[i].0)
-                            && (qy..qy + half).contains(&s.pos[i].1)
-                    })
-                    .collect();
-                if sub.is_empty() {
-                    continue; // outside the image
-                }
-                let (c, b) = self.split(s, &sub, qx, qy, half, Some(&planes));
-                total += c;
-                blocks.extend(b);
-            }
-            if total < here {
-                return (total, blocks);
-            }
-        }
-        (
-            here,
-            vec![Block {
-                x0,
-                y0,
-                size,
-                plan: TilePlan::Planes(planes),
-            }],
-        )
+        self.cheapest(x0, y0, size, planes, here, |qx, qy, half, planes| {
+            let sub: Vec<usize> = idx
+                .iter()
+                .copied()
+                .filter(|&i| {
+                    (qx..qx + half).contains(&s.pos[i].0) && (qy..qy + half).contains(&s.pos[i].1)
+                })
+                .collect();
+            // No sample: the quadrant lies outside the image.
+            (!sub.is_empty()).then(|| self.split(s, &sub, qx, qy, half, Some(planes)))
+        })
     }
 
     /// The cheapest blocks for the block at `(x0, y0)` of side `size`, planes from the
@@ -301,11 +274,30 @@ impl<'a> Pruner<'a> {
             None => (z0..=z1).collect(),
         };
         let here = self.cost(size, planes.len()) + self.call_cost();
-        let half = size / 2;
         let (w, h) = (
             self.target.intrinsics.width as usize,
             self.target.intrinsics.height as usize,
         );
+        self.cheapest(x0, y0, size, planes, here, |qx, qy, half, _| {
+            // A quadrant outside the image needs nothing.
+            (qx < w && qy < h).then(|| self.split_guided(g, qx, qy, half))
+        })
+    }
+
+    /// The block at `(x0, y0)` of side `size` run whole on `planes` (cost `here`), or its
+    /// quadrants as `quadrant(x, y, half, planes)` plans them (`None`: nothing to run
+    /// there), whichever costs less; quadrants only down to [`PruneOptions::min_block`]
+    /// and the model's alignment.
+    fn cheapest(
+        &self,
+        x0: usize,
+        y0: usize,
+        size: usize,
+        planes: Vec<usize>,
+        here: f64,
+        mut quadrant: impl FnMut(usize, usize, usize, &[usize]) -> Option<(f64, Vec<Block>)>,
+    ) -> (f64, Vec<Block>) {
+        let half = size / 2;
         if half >= self.opts.min_block.max(1) && half.is_multiple_of(self.align) {
             let mut total = 0.0;
             let mut blocks = Vec::new();
@@ -315,12 +307,10 @@ impl<'a> Pruner<'a> {
                 (x0, y0 + half),
                 (x0 + half, y0 + half),
             ] {
-                if qx >= w || qy >= h {
-                    continue; // outside the image
+                if let Some((c, b)) = quadrant(qx, qy, half, &planes) {
+                    total += c;
+                    blocks.extend(b);
                 }
-                let (c, b) = self.split_guided(g, qx, qy, half);
-                total += c;
-                blocks.extend(b);
             }
             if total < here {
                 return (total, blocks);

@@ -44,6 +44,21 @@ impl Pruner<'_> {
         (pos, rays, xs.len())
     }
 
+    /// Source `k`'s colour (alpha-normalized) on plane `z` along the normalized target
+    /// ray `n`, at the coarse level; `None` where the source does not see it.
+    fn colour_at(&self, k: usize, z: usize, n: &DVec2) -> Option<[f32; 3]> {
+        let q = apply_h(&self.homs[k * self.planes + z], n.x, n.y);
+        if q.z <= IN_FRONT_EPS * q.length() {
+            return None;
+        }
+        let s = &self.sources[k];
+        let uv = s.cameras[self.level]
+            .intrinsics
+            .project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
+        let c = sample_bilinear(&s.images[self.level], uv.x, uv.y);
+        (c[3] > MIN_ALPHA).then(|| [c[0] / c[3], c[1] / c[3], c[2] / c[3]])
+    }
+
     /// The flat plan of a tile whose coarse samples (the rays of [`Self::coarse`]) see one
     /// colour in every source at every plane of the range; `None` as soon as two sampled
     /// colours differ by more than twice [`super::PruneOptions::flat`], or a sample is seen
@@ -58,22 +73,12 @@ impl Pruner<'_> {
         for n in &rays {
             for z in z0..=z1 {
                 let mut seen = false;
-                for (k, s) in self.sources.iter().enumerate() {
-                    let q = apply_h(&self.homs[k * self.planes + z], n.x, n.y);
-                    if q.z <= IN_FRONT_EPS * q.length() {
-                        continue;
-                    }
-                    let cam = &s.cameras[self.level];
-                    let uv = cam
-                        .intrinsics
-                        .project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
-                    let c = sample_bilinear(&s.images[self.level], uv.x, uv.y);
-                    if c[3] > MIN_ALPHA {
+                for k in 0..self.sources.len() {
+                    if let Some(rgb) = self.colour_at(k, z, n) {
                         for ch in 0..3 {
-                            let x = c[ch] / c[3];
-                            lo[ch] = lo[ch].min(x);
-                            hi[ch] = hi[ch].max(x);
-                            sum[ch] += x as f64;
+                            lo[ch] = lo[ch].min(rgb[ch]);
+                            hi[ch] = hi[ch].max(rgb[ch]);
+                            sum[ch] += rgb[ch] as f64;
                             if hi[ch] - lo[ch] > limit {
                                 return None;
                             }
@@ -117,18 +122,8 @@ impl Pruner<'_> {
         for (p, n) in rays.iter().enumerate() {
             for z in z0..=z1 {
                 let mut cnt = 0usize;
-                for (k, s) in self.sources.iter().enumerate() {
-                    let q = apply_h(&self.homs[k * self.planes + z], n.x, n.y);
-                    if q.z <= IN_FRONT_EPS * q.length() {
-                        continue;
-                    }
-                    let cam = &s.cameras[self.level];
-                    let uv = cam
-                        .intrinsics
-                        .project_normalized(DVec2::new(q.x / q.z, q.y / q.z));
-                    let c = sample_bilinear(&s.images[self.level], uv.x, uv.y);
-                    if c[3] > MIN_ALPHA {
-                        let rgb = [c[0] / c[3], c[1] / c[3], c[2] / c[3]];
+                for k in 0..self.sources.len() {
+                    if let Some(rgb) = self.colour_at(k, z, n) {
                         for (ch, &x) in rgb.iter().enumerate() {
                             out.lo[ch] = out.lo[ch].min(x);
                             out.hi[ch] = out.hi[ch].max(x);
