@@ -173,8 +173,8 @@ impl DeepStereo {
             );
         }
         let (th, tw) = (h0 - 2 * cfg.pad(0), w0 - 2 * cfg.pad(0));
-        let folded = |t: &TowerConfig| -> Result<Vec<Tensor>> {
-            (0..t.levels)
+        let folded = |t: &TowerConfig, from: usize| -> Result<Vec<Tensor>> {
+            (from..t.levels)
                 .map(|l| {
                     let x = &inputs[l];
                     let (_, _, _, h, w) = x.dims5()?;
@@ -186,7 +186,7 @@ impl DeepStereo {
                 .collect()
         };
         // Selection tower.
-        let s = self.select.forward(&folded(&cfg.select)?, th, tw)?; // [B*D, C, th, tw]
+        let s = self.select.forward(&folded(&cfg.select, 0)?, th, tw)?; // [B*D, C, th, tw]
         let c = s.dim(1)?;
         let mut x = s
             .reshape((b, d, c, th * tw))? // [B, D, C, th*tw]
@@ -204,18 +204,36 @@ impl DeepStereo {
         }
         let logits = x.tanh()?.broadcast_mul(&self.log_scale.exp()?)?; // [B, 1, D, th*tw]
         let selection = candle_nn::ops::softmax(&logits, 2)?.reshape((b, d, th, tw))?; // [B, D, th, tw]
-                                                                                       // Colour tower.
-        let mut f = self.colour.forward(&folded(&cfg.colour)?, th, tw)?; // [B*D, C, th, tw]
-        if cfg.colour_skip {
-            let p = cfg.pad(0);
-            let centre =
-                inputs[0]
-                    .narrow(3, p, th)?
-                    .narrow(4, p, tw)?
-                    .reshape((b * d, cin, th, tw))?; // [B*D, 4V, th, tw]
-            f = Tensor::cat(&[f, centre], 1)?;
-        }
-        let colours = self.colour_out.forward(&f)?.reshape((b, d, 3, th, tw))?; // [B, D, 3, th, tw]
+                                                                                       // Colour tower. The skip input is the tile's own pixels, which is also the colour
+                                                                                       // tower's level-0 input when its convolutions are 1x1 (then cropped once).
+        let p = cfg.pad(0);
+        let centre = || {
+            inputs[0]
+                .narrow(3, p, th)?
+                .narrow(4, p, tw)?
+                .reshape((b * d, cin, th, tw)) // [B*D, 4V, th, tw]
+        };
+        let shared = cfg.colour_skip && cfg.colour.pad(0) == 0;
+        let colour_in = if shared {
+            let mut v = vec![centre()?];
+            v.extend(folded(&cfg.colour, 1)?);
+            v
+        } else {
+            folded(&cfg.colour, 0)?
+        };
+        let f = self.colour.forward(&colour_in, th, tw)?; // [B*D, C, th, tw]
+        let out = if cfg.colour_skip {
+            let skip = if shared {
+                colour_in[0].clone()
+            } else {
+                centre()?
+            };
+            // conv([f, skip]) without concatenating.
+            self.colour_out.forward_pair(&f, &skip)?
+        } else {
+            self.colour_out.forward(&f)?
+        }; // [B*D, 3, th, tw]
+        let colours = out.reshape((b, d, 3, th, tw))?; // [B, D, 3, th, tw]
         let image = colours
             .broadcast_mul(&selection.unsqueeze(2)?)? // [B, D, 3, th, tw]
             .sum(1)?; // [B, 3, th, tw]
