@@ -211,16 +211,13 @@ impl<'a> Pruner<'a> {
         if !self.covered(x0, y0, tile) {
             return whole(TilePlan::Uncovered);
         }
+        if let Some(plan) = self.flat_probe(x0, y0, tile) {
+            return whole(plan);
+        }
         if let Some(g) = &self.guide {
-            if let Some(plan) = self.flat_probe(x0, y0, tile) {
-                return whole(plan);
-            }
             return self.split_guided(g, x0, y0, tile).1;
         }
         let samples = self.coarse(x0, y0, tile);
-        if let Some(plan) = self.flat(&samples) {
-            return whole(plan);
-        }
         let all: Vec<usize> = (0..samples.pos.len()).collect();
         self.split(&samples, &all, x0, y0, tile, None).1
     }
@@ -332,15 +329,6 @@ impl<'a> Pruner<'a> {
     fn call_cost(&self) -> f64 {
         let side = (CALL_COST_SIDE + self.pad0) as f64;
         side * side
-    }
-
-    /// The flat plan when every sampled source colour is the same.
-    fn flat(&self, s: &Samples) -> Option<TilePlan> {
-        let flat = (0..3).all(|ch| s.hi[ch] - s.lo[ch] <= 2.0 * self.opts.flat);
-        (s.count > 0 && s.all_seen && flat).then(|| TilePlan::Flat {
-            colour: s.sum.map(|x| x / s.count as f32),
-            coverage: s.count as f32 / (s.cost.len() * self.sources.len()).max(1) as f32,
-        })
     }
 
     /// The planes the samples `idx` need: each sample that tells depths apart spreads a

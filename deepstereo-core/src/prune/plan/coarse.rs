@@ -62,8 +62,8 @@ impl Pruner<'_> {
     /// The flat plan of a tile whose coarse samples (the rays of [`Self::coarse`]) see one
     /// colour in every source at every plane of the range; `None` as soon as two sampled
     /// colours differ by more than twice [`super::PruneOptions::flat`], or a sample is seen
-    /// by no source. The colour sampling of the photo-consistency pass without its cost
-    /// volume, for the network-guided pass.
+    /// by no source. Both coarse passes ask this first: it samples as the
+    /// photo-consistency pass does, and a flat tile needs no cost volume.
     pub(super) fn flat_probe(&self, x0: usize, y0: usize, tile: usize) -> Option<TilePlan> {
         let (_, rays, _) = self.rays(x0, y0, tile);
         let (z0, z1) = self.range;
@@ -109,11 +109,6 @@ impl Pruner<'_> {
             pos,
             cost: vec![f32::NAN; rays.len() * nz],
             cost0: vec![f32::NAN; rays.len() * nz],
-            lo: [f32::INFINITY; 3],
-            hi: [f32::NEG_INFINITY; 3],
-            sum: [0.0; 3],
-            count: 0,
-            all_seen: true,
         };
         let v = self.sources.len();
         let np = rays.len();
@@ -121,21 +116,8 @@ impl Pruner<'_> {
         let mut col = vec![None; np * nz * v];
         for (p, n) in rays.iter().enumerate() {
             for z in z0..=z1 {
-                let mut cnt = 0usize;
                 for k in 0..self.sources.len() {
-                    if let Some(rgb) = self.colour_at(k, z, n) {
-                        for (ch, &x) in rgb.iter().enumerate() {
-                            out.lo[ch] = out.lo[ch].min(x);
-                            out.hi[ch] = out.hi[ch].max(x);
-                            out.sum[ch] += x;
-                        }
-                        col[(p * nz + z - z0) * v + k] = Some(rgb);
-                        cnt += 1;
-                    }
-                }
-                out.count += cnt;
-                if cnt == 0 {
-                    out.all_seen = false;
+                    col[(p * nz + z - z0) * v + k] = self.colour_at(k, z, n);
                 }
             }
         }
@@ -252,11 +234,4 @@ pub(super) struct Samples {
     pub(super) cost: Vec<f32>,
     /// The same cost of the sample alone (no window).
     pub(super) cost0: Vec<f32>,
-    /// Per channel, the least and largest source colour seen, and the sum and count.
-    pub(super) lo: [f32; 3],
-    pub(super) hi: [f32; 3],
-    pub(super) sum: [f32; 3],
-    pub(super) count: usize,
-    /// Whether every sample and plane had at least one source.
-    pub(super) all_seen: bool,
 }
