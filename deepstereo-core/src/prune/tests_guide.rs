@@ -1,8 +1,7 @@
 //! Tests of the network-guided coarse pass, plane thinning and constant tiles.
 
 use super::tests::{
-    check_bands_guided, known_pixels, nearest, pyramids, scene, scene_sized, small_backend,
-    TestResult, MIN_KEPT_KNOWN,
+    assert_keeps_true_planes, known_pixels, nearest, pyramids, scene, small_backend, TestResult,
 };
 use super::*;
 use crate::camera::Camera;
@@ -25,34 +24,7 @@ fn trained_tiny() -> CandleBackend {
 
 #[test]
 fn prune_network_guide_keeps_the_true_surface_plane_of_known_pixels() {
-    let backend = trained_tiny();
-    let opts = PruneOptions::auto();
-    let (mut misses, mut checked, mut kept, mut total) = (0, 0, 0, 0);
-    for (i, rig) in Rig::CONCRETE.into_iter().enumerate() {
-        let s = scene_sized(9100 + i as u64, rig, 240, 180);
-        let target = s.cameras.len() / 2;
-        let (m, n, k, t) = check_bands_guided(&s, target, 32, 64, &opts, Some(&backend));
-        println!(
-            "{rig}: {m} of {n} known pixels lost their plane; {:.0}% of planes x pixels kept",
-            100.0 * k as f64 / t as f64
-        );
-        assert!(n > 100, "{rig}: too few pixels of known depth ({n})");
-        misses += m;
-        checked += n;
-        kept += k;
-        total += t;
-    }
-    let frac = 1.0 - misses as f64 / checked as f64;
-    println!("{:.2}% kept their plane", 100.0 * frac);
-    assert!(
-        frac >= MIN_KEPT_KNOWN,
-        "only {:.1}% of known pixels keep their plane",
-        100.0 * frac
-    );
-    assert!(
-        (kept as f64) < 0.9 * total as f64,
-        "kept {kept} of {total} plane-pixels"
-    );
+    assert_keeps_true_planes(&PruneOptions::auto(), Some(&trained_tiny()));
 }
 
 #[test]
