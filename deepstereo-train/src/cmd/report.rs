@@ -65,42 +65,26 @@ pub fn run(a: Args) -> Result<()> {
     let base = a.model.settings()?;
     let scene = a.scene.load()?;
     let targets = holdout_list(a.holdout.as_deref(), a.llffhold, scene.views.len())?;
-    let planes: Vec<usize> = a
-        .planes_grid
-        .split(',')
-        .map(|s| {
-            s.trim()
-                .parse::<usize>()
-                .ok()
-                .filter(|&p| p > 0)
-                .with_context(|| format!("--planes-grid: '{s}' is not a positive count"))
-        })
-        .collect::<Result<_>>()?;
+    let positive = |n: &usize| *n > 0;
+    let planes: Vec<usize> = grid(
+        &a.planes_grid,
+        "--planes-grid",
+        "a positive count",
+        positive,
+    )?;
     let views: Vec<Option<usize>> = match &a.views_grid {
         None => vec![None],
-        Some(g) => g
-            .split(',')
-            .map(|s| {
-                s.trim()
-                    .parse::<usize>()
-                    .ok()
-                    .filter(|&v| v > 0)
-                    .map(Some)
-                    .with_context(|| format!("--views-grid: '{s}' is not a positive count"))
-            })
-            .collect::<Result<_>>()?,
+        Some(g) => grid(g, "--views-grid", "a positive count", positive)?
+            .into_iter()
+            .map(Some)
+            .collect(),
     };
-    let scales: Vec<u32> = a
-        .downscale_grid
-        .split(',')
-        .map(|s| {
-            s.trim()
-                .parse::<u32>()
-                .ok()
-                .filter(|n| n.is_power_of_two())
-                .with_context(|| format!("--downscale-grid: '{s}' is not a power of two"))
-        })
-        .collect::<Result<_>>()?;
+    let scales: Vec<u32> = grid(
+        &a.downscale_grid,
+        "--downscale-grid",
+        "a power of two",
+        |n: &u32| n.is_power_of_two(),
+    )?;
     // Each scale's scene: the base scene, or the same files read at 1/N.
     let base_downscale = a.scene.downscale.unwrap_or(1);
     let scaled: Vec<(u32, Option<deepstereo_core::scene::Scene>)> = scales
@@ -320,6 +304,25 @@ pub fn run(a: Args) -> Result<()> {
         a.out.display()
     );
     Ok(())
+}
+
+/// The comma-separated values of the grid option `name`, each of which must parse and
+/// pass `ok` (else an error naming the option, the value and `what` it must be).
+fn grid<T: std::str::FromStr>(
+    list: &str,
+    name: &str,
+    what: &str,
+    ok: impl Fn(&T) -> bool,
+) -> Result<Vec<T>> {
+    list.split(',')
+        .map(|s| {
+            s.trim()
+                .parse::<T>()
+                .ok()
+                .filter(&ok)
+                .with_context(|| format!("{name}: '{s}' is not {what}"))
+        })
+        .collect()
 }
 
 /// One setting's mean scores: the network's and the plane sweep's (PSNR, SSIM, seconds)
