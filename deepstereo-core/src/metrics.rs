@@ -60,20 +60,15 @@ pub fn ssim(a: &RgbImage, b: &RgbImage) -> f64 {
     };
     let mut total = 0.0;
     for c in 0..3 {
-        let x: Vec<f64> = a
-            .data
-            .iter()
-            .skip(c)
-            .step_by(3)
-            .map(|&v| v as f64)
-            .collect();
-        let y: Vec<f64> = b
-            .data
-            .iter()
-            .skip(c)
-            .step_by(3)
-            .map(|&v| v as f64)
-            .collect();
+        let channel = |img: &RgbImage| -> Vec<f64> {
+            img.data
+                .iter()
+                .skip(c)
+                .step_by(3)
+                .map(|&v| v as f64)
+                .collect()
+        };
+        let (x, y) = (channel(a), channel(b));
         let xx: Vec<f64> = x.iter().map(|v| v * v).collect();
         let yy: Vec<f64> = y.iter().map(|v| v * v).collect();
         let xy: Vec<f64> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
