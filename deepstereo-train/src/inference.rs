@@ -160,51 +160,46 @@ pub fn render_camera(
             srcs.push(e);
         }
     }
-    // Pruning runs every k-th plane when the requested ones are closer than
-    // `max_step` pixels apart in every source (a subset of the requested planes).
-    let inv: Vec<f64> = if settings.prune.is_on() {
-        let cams: Vec<&Camera> = srcs.iter().map(|s| &s.cameras[0]).collect();
-        let step = max_plane_step(target, &cams, &requested);
-        thin_planes(requested.len(), step, settings.prune.max_step)
-            .into_iter()
-            .map(|z| requested[z])
-            .collect()
-    } else {
-        requested.clone()
-    };
-    let mut r = if settings.prune.is_on() {
-        let bounds: Vec<Option<(f64, f64)>> =
-            sources.iter().map(|&i| scene.views[i].bounds).collect();
-        let range = plane_range_from_points(target, &scene.points, &inv)
-            .or_else(|| plane_range_from_bounds(&bounds, &inv));
-        let mut pruner = Pruner::new(&cfg, target, &srcs, &inv, range, &settings.prune);
-        if settings.prune.coarse == CoarsePass::Network {
-            let t0 = Instant::now();
-            let guide = network_guide(
-                backend,
-                target,
-                &srcs,
-                &inv,
-                pruner.range(),
-                settings.prune.guide_level,
-                settings.tile,
-            )?;
-            if let Some(g) = guide {
-                pruner = pruner.with_guide(g, t0.elapsed().as_secs_f64());
-            }
-        }
-        render_view_pruned(
+    if !settings.prune.is_on() {
+        let r = render_view(backend, target, &srcs, &requested, settings.tile, progress)?;
+        return Ok((r, requested));
+    }
+    // Pruning runs every k-th plane when the requested ones are closer than `max_step`
+    // pixels apart in every (real) source: a subset of the requested planes.
+    let cams: Vec<&Camera> = srcs[..k].iter().map(|s| &s.cameras[0]).collect();
+    let step = max_plane_step(target, &cams, &requested);
+    let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step)
+        .into_iter()
+        .map(|z| requested[z])
+        .collect();
+    let bounds: Vec<Option<(f64, f64)>> = sources.iter().map(|&i| scene.views[i].bounds).collect();
+    let range = plane_range_from_points(target, &scene.points, &inv)
+        .or_else(|| plane_range_from_bounds(&bounds, &inv));
+    let mut pruner = Pruner::new(&cfg, target, &srcs, &inv, range, &settings.prune);
+    if settings.prune.coarse == CoarsePass::Network {
+        let t0 = Instant::now();
+        let guide = network_guide(
             backend,
             target,
             &srcs,
             &inv,
+            pruner.range(),
+            settings.prune.guide_level,
             settings.tile,
-            Some(&pruner),
-            progress,
-        )?
-    } else {
-        render_view(backend, target, &srcs, &inv, settings.tile, progress)?
-    };
+        )?;
+        if let Some(g) = guide {
+            pruner = pruner.with_guide(g, t0.elapsed().as_secs_f64());
+        }
+    }
+    let mut r = render_view_pruned(
+        backend,
+        target,
+        &srcs,
+        &inv,
+        settings.tile,
+        Some(&pruner),
+        progress,
+    )?;
     if let Some(st) = r.prune.as_mut() {
         if inv.len() < requested.len() {
             st.thinned = Some((requested.len(), inv.len()));
