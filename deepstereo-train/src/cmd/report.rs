@@ -153,23 +153,20 @@ pub fn run(a: Args) -> Result<()> {
                         &targets,
                         &settings,
                     )?;
-                    let mut method = match mode {
-                        PruneMode::Off => format!("deepstereo-{}", pt.backend),
-                        PruneMode::Auto => format!("deepstereo-{}-pruned", pt.backend),
-                    };
                     // The plane sweep runs on the network's sources, which pruning picks.
-                    let mut ps_method = match mode {
-                        PruneMode::Off => String::from("plane_sweep"),
-                        PruneMode::Auto => String::from("plane_sweep-pruned-views"),
+                    let (net, sweep) = match mode {
+                        PruneMode::Off => ("", "plane_sweep"),
+                        PruneMode::Auto => ("-pruned", "plane_sweep-pruned-views"),
                     };
+                    let mut suffix = String::new();
                     if *n > 1 {
-                        method = format!("{method}-1/{n}");
-                        ps_method = format!("{ps_method}-1/{n}");
+                        suffix += &format!("-1/{n}");
                     }
                     if views.len() > 1 {
-                        method = format!("{method}-{k}views");
-                        ps_method = format!("{ps_method}-{k}views");
+                        suffix += &format!("-{k}views");
                     }
+                    let method = format!("deepstereo-{}{net}{suffix}", pt.backend);
+                    let ps_method = format!("{sweep}{suffix}");
                     eprintln!(
                     "{method:>28} {p:3} planes: PSNR {:.2} SSIM {:.3} {:.2} s/view | plane sweep {:.2} dB {:.2} s",
                     pt.net.0, pt.net.1, pt.net.2, pt.plane_sweep.0, pt.plane_sweep.2
