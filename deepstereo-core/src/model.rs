@@ -204,8 +204,9 @@ impl DeepStereo {
         }
         let logits = x.tanh()?.broadcast_mul(&self.log_scale.exp()?)?; // [B, 1, D, th*tw]
         let selection = candle_nn::ops::softmax(&logits, 2)?.reshape((b, d, th, tw))?; // [B, D, th, tw]
-                                                                                       // Colour tower. The skip input is the tile's own pixels, which is also the colour
-                                                                                       // tower's level-0 input when its convolutions are 1x1 (then cropped once).
+
+        // Colour tower. The skip input is the tile's own pixels, which is also the colour
+        // tower's level-0 input when its convolutions are 1x1 (then cropped once).
         let p = cfg.pad(0);
         let centre = || {
             inputs[0]
