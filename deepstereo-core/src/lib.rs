@@ -12,6 +12,7 @@ pub use error::{Error, Result};
 pub mod baseline;
 pub mod config;
 pub mod conv;
+pub mod fused;
 pub mod geometry;
 pub mod inputs;
 pub mod metrics;

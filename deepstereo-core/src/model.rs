@@ -11,6 +11,7 @@
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::Conv2d;
+use crate::fused::upsample_crop;
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
 use candle_nn::VarBuilder;
@@ -69,11 +70,12 @@ impl Tower {
             for conv in convs {
                 x = conv.forward_relu(&x)?;
             }
-            if l > 0 {
-                x = upsample_nearest(&x, 1 << l)?;
-            }
             let off = self.cfg.upsample_crop(l);
-            x = x.narrow(2, off, th + rf)?.narrow(3, off, tw + rf)?; // [N, C, th+rf, tw+rf]
+            x = if l > 0 {
+                upsample_crop(&x, 1 << l, off, th + rf, tw + rf)?
+            } else {
+                x.narrow(2, off, th + rf)?.narrow(3, off, tw + rf)?
+            }; // [N, C, th+rf, tw+rf]
             feats.push(x);
         }
         let mut x = Tensor::cat(&feats, 1)?; // [N, sum C, th+rf, tw+rf]

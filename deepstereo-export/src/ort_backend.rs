@@ -141,7 +141,13 @@ impl OrtBackend {
         })?;
         let cfg = config_of(&model)?;
         let (env, lib) = environment()?;
+        // No spinning: the threads of onnxruntime's pool would otherwise busy-wait after
+        // each call, taking the cores from the renderer's own threads (warping, candle).
         let session = Session::builder(env)
+            .map_err(Error::ort)?
+            .with_intra_op_spinning(false)
+            .map_err(Error::ort)?
+            .with_inter_op_spinning(false)
             .map_err(Error::ort)?
             .commit_from_memory(onnx)
             .map_err(Error::ort)?;

@@ -46,6 +46,8 @@
 //!   (e.g. 128x28x24x24 -> 3, 1x1: 12 ms -> 4.5 ms); it has to be set before the process
 //!   starts (a binary can re-exec itself with it).
 
+mod direct;
+mod direct_grad;
 mod im2col;
 mod kernels;
 mod op;

@@ -2,7 +2,7 @@
 //! the kernels directly.
 
 use super::im2col::Geom;
-use super::kernels;
+use super::{direct, direct_grad, kernels};
 use candle_core::{
     bail, CpuStorage, CustomOp3, DType, Layout, Result, Shape, Storage, Tensor, WithDType,
 };
@@ -99,6 +99,53 @@ impl ConvOp {
     }
 }
 
+impl ConvOp {
+    /// [`direct_grad::backward`] (f32, AVX2 and FMA).
+    fn bwd_direct(
+        &self,
+        x: &Tensor,
+        w: &Tensor,
+        b: &Tensor,
+        y: &Tensor,
+        dy: &Tensor,
+    ) -> Result<Grads> {
+        let g = geom(x.dims(), w.dims())?;
+        let (dx, dw, db) = {
+            let (xs, xl) = x.storage_and_layout();
+            let (ws, wl) = w.storage_and_layout();
+            let (ys, yl) = y.storage_and_layout();
+            let (ds, dl) = dy.storage_and_layout();
+            let y = if self.relu {
+                data::<f32>(&ys, yl)?
+            } else {
+                &[]
+            };
+            direct_grad::backward(
+                &g,
+                data::<f32>(&xs, xl)?,
+                data::<f32>(&ws, wl)?,
+                y,
+                data::<f32>(&ds, dl)?,
+                self.relu,
+                x.track_op(),
+            )
+        };
+        let dev = x.device();
+        let dx = dx
+            .map(|v| Tensor::from_vec(v, x.shape(), dev))
+            .transpose()?;
+        let dw = w
+            .track_op()
+            .then(|| Tensor::from_vec(dw, w.shape(), dev))
+            .transpose()?;
+        let db = b
+            .track_op()
+            .then(|| Tensor::from_vec(db, b.shape(), dev))
+            .transpose()?;
+        Ok((dx, dw, db))
+    }
+}
+
 impl CustomOp3 for ConvOp {
     fn name(&self) -> &'static str {
         "deepstereo-conv2d"
@@ -115,6 +162,8 @@ impl CustomOp3 for ConvOp {
     ) -> Result<(CpuStorage, Shape)> {
         let g = geom(xl.dims(), wl.dims())?;
         let shape = Shape::from((g.n, g.cout, g.ho(), g.wo()));
+        let t0 = std::time::Instant::now();
+        let _pr = Prof(g, t0, direct::applies(&g));
         fn slice<'a, T: WithDType>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
             match l.contiguous_offsets() {
                 Some((a, b)) => Ok(&s.as_slice::<T>()?[a..b]),
@@ -122,6 +171,13 @@ impl CustomOp3 for ConvOp {
             }
         }
         let y = match xs {
+            CpuStorage::F32(_) if direct::applies(&g) => CpuStorage::F32(direct::forward(
+                &g,
+                slice(xs, xl)?,
+                slice(ws, wl)?,
+                slice(bs, bl)?,
+                self.relu,
+            )),
             CpuStorage::F32(_) => {
                 let y = kernels::forward(
                     &g,
@@ -150,9 +206,30 @@ impl CustomOp3 for ConvOp {
     fn bwd(&self, x: &Tensor, w: &Tensor, b: &Tensor, y: &Tensor, dy: &Tensor) -> Result<Grads> {
         let dy = dy.contiguous()?;
         match x.dtype() {
+            DType::F32 if direct_grad::applies(&geom(x.dims(), w.dims())?) => {
+                self.bwd_direct(x, w, b, y, &dy)
+            }
             DType::F32 => self.bwd_typed::<f32>(x, w, b, y, &dy),
             DType::F64 => self.bwd_typed::<f64>(x, w, b, y, &dy),
             dt => bail!("conv2d: f32 or f64 only, got {dt:?}"),
+        }
+    }
+}
+
+struct Prof(Geom, std::time::Instant, bool);
+impl Drop for Prof {
+    fn drop(&mut self) {
+        if std::env::var("DSPROF").is_ok() {
+            let g = self.0;
+            let gf = 2.0 * (g.n * g.p() * g.k() * g.cout) as f64 * 1e-9;
+            let s = self.1.elapsed().as_secs_f64();
+            eprintln!(
+                "FWD {:?} direct {} {:.2} ms {:.0} GF/s",
+                (g.n, g.cin, g.h, g.w, g.cout, g.kh, g.kw),
+                self.2,
+                s * 1e3,
+                gf / s
+            );
         }
     }
 }

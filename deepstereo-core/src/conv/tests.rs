@@ -5,7 +5,12 @@ use candle_core::{DType, Device, Module, Result, Tensor, Var};
 
 /// `(n, cin, h, w, cout, kh, kw)`: square and `(k, 1)` kernels, 1x1 grouped and in place,
 /// images grouped into chunks and images cut into row chunks.
-const SHAPES: [(usize, usize, usize, usize, usize, usize, usize); 10] = [
+const SHAPES: [(usize, usize, usize, usize, usize, usize, usize); 15] = [
+    (2, 5, 20, 21, 13, 3, 3),
+    (2, 24, 12, 20, 7, 5, 5),
+    (2, 24, 12, 26, 7, 5, 5),
+    (2, 4, 22, 22, 7, 3, 3),
+    (3, 7, 5, 9, 8, 1, 1),
     (3, 5, 9, 11, 7, 3, 3),
     (2, 4, 8, 8, 6, 5, 5),
     (1, 2, 30, 30, 3, 5, 5),

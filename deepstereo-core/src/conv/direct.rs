@@ -1,0 +1,376 @@
+//! Implicit-GEMM forward for f32 on x86-64 with AVX2 and FMA: no im2col buffer.
+//!
+//! Flat positions: output pixel `(r, c)` of an image sits at `q = r * W + c` (the input's
+//! row stride), so tap `k = (ci * kh + i) * kw + j` reads input `q + offset[k]` with
+//! `offset[k] = ci * H * W + i * W + j`, whatever `q` is. Positions `q < Q = (Ho - 1) * W +
+//! Wo` are computed in runs of [`NC`] consecutive ones, including the `kw - 1` columns at
+//! the end of each row that are not outputs (they are computed and dropped: `(kw - 1) /
+//! W` of the work, instead of a partial tile per row).
+//!
+//! A tile is [`MR`] output channels x [`NC`] positions: per tap, 2 unaligned loads of `x`,
+//! `MR` broadcast weights, `2 MR` FMAs into 12 registers. Weights are packed once per
+//! call into panels `[K, MR]`; taps are cut into blocks of [`KC`] so that a panel's block
+//! stays in L1 while the tiles of a work block sweep it (partial sums of the work block's
+//! tiles wait in a small buffer between tap blocks). Bias starts the sums; ReLU is
+//! applied on the way out.
+//!
+//! Threads take work blocks of up to [`BLOCK_TILES`] tiles of one image. The last tile of a
+//! block is shifted left to end at the block's end (it recomputes a few positions instead
+//! of masking), so blocks hold at least [`NC`] positions and layers need `Q >= NC`
+//! ([`applies`]); smaller ones keep the im2col path.
+
+use super::im2col::{Geom, SharedMut};
+use rayon::prelude::*;
+
+/// Output channels per tile.
+pub(crate) const MR: usize = 6;
+/// Output positions per tile (two 8-lane vectors).
+pub(crate) const NC: usize = 16;
+/// Taps per block: a panel's block (`KC x MR` floats, 6 KiB) and the input lines a tile
+/// reads for them stay in L1 (256 was faster than 128 and 512 on the paper's 5x5 layers).
+const KC: usize = 256;
+/// Most tiles per work block.
+const BLOCK_TILES: usize = 32;
+/// Work blocks wanted per thread, for load balance.
+const BLOCKS_PER_THREAD: usize = 8;
+/// Relative speed of a half tile (6 accumulators, where the FMA units want 8 chains).
+const HALF_EFFICIENCY: f64 = 0.75;
+/// Relative speed assumed for flat tiles (scattered stores of tiles that cross rows) in
+/// [`by_rows`].
+const SCATTER_EFFICIENCY: f64 = 0.8;
+
+/// Whether this CPU runs the kernel (checked once; the answer is cached by std).
+pub(crate) fn available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// Whether `DEEPSTEREO_CONV=im2col` asks for the im2col + gemm path everywhere (to
+/// compare the two paths in benchmarks; read once).
+pub(crate) fn im2col_forced() -> bool {
+    static FORCED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *FORCED.get_or_init(|| std::env::var("DEEPSTEREO_CONV").is_ok_and(|v| v == "im2col"))
+}
+
+/// Flat positions per image that hold outputs: `Q = (Ho - 1) * W + Wo`.
+pub(crate) fn flat_len(g: &Geom) -> usize {
+    (g.ho() - 1) * g.w + g.wo()
+}
+
+/// Input offset of every tap, `k = (ci * kh + i) * kw + j`.
+pub(crate) fn tap_offsets(g: &Geom) -> Vec<usize> {
+    (0..g.cin)
+        .flat_map(|ci| {
+            (0..g.kh).flat_map(move |i| (0..g.kw).map(move |j| ci * g.hw() + i * g.w + j))
+        })
+        .collect()
+}
+
+/// Whether [`forward`] runs this layer (f32 callers only): the CPU has AVX2 and FMA and
+/// an image holds at least one tile.
+pub(crate) fn applies(g: &Geom) -> bool {
+    available() && flat_len(g) >= NC && !im2col_forced()
+}
+
+/// Weights `[Cout, K]` as panels of [`MR`] output channels, each `[K, MR]`.
+fn pack(w: &[f32], cout: usize, k: usize) -> Vec<f32> {
+    let panels = cout.div_ceil(MR);
+    let mut p = vec![0f32; panels * k * MR];
+    for co in 0..cout {
+        let (panel, r) = (co / MR, co % MR);
+        for kk in 0..k {
+            p[(panel * k + kk) * MR + r] = w[co * k + kk];
+        }
+    }
+    p
+}
+
+/// A tile: flat input position `q` of its first output and, when its outputs are
+/// consecutive in the output plane (one row), their offset there; `half` tiles (a row's
+/// last few outputs) have 8 outputs instead of [`NC`].
+#[derive(Clone, Copy)]
+struct Tile {
+    q: usize,
+    out: Option<usize>,
+    half: bool,
+}
+
+/// Columns of a row's tiles: full tiles from 0, then the remainder covered by a half
+/// tile (up to 8 left) or a full tile shifted left, both ending at `Wo`.
+fn row_tiles(wo: usize) -> impl Iterator<Item = (usize, bool)> {
+    let full = wo / NC;
+    let rem = wo % NC;
+    let last = match rem {
+        0 => None,
+        1..=8 => Some((wo - NC / 2, true)),
+        _ => Some((wo - NC, false)),
+    };
+    (0..full).map(|t| (t * NC, false)).chain(last)
+}
+
+/// Cost of a row in [`row_tiles`], in full-tile widths (a half tile runs at
+/// [`HALF_EFFICIENCY`]).
+fn row_cost(wo: usize) -> f64 {
+    row_tiles(wo)
+        .map(|(_, half)| if half { 0.5 / HALF_EFFICIENCY } else { 1.0 })
+        .sum::<f64>()
+        * NC as f64
+}
+
+/// Whether tiles follow output rows (each row cut into tiles, the last one shifted left
+/// to end at the row's end) rather than flat positions. Rows waste the overlap of their
+/// last tile, flat positions the `kw - 1` columns past `Wo` and a slower scattered store
+/// for tiles that cross a row; rows win unless the overlap is large.
+fn by_rows(g: &Geom) -> bool {
+    let wo = g.wo();
+    let rows = wo as f64 / row_cost(wo);
+    let flat = wo as f64 / g.w as f64 * SCATTER_EFFICIENCY;
+    wo >= NC && rows >= flat
+}
+
+/// Work blocks, each a list of tiles of one image (`(image, tiles)`): whole output rows
+/// ([`by_rows`]) or runs of flat positions, about [`BLOCK_TILES`] tiles each and at least
+/// [`BLOCKS_PER_THREAD`] per thread when the work allows.
+fn blocks(g: &Geom) -> Vec<(usize, Vec<Tile>)> {
+    let (w, wo, q) = (g.w, g.wo(), flat_len(g));
+    let want = rayon::current_num_threads() * BLOCKS_PER_THREAD;
+    let flat_tile = |q: usize| Tile {
+        q,
+        out: (q % w + NC <= wo).then(|| q / w * wo + q % w),
+        half: false,
+    };
+    // Tiles of one image, in order, and how many make a block.
+    let image: Vec<Tile> = if by_rows(g) {
+        (0..g.ho())
+            .flat_map(|r| {
+                row_tiles(wo).map(move |(c, half)| Tile {
+                    q: r * w + c,
+                    out: Some(r * wo + c),
+                    half,
+                })
+            })
+            .collect()
+    } else {
+        (0..q.div_ceil(NC))
+            .map(|t| flat_tile((t * NC).min(q - NC)))
+            .collect()
+    };
+    let per_row = if by_rows(g) { row_tiles(wo).count() } else { 1 };
+    // Blocks hold whole rows (row tiles overlap within a row, so a row stays with one thread).
+    let per = (image.len().min((g.n * image.len()).div_ceil(want)))
+        .clamp(1, BLOCK_TILES)
+        .div_ceil(per_row)
+        * per_row;
+    let mut out = Vec::new();
+    for n in 0..g.n {
+        for chunk in image.chunks(per) {
+            out.push((n, chunk.to_vec()));
+        }
+    }
+    out
+}
+
+/// `y = act(conv(x, w) + b)`, as [`super::kernels::forward`]; call only when
+/// [`applies`] holds.
+pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> Vec<f32> {
+    let (k, p, cout, wo) = (g.k(), g.p(), g.cout, g.wo());
+    let offsets = tap_offsets(g);
+    let wp = pack(w, cout, k);
+    let len = g.n * cout * p;
+    // Every output is written below (all blocks, panels and tiles) before `set_len`.
+    let mut y = Vec::<f32>::with_capacity(len);
+    let yp = SharedMut(y.as_mut_ptr());
+    blocks(g).into_par_iter().for_each(|(n, tiles)| {
+        let mut partial = vec![[[0f32; NC]; MR]; tiles.len()];
+        let x_img = &x[n * g.cin * g.hw()..(n + 1) * g.cin * g.hw()];
+        for panel in 0..cout.div_ceil(MR) {
+            let mr = (cout - panel * MR).min(MR);
+            let wpp = &wp[panel * k * MR..][..k * MR];
+            let bias = &b[panel * MR..][..mr];
+            let plane = |r: usize| (n * cout + panel * MR + r) * p;
+            for k0 in (0..k).step_by(KC) {
+                let k1 = (k0 + KC).min(k);
+                let (first, last) = (k0 == 0, k1 == k);
+                for (tile, part) in tiles.iter().zip(partial.iter_mut()) {
+                    // The last tap block of a tile with consecutive outputs stores them.
+                    let end = match tile.out {
+                        Some(o) if last => End::Store {
+                            y: yp.get().wrapping_add(plane(0) + o),
+                            stride: p,
+                            relu,
+                        },
+                        _ => End::Partial,
+                    };
+                    let start = if first {
+                        Start::Bias(bias)
+                    } else {
+                        Start::Partial
+                    };
+                    // SAFETY: `applies` checked the CPU; loads end at q + NC - 1 +
+                    // offsets[k - 1] <= Q - 1 + offsets[K - 1] < C_in * H * W (valid
+                    // convolution), inside the image's slice; stores go to this block's
+                    // outputs (blocks are disjoint), `NC` of them in each plane.
+                    unsafe {
+                        let src = x_img.as_ptr().add(tile.q);
+                        let (offs, w) = (&offsets[k0..k1], &wpp[k0 * MR..k1 * MR]);
+                        tile_dispatch(mr, tile.half, offs, src, w, start, end, part);
+                    }
+                    if last && matches!(end, End::Partial) {
+                        if relu {
+                            part.iter_mut().flatten().for_each(|v| *v = v.max(0.0));
+                        }
+                        for (r, row) in part.iter().enumerate().take(mr) {
+                            // SAFETY: as above; indices are < p within the plane.
+                            unsafe { scatter(row, tile.q, g.w, wo, yp.get().add(plane(r))) };
+                        }
+                    }
+                }
+            }
+        }
+    });
+    // SAFETY: the blocks above wrote all `len` outputs.
+    unsafe { y.set_len(len) };
+    y
+}
+
+/// Writes a tile row (flat positions `q .. q + NC`) to an output plane `[Ho, Wo]`,
+/// dropping the positions past `Wo` in their row.
+///
+/// # Safety
+/// `plane` addresses a whole output plane that no other thread writes at these pixels.
+unsafe fn scatter(row: &[f32; NC], q: usize, w: usize, wo: usize, plane: *mut f32) {
+    let mut l = 0;
+    while l < NC {
+        let (r, c) = ((q + l) / w, (q + l) % w);
+        let run = (w - c).min(NC - l);
+        let dst = plane.add(r * wo + c);
+        for (i, &v) in row[l..l + run.min(wo.saturating_sub(c))].iter().enumerate() {
+            *dst.add(i) = v;
+        }
+        l += run;
+    }
+}
+
+/// Where a tile's sums start: the bias, or the partial sums of earlier tap blocks.
+#[derive(Clone, Copy)]
+enum Start<'a> {
+    Bias(&'a [f32]),
+    Partial,
+}
+
+/// Where they go: back to the partial sums, or (last tap block, one output run) to the
+/// output rows `y + r * stride`, through the ReLU when `relu`.
+#[derive(Clone, Copy)]
+enum End {
+    Partial,
+    Store {
+        y: *mut f32,
+        stride: usize,
+        relu: bool,
+    },
+}
+
+/// Adds one tap block to a tile's sums, for `mr` (1..=MR) output channels and 8
+/// (`half`) or [`NC`] outputs.
+///
+/// # Safety
+/// See [`avx2::tile`].
+#[allow(clippy::too_many_arguments)]
+unsafe fn tile_dispatch(
+    mr: usize,
+    half: bool,
+    offsets: &[usize],
+    x: *const f32,
+    wp: &[f32],
+    start: Start,
+    end: End,
+    part: &mut [[f32; NC]; MR],
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        macro_rules! go {
+            ($($m:literal),*) => {
+                match (mr, half) {
+                    $(($m, false) => avx2::tile::<$m, 2>(offsets, x, wp, start, end, part),
+                      ($m, true) => avx2::tile::<$m, 1>(offsets, x, wp, start, end, part),)*
+                    _ => {}
+                }
+            };
+        }
+        go!(1, 2, 3, 4, 5, 6)
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (mr, half, offsets, x, wp, start, end, part);
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use super::{End, Start, MR, NC};
+    use std::arch::x86_64::*;
+
+    /// `sums[r][0..8 V] = start[r] + sum_k wp[k * MR + r] * x[offsets[k] + 0..8 V]` for
+    /// `r < R`, written to `end` (`V` = 1 or 2 vectors of 8).
+    ///
+    /// # Safety
+    /// AVX2 and FMA present; `x + offsets[k] + 8 V` in bounds for every `k`; `wp` holds
+    /// `offsets.len() * MR` values; a `Bias` holds `R`; a `Store` addresses `R` rows of
+    /// `8 V` outputs that no other thread accesses.
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn tile<const R: usize, const V: usize>(
+        offsets: &[usize],
+        x: *const f32,
+        wp: &[f32],
+        start: Start,
+        end: End,
+        part: &mut [[f32; NC]; MR],
+    ) {
+        const { assert!(NC == 16 && R <= MR && V >= 1 && V <= 2) };
+        let mut acc = [[_mm256_setzero_ps(); V]; R];
+        for (r, a) in acc.iter_mut().enumerate() {
+            for (v, av) in a.iter_mut().enumerate() {
+                *av = match start {
+                    Start::Bias(b) => _mm256_set1_ps(b[r]),
+                    Start::Partial => _mm256_loadu_ps(part[r].as_ptr().add(8 * v)),
+                };
+            }
+        }
+        let w = wp.as_ptr();
+        for (kk, &o) in offsets.iter().enumerate() {
+            let mut xv = [_mm256_setzero_ps(); V];
+            for (v, xv) in xv.iter_mut().enumerate() {
+                *xv = _mm256_loadu_ps(x.add(o + 8 * v));
+            }
+            let wk = w.add(kk * MR);
+            for (r, a) in acc.iter_mut().enumerate() {
+                let s = _mm256_broadcast_ss(&*wk.add(r));
+                for (av, &xv) in a.iter_mut().zip(&xv) {
+                    *av = _mm256_fmadd_ps(s, xv, *av);
+                }
+            }
+        }
+        match end {
+            End::Partial => {
+                for (a, p) in acc.iter().zip(part.iter_mut()) {
+                    for (v, &av) in a.iter().enumerate() {
+                        _mm256_storeu_ps(p.as_mut_ptr().add(8 * v), av);
+                    }
+                }
+            }
+            End::Store { y, stride, relu } => {
+                let zero = _mm256_setzero_ps();
+                for (r, a) in acc.iter().enumerate() {
+                    for (v, &av) in a.iter().enumerate() {
+                        let av = if relu { _mm256_max_ps(av, zero) } else { av };
+                        _mm256_storeu_ps(y.add(r * stride + 8 * v), av);
+                    }
+                }
+            }
+        }
+    }
+}

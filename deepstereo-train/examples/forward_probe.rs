@@ -1,0 +1,102 @@
+//! Times the network's forward on one render tile, or (`step` as fourth argument) a
+//! training step as in `benches/network.rs`, in a loop, for profiling
+//! (`perf record -g target/release/examples/forward_probe tiny 200`).
+//!
+//! `cargo run --release -p deepstereo-train --example forward_probe -- [preset] [iterations] [tile] [step]`
+
+use anyhow::{Context, Result};
+use candle_core::{DType, Device, Tensor};
+use deepstereo_core::config::Config;
+use deepstereo_core::model::l1_loss;
+use deepstereo_core::synth::SynthOptions;
+use deepstereo_core::weights::{init_seeded, named_vars};
+use deepstereo_export::export::{export_trainable, DEFAULT_OPSET};
+use deepstereo_export::OrtBackend;
+use deepstereo_train::data::{make_batch, synth_scenes};
+use deepstereo_train::optim::{Optimizer, OptimizerKind};
+use deepstereo_train::training::batch_tensors;
+use std::time::Instant;
+
+fn main() -> Result<()> {
+    deepstereo_train::alloc::tune_allocator();
+    let args: Vec<String> = std::env::args().collect();
+    let name = args.get(1).map_or("tiny", String::as_str);
+    let iters: usize = args.get(2).map_or(Ok(50), |s| s.parse())?;
+    let cfg = Config::preset(name).with_context(|| format!("unknown preset {name}"))?;
+    let default_tile = if name == "paper" { 32 } else { 64 };
+    let tile: usize = args.get(3).map_or(Ok(default_tile), |s| s.parse())?;
+    let step = args.get(4).is_some_and(|s| s == "step");
+    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 0)?;
+    let mut times = Vec::with_capacity(iters);
+    if step {
+        let opts = SynthOptions {
+            views: 8,
+            width: 160,
+            height: 120,
+            ..SynthOptions::default()
+        };
+        let scenes = synth_scenes(4, 1, &opts, cfg.levels)?;
+        let batch = if name == "paper" { 1 } else { 8 };
+        let (x, y) = batch_tensors(&make_batch(&cfg, &scenes, 9, 0, batch)?, &Device::Cpu)?;
+        let mut opt = Optimizer::new(OptimizerKind::Adam, 1e-4, named_vars(&t.varmap))?;
+        for _ in 0..iters {
+            let t0 = Instant::now();
+            let loss = l1_loss(&t.model.forward(&x)?.image, &y)?;
+            opt.step(&loss.backward()?)?;
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+    } else {
+        let xs: Vec<Tensor> = (0..cfg.levels)
+            .map(|l| {
+                let s = cfg.input_size(l, tile);
+                let shape = (1, cfg.planes, cfg.in_channels(), s, s);
+                Tensor::rand(0f32, 1., shape, &Device::Cpu)
+            })
+            .collect::<candle_core::Result<_>>()?;
+        // PROBE_ORT=1: onnxruntime runs the same tile after each candle forward, as in
+        // benches/network.rs.
+        let with_ort = std::env::var("PROBE_ORT").is_ok();
+        let onnx = export_trainable(&t, DEFAULT_OPSET)?;
+        let ort = OrtBackend::from_bytes(&onnx)?;
+        let data = xs
+            .iter()
+            .map(|x| Ok((x.dims().to_vec(), x.flatten_all()?.to_vec1::<f32>()?)))
+            .collect::<Result<Vec<_>>>()?;
+        let views: Vec<(&[usize], &[f32])> = data
+            .iter()
+            .map(|(s, d)| (s.as_slice(), d.as_slice()))
+            .collect();
+        let mut ort_best = f64::MAX;
+        for _ in 0..iters {
+            let t0 = Instant::now();
+            let out = t
+                .model
+                .forward(&xs)?
+                .image
+                .flatten_all()?
+                .to_vec1::<f32>()?;
+            std::hint::black_box(out);
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+            if with_ort {
+                let t0 = Instant::now();
+                ort.forward(&views)?;
+                ort_best = ort_best.min(t0.elapsed().as_secs_f64() * 1e3);
+            }
+        }
+        if with_ort {
+            println!("onnxruntime: best {ort_best:.1} ms");
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    let what = if step {
+        "training step".to_string()
+    } else {
+        format!("forward, {tile}x{tile} tile")
+    };
+    println!(
+        "{name} {what}: best {:.1} ms, median {:.1} ms over {iters}",
+        times[0],
+        times[iters / 2]
+    );
+    Ok(())
+}
