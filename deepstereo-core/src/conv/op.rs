@@ -162,8 +162,6 @@ impl CustomOp3 for ConvOp {
     ) -> Result<(CpuStorage, Shape)> {
         let g = geom(xl.dims(), wl.dims())?;
         let shape = Shape::from((g.n, g.cout, g.ho(), g.wo()));
-        let t0 = std::time::Instant::now();
-        let _pr = Prof(g, t0, direct::applies(&g));
         fn slice<'a, T: WithDType>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
             match l.contiguous_offsets() {
                 Some((a, b)) => Ok(&s.as_slice::<T>()?[a..b]),
@@ -212,24 +210,6 @@ impl CustomOp3 for ConvOp {
             DType::F32 => self.bwd_typed::<f32>(x, w, b, y, &dy),
             DType::F64 => self.bwd_typed::<f64>(x, w, b, y, &dy),
             dt => bail!("conv2d: f32 or f64 only, got {dt:?}"),
-        }
-    }
-}
-
-struct Prof(Geom, std::time::Instant, bool);
-impl Drop for Prof {
-    fn drop(&mut self) {
-        if std::env::var("DSPROF").is_ok() {
-            let g = self.0;
-            let gf = 2.0 * (g.n * g.p() * g.k() * g.cout) as f64 * 1e-9;
-            let s = self.1.elapsed().as_secs_f64();
-            eprintln!(
-                "FWD {:?} direct {} {:.2} ms {:.0} GF/s",
-                (g.n, g.cin, g.h, g.w, g.cout, g.kh, g.kw),
-                self.2,
-                s * 1e3,
-                gf / s
-            );
         }
     }
 }
