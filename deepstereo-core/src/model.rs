@@ -11,7 +11,7 @@
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::Conv2d;
-use crate::fused::upsample_crop;
+use crate::fused::{composite, select_softmax, upsample_crop};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
 use candle_nn::VarBuilder;
@@ -204,8 +204,9 @@ impl DeepStereo {
                 conv.forward(&xp)?
             }; // [B, C', D, th*tw]
         }
-        let logits = x.tanh()?.broadcast_mul(&self.log_scale.exp()?)?; // [B, 1, D, th*tw]
-        let selection = candle_nn::ops::softmax(&logits, 2)?.reshape((b, d, th, tw))?; // [B, D, th, tw]
+        let x = x.reshape((b, d, th * tw))?; // [B, D, th*tw]
+                                             // softmax over D of tanh(x) * exp(log_scale)
+        let selection = select_softmax(&x, &self.log_scale)?; // [B, D, th*tw]
 
         // Colour tower. The skip input is the tile's own pixels, which is also the colour
         // tower's level-0 input when its convolutions are 1x1 (then cropped once).
@@ -236,10 +237,10 @@ impl DeepStereo {
         } else {
             self.colour_out.forward(&f)?
         }; // [B*D, 3, th, tw]
-        let colours = out.reshape((b, d, 3, th, tw))?; // [B, D, 3, th, tw]
-        let image = colours
-            .broadcast_mul(&selection.unsqueeze(2)?)? // [B, D, 3, th, tw]
-            .sum(1)?; // [B, 3, th, tw]
+        let colours = out.reshape((b, d, 3, th * tw))?; // [B, D, 3, th*tw]
+        let image = composite(&colours, &selection)? // sum over D of s * c
+            .reshape((b, 3, th, tw))?; // [B, 3, th, tw]
+        let selection = selection.reshape((b, d, th, tw))?; // [B, D, th, tw]
         Ok(Output { image, selection })
     }
 }

@@ -50,6 +50,7 @@ mod direct;
 mod direct_grad;
 mod im2col;
 mod kernels;
+pub(crate) use im2col::SharedMut;
 mod op;
 #[cfg(test)]
 mod tests;
