@@ -260,7 +260,7 @@ impl SelectSoftmax {
                         let k = o + i * p + j;
                         let dz = s[k] * (ds[k] - dot);
                         let t = x[k].tanh();
-                        dls = dls + dz * t * a;
+                        dls += dz * t * a;
                         // SAFETY: items own disjoint columns.
                         unsafe { *dxp.get().add(k) = dz * a * (T::one() - t * t) };
                     }

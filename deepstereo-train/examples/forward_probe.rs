@@ -56,6 +56,12 @@ fn main() -> Result<()> {
         // PROBE_ORT=1: onnxruntime runs the same tile after each candle forward, as in
         // benches/network.rs.
         let with_ort = std::env::var("PROBE_ORT").is_ok();
+        if std::env::var("PROBE_MM").is_ok() {
+            let a = Tensor::randn(0f32, 1., (2048, 2048), &Device::Cpu)?;
+            for _ in 0..3 {
+                a.matmul(&a)?;
+            }
+        }
         let onnx = export_trainable(&t, DEFAULT_OPSET)?;
         let ort = OrtBackend::from_bytes(&onnx)?;
         let data = xs

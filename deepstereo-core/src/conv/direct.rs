@@ -51,11 +51,24 @@ pub(crate) fn available() -> bool {
     }
 }
 
-/// Whether `DEEPSTEREO_CONV=im2col` asks for the im2col + gemm path everywhere (to
-/// compare the two paths in benchmarks; read once).
-pub(crate) fn im2col_forced() -> bool {
-    static FORCED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *FORCED.get_or_init(|| std::env::var("DEEPSTEREO_CONV").is_ok_and(|v| v == "im2col"))
+/// Which f32 kernels `DEEPSTEREO_CONV` allows (read once): `im2col` forces the im2col +
+/// gemm path everywhere, `pixels` keeps the pixel-vectorised kernels but not the
+/// channel-vectorised one (`direct_cv.rs`); anything else (or unset) lets each layer take
+/// the kernel that suits it. For comparing the paths in benchmarks.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Kernels {
+    Auto,
+    Pixels,
+    Im2col,
+}
+
+pub(crate) fn kernels_allowed() -> Kernels {
+    static K: std::sync::OnceLock<Kernels> = std::sync::OnceLock::new();
+    *K.get_or_init(|| match std::env::var("DEEPSTEREO_CONV").as_deref() {
+        Ok("im2col") => Kernels::Im2col,
+        Ok("pixels") => Kernels::Pixels,
+        _ => Kernels::Auto,
+    })
 }
 
 /// Flat positions per image that hold outputs: `Q = (Ho - 1) * W + Wo`.
@@ -75,7 +88,7 @@ pub(crate) fn tap_offsets(g: &Geom) -> Vec<usize> {
 /// Whether [`forward`] runs this layer (f32 callers only): the CPU has AVX2 and FMA and
 /// an image holds at least one tile.
 pub(crate) fn applies(g: &Geom) -> bool {
-    available() && flat_len(g) >= NC && !im2col_forced()
+    available() && flat_len(g) >= NC && kernels_allowed() != Kernels::Im2col
 }
 
 /// Weights `[Cout, K]` as panels of [`MR`] output channels, each `[K, MR]`.
@@ -174,6 +187,16 @@ fn blocks(g: &Geom) -> Vec<(usize, Vec<Tile>)> {
         }
     }
     out
+}
+
+/// `y = act(conv(x, w) + b)` by the channel-vectorised kernel where it applies
+/// (`direct_cv.rs`), else by [`forward`]; call only when [`applies`] holds.
+pub(crate) fn forward_best(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> Vec<f32> {
+    if super::direct_cv::applies(g) {
+        super::direct_cv::forward(g, x, w, b, relu)
+    } else {
+        forward(g, x, w, b, relu)
+    }
 }
 
 /// `y = act(conv(x, w) + b)`, as [`super::kernels::forward`]; call only when

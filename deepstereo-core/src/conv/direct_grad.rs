@@ -72,7 +72,7 @@ pub(crate) fn backward(
     // dx reads gy zero-padded (rows of t.w); the weight gradient reads it at the input's
     // row stride (zeros past Wo). With kw = 1 the two are one layout.
     let (padded, db) = mask.laid_out(g, t.w, ph, pw);
-    let dx = need_dx.then(|| direct::forward(&t, &padded, &wt, &zero_bias, false));
+    let dx = need_dx.then(|| direct::forward_best(&t, &padded, &wt, &zero_bias, false));
     let dw = if g.kw == 1 {
         weight_grad(g, x, &padded, t.hw(), ph * g.w)
     } else {

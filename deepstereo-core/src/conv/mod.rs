@@ -47,6 +47,7 @@
 //!   starts (a binary can re-exec itself with it).
 
 mod direct;
+mod direct_cv;
 mod direct_grad;
 mod im2col;
 mod kernels;

@@ -169,7 +169,7 @@ impl CustomOp3 for ConvOp {
             }
         }
         let y = match xs {
-            CpuStorage::F32(_) if direct::applies(&g) => CpuStorage::F32(direct::forward(
+            CpuStorage::F32(_) if direct::applies(&g) => CpuStorage::F32(direct::forward_best(
                 &g,
                 slice(xs, xl)?,
                 slice(ws, wl)?,

@@ -5,7 +5,9 @@ use candle_core::{DType, Device, Module, Result, Tensor, Var};
 
 /// `(n, cin, h, w, cout, kh, kw)`: square and `(k, 1)` kernels, 1x1 grouped and in place,
 /// images grouped into chunks and images cut into row chunks.
-const SHAPES: [(usize, usize, usize, usize, usize, usize, usize); 15] = [
+const SHAPES: [(usize, usize, usize, usize, usize, usize, usize); 17] = [
+    (2, 12, 14, 17, 32, 5, 5),
+    (1, 16, 10, 12, 48, 5, 5),
     (2, 5, 20, 21, 13, 3, 3),
     (2, 24, 12, 20, 7, 5, 5),
     (2, 24, 12, 26, 7, 5, 5),
@@ -235,4 +237,93 @@ fn gradients_are_deterministic() -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The model's own layer shapes (both presets, 2 planes, batch 1, render tile sizes) run
+/// the AVX2 kernels on a CPU that has them, and agree with the im2col + gemm path:
+/// forward (with and without ReLU) and all three gradients.
+#[test]
+fn direct_kernels_match_im2col_on_model_layers() {
+    use super::im2col::Geom;
+    use super::{direct, direct_cv, direct_grad, kernels};
+    use crate::config::Config;
+    let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    let mut rand = |len: usize| -> Vec<f32> {
+        (0..len)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                (state >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+            })
+            .collect()
+    };
+    let max_rel = |a: &[f32], b: &[f32]| {
+        let scale = b.iter().fold(1f32, |m, v| m.max(v.abs()));
+        a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
+    };
+    let (mut ran, mut ran_cv) = (0, 0);
+    for cfg in [Config::tiny(), Config::paper()] {
+        let tile = if cfg.name == "paper" { 16 } else { 24 };
+        for l in cfg.layers() {
+            let k = l.kernel;
+            let g = if l.name.starts_with("select.depth") {
+                let (h, w) = (2 + k - 1, tile * tile);
+                Geom {
+                    n: 1,
+                    cin: l.in_channels,
+                    h,
+                    w,
+                    cout: l.out_channels,
+                    kh: k,
+                    kw: 1,
+                }
+            } else {
+                let s = (l.out_size * tile / cfg.tile).max(1) + k - 1;
+                Geom {
+                    n: 2,
+                    cin: l.in_channels,
+                    h: s,
+                    w: s,
+                    cout: l.out_channels,
+                    kh: k,
+                    kw: k,
+                }
+            };
+            let x = rand(g.n * g.cin * g.hw());
+            let w = rand(g.cout * g.k());
+            let b = rand(g.cout);
+            for relu in [false, true] {
+                if direct::applies(&g) {
+                    ran += 1;
+                    ran_cv += usize::from(direct_cv::applies(&g));
+                    let got = direct::forward_best(&g, &x, &w, &b, relu);
+                    let want = kernels::forward(&g, &x, &w, &b, relu);
+                    let e = max_rel(&got, &want);
+                    assert!(e < 1e-5, "{} forward {g:?}: {e}", l.name);
+                }
+                if direct_grad::applies(&g) {
+                    let y = kernels::forward(&g, &x, &w, &b, relu);
+                    let dy = rand(y.len());
+                    let (dx, dw, db) = direct_grad::backward(&g, &x, &w, &y, &dy, relu, true);
+                    let want = kernels::backward(&g, &x, &w, &y, &dy, relu, true, true);
+                    let dx = dx.expect("dx asked for");
+                    for (name, a, b) in [
+                        ("dx", &dx, want.dx.as_ref().expect("dx")),
+                        ("dw", &dw, &want.dw),
+                        ("db", &db, &want.db),
+                    ] {
+                        let e = max_rel(a, b);
+                        assert!(e < 1e-5, "{} {name} {g:?} relu {relu}: {e}", l.name);
+                    }
+                }
+            }
+        }
+    }
+    if direct::available() {
+        assert!(
+            ran >= 40 && ran_cv >= 10,
+            "AVX2 kernels ran on {ran} layers ({ran_cv} channel-vectorised)"
+        );
+    }
 }
