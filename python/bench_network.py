@@ -53,14 +53,14 @@ def main():
 
     with torch.no_grad():
         image = model(xs)[0].numpy()
-        torch_fwd = timed(lambda: model(xs), 3.0)
+        torch_fwd = timed(lambda: model(xs), 6.0, max_reps=30)
 
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     sess = ort.InferenceSession(str(d / "model.onnx"), opts, providers=["CPUExecutionProvider"])
     feed = {f"level{l}": a for l, a in enumerate(tile)}
     ort_image = sess.run(["image"], feed)[0]
-    ort_fwd = timed(lambda: sess.run(None, feed), 3.0)
+    ort_fwd = timed(lambda: sess.run(None, feed), 6.0, max_reps=30)
 
     batch = load_file(str(d / "batch.safetensors"))
     bx = [torch.from_numpy(a) for a in levels(batch, n)]
@@ -74,7 +74,7 @@ def main():
         loss.backward()
         opt.step()
 
-    torch_step = timed(step, 6.0)
+    torch_step = timed(step, 8.0, max_reps=12)
     diff = max(float(np.abs(image - candle).max()), float(np.abs(ort_image - candle).max()))
     print(
         json.dumps(

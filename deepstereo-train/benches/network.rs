@@ -32,12 +32,12 @@ use deepstereo_train::training::batch_tensors;
 use std::path::Path;
 use std::time::Instant;
 
-/// Best seconds of `f`: one warm-up run, then 2..=8 runs within `budget_s`.
+/// Best seconds of `f`: one warm-up run, then 2..=12 runs within `budget_s`.
 fn timed(budget_s: f64, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
     let t = Instant::now();
     f()?;
     let first = t.elapsed().as_secs_f64();
-    let reps = ((budget_s / first) as usize).clamp(2, 8);
+    let reps = ((budget_s / first) as usize).clamp(2, 12);
     let mut best = f64::MAX;
     for _ in 0..reps {
         let t = Instant::now();
@@ -47,8 +47,9 @@ fn timed(budget_s: f64, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
     Ok(best)
 }
 
-/// Best seconds of `a` and of `b`, run alternately (one warm-up each, then 3..=10
-/// rounds within `budget_s`).
+/// Best seconds of `a` and of `b`, run alternately (one warm-up each, then 3..=30
+/// rounds within `budget_s`: the shared machine's times spread by +-30%, so the best of
+/// many is the steadier figure).
 fn interleaved(
     budget_s: f64,
     mut a: impl FnMut() -> Result<()>,
@@ -57,7 +58,7 @@ fn interleaved(
     let t = Instant::now();
     a()?;
     b()?;
-    let rounds = ((budget_s / t.elapsed().as_secs_f64()) as usize).clamp(3, 10);
+    let rounds = ((budget_s / t.elapsed().as_secs_f64()) as usize).clamp(3, 30);
     let (mut best_a, mut best_b) = (f64::MAX, f64::MAX);
     for _ in 0..rounds {
         let t = Instant::now();
@@ -173,7 +174,7 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         .collect();
     // Candle and ort alternate, so that a change in the shared machine's load hits both.
     let (fwd, ort_fwd) = interleaved(
-        6.0,
+        12.0,
         || {
             Ok(t.model
                 .forward(&xs)?
@@ -205,7 +206,7 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
     train_arrays.push(NamedArray::f32("target", &b.target_shape, &b.target));
     write_safetensors(&dir.path().join("batch.safetensors"), &train_arrays, None)?;
     let mut opt = Optimizer::new(OptimizerKind::Adam, 1e-4, named_vars(&t.varmap))?;
-    let step = timed(6.0, || {
+    let step = timed(8.0, || {
         let loss = l1_loss(&t.model.forward(&x)?.image, &y)?;
         let grads = loss.backward()?;
         opt.step(&grads)

@@ -10,8 +10,23 @@
 //! (no second-order gradients). Off the CPU, or for dtypes other than f32 / f64, the layer
 //! falls back to candle's `conv2d` ([`Conv2d::forward_reference`]).
 //!
-//! The convolution is one product in "column space" (`im2col.rs`):
-//! `Y [Cout, N*P] = W [Cout, K] x cols [K, N*P]`, `P = Ho*Wo`, `K = Cin*kh*kw`. The
+//! Three CPU paths, chosen per layer in `op.rs`:
+//! - **f32 with AVX2 and FMA** (checked at run time): implicit GEMM, no im2col buffer.
+//!   `direct.rs` vectorises along output pixels (tiles of 6 output channels x 16 pixels,
+//!   input read at a per-tap offset, bias and ReLU fused, taps blocked for L1);
+//!   `direct_cv.rs` vectorises along output channels for wide layers (`Cout` a multiple of
+//!   16, `K >= 256`: tiles of 16 channels x 6 pixels, no partial tile per row).
+//!   `direct_grad.rs`: the input gradient is `direct.rs`'s forward on the zero-padded,
+//!   ReLU-masked output gradient with flipped, transposed weights; the weight gradient a
+//!   reduction vectorised along pixels (3 channels x 4 taps per tile), with accumulators
+//!   summed in a fixed order (deterministic). `DEEPSTEREO_CONV=im2col` or `pixels` turns
+//!   these off (all, or the channel-vectorised one) to compare paths in benchmarks.
+//! - **otherwise (f64, other CPUs, layers too small for a tile)**: one product in "column
+//!   space" (`im2col.rs`), described below.
+//! - off the CPU: candle's `conv2d`.
+//!
+//! Column space: `Y [Cout, N*P] = W [Cout, K] x cols [K, N*P]`, `P = Ho*Wo`,
+//! `K = Cin*kh*kw`. The
 //! columns are cut into chunks (whole images, grouped when small, or balanced runs of
 //! output rows of one image) whose im2col buffer is about 1 MiB (a core's L2), at least
 //! 4 per thread. Rayon threads take chunks and run, each in its own reused buffers and
@@ -27,7 +42,13 @@
 //!   `dx` is only computed when `x` needs a gradient (not for the plane-sweep input).
 //! - 1x1 kernels skip im2col / col2im: gemm reads `x` and writes `dx` in place.
 //!
-//! # Measurements behind the choices (2 cores, AVX-512, shared and loaded machine)
+//! # Measurements behind the choices (2 cores of an AMD EPYC with AVX2, shared machine)
+//! - The im2col path spent a fifth of the `tiny` forward copying im2col runs (`perf`), and
+//!   the `gemm` crate's f32 kernel vectorises along `Cout`, wasting a quarter of a 16-row
+//!   tile at `Cout = 12`. The implicit-GEMM kernels took the `tiny` forward 1.2-1.3x and
+//!   its training step 1.1-1.2x faster (`DEEPSTEREO_CONV=im2col` against the default in
+//!   `examples/forward_probe.rs`, runs alternated); a pure FMA loop reaches ~190 GFLOP/s
+//!   on the 2 cores, the kernels 100-130 on the large layers.
 //! - candle's own autograd over an im2col op plus `broadcast_matmul` (weights `[Cout, K]`
 //!   against cols `[N, K, P]`) was slower even before counting im2col / col2im: for
 //!   768x64x18x18 -> 96, 5x5 its matmul backward alone took about 2.2 s against 0.8 s for
