@@ -4,7 +4,9 @@
 //! - [`upsample_crop`]: nearest upsampling by an integer factor and a crop, in one pass
 //!   (the towers' coarse levels), with its backward (sums over each source pixel's block);
 //! - [`select_softmax`]: the selection tower's head, `softmax_D(tanh(x) exp(log_scale))`;
-//! - [`composite`]: the rendered colour `sum_z s_z c_z`.
+//! - [`composite`]: the rendered colour `sum_z s_z c_z`;
+//! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding), reading a
+//!   transposed view directly (no separate transpose copy).
 //!
 //! Each op equals a composition of candle ops, which is also the fallback off the CPU or
 //! for dtypes other than f32 / f64 (tests compare the two, values and gradients).
@@ -482,6 +484,92 @@ impl CustomOp2 for Composite {
     }
 }
 
+/// `x` `[N, C, H, W]` (any strides, `W` contiguous or not) with `p` zero rows above and
+/// below: `[N, C, H + 2p, W]`, contiguous.
+pub fn pad_rows(x: &Tensor, p: usize) -> Result<Tensor> {
+    x.dims4()?;
+    if !on_cpu(&[x]) {
+        return x.pad_with_zeros(2, p, p);
+    }
+    let x = if x.stride()[3] == 1 {
+        x.clone()
+    } else {
+        x.contiguous()?
+    };
+    x.apply_op1(PadRows { p })
+}
+
+struct PadRows {
+    p: usize,
+}
+
+impl PadRows {
+    fn fwd<T: WithDType>(&self, x: &[T], l: &Layout) -> Result<Vec<T>> {
+        let (n, c, h, w) = l.shape().dims4()?;
+        let st = l.stride();
+        let (o, hp) = (l.start_offset(), h + 2 * self.p);
+        let mut y = vec![T::zero(); n * c * hp * w];
+        y.par_chunks_mut(hp * w).enumerate().for_each(|(i, plane)| {
+            let base = o + i / c * st[0] + i % c * st[1];
+            for r in 0..h {
+                let src = &x[base + r * st[2]..][..w];
+                plane[(r + self.p) * w..][..w].copy_from_slice(src);
+            }
+        });
+        Ok(y)
+    }
+
+    fn bwd_typed<T: WithDType>(
+        &self,
+        dy: &[T],
+        (n, c, h, w): (usize, usize, usize, usize),
+    ) -> Vec<T> {
+        let hp = h + 2 * self.p;
+        let mut dx = vec![T::zero(); n * c * h * w];
+        dx.par_chunks_mut(h * w)
+            .zip(dy.par_chunks(hp * w))
+            .for_each(|(d, g)| d.copy_from_slice(&g[self.p * w..][..h * w]));
+        dx
+    }
+}
+
+impl CustomOp1 for PadRows {
+    fn name(&self) -> &'static str {
+        "deepstereo-pad-rows"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let (n, c, h, w) = l.shape().dims4()?;
+        let shape = Shape::from((n, c, h + 2 * self.p, w));
+        let y = match s {
+            CpuStorage::F32(v) => CpuStorage::F32(self.fwd(v, l)?),
+            CpuStorage::F64(v) => CpuStorage::F64(self.fwd(v, l)?),
+            _ => bail!("pad_rows: f32 or f64 only"),
+        };
+        Ok((y, shape))
+    }
+
+    fn bwd(&self, x: &Tensor, _y: &Tensor, dy: &Tensor) -> Result<Option<Tensor>> {
+        let dims = x.dims4()?;
+        let dy = dy.contiguous()?;
+        let (st, l) = dy.storage_and_layout();
+        let dx = match x.dtype() {
+            DType::F32 => Tensor::from_vec(
+                self.bwd_typed(data::<f32>(&st, l)?, dims),
+                x.shape(),
+                x.device(),
+            )?,
+            DType::F64 => Tensor::from_vec(
+                self.bwd_typed(data::<f64>(&st, l)?, dims),
+                x.shape(),
+                x.device(),
+            )?,
+            dt => bail!("pad_rows: f32 or f64 only, got {dt:?}"),
+        };
+        Ok(Some(dx))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -575,6 +663,27 @@ mod tests {
                 let e = max_diff(a, b)?;
                 assert!(e < tol, "{dt:?} output {i}: {e}");
             }
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn pad_rows_matches_pad_with_zeros() -> Result<()> {
+        let dev = &Device::Cpu;
+        for dt in [DType::F32, DType::F64] {
+            let v = Var::from_tensor(&Tensor::randn(0f64, 1., (2, 5, 3, 7), dev)?.to_dtype(dt)?)?;
+            let view = v.as_tensor().transpose(1, 2)?; // [2, 3, 5, 7], strided
+            let r = Tensor::randn(0f64, 1., (2, 3, 9, 7), dev)?.to_dtype(dt)?;
+            let got = pad_rows(&view, 2)?;
+            let want = view.pad_with_zeros(2, 2, 2)?;
+            assert_eq!(max_diff(&got, &want)?, 0.0);
+            let gg = (got * &r)?.sum_all()?.backward()?;
+            let gw = (want * &r)?.sum_all()?.backward()?;
+            let e = max_diff(
+                gg.get(v.as_tensor()).unwrap(),
+                gw.get(v.as_tensor()).unwrap(),
+            )?;
+            assert_eq!(e, 0.0);
         }
         Ok(())
     }

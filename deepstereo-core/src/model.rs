@@ -11,7 +11,7 @@
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::Conv2d;
-use crate::fused::{composite, select_softmax, upsample_crop};
+use crate::fused::{composite, pad_rows, select_softmax, upsample_crop};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
 use candle_nn::VarBuilder;
@@ -192,12 +192,11 @@ impl DeepStereo {
         let c = s.dim(1)?;
         let mut x = s
             .reshape((b, d, c, th * tw))? // [B, D, C, th*tw]
-            .transpose(1, 2)?
-            .contiguous()?; // [B, C, D, th*tw]
+            .transpose(1, 2)?; // [B, C, D, th*tw], a view
         let last = self.depth.len() - 1;
         for (i, conv) in self.depth.iter().enumerate() {
             let p = cfg.depth_convs[i].kernel / 2;
-            let xp = x.pad_with_zeros(2, p, p)?; // [B, C, D + 2p, th*tw]
+            let xp = pad_rows(&x, p)?; // [B, C, D + 2p, th*tw]
             x = if i < last {
                 conv.forward_relu(&xp)?
             } else {
