@@ -327,3 +327,74 @@ fn direct_kernels_match_im2col_on_model_layers() {
         );
     }
 }
+
+/// Finite differences on the AVX2 path itself (f32): directional derivatives of
+/// `sum(conv(x) * r)` along random directions of x, weight and bias against the
+/// gradients' dot products, for a pixel-vectorised and a channel-vectorised layer (the
+/// ReLU's mask is checked against candle above; its kinks would blur differences here).
+#[test]
+fn direct_path_finite_differences_f32() -> Result<()> {
+    use super::{direct, direct_cv, direct_grad, im2col::Geom};
+    for shape in [(2, 5, 9, 20, 7, 3, 3), (1, 16, 10, 12, 32, 5, 5)] {
+        let (n, cin, h, w, cout, kh, kw) = shape;
+        let g = Geom {
+            n,
+            cin,
+            h,
+            w,
+            cout,
+            kh,
+            kw,
+        };
+        if !direct::applies(&g) {
+            return Ok(()); // a CPU without AVX2 / FMA: the im2col path is tested above
+        }
+        assert!(
+            direct_grad::applies(&g) || direct_cv::applies(&g),
+            "{shape:?}"
+        );
+        let (conv, x) = conv(shape, DType::F32)?;
+        let x = Var::from_tensor(&x)?;
+        let r = Tensor::randn(0f32, 1., conv.forward(&x)?.shape(), &Device::Cpu)?;
+        let loss = |x: &Tensor, c: &Conv2d| -> Result<f64> {
+            (c.forward(x)? * &r)?
+                .sum_all()?
+                .to_dtype(DType::F64)?
+                .to_scalar::<f64>()
+        };
+        let g = (conv.forward(x.as_tensor())? * &r)?.sum_all()?.backward()?;
+        let eps = 1e-2;
+        for which in 0..3 {
+            let base = [x.as_tensor(), &conv.weight, &conv.bias][which];
+            let v = Tensor::randn(0f32, 1., base.shape(), &Device::Cpu)?;
+            let analytic = (g.get(base).unwrap() * &v)?
+                .sum_all()?
+                .to_dtype(DType::F64)?
+                .to_scalar::<f64>()?;
+            let at = |d: f64| -> Result<f64> {
+                let t = (base + (&v * d)?)?;
+                match which {
+                    0 => loss(&t, &conv),
+                    1 => loss(
+                        x.as_tensor(),
+                        &Conv2d {
+                            weight: t,
+                            bias: conv.bias.clone(),
+                        },
+                    ),
+                    _ => loss(
+                        x.as_tensor(),
+                        &Conv2d {
+                            weight: conv.weight.clone(),
+                            bias: t,
+                        },
+                    ),
+                }
+            };
+            let fd = (at(eps)? - at(-eps)?) / (2.0 * eps);
+            let e = (fd - analytic).abs() / analytic.abs().max(1.0);
+            assert!(e < 2e-3, "{shape:?} arg {which}: fd {fd} vs {analytic}");
+        }
+    }
+    Ok(())
+}
