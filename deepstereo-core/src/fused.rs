@@ -5,8 +5,9 @@
 //!   (the towers' coarse levels), with its backward (sums over each source pixel's block);
 //! - [`select_softmax`]: the selection tower's head, `softmax_D(tanh(x) exp(log_scale))`;
 //! - [`composite`]: the rendered colour `sum_z s_z c_z`;
-//! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding), reading a
-//!   transposed view directly (no separate transpose copy).
+//! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding) and
+//!   optionally zero columns on the right, reading a transposed view directly (no
+//!   separate transpose copy).
 //!
 //! Each op equals a composition of candle ops, which is also the fallback off the CPU or
 //! for dtypes other than f32 / f64 (tests compare the two, values and gradients).
@@ -484,38 +485,41 @@ impl CustomOp2 for Composite {
     }
 }
 
-/// `x` `[N, C, H, W]` (any strides, `W` contiguous or not) with `p` zero rows above and
-/// below: `[N, C, H + 2p, W]`, contiguous.
-pub fn pad_rows(x: &Tensor, p: usize) -> Result<Tensor> {
+/// `x` `[N, C, H, W]` (any strides) with `p` zero rows above and below and `extra` zero
+/// columns on the right: `[N, C, H + 2p, W + extra]`, contiguous.
+pub fn pad_rows(x: &Tensor, p: usize, extra: usize) -> Result<Tensor> {
     x.dims4()?;
     if !on_cpu(&[x]) {
-        return x.pad_with_zeros(2, p, p);
+        return x.pad_with_zeros(2, p, p)?.pad_with_zeros(3, 0, extra);
     }
     let x = if x.stride()[3] == 1 {
         x.clone()
     } else {
         x.contiguous()?
     };
-    x.apply_op1(PadRows { p })
+    x.apply_op1(PadRows { p, extra })
 }
 
 struct PadRows {
     p: usize,
+    extra: usize,
 }
 
 impl PadRows {
     fn fwd<T: WithDType>(&self, x: &[T], l: &Layout) -> Result<Vec<T>> {
         let (n, c, h, w) = l.shape().dims4()?;
         let st = l.stride();
-        let (o, hp) = (l.start_offset(), h + 2 * self.p);
-        let mut y = vec![T::zero(); n * c * hp * w];
-        y.par_chunks_mut(hp * w).enumerate().for_each(|(i, plane)| {
-            let base = o + i / c * st[0] + i % c * st[1];
-            for r in 0..h {
-                let src = &x[base + r * st[2]..][..w];
-                plane[(r + self.p) * w..][..w].copy_from_slice(src);
-            }
-        });
+        let (o, hp, wp) = (l.start_offset(), h + 2 * self.p, w + self.extra);
+        let mut y = vec![T::zero(); n * c * hp * wp];
+        y.par_chunks_mut(hp * wp)
+            .enumerate()
+            .for_each(|(i, plane)| {
+                let base = o + i / c * st[0] + i % c * st[1];
+                for r in 0..h {
+                    let src = &x[base + r * st[2]..][..w];
+                    plane[(r + self.p) * wp..][..w].copy_from_slice(src);
+                }
+            });
         Ok(y)
     }
 
@@ -524,11 +528,15 @@ impl PadRows {
         dy: &[T],
         (n, c, h, w): (usize, usize, usize, usize),
     ) -> Vec<T> {
-        let hp = h + 2 * self.p;
+        let (hp, wp) = (h + 2 * self.p, w + self.extra);
         let mut dx = vec![T::zero(); n * c * h * w];
         dx.par_chunks_mut(h * w)
-            .zip(dy.par_chunks(hp * w))
-            .for_each(|(d, g)| d.copy_from_slice(&g[self.p * w..][..h * w]));
+            .zip(dy.par_chunks(hp * wp))
+            .for_each(|(d, g)| {
+                for (r, row) in d.chunks_exact_mut(w).enumerate() {
+                    row.copy_from_slice(&g[(r + self.p) * wp..][..w]);
+                }
+            });
         dx
     }
 }
@@ -540,7 +548,7 @@ impl CustomOp1 for PadRows {
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
         let (n, c, h, w) = l.shape().dims4()?;
-        let shape = Shape::from((n, c, h + 2 * self.p, w));
+        let shape = Shape::from((n, c, h + 2 * self.p, w + self.extra));
         let y = match s {
             CpuStorage::F32(v) => CpuStorage::F32(self.fwd(v, l)?),
             CpuStorage::F64(v) => CpuStorage::F64(self.fwd(v, l)?),
@@ -673,9 +681,9 @@ mod tests {
         for dt in [DType::F32, DType::F64] {
             let v = Var::from_tensor(&Tensor::randn(0f64, 1., (2, 5, 3, 7), dev)?.to_dtype(dt)?)?;
             let view = v.as_tensor().transpose(1, 2)?; // [2, 3, 5, 7], strided
-            let r = Tensor::randn(0f64, 1., (2, 3, 9, 7), dev)?.to_dtype(dt)?;
-            let got = pad_rows(&view, 2)?;
-            let want = view.pad_with_zeros(2, 2, 2)?;
+            let r = Tensor::randn(0f64, 1., (2, 3, 9, 10), dev)?.to_dtype(dt)?;
+            let got = pad_rows(&view, 2, 3)?;
+            let want = view.pad_with_zeros(2, 2, 2)?.pad_with_zeros(3, 0, 3)?;
             assert_eq!(max_diff(&got, &want)?, 0.0);
             let gg = (got * &r)?.sum_all()?.backward()?;
             let gw = (want * &r)?.sum_all()?.backward()?;

@@ -117,6 +117,11 @@ pub struct DeepStereo {
     colour_out: Conv2d,
 }
 
+/// Pixels per depth row at which rows alias in the caches (128 floats = 512 bytes).
+const ALIASING_ROW: usize = 128;
+/// Zero columns added to such rows (one cache line).
+const ROW_SHIFT: usize = 16;
+
 /// Initial value of the selection scale's logarithm: `exp(2.3) ~ 10` lets the softmax
 /// over tanh-bounded logits reach near one-hot selections from the start of training.
 pub const INIT_LOG_SCALE: f64 = 2.3;
@@ -193,18 +198,23 @@ impl DeepStereo {
         let mut x = s
             .reshape((b, d, c, th * tw))? // [B, D, C, th*tw]
             .transpose(1, 2)?; // [B, C, D, th*tw], a view
+                               // Rows of th*tw pixels whose byte stride is a multiple of 512 put a layer's
+                               // channels and planes in the same cache sets; a few zero columns (their outputs
+                               // are dropped) shift them apart.
+        let pp = th * tw;
+        let extra = if pp % ALIASING_ROW == 0 { ROW_SHIFT } else { 0 };
         let last = self.depth.len() - 1;
         for (i, conv) in self.depth.iter().enumerate() {
             let p = cfg.depth_convs[i].kernel / 2;
-            let xp = pad_rows(&x, p)?; // [B, C, D + 2p, th*tw]
+            let xp = pad_rows(&x, p, if i == 0 { extra } else { 0 })?; // [B, C, D + 2p, pp + extra]
             x = if i < last {
                 conv.forward_relu(&xp)?
             } else {
                 conv.forward(&xp)?
-            }; // [B, C', D, th*tw]
+            }; // [B, C', D, pp + extra]
         }
-        let x = x.reshape((b, d, th * tw))?; // [B, D, th*tw]
-                                             // softmax over D of tanh(x) * exp(log_scale)
+        let x = x.narrow(3, 0, pp)?.reshape((b, d, pp))?; // [B, D, th*tw]
+                                                          // softmax over D of tanh(x) * exp(log_scale)
         let selection = select_softmax(&x, &self.log_scale)?; // [B, D, th*tw]
 
         // Colour tower. The skip input is the tile's own pixels, which is also the colour

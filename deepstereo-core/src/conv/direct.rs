@@ -175,15 +175,27 @@ fn blocks(g: &Geom) -> Vec<(usize, Vec<Tile>)> {
             .collect()
     };
     let per_row = if by_rows(g) { row_tiles(wo).count() } else { 1 };
-    // Blocks hold whole rows (row tiles overlap within a row, so a row stays with one thread).
-    let per = (image.len().min((g.n * image.len()).div_ceil(want)))
-        .clamp(1, BLOCK_TILES)
-        .div_ceil(per_row)
-        * per_row;
+    let per = (image.len().min((g.n * image.len()).div_ceil(want))).clamp(1, BLOCK_TILES);
     let mut out = Vec::new();
-    for n in 0..g.n {
-        for chunk in image.chunks(per) {
-            out.push((n, chunk.to_vec()));
+    if per_row > per {
+        // Long rows are cut into runs of tiles; a row's last tile may overlap the one
+        // before it, so the two stay in one run (one thread writes their outputs).
+        for n in 0..g.n {
+            for row in image.chunks(per_row) {
+                let mut runs: Vec<&[Tile]> = row.chunks(per).collect();
+                if runs.len() > 1 && runs[runs.len() - 1].len() < 2 {
+                    let tail = runs.len() - 2;
+                    runs[tail] = &row[tail * per..];
+                    runs.pop();
+                }
+                out.extend(runs.into_iter().map(|r| (n, r.to_vec())));
+            }
+        }
+    } else {
+        // Blocks of whole rows.
+        let per = per.div_ceil(per_row) * per_row;
+        for n in 0..g.n {
+            out.extend(image.chunks(per).map(|c| (n, c.to_vec())));
         }
     }
     out
