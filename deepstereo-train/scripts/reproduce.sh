@@ -59,4 +59,15 @@ $DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 
 cp "$OUT/report_procedural/report.png" "$FIG/report_procedural.png"
 echo "== speed benchmarks (whole network against onnxruntime and PyTorch)"
 cargo bench -p deepstereo-train --bench network | tee "$OUT/bench_network.txt"
+echo "== convolution layers against onnxruntime and PyTorch"
+CONV_BENCH_REF=0 cargo bench -p deepstereo-core --bench conv | tee "$OUT/bench_conv.txt"
+echo "== implicit-GEMM kernels against im2col + gemm (tiny forward and step, alternated)"
+cargo build --release -p deepstereo-train --example forward_probe
+for round in 1 2 3 4; do
+    for conv in auto im2col; do
+        for what in "tiny 20" "tiny 5 32 step"; do
+            echo "DEEPSTEREO_CONV=$conv $(DEEPSTEREO_CONV=$conv target/release/examples/forward_probe $what)"
+        done
+    done
+done | tee "$OUT/kernels_ab.txt"
 echo "results in $OUT, pictures in $FIG"
