@@ -2,7 +2,10 @@
 //! training step as in `benches/network.rs`, in a loop, for profiling
 //! (`perf record -g target/release/examples/forward_probe tiny 200`).
 //!
-//! `cargo run --release -p deepstereo-train --example forward_probe -- [preset] [iterations] [tile] [step]`
+//! `cargo run --release -p deepstereo-train --example forward_probe -- [preset] [iterations] [tile] [step]`;
+//! `PROBE_ORT=1` also times onnxruntime on the same tile after each forward (needs the
+//! onnxruntime library, as `deepstereo --backend ort`); `DEEPSTEREO_CONV=im2col` runs the
+//! im2col path instead of the AVX2 kernels (see `deepstereo_core::conv`).
 
 use anyhow::{Context, Result};
 use candle_core::{DType, Device, Tensor};
@@ -56,14 +59,14 @@ fn main() -> Result<()> {
         // PROBE_ORT=1: onnxruntime runs the same tile after each candle forward, as in
         // benches/network.rs.
         let with_ort = std::env::var("PROBE_ORT").is_ok();
-        if std::env::var("PROBE_MM").is_ok() {
-            let a = Tensor::randn(0f32, 1., (2048, 2048), &Device::Cpu)?;
-            for _ in 0..3 {
-                a.matmul(&a)?;
-            }
-        }
-        let onnx = export_trainable(&t, DEFAULT_OPSET)?;
-        let ort = OrtBackend::from_bytes(&onnx)?;
+        let ort = if with_ort {
+            Some(OrtBackend::from_bytes(&export_trainable(
+                &t,
+                DEFAULT_OPSET,
+            )?)?)
+        } else {
+            None
+        };
         let data = xs
             .iter()
             .map(|x| Ok((x.dims().to_vec(), x.flatten_all()?.to_vec1::<f32>()?)))
@@ -83,7 +86,7 @@ fn main() -> Result<()> {
                 .to_vec1::<f32>()?;
             std::hint::black_box(out);
             times.push(t0.elapsed().as_secs_f64() * 1e3);
-            if with_ort {
+            if let Some(ort) = &ort {
                 let t0 = Instant::now();
                 ort.forward(&views)?;
                 ort_best = ort_best.min(t0.elapsed().as_secs_f64() * 1e3);
