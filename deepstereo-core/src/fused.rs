@@ -109,26 +109,31 @@ impl CustomOp1 for UpsampleCrop {
 
     fn bwd(&self, x: &Tensor, _y: &Tensor, dy: &Tensor) -> Result<Option<Tensor>> {
         let dims = x.dims4()?;
-        let dy = dy.contiguous()?;
-        let (st, l) = dy.storage_and_layout();
-        let candle_core::Storage::Cpu(cpu) = &*st else {
-            bail!("upsample_crop: CPU gradient expected")
-        };
-        let dx = match x.dtype() {
-            DType::F32 => Tensor::from_vec(
-                self.bwd_typed(slice::<f32>(cpu, l)?, dims),
-                x.shape(),
-                x.device(),
-            )?,
-            DType::F64 => Tensor::from_vec(
-                self.bwd_typed(slice::<f64>(cpu, l)?, dims),
-                x.shape(),
-                x.device(),
-            )?,
-            dt => bail!("upsample_crop: f32 or f64 only, got {dt:?}"),
-        };
-        Ok(Some(dx))
+        plane_grad(
+            x,
+            dy,
+            |g| self.bwd_typed(g, dims),
+            |g| self.bwd_typed(g, dims),
+        )
     }
+}
+
+/// `dx` of a one-input op from `dy`, computed on CPU slices by `f32` or `f64` (the same
+/// generic function, once per type).
+fn plane_grad(
+    x: &Tensor,
+    dy: &Tensor,
+    f32: impl Fn(&[f32]) -> Vec<f32>,
+    f64: impl Fn(&[f64]) -> Vec<f64>,
+) -> Result<Option<Tensor>> {
+    let dy = dy.contiguous()?;
+    let (st, l) = dy.storage_and_layout();
+    let dx = match x.dtype() {
+        DType::F32 => Tensor::from_vec(f32(data::<f32>(&st, l)?), x.shape(), x.device())?,
+        DType::F64 => Tensor::from_vec(f64(data::<f64>(&st, l)?), x.shape(), x.device())?,
+        dt => bail!("fused op: f32 or f64 only, got {dt:?}"),
+    };
+    Ok(Some(dx))
 }
 
 /// The contiguous elements of a CPU tensor.
@@ -559,22 +564,12 @@ impl CustomOp1 for PadRows {
 
     fn bwd(&self, x: &Tensor, _y: &Tensor, dy: &Tensor) -> Result<Option<Tensor>> {
         let dims = x.dims4()?;
-        let dy = dy.contiguous()?;
-        let (st, l) = dy.storage_and_layout();
-        let dx = match x.dtype() {
-            DType::F32 => Tensor::from_vec(
-                self.bwd_typed(data::<f32>(&st, l)?, dims),
-                x.shape(),
-                x.device(),
-            )?,
-            DType::F64 => Tensor::from_vec(
-                self.bwd_typed(data::<f64>(&st, l)?, dims),
-                x.shape(),
-                x.device(),
-            )?,
-            dt => bail!("pad_rows: f32 or f64 only, got {dt:?}"),
-        };
-        Ok(Some(dx))
+        plane_grad(
+            x,
+            dy,
+            |g| self.bwd_typed(g, dims),
+            |g| self.bwd_typed(g, dims),
+        )
     }
 }
 

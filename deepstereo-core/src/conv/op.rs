@@ -59,55 +59,16 @@ fn data<'a, T: WithDType>(s: &'a Storage, l: &Layout) -> Result<&'a [T]> {
 
 type Grads = (Option<Tensor>, Option<Tensor>, Option<Tensor>);
 
-impl ConvOp {
-    fn bwd_typed<T: WithDType>(
-        &self,
-        x: &Tensor,
-        w: &Tensor,
-        b: &Tensor,
-        y: &Tensor,
-        dy: &Tensor,
-    ) -> Result<Grads> {
-        let g = geom(x.dims(), w.dims())?;
-        let (need_dx, need_dw) = (x.track_op(), w.track_op());
-        let grads = {
-            let (xs, xl) = x.storage_and_layout();
-            let (ws, wl) = w.storage_and_layout();
-            let (ys, yl) = y.storage_and_layout();
-            let (ds, dl) = dy.storage_and_layout();
-            let y = if self.relu { data::<T>(&ys, yl)? } else { &[] };
-            let (x, w, dy) = (
-                data::<T>(&xs, xl)?,
-                data::<T>(&ws, wl)?,
-                data::<T>(&ds, dl)?,
-            );
-            kernels::backward(&g, x, w, y, dy, self.relu, need_dx, need_dw)
-        };
-        let dev = x.device();
-        let dx = grads
-            .dx
-            .map(|v| Tensor::from_vec(v, x.shape(), dev))
-            .transpose()?;
-        let dw = need_dw
-            .then(|| Tensor::from_vec(grads.dw, w.shape(), dev))
-            .transpose()?;
-        let db = b
-            .track_op()
-            .then(|| Tensor::from_vec(grads.db, b.shape(), dev))
-            .transpose()?;
-        Ok((dx, dw, db))
-    }
-}
+/// What a backward kernel returns: `dx` when asked for, `dw`, `db`.
+type Raw<T> = (Option<Vec<T>>, Vec<T>, Vec<T>);
 
 impl ConvOp {
-    /// [`direct_grad::backward`] (f32, AVX2 and FMA).
-    fn bwd_direct(
+    /// Runs `f(g, x, w, y, dy)` on the tensors' CPU slices (`y` empty without ReLU, whose
+    /// mask is all the backward reads of it) and wraps the gradients that are tracked.
+    fn bwd_with<T: WithDType>(
         &self,
-        x: &Tensor,
-        w: &Tensor,
-        b: &Tensor,
-        y: &Tensor,
-        dy: &Tensor,
+        (x, w, b, y, dy): (&Tensor, &Tensor, &Tensor, &Tensor, &Tensor),
+        f: impl FnOnce(&Geom, &[T], &[T], &[T], &[T]) -> Raw<T>,
     ) -> Result<Grads> {
         let g = geom(x.dims(), w.dims())?;
         let (dx, dw, db) = {
@@ -115,19 +76,13 @@ impl ConvOp {
             let (ws, wl) = w.storage_and_layout();
             let (ys, yl) = y.storage_and_layout();
             let (ds, dl) = dy.storage_and_layout();
-            let y = if self.relu {
-                data::<f32>(&ys, yl)?
-            } else {
-                &[]
-            };
-            direct_grad::backward(
+            let y = if self.relu { data::<T>(&ys, yl)? } else { &[] };
+            f(
                 &g,
-                data::<f32>(&xs, xl)?,
-                data::<f32>(&ws, wl)?,
+                data::<T>(&xs, xl)?,
+                data::<T>(&ws, wl)?,
                 y,
-                data::<f32>(&ds, dl)?,
-                self.relu,
-                x.track_op(),
+                data::<T>(&ds, dl)?,
             )
         };
         let dev = x.device();
@@ -143,6 +98,26 @@ impl ConvOp {
             .then(|| Tensor::from_vec(db, b.shape(), dev))
             .transpose()?;
         Ok((dx, dw, db))
+    }
+
+    /// The im2col path's backward.
+    fn bwd_typed<T: WithDType>(
+        &self,
+        t: (&Tensor, &Tensor, &Tensor, &Tensor, &Tensor),
+    ) -> Result<Grads> {
+        let (need_dx, need_dw) = (t.0.track_op(), t.1.track_op());
+        self.bwd_with::<T>(t, |g, x, w, y, dy| {
+            let r = kernels::backward(g, x, w, y, dy, self.relu, need_dx, need_dw);
+            (r.dx, r.dw, r.db)
+        })
+    }
+
+    /// [`direct_grad::backward`] (f32, AVX2 and FMA).
+    fn bwd_direct(&self, t: (&Tensor, &Tensor, &Tensor, &Tensor, &Tensor)) -> Result<Grads> {
+        let need_dx = t.0.track_op();
+        self.bwd_with::<f32>(t, |g, x, w, y, dy| {
+            direct_grad::backward(g, x, w, y, dy, self.relu, need_dx)
+        })
     }
 }
 
@@ -203,12 +178,11 @@ impl CustomOp3 for ConvOp {
 
     fn bwd(&self, x: &Tensor, w: &Tensor, b: &Tensor, y: &Tensor, dy: &Tensor) -> Result<Grads> {
         let dy = dy.contiguous()?;
+        let t = (x, w, b, y, &dy);
         match x.dtype() {
-            DType::F32 if direct_grad::applies(&geom(x.dims(), w.dims())?) => {
-                self.bwd_direct(x, w, b, y, &dy)
-            }
-            DType::F32 => self.bwd_typed::<f32>(x, w, b, y, &dy),
-            DType::F64 => self.bwd_typed::<f64>(x, w, b, y, &dy),
+            DType::F32 if direct_grad::applies(&geom(x.dims(), w.dims())?) => self.bwd_direct(t),
+            DType::F32 => self.bwd_typed::<f32>(t),
+            DType::F64 => self.bwd_typed::<f64>(t),
             dt => bail!("conv2d: f32 or f64 only, got {dt:?}"),
         }
     }
