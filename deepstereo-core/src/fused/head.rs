@@ -1,0 +1,331 @@
+//! The network's head: [`select_softmax`] (selection probabilities) and [`composite`]
+//! (the rendered colour).
+
+use super::{data, on_cpu, par_columns, slice, COLUMNS};
+use crate::conv::SharedMut;
+use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
+use num_traits::Float;
+use rayon::prelude::*;
+
+/// Selection probabilities from the last depth layer: `x` `[B, D, P]`, `log_scale` `[1]`
+/// -> `softmax over D of tanh(x) * exp(log_scale)`, `[B, D, P]`.
+pub fn select_softmax(x: &Tensor, log_scale: &Tensor) -> Result<Tensor> {
+    x.dims3()?;
+    if log_scale.dims() != [1] {
+        bail!(
+            "select_softmax: log_scale must be [1], got {:?}",
+            log_scale.dims()
+        );
+    }
+    if !on_cpu(&[x, log_scale]) {
+        let logits = x.tanh()?.broadcast_mul(&log_scale.exp()?)?;
+        return candle_nn::ops::softmax(&logits, 1);
+    }
+    x.contiguous()?.apply_op2(log_scale, SelectSoftmax)
+}
+
+struct SelectSoftmax;
+
+impl SelectSoftmax {
+    /// Softmax over `d` of `tanh(x) a` for columns `j0..j1` of one batch item (`x`, `s`:
+    /// `[d, p]`).
+    ///
+    /// # Safety
+    /// `s` addresses `d * p` values of which no other thread touches these columns.
+    unsafe fn columns<T: Float>(
+        x: &[T],
+        s: *mut T,
+        a: T,
+        (d, p): (usize, usize),
+        j0: usize,
+        j1: usize,
+    ) {
+        let mut m = vec![T::neg_infinity(); j1 - j0];
+        for i in 0..d {
+            for (j, mj) in (j0..j1).zip(m.iter_mut()) {
+                let z = x[i * p + j].tanh() * a;
+                *s.add(i * p + j) = z;
+                *mj = mj.max(z);
+            }
+        }
+        let mut sum = vec![T::zero(); j1 - j0];
+        for i in 0..d {
+            for ((j, &mj), sj) in (j0..j1).zip(&m).zip(sum.iter_mut()) {
+                let e = (*s.add(i * p + j) - mj).exp();
+                *s.add(i * p + j) = e;
+                *sj = *sj + e;
+            }
+        }
+        for i in 0..d {
+            for (j, &sj) in (j0..j1).zip(&sum) {
+                *s.add(i * p + j) = *s.add(i * p + j) / sj;
+            }
+        }
+    }
+
+    fn fwd<T: WithDType + Float>(x: &[T], a: T, (d, p): (usize, usize)) -> Vec<T> {
+        let mut s = vec![T::zero(); x.len()];
+        let sp = SharedMut(s.as_mut_ptr());
+        par_columns(x.len() / (d * p), p, |b, j0, j1| {
+            // SAFETY: items own disjoint columns of one batch item.
+            unsafe {
+                Self::columns(
+                    &x[b * d * p..][..d * p],
+                    sp.get().add(b * d * p),
+                    a,
+                    (d, p),
+                    j0,
+                    j1,
+                )
+            }
+        });
+        s
+    }
+
+    /// `(dx, d log_scale)` from the output `s` and its gradient `ds`.
+    fn bwd_typed<T: WithDType + Float>(
+        x: &[T],
+        s: &[T],
+        ds: &[T],
+        a: T,
+        (d, p): (usize, usize),
+    ) -> (Vec<T>, T) {
+        let mut dx = vec![T::zero(); x.len()];
+        let dxp = SharedMut(dx.as_mut_ptr());
+        let per = p.div_ceil(COLUMNS);
+        let dls: Vec<T> = (0..x.len() / (d * p) * per)
+            .into_par_iter()
+            .map(|it| {
+                let (b, j0) = (it / per, (it % per) * COLUMNS);
+                let j1 = (j0 + COLUMNS).min(p);
+                let o = b * d * p;
+                let mut dls = T::zero();
+                for j in j0..j1 {
+                    let dot = (0..d).fold(T::zero(), |acc, i| {
+                        acc + s[o + i * p + j] * ds[o + i * p + j]
+                    });
+                    for i in 0..d {
+                        let k = o + i * p + j;
+                        let dz = s[k] * (ds[k] - dot);
+                        let t = x[k].tanh();
+                        dls += dz * t * a;
+                        // SAFETY: items own disjoint columns.
+                        unsafe { *dxp.get().add(k) = dz * a * (T::one() - t * t) };
+                    }
+                }
+                dls
+            })
+            .collect();
+        (dx, dls.into_iter().fold(T::zero(), |acc, v| acc + v))
+    }
+}
+
+impl CustomOp2 for SelectSoftmax {
+    fn name(&self) -> &'static str {
+        "deepstereo-select-softmax"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (_, d, p) = l1.shape().dims3()?;
+        let y = match s1 {
+            CpuStorage::F32(_) => {
+                let a = slice::<f32>(s2, l2)?[0].exp();
+                CpuStorage::F32(Self::fwd(slice::<f32>(s1, l1)?, a, (d, p)))
+            }
+            CpuStorage::F64(_) => {
+                let a = slice::<f64>(s2, l2)?[0].exp();
+                CpuStorage::F64(Self::fwd(slice::<f64>(s1, l1)?, a, (d, p)))
+            }
+            _ => bail!("select_softmax: f32 or f64 only"),
+        };
+        Ok((y, l1.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        ls: &Tensor,
+        s: &Tensor,
+        ds: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (_, d, p) = x.dims3()?;
+        let ds = ds.contiguous()?;
+        fn run<T: WithDType + Float>(
+            x: &Tensor,
+            ls: &Tensor,
+            s: &Tensor,
+            ds: &Tensor,
+            dp: (usize, usize),
+        ) -> Result<(Tensor, Tensor)> {
+            let (dx, dls) = {
+                let (xs, xl) = x.storage_and_layout();
+                let (ss, sl) = s.storage_and_layout();
+                let (gs, gl) = ds.storage_and_layout();
+                let (ls_s, ls_l) = ls.storage_and_layout();
+                let a = data::<T>(&ls_s, ls_l)?[0].exp();
+                let (x, s, g) = (
+                    data::<T>(&xs, xl)?,
+                    data::<T>(&ss, sl)?,
+                    data::<T>(&gs, gl)?,
+                );
+                SelectSoftmax::bwd_typed(x, s, g, a, dp)
+            };
+            Ok((
+                Tensor::from_vec(dx, x.shape(), x.device())?,
+                Tensor::from_vec(vec![dls], 1, x.device())?,
+            ))
+        }
+        let (dx, dls) = match x.dtype() {
+            DType::F32 => run::<f32>(x, ls, s, &ds, (d, p))?,
+            DType::F64 => run::<f64>(x, ls, s, &ds, (d, p))?,
+            dt => bail!("select_softmax: f32 or f64 only, got {dt:?}"),
+        };
+        Ok((Some(dx), Some(dls)))
+    }
+}
+
+/// The rendered colour `sum over D of s c`: colours `[B, D, 3, P]`, selection `[B, D, P]`
+/// -> `[B, 3, P]`.
+pub fn composite(colours: &Tensor, selection: &Tensor) -> Result<Tensor> {
+    let (b, d, _, p) = colours.dims4()?;
+    if selection.dims() != [b, d, p] {
+        bail!(
+            "composite: selection {:?} does not match colours {:?}",
+            selection.dims(),
+            colours.dims()
+        );
+    }
+    if !on_cpu(&[colours, selection]) {
+        return colours.broadcast_mul(&selection.unsqueeze(2)?)?.sum(1);
+    }
+    colours
+        .contiguous()?
+        .apply_op2(&selection.contiguous()?, Composite)
+}
+
+struct Composite;
+
+impl Composite {
+    fn fwd<T: WithDType>(col: &[T], sel: &[T], (d, c, p): (usize, usize, usize)) -> Vec<T> {
+        let mut out = vec![T::zero(); col.len() / d];
+        let op = SharedMut(out.as_mut_ptr());
+        par_columns(col.len() / (d * c * p), p, |b, j0, j1| {
+            for z in 0..d {
+                let s = &sel[(b * d + z) * p..][j0..j1];
+                for ch in 0..c {
+                    let cz = &col[((b * d + z) * c + ch) * p..][j0..j1];
+                    // SAFETY: items own disjoint columns of the output.
+                    let o = unsafe {
+                        std::slice::from_raw_parts_mut(op.get().add((b * c + ch) * p + j0), j1 - j0)
+                    };
+                    for ((ov, &cv), &sv) in o.iter_mut().zip(cz).zip(s) {
+                        *ov += cv * sv;
+                    }
+                }
+            }
+        });
+        out
+    }
+
+    /// `(d colours, d selection)` from the output gradient `g` `[B, C, P]`.
+    fn bwd_typed<T: WithDType>(
+        col: &[T],
+        sel: &[T],
+        g: &[T],
+        (d, c, p): (usize, usize, usize),
+    ) -> (Vec<T>, Vec<T>) {
+        let mut dcol = vec![T::zero(); col.len()];
+        let mut dsel = vec![T::zero(); sel.len()];
+        dcol.par_chunks_mut(c * p)
+            .zip(dsel.par_chunks_mut(p))
+            .enumerate()
+            .for_each(|(bz, (dc, ds))| {
+                let (b, s) = (bz / d, &sel[bz * p..][..p]);
+                for ch in 0..c {
+                    let gc = &g[(b * c + ch) * p..][..p];
+                    let cz = &col[(bz * c + ch) * p..][..p];
+                    let dcc = &mut dc[ch * p..][..p];
+                    for j in 0..p {
+                        dcc[j] = s[j] * gc[j];
+                        ds[j] += cz[j] * gc[j];
+                    }
+                }
+            });
+        (dcol, dsel)
+    }
+}
+
+impl CustomOp2 for Composite {
+    fn name(&self) -> &'static str {
+        "deepstereo-composite"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (b, d, c, p) = l1.shape().dims4()?;
+        let y = match s1 {
+            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
+                slice::<f32>(s1, l1)?,
+                slice::<f32>(s2, l2)?,
+                (d, c, p),
+            )),
+            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
+                slice::<f64>(s1, l1)?,
+                slice::<f64>(s2, l2)?,
+                (d, c, p),
+            )),
+            _ => bail!("composite: f32 or f64 only"),
+        };
+        Ok((y, Shape::from((b, c, p))))
+    }
+
+    fn bwd(
+        &self,
+        col: &Tensor,
+        sel: &Tensor,
+        _out: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (_, d, c, p) = col.dims4()?;
+        let g = g.contiguous()?;
+        fn run<T: WithDType>(
+            col: &Tensor,
+            sel: &Tensor,
+            g: &Tensor,
+            dcp: (usize, usize, usize),
+        ) -> Result<(Tensor, Tensor)> {
+            let (dc, ds) = {
+                let (cs, cl) = col.storage_and_layout();
+                let (ss, sl) = sel.storage_and_layout();
+                let (gs, gl) = g.storage_and_layout();
+                Composite::bwd_typed(
+                    data::<T>(&cs, cl)?,
+                    data::<T>(&ss, sl)?,
+                    data::<T>(&gs, gl)?,
+                    dcp,
+                )
+            };
+            Ok((
+                Tensor::from_vec(dc, col.shape(), col.device())?,
+                Tensor::from_vec(ds, sel.shape(), sel.device())?,
+            ))
+        }
+        let (dc, ds) = match col.dtype() {
+            DType::F32 => run::<f32>(col, sel, &g, (d, c, p))?,
+            DType::F64 => run::<f64>(col, sel, &g, (d, c, p))?,
+            dt => bail!("composite: f32 or f64 only, got {dt:?}"),
+        };
+        Ok((Some(dc), Some(ds)))
+    }
+}

@@ -1,0 +1,83 @@
+//! Fused CPU ops for the glue between the network's convolutions, where candle's generic
+//! ops would copy through strided index arithmetic or allocate one tensor per step.
+//!
+//! - [`upsample_crop`]: nearest upsampling by an integer factor and a crop, in one pass
+//!   (the towers' coarse levels), with its backward (sums over each source pixel's block);
+//! - [`select_softmax`]: the selection tower's head, `softmax_D(tanh(x) exp(log_scale))`;
+//! - [`composite`]: the rendered colour `sum_z s_z c_z`;
+//! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding) and
+//!   optionally zero columns on the right, reading a transposed view directly (no
+//!   separate transpose copy).
+//!
+//! Each op equals a composition of candle ops, which is also the fallback off the CPU or
+//! for dtypes other than f32 / f64 (tests compare the two, values and gradients).
+
+mod head;
+mod pad;
+#[cfg(test)]
+mod tests;
+mod upsample;
+
+pub use head::{composite, select_softmax};
+pub use pad::pad_rows;
+pub use upsample::upsample_crop;
+
+use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};
+use rayon::prelude::*;
+
+/// The contiguous elements of a CPU storage under `l`.
+fn slice<'a, T: WithDType>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
+    match l.contiguous_offsets() {
+        Some((a, b)) => Ok(&s.as_slice::<T>()?[a..b]),
+        None => bail!("fused op: expected a contiguous tensor"),
+    }
+}
+
+/// `dx` of a one-input op from `dy`, computed on CPU slices by `f32` or `f64` (the same
+/// generic function, once per type).
+fn plane_grad(
+    x: &Tensor,
+    dy: &Tensor,
+    f32: impl Fn(&[f32]) -> Vec<f32>,
+    f64: impl Fn(&[f64]) -> Vec<f64>,
+) -> Result<Option<Tensor>> {
+    let dy = dy.contiguous()?;
+    let (st, l) = dy.storage_and_layout();
+    let dx = match x.dtype() {
+        DType::F32 => Tensor::from_vec(f32(data::<f32>(&st, l)?), x.shape(), x.device())?,
+        DType::F64 => Tensor::from_vec(f64(data::<f64>(&st, l)?), x.shape(), x.device())?,
+        dt => bail!("fused op: f32 or f64 only, got {dt:?}"),
+    };
+    Ok(Some(dx))
+}
+
+/// The contiguous elements of a CPU tensor.
+fn data<'a, T: WithDType>(s: &'a Storage, l: &Layout) -> Result<&'a [T]> {
+    let Storage::Cpu(cpu) = s else {
+        bail!("fused op: CPU tensor expected")
+    };
+    slice(cpu, l)
+}
+
+/// Whether the fused CPU kernels run these tensors (else: the candle composition).
+fn on_cpu(ts: &[&Tensor]) -> bool {
+    ts.iter()
+        .all(|t| t.device().is_cpu() && matches!(t.dtype(), DType::F32 | DType::F64))
+        && ts.windows(2).all(|p| p[0].dtype() == p[1].dtype())
+}
+
+/// Columns (pixels) per parallel work item of the per-pixel ops.
+const COLUMNS: usize = 512;
+
+/// Runs `f(b, j0, j1)` on all threads over batch items and column ranges `j0..j1` of
+/// [`COLUMNS`] pixels (`p` pixels per item).
+fn par_columns(b: usize, p: usize, f: impl Fn(usize, usize, usize) + Sync) {
+    let per = p.div_ceil(COLUMNS);
+    (0..b * per).into_par_iter().for_each(|i| {
+        f(
+            i / per,
+            (i % per) * COLUMNS,
+            ((i % per + 1) * COLUMNS).min(p),
+        )
+    });
+}

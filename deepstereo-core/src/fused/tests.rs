@@ -1,0 +1,116 @@
+//! The fused ops against the candle compositions they replace (values and gradients).
+
+use super::*;
+use candle_core::DType;
+use candle_core::{Device, Var};
+
+#[test]
+fn upsample_crop_matches_composition() -> Result<()> {
+    for (s, off, h, w, hi, wi) in [(2, 3, 10, 12, 8, 9), (4, 0, 8, 8, 2, 2), (2, 1, 5, 3, 3, 2)] {
+        for dt in [DType::F32, DType::F64] {
+            let x = Var::from_tensor(
+                &Tensor::randn(0f64, 1., (2, 3, hi, wi), &Device::Cpu)?.to_dtype(dt)?,
+            )?;
+            let r = Tensor::randn(0f64, 1., (2, 3, h, w), &Device::Cpu)?.to_dtype(dt)?;
+            let want = crate::model::upsample_nearest(x.as_tensor(), s)?
+                .narrow(2, off, h)?
+                .narrow(3, off, w)?;
+            let got = upsample_crop(x.as_tensor(), s, off, h, w)?;
+            let diff = (&got - &want)?.abs()?.max_all()?.to_dtype(DType::F64)?;
+            assert_eq!(diff.to_scalar::<f64>()?, 0.0);
+            let gw = (want * &r)?.sum_all()?.backward()?;
+            let gg = (got * &r)?.sum_all()?.backward()?;
+            let (a, b) = (
+                gw.get(x.as_tensor()).unwrap(),
+                gg.get(x.as_tensor()).unwrap(),
+            );
+            let e = (a - b)?
+                .abs()?
+                .max_all()?
+                .to_dtype(DType::F64)?
+                .to_scalar::<f64>()?;
+            assert!(e < 1e-5, "{s} {off} {dt:?}: {e}");
+        }
+    }
+    assert!(upsample_crop(
+        &Tensor::zeros((1, 1, 2, 2), DType::F32, &Device::Cpu)?,
+        2,
+        1,
+        4,
+        4
+    )
+    .is_err());
+    Ok(())
+}
+
+/// max |a - b| over two tensors.
+fn max_diff(a: &Tensor, b: &Tensor) -> Result<f64> {
+    (a - b)?
+        .abs()?
+        .flatten_all()?
+        .max(0)?
+        .to_dtype(DType::F64)?
+        .to_scalar::<f64>()
+}
+
+#[test]
+fn select_softmax_and_composite_match_composition() -> Result<()> {
+    let dev = &Device::Cpu;
+    for dt in [DType::F32, DType::F64] {
+        let tol = if dt == DType::F32 { 1e-5 } else { 1e-12 };
+        let x = Var::from_tensor(&Tensor::randn(0f64, 2., (2, 7, 11), dev)?.to_dtype(dt)?)?;
+        let ls = Var::from_tensor(&Tensor::new(&[1.7f64], dev)?.to_dtype(dt)?)?;
+        let col = Var::from_tensor(&Tensor::randn(0f64, 1., (2, 7, 3, 11), dev)?.to_dtype(dt)?)?;
+        let r = Tensor::randn(0f64, 1., (2, 3, 11), dev)?.to_dtype(dt)?;
+        let rs = Tensor::randn(0f64, 1., (2, 7, 11), dev)?.to_dtype(dt)?;
+        let reference = |fused: bool| -> Result<Vec<Tensor>> {
+            let (s, img) = if fused {
+                let s = select_softmax(x.as_tensor(), ls.as_tensor())?;
+                let img = composite(col.as_tensor(), &s)?;
+                (s, img)
+            } else {
+                let logits = x
+                    .as_tensor()
+                    .tanh()?
+                    .broadcast_mul(&ls.as_tensor().exp()?)?;
+                let s = candle_nn::ops::softmax(&logits, 1)?;
+                let img = col.as_tensor().broadcast_mul(&s.unsqueeze(2)?)?.sum(1)?;
+                (s, img)
+            };
+            let loss = ((img * &r)?.sum_all()? + (&s * &rs)?.sum_all()?)?;
+            let g = loss.backward()?;
+            let mut out = vec![s, loss];
+            for v in [&x, &ls, &col] {
+                out.push(g.get(v.as_tensor()).expect("gradient").clone());
+            }
+            Ok(out)
+        };
+        let (got, want) = (reference(true)?, reference(false)?);
+        for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+            let e = max_diff(a, b)?;
+            assert!(e < tol, "{dt:?} output {i}: {e}");
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn pad_rows_matches_pad_with_zeros() -> Result<()> {
+    let dev = &Device::Cpu;
+    for dt in [DType::F32, DType::F64] {
+        let v = Var::from_tensor(&Tensor::randn(0f64, 1., (2, 5, 3, 7), dev)?.to_dtype(dt)?)?;
+        let view = v.as_tensor().transpose(1, 2)?; // [2, 3, 5, 7], strided
+        let r = Tensor::randn(0f64, 1., (2, 3, 9, 10), dev)?.to_dtype(dt)?;
+        let got = pad_rows(&view, 2, 3)?;
+        let want = view.pad_with_zeros(2, 2, 2)?.pad_with_zeros(3, 0, 3)?;
+        assert_eq!(max_diff(&got, &want)?, 0.0);
+        let gg = (got * &r)?.sum_all()?.backward()?;
+        let gw = (want * &r)?.sum_all()?.backward()?;
+        let e = max_diff(
+            gg.get(v.as_tensor()).unwrap(),
+            gw.get(v.as_tensor()).unwrap(),
+        )?;
+        assert_eq!(e, 0.0);
+    }
+    Ok(())
+}
