@@ -46,9 +46,11 @@
 //! - The im2col path spent a fifth of the `tiny` forward copying im2col runs (`perf`), and
 //!   the `gemm` crate's f32 kernel vectorises along `Cout`, wasting a quarter of a 16-row
 //!   tile at `Cout = 12`. The implicit-GEMM kernels took the `tiny` forward 1.2-1.3x and
-//!   its training step 1.1-1.2x faster (`DEEPSTEREO_CONV=im2col` against the default in
-//!   `examples/forward_probe.rs`, runs alternated); a pure FMA loop reaches ~190 GFLOP/s
-//!   on the 2 cores, the kernels 100-130 on the large layers.
+//!   its training step 1.2-1.45x faster (`DEEPSTEREO_CONV=im2col` against the default in
+//!   `examples/forward_probe.rs`, runs alternated; `paper`'s forward 1.1x). The `paper`
+//!   backward stays on im2col + `gemm` (its direct backward was ~15% slower).
+//! - Rows whose byte stride is a multiple of 4 KiB (depth rows of a 64x64 tile) put all
+//!   the taps of a tile in one L1 set; the model shifts them by a cache line.
 //! - candle's own autograd over an im2col op plus `broadcast_matmul` (weights `[Cout, K]`
 //!   against cols `[N, K, P]`) was slower even before counting im2col / col2im: for
 //!   768x64x18x18 -> 96, 5x5 its matmul backward alone took about 2.2 s against 0.8 s for
