@@ -137,6 +137,7 @@ impl CustomOp3 for ConvOp {
     ) -> Result<(CpuStorage, Shape)> {
         let g = geom(xl.dims(), wl.dims())?;
         let shape = Shape::from((g.n, g.cout, g.ho(), g.wo()));
+        let _timer = CallTimer::start(g, "forward", 1.0);
         fn slice<'a, T: WithDType>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
             match l.contiguous_offsets() {
                 Some((a, b)) => Ok(&s.as_slice::<T>()?[a..b]),
@@ -177,6 +178,8 @@ impl CustomOp3 for ConvOp {
     }
 
     fn bwd(&self, x: &Tensor, w: &Tensor, b: &Tensor, y: &Tensor, dy: &Tensor) -> Result<Grads> {
+        let work = if x.track_op() { 2.0 } else { 1.0 }; // dW, and dx when asked for
+        let _timer = CallTimer::start(geom(x.dims(), w.dims())?, "backward", work);
         let dy = dy.contiguous()?;
         let t = (x, w, b, y, &dy);
         match x.dtype() {
@@ -185,5 +188,49 @@ impl CustomOp3 for ConvOp {
             DType::F64 => self.bwd_typed::<f64>(t),
             dt => bail!("conv2d: f32 or f64 only, got {dt:?}"),
         }
+    }
+}
+
+/// With `DEEPSTEREO_CONV_PROFILE=1`, each convolution call prints its shape, time and
+/// GFLOP/s to stderr when it ends (a per-layer profile of any command; read once).
+struct CallTimer {
+    g: Geom,
+    what: &'static str,
+    /// Products of the call in units of the forward's.
+    work: f64,
+    start: std::time::Instant,
+}
+
+impl CallTimer {
+    fn start(g: Geom, what: &'static str, work: f64) -> Option<Self> {
+        static ON: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        ON.get_or_init(|| std::env::var("DEEPSTEREO_CONV_PROFILE").is_ok_and(|v| v == "1"))
+            .then(|| Self {
+                g,
+                what,
+                work,
+                start: std::time::Instant::now(),
+            })
+    }
+}
+
+impl Drop for CallTimer {
+    fn drop(&mut self) {
+        let g = self.g;
+        let s = self.start.elapsed().as_secs_f64();
+        let flop = 2.0 * self.work * (g.n * g.p() * g.k() * g.cout) as f64;
+        eprintln!(
+            "conv {} {}x{}x{}x{} -> {}, {}x{}: {:.2} ms, {:.1} GFLOP/s",
+            self.what,
+            g.n,
+            g.cin,
+            g.h,
+            g.w,
+            g.cout,
+            g.kh,
+            g.kw,
+            s * 1e3,
+            flop / s * 1e-9
+        );
     }
 }
