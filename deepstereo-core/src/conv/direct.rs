@@ -174,12 +174,17 @@ fn blocks(g: &Geom) -> Vec<(usize, Vec<Tile>)> {
             .map(|t| flat_tile((t * NC).min(q - NC)))
             .collect()
     };
-    let per_row = if by_rows(g) { row_tiles(wo).count() } else { 1 };
+    // Tiles that may overlap: a row's last two, or (flat) an image's last two.
+    let per_row = if by_rows(g) {
+        row_tiles(wo).count()
+    } else {
+        image.len()
+    };
     let per = (image.len().min((g.n * image.len()).div_ceil(want))).clamp(1, BLOCK_TILES);
     let mut out = Vec::new();
     if per_row > per {
-        // Long rows are cut into runs of tiles; a row's last tile may overlap the one
-        // before it, so the two stay in one run (one thread writes their outputs).
+        // Long rows (or flat images) are cut into runs of tiles; the last tile may overlap
+        // the one before it, so the two stay in one run (one thread writes their outputs).
         for n in 0..g.n {
             for row in image.chunks(per_row) {
                 let mut runs: Vec<&[Tile]> = row.chunks(per).collect();
