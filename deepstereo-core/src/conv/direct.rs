@@ -2,10 +2,7 @@
 //!
 //! Flat positions: output pixel `(r, c)` of an image sits at `q = r * W + c` (the input's
 //! row stride), so tap `k = (ci * kh + i) * kw + j` reads input `q + offset[k]` with
-//! `offset[k] = ci * H * W + i * W + j`, whatever `q` is. Positions `q < Q = (Ho - 1) * W +
-//! Wo` are computed in runs of [`NC`] consecutive ones, including the `kw - 1` columns at
-//! the end of each row that are not outputs (they are computed and dropped: `(kw - 1) /
-//! W` of the work, instead of a partial tile per row).
+//! `offset[k] = ci * H * W + i * W + j`, whatever `q` is.
 //!
 //! A tile is [`MR`] output channels x [`NC`] positions: per tap, 2 unaligned loads of `x`,
 //! `MR` broadcast weights, `2 MR` FMAs into 12 registers. Weights are packed once per
@@ -14,10 +11,13 @@
 //! tiles wait in a small buffer between tap blocks). Bias starts the sums; ReLU is
 //! applied on the way out.
 //!
-//! Threads take work blocks of up to [`BLOCK_TILES`] tiles of one image. The last tile of a
-//! block is shifted left to end at the block's end (it recomputes a few positions instead
-//! of masking), so blocks hold at least [`NC`] positions and layers need `Q >= NC`
-//! ([`applies`]); smaller ones keep the im2col path.
+//! Tiles follow output rows (full tiles, then the row's remainder as a half tile of 8 or
+//! a full tile shifted left to end at the row's end) when rows are long enough
+//! ([`by_rows`]); otherwise they run over flat positions `q < Q = (Ho - 1) * W + Wo`,
+//! computing and dropping the `kw - 1` columns past `Wo` of each row (the last tile
+//! shifted left to end at `Q`). Layers need `Q >= NC` ([`applies`]); smaller ones keep the
+//! im2col path. Threads take runs of up to [`BLOCK_TILES`] tiles of one image; a tile that
+//! overlaps its neighbour stays in its neighbour's run.
 
 use super::im2col::{Geom, SharedMut};
 use rayon::prelude::*;
@@ -27,7 +27,7 @@ pub(crate) const MR: usize = 6;
 /// Output positions per tile (two 8-lane vectors).
 pub(crate) const NC: usize = 16;
 /// Taps per block: a panel's block (`KC x MR` floats, 6 KiB) and the input lines a tile
-/// reads for them stay in L1 (256 was faster than 128 and 512 on the paper's 5x5 layers).
+/// reads for them stay in L1 (128 and 512 measured no better on the paper's 5x5 layers).
 const KC: usize = 256;
 /// Most tiles per work block.
 const BLOCK_TILES: usize = 32;
