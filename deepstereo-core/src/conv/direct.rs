@@ -227,7 +227,10 @@ pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> 
     let mut y = Vec::<f32>::with_capacity(len);
     let yp = SharedMut(y.as_mut_ptr());
     blocks(g).into_par_iter().for_each(|(n, tiles)| {
-        let mut partial = vec![[[0f32; NC]; MR]; tiles.len()];
+        // Partial sums per tile only between tap blocks; with one block, one scratch tile
+        // serves the tiles whose outputs are scattered.
+        let multi = k > KC;
+        let mut partial = vec![[[0f32; NC]; MR]; if multi { tiles.len() } else { 1 }];
         let x_img = &x[n * g.cin * g.hw()..(n + 1) * g.cin * g.hw()];
         for panel in 0..cout.div_ceil(MR) {
             let mr = (cout - panel * MR).min(MR);
@@ -237,7 +240,8 @@ pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> 
             for k0 in (0..k).step_by(KC) {
                 let k1 = (k0 + KC).min(k);
                 let (first, last) = (k0 == 0, k1 == k);
-                for (tile, part) in tiles.iter().zip(partial.iter_mut()) {
+                for (t, tile) in tiles.iter().enumerate() {
+                    let part = &mut partial[if multi { t } else { 0 }];
                     // The last tap block of a tile with consecutive outputs stores them.
                     let end = match tile.out {
                         Some(o) if last => End::Store {
