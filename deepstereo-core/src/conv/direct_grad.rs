@@ -4,8 +4,8 @@
 //! - `gy`, the ReLU-masked output gradient, is laid out at the input's row stride (zeros
 //!   past `Wo`), the bias gradient summed on the way;
 //! - input gradient: the "full" convolution of `gy` (laid out again, zero-padded by
-//!   `kh - 1`, `kw - 1`) with the weights flipped in space and transposed in channels, run
-//!   by [`direct::forward`];
+//!   `kh - 1`, `kw - 1`; one layout serves both when `kw = 1`) with the weights flipped in
+//!   space and transposed in channels, run by [`direct::forward_best`];
 //! - weight gradient `dW [Cout, K] = sum over flat positions q of gy[co, q] x[q +
 //!   offset[k]]` (positions as in `direct.rs`; those past `Wo` add zero): a reduction
 //!   vectorised along positions. A tile holds [`GR`] output channels x [`GK`] taps in 12
