@@ -41,6 +41,16 @@ fn ok(args: &[&str]) -> CmdOutput {
     res
 }
 
+/// `deepstereo eval --scene <scene> --holdout <holdout> <extra...> --json -`, parsed.
+fn eval_json(scene: &Path, holdout: &str, extra: &[&str]) -> serde_json::Value {
+    let sd = scene.to_string_lossy();
+    let mut args = vec!["eval", "--scene", &sd, "--holdout", holdout];
+    args.extend_from_slice(extra);
+    args.extend_from_slice(&["--json", "-"]);
+    let res = ok(&args);
+    serde_json::from_str(&res.stdout).expect("JSON on stdout")
+}
+
 /// Shape and values of a little-endian f32 `.npy` file.
 fn read_npy_f32(path: &Path) -> (Vec<usize>, Vec<f32>) {
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
@@ -135,18 +145,7 @@ fn render_along_a_path_writes_a_numbered_sequence() {
 fn eval_json_has_the_documented_layout() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let s = scene(tmp.path());
-    let res = ok(&[
-        "eval",
-        "--scene",
-        &s.to_string_lossy(),
-        "--holdout",
-        "1,4",
-        "--planes",
-        "8",
-        "--json",
-        "-",
-    ]);
-    let v: serde_json::Value = serde_json::from_str(&res.stdout).expect("JSON on stdout");
+    let v = eval_json(&s, "1,4", &["--planes", "8"]);
     for k in [
         "scene", "model", "backend", "planes", "views", "per_view", "mean",
     ] {
@@ -173,20 +172,7 @@ fn eval_json_has_the_documented_layout() {
     // Pruning is on by default; `--prune off` is the plain renderer, with no prune stats.
     assert_eq!(v["prune"], "auto");
     assert!(per_view[0].get("prune").is_some());
-    let res = ok(&[
-        "eval",
-        "--scene",
-        &s.to_string_lossy(),
-        "--holdout",
-        "1",
-        "--planes",
-        "8",
-        "--prune",
-        "off",
-        "--json",
-        "-",
-    ]);
-    let v: serde_json::Value = serde_json::from_str(&res.stdout).expect("JSON on stdout");
+    let v = eval_json(&s, "1", &["--planes", "8", "--prune", "off"]);
     assert_eq!(v["prune"], "off");
     assert!(v["per_view"][0].get("prune").is_none(), "{v}");
 }
@@ -281,20 +267,7 @@ fn report_rejects_impossible_grids_by_name() {
 fn eval_with_pruning_reports_what_it_left_out() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let s = scene(tmp.path());
-    let res = ok(&[
-        "eval",
-        "--scene",
-        &s.to_string_lossy(),
-        "--holdout",
-        "3",
-        "--planes",
-        "96",
-        "--prune",
-        "auto",
-        "--json",
-        "-",
-    ]);
-    let v: serde_json::Value = serde_json::from_str(&res.stdout).expect("JSON on stdout");
+    let v = eval_json(&s, "3", &["--planes", "96", "--prune", "auto"]);
     assert_eq!(v["prune"], "auto");
     let pv = &v["per_view"][0];
     assert!(pv["psnr"].as_f64().expect("psnr").is_finite());
@@ -312,20 +285,7 @@ fn fewer_source_views_than_the_model_takes_work_and_more_are_refused() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let s = scene(tmp.path());
     let sd = s.to_string_lossy().into_owned();
-    let res = ok(&[
-        "eval",
-        "--scene",
-        &sd,
-        "--holdout",
-        "2",
-        "--planes",
-        "8",
-        "--views",
-        "2",
-        "--json",
-        "-",
-    ]);
-    let v: serde_json::Value = serde_json::from_str(&res.stdout).expect("JSON on stdout");
+    let v = eval_json(&s, "2", &["--planes", "8", "--views", "2"]);
     assert_eq!(v["views"], 2);
     assert!(v["per_view"][0]["psnr"].as_f64().expect("psnr").is_finite());
     // The embedded model takes 4 views: 5 (and 0) are refused by name.

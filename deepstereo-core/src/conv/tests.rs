@@ -128,6 +128,33 @@ fn input_without_gradient() -> Result<()> {
     Ok(())
 }
 
+/// `loss(x, conv)` with argument `which` (0 input, 1 weight, 2 bias) replaced by `t`.
+fn replaced(
+    which: usize,
+    t: Tensor,
+    x: &Tensor,
+    conv: &Conv2d,
+    loss: impl Fn(&Tensor, &Conv2d) -> Result<f64>,
+) -> Result<f64> {
+    match which {
+        0 => loss(&t, conv),
+        1 => loss(
+            x,
+            &Conv2d {
+                weight: t,
+                bias: conv.bias.clone(),
+            },
+        ),
+        _ => loss(
+            x,
+            &Conv2d {
+                weight: conv.weight.clone(),
+                bias: t,
+            },
+        ),
+    }
+}
+
 #[test]
 fn finite_differences_f64() -> Result<()> {
     for shape in [
@@ -153,23 +180,7 @@ fn finite_differences_f64() -> Result<()> {
                     let mut p = v.clone();
                     p[i] += d;
                     let t = Tensor::from_vec(p, base.shape(), &Device::Cpu)?;
-                    match which {
-                        0 => loss(&t, &conv),
-                        1 => loss(
-                            x.as_tensor(),
-                            &Conv2d {
-                                weight: t,
-                                bias: conv.bias.clone(),
-                            },
-                        ),
-                        _ => loss(
-                            x.as_tensor(),
-                            &Conv2d {
-                                weight: conv.weight.clone(),
-                                bias: t,
-                            },
-                        ),
-                    }
+                    replaced(which, t, x.as_tensor(), &conv, loss)
                 };
                 let fd = (at(eps)? - at(-eps)?) / (2.0 * eps);
                 let e = (fd - analytic[i]).abs() / analytic[i].abs().max(1.0);
@@ -374,24 +385,7 @@ fn direct_path_finite_differences_f32() -> Result<()> {
                 .to_dtype(DType::F64)?
                 .to_scalar::<f64>()?;
             let at = |d: f64| -> Result<f64> {
-                let t = (base + (&v * d)?)?;
-                match which {
-                    0 => loss(&t, &conv),
-                    1 => loss(
-                        x.as_tensor(),
-                        &Conv2d {
-                            weight: t,
-                            bias: conv.bias.clone(),
-                        },
-                    ),
-                    _ => loss(
-                        x.as_tensor(),
-                        &Conv2d {
-                            weight: conv.weight.clone(),
-                            bias: t,
-                        },
-                    ),
-                }
+                replaced(which, (base + (&v * d)?)?, x.as_tensor(), &conv, loss)
             };
             let fd = (at(eps)? - at(-eps)?) / (2.0 * eps);
             let e = (fd - analytic).abs() / analytic.abs().max(1.0);
