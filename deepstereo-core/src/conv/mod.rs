@@ -43,7 +43,7 @@
 //! - 1x1 kernels skip im2col / col2im: gemm reads `x` and writes `dx` in place.
 //!
 //! # Measurements behind the choices (2 cores of an AMD EPYC with AVX2, shared machine)
-//! - The im2col path spent a fifth of the `tiny` forward copying im2col runs (`perf`), and
+//! - The im2col path spent about a sixth of the `tiny` forward copying im2col runs (`perf`), and
 //!   the `gemm` crate's f32 kernel vectorises along `Cout`, wasting a quarter of a 16-row
 //!   tile at `Cout = 12`. The implicit-GEMM kernels took the `tiny` forward 1.2-1.3x and
 //!   its training step 1.2-1.45x faster (`DEEPSTEREO_CONV=im2col` against the default in
