@@ -1,17 +1,20 @@
 //! Channel-vectorised implicit-GEMM forward (f32, AVX2 and FMA) for wide layers: output
 //! channels a multiple of [`CV`] and many taps (the `paper` preset's layers).
 //!
-//! A tile is [`CV`] output channels (two 8-lane vectors) x [`NP`] consecutive outputs of
-//! one row. Per tap: two aligned loads of packed weights (`[K, CV]` panels), `NP` scalar
-//! broadcasts of `x` (never split across cache lines, unlike `direct.rs`'s unaligned
-//! vector loads), `2 NP` FMAs into 12 registers. Rows are cut into tiles of `NP` (the
-//! last one shifted left to end at the row's end), so a row wastes less than `NP`
-//! outputs, against up to 15 for `direct.rs`'s 16-wide tiles. Outputs leave through an
-//! 8 x 8 register transpose and masked stores of `NP` lanes (channels are planes in NCHW;
-//! scalar stores had taken about 8% of a `paper` forward).
+//! A tile is [`CV`] output channels (two 8-lane vectors) x [`NP`] outputs, each with its
+//! own input pointer. Per tap: two aligned loads of packed weights (`[K, CV]` panels),
+//! `NP` scalar broadcasts of `x` (never split across cache lines, unlike `direct.rs`'s
+//! unaligned vector loads), `2 NP` FMAs into 12 registers. Rows are cut into tiles of `NP`
+//! consecutive outputs; the last `Wo % NP` outputs of each row are gathered across a work
+//! block's rows into tiles of their own, so nothing is computed twice but the padding of
+//! a block's last gathered tile (shifting a row's last tile left instead had wasted up to
+//! a fifth of the `paper` training patches' layers, e.g. 4 of 24 outputs in rows of 20).
+//! Row tiles' outputs leave through an 8 x 8 register transpose and masked stores of `NP`
+//! lanes (channels are planes in NCHW; scalar stores had taken about 8% of a `paper`
+//! forward); gathered tiles store theirs one by one.
 //! Taps are blocked by [`KC`] as in `direct.rs`.
 
-use super::direct::{available, kernels_allowed, tap_offsets, Kernels};
+use super::direct::{available, kernels_allowed, tap_offsets, Kernels, LineAligned};
 use super::im2col::{Geom, SharedMut};
 use rayon::prelude::*;
 
@@ -38,9 +41,10 @@ pub(crate) fn applies(g: &Geom) -> bool {
         && g.wo() >= NP
 }
 
-/// Weights `[Cout, K]` as panels of [`CV`] output channels, each `[K, CV]`.
-fn pack(w: &[f32], cout: usize, k: usize) -> Vec<f32> {
-    let mut p = vec![0f32; cout * k];
+/// Weights `[Cout, K]` as panels of [`CV`] output channels, each `[K, CV]`, from a cache
+/// line on (each tap's `CV` weights fill one line).
+fn pack(w: &[f32], cout: usize, k: usize) -> LineAligned {
+    let mut p = LineAligned::zeros(cout * k);
     for co in 0..cout {
         let (panel, r) = (co / CV, co % CV);
         for kk in 0..k {
@@ -50,19 +54,62 @@ fn pack(w: &[f32], cout: usize, k: usize) -> Vec<f32> {
     p
 }
 
+/// A tile's outputs: [`NP`] consecutive outputs of row `r` from column `c`, or [`NP`]
+/// `(row, column)` outputs gathered from the ends of rows (each row's last `Wo % NP`).
+#[derive(Clone, Copy)]
+enum Tile {
+    Row { r: usize, c: usize },
+    Gather([(usize, usize); NP]),
+}
+
+/// The tiles of output rows `rows`: each row's whole tiles, then the rows' leftover
+/// outputs in groups of [`NP`] (the last group padded by repeating its last output, which
+/// is then written twice with one value).
+fn block_tiles(rows: std::ops::Range<usize>, wo: usize) -> Vec<Tile> {
+    let (full, rem) = (wo / NP, wo % NP);
+    let mut tiles: Vec<Tile> = rows
+        .clone()
+        .flat_map(|r| (0..full).map(move |t| Tile::Row { r, c: t * NP }))
+        .collect();
+    let ends: Vec<(usize, usize)> = rows
+        .flat_map(|r| (wo - rem..wo).map(move |c| (r, c)))
+        .collect();
+    tiles.extend(ends.chunks(NP).map(|group| {
+        let mut px = [group[group.len() - 1]; NP];
+        px[..group.len()].copy_from_slice(group);
+        Tile::Gather(px)
+    }));
+    tiles
+}
+
+/// Output rows per work block: about [`BLOCK_TILES`] tiles, a multiple of the rows whose
+/// leftovers fill whole gathered tiles where the image allows, and at least
+/// [`BLOCKS_PER_THREAD`] blocks per thread when the work allows.
+fn block_rows(g: &Geom) -> usize {
+    let (wo, ho) = (g.wo(), g.ho());
+    let want = rayon::current_num_threads() * BLOCKS_PER_THREAD;
+    let rows = (BLOCK_TILES / wo.div_ceil(NP))
+        .clamp(1, ho)
+        .min((g.n * ho).div_ceil(want).max(1));
+    let rem = wo % NP;
+    if rem == 0 {
+        return rows;
+    }
+    let (mut a, mut b) = (rem, NP);
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    let step = NP / a;
+    (rows.div_ceil(step) * step).min(ho)
+}
+
 /// `y = act(conv(x, w) + b)`, as [`super::kernels::forward`]; call only when
 /// [`applies`] holds.
 pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> Vec<f32> {
     let (k, p, cout, wo, ho) = (g.k(), g.p(), g.cout, g.wo(), g.ho());
     let offsets = tap_offsets(g);
     let wp = pack(w, cout, k);
-    let cols: Vec<usize> = (0..wo.div_ceil(NP))
-        .map(|t| (t * NP).min(wo - NP))
-        .collect();
-    let want = rayon::current_num_threads() * BLOCKS_PER_THREAD;
-    let rows = (BLOCK_TILES / cols.len())
-        .clamp(1, ho)
-        .min((g.n * ho).div_ceil(want).max(1));
+    let rows = block_rows(g);
     let per_image = ho.div_ceil(rows);
     let len = g.n * cout * p;
     // Every output is written below (all blocks, panels and tiles) before `set_len`.
@@ -70,40 +117,50 @@ pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> 
     let yp = SharedMut(y.as_mut_ptr());
     (0..g.n * per_image).into_par_iter().for_each(|blk| {
         let (n, r0) = (blk / per_image, (blk % per_image) * rows);
-        let tiles: Vec<(usize, usize)> = (r0..(r0 + rows).min(ho))
-            .flat_map(|r| cols.iter().map(move |&c| (r, c)))
-            .collect();
+        let tiles = block_tiles(r0..(r0 + rows).min(ho), wo);
         let mut partial = vec![[[0f32; CV]; NP]; tiles.len()];
         let x_img = &x[n * g.cin * g.hw()..(n + 1) * g.cin * g.hw()];
         for panel in 0..cout / CV {
             let wpp = &wp[panel * k * CV..][..k * CV];
             let bias = &b[panel * CV..][..CV];
+            let plane = (n * cout + panel * CV) * p;
             for k0 in (0..k).step_by(KC) {
                 let k1 = (k0 + KC).min(k);
-                for (&(r, c), part) in tiles.iter().zip(partial.iter_mut()) {
+                for (tile, part) in tiles.iter().zip(partial.iter_mut()) {
                     if k0 == 0 {
                         part.iter_mut().for_each(|px| px.copy_from_slice(bias));
                     }
-                    // The last tap block stores the tile's outputs: channel `co`'s `NP`
-                    // outputs are consecutive in its plane.
-                    let out = (k1 == k).then(|| {
-                        yp.get()
-                            .wrapping_add((n * cout + panel * CV) * p + r * wo + c)
-                    });
-                    // SAFETY: `applies` checked the CPU; the tile reads x at r * W + c +
-                    // px + offsets[k] (px < NP, c + NP <= Wo: a valid convolution's inputs)
-                    // and writes NP outputs in each of the panel's CV planes (stride p),
-                    // which the block owns (rows r0.. of image n; tiles of a row overlap
-                    // only within this block).
+                    // Where each output's taps start, and (last tap block of a row tile)
+                    // where its channels' outputs go, `NP` consecutive in each plane.
+                    let (xs, out) = match *tile {
+                        Tile::Row { r, c } => (
+                            std::array::from_fn(|px| r * g.w + c + px),
+                            (k1 == k).then(|| yp.get().wrapping_add(plane + r * wo + c)),
+                        ),
+                        Tile::Gather(px) => (px.map(|(r, c)| r * g.w + c), None),
+                    };
+                    // SAFETY: `applies` checked the CPU; output (r, c) reads x at r * W + c
+                    // + offsets[k] (r < Ho, c < Wo: a valid convolution's inputs); a row
+                    // tile writes NP outputs in each of the panel's CV planes (stride p),
+                    // which the block owns (rows r0.. of image n).
                     #[cfg(target_arch = "x86_64")]
                     unsafe {
                         avx2::tile(
                             &offsets[k0..k1],
-                            x_img.as_ptr().add(r * g.w + c),
+                            xs.map(|q| x_img.as_ptr().add(q)),
                             &wpp[k0 * CV..k1 * CV],
                             part,
                             out.map(|y| (y, p, relu)),
                         );
+                    }
+                    if let (Tile::Gather(px), true) = (tile, k1 == k) {
+                        for (&(r, c), vals) in px.iter().zip(part.iter()) {
+                            for (co, &v) in vals.iter().enumerate() {
+                                let v = if relu { v.max(0.0) } else { v };
+                                // SAFETY: as above, an output of the block's rows.
+                                unsafe { *yp.get().add(plane + co * p + r * wo + c) = v };
+                            }
+                        }
                     }
                 }
             }
@@ -119,18 +176,18 @@ mod avx2 {
     use super::{CV, NP};
     use std::arch::x86_64::*;
 
-    /// `part[px][co] += sum_k wp[k * CV + co] * x[offsets[k] + px]`; with `out = (y,
+    /// `part[px][co] += sum_k wp[k * CV + co] * xs[px][offsets[k]]`; with `out = (y,
     /// stride, relu)` the sums go (through the ReLU when `relu`) to `y[co * stride + px]`
     /// instead of back to `part`.
     ///
     /// # Safety
-    /// AVX2 and FMA present; `x + offsets[k] + NP` in bounds for every `k`; `wp` holds
+    /// AVX2 and FMA present; `xs[px] + offsets[k]` in bounds for every `k`; `wp` holds
     /// `offsets.len() * CV` values; `out` addresses `CV` rows of `NP` outputs that no
     /// other thread accesses.
     #[target_feature(enable = "avx2,fma")]
     pub(super) unsafe fn tile(
         offsets: &[usize],
-        x: *const f32,
+        xs: [*const f32; NP],
         wp: &[f32],
         part: &mut [[f32; CV]; NP],
         out: Option<(*mut f32, usize, bool)>,
@@ -147,9 +204,8 @@ mod avx2 {
         for (kk, &o) in offsets.iter().enumerate() {
             let w0 = _mm256_loadu_ps(w.add(kk * CV));
             let w1 = _mm256_loadu_ps(w.add(kk * CV + 8));
-            let xo = x.add(o);
-            for (px, a) in acc.iter_mut().enumerate() {
-                let s = _mm256_broadcast_ss(&*xo.add(px));
+            for (a, &x) in acc.iter_mut().zip(&xs) {
+                let s = _mm256_broadcast_ss(&*x.add(o));
                 a[0] = _mm256_fmadd_ps(s, w0, a[0]);
                 a[1] = _mm256_fmadd_ps(s, w1, a[1]);
             }
@@ -211,5 +267,37 @@ mod avx2 {
             _mm256_permute2f128_ps::<0x31>(u2, u6),
             _mm256_permute2f128_ps::<0x31>(u3, u7),
         ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{block_tiles, Tile, NP};
+    use std::collections::BTreeSet;
+
+    /// Tiles cover each output of their rows once (a padded gathered tile repeats only its
+    /// own last output) and stay inside the rows.
+    #[test]
+    fn block_tiles_cover_rows_once() {
+        for wo in NP..=40 {
+            for (r0, rows) in [(0, 1), (3, 2), (0, 3), (5, 6), (1, 7)] {
+                let mut seen = Vec::new();
+                for t in block_tiles(r0..r0 + rows, wo) {
+                    match t {
+                        Tile::Row { r, c } => seen.extend((c..c + NP).map(|c| (r, c))),
+                        Tile::Gather(px) => {
+                            let mut px = px.to_vec();
+                            px.dedup();
+                            seen.extend(px);
+                        }
+                    }
+                }
+                let want: BTreeSet<_> = (r0..r0 + rows)
+                    .flat_map(|r| (0..wo).map(move |c| (r, c)))
+                    .collect();
+                assert_eq!(seen.len(), want.len(), "wo {wo}, rows {rows}: outputs repeated");
+                assert_eq!(seen.into_iter().collect::<BTreeSet<_>>(), want, "wo {wo}");
+            }
+        }
     }
 }
