@@ -58,6 +58,7 @@ pub(crate) fn available() -> bool {
 #[derive(Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Kernels {
     Auto,
+    Direct,
     Pixels,
     Im2col,
 }
@@ -66,6 +67,7 @@ pub(crate) fn kernels_allowed() -> Kernels {
     static K: std::sync::OnceLock<Kernels> = std::sync::OnceLock::new();
     *K.get_or_init(|| match std::env::var("DEEPSTEREO_CONV").as_deref() {
         Ok("im2col") => Kernels::Im2col,
+        Ok("direct") => Kernels::Direct,
         Ok("pixels") => Kernels::Pixels,
         _ => Kernels::Auto,
     })
@@ -244,7 +246,9 @@ fn blocks(g: &Geom) -> Vec<(usize, Vec<Tile>)> {
 /// `y = act(conv(x, w) + b)` by the channel-vectorised kernel where it applies
 /// (`direct_cv.rs`), else by [`forward`]; call only when [`applies`] holds.
 pub(crate) fn forward_best(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> Vec<f32> {
-    if super::direct_cv::applies(g) {
+    if super::winograd::applies(g) {
+        super::winograd::forward(g, x, w, b, relu)
+    } else if super::direct_cv::applies(g) {
         super::direct_cv::forward(g, x, w, b, relu)
     } else {
         forward(g, x, w, b, relu)

@@ -35,7 +35,7 @@ const BLOCKS_PER_THREAD: usize = 8;
 /// Whether [`forward`] runs this layer (f32 callers only).
 pub(crate) fn applies(g: &Geom) -> bool {
     available()
-        && kernels_allowed() == Kernels::Auto
+        && matches!(kernels_allowed(), Kernels::Auto | Kernels::Direct)
         && g.cout.is_multiple_of(CV)
         && g.k() >= MIN_K
         && g.wo() >= NP
@@ -150,6 +150,7 @@ pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> 
                             xs.map(|q| x_img.as_ptr().add(q)),
                             &wpp[k0 * CV..k1 * CV],
                             part,
+                            false,
                             out.map(|y| (y, p, relu)),
                         );
                     }
@@ -171,12 +172,44 @@ pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> 
     y
 }
 
+/// Products for `winograd.rs`: for each group `t` of [`NP`] columns, `out[t][px][co] =
+/// sum_k wp[k * CV + co] * v[offsets[k] + t NP + px]`, taps in blocks of [`KC`] (one call
+/// for all groups, so that the tile kernel inlines).
+///
+/// # Safety
+/// AVX2 and FMA present; `v + offsets[k] + out.len() * NP` in bounds for every `k`; `wp`
+/// holds `offsets.len() * CV` values.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+pub(crate) unsafe fn gemm_groups(
+    offsets: &[usize],
+    v: *const f32,
+    wp: &[f32],
+    out: &mut [[[f32; CV]; NP]],
+) {
+    for (t, part) in out.iter_mut().enumerate() {
+        let xs = std::array::from_fn(|px| v.add(t * NP + px));
+        for k0 in (0..offsets.len()).step_by(KC) {
+            let k1 = (k0 + KC).min(offsets.len());
+            avx2::tile(
+                &offsets[k0..k1],
+                xs,
+                &wp[k0 * CV..k1 * CV],
+                part,
+                k0 == 0,
+                None,
+            );
+        }
+    }
+}
+
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use super::{CV, NP};
     use std::arch::x86_64::*;
 
-    /// `part[px][co] += sum_k wp[k * CV + co] * xs[px][offsets[k]]`; with `out = (y,
+    /// `part[px][co] += sum_k wp[k * CV + co] * xs[px][offsets[k]]` (`part` read as zeros
+    /// when `zero`); with `out = (y,
     /// stride, relu)` the sums go (through the ReLU when `relu`) to `y[co * stride + px]`
     /// instead of back to `part`.
     ///
@@ -190,15 +223,18 @@ mod avx2 {
         xs: [*const f32; NP],
         wp: &[f32],
         part: &mut [[f32; CV]; NP],
+        zero: bool,
         out: Option<(*mut f32, usize, bool)>,
     ) {
         const { assert!(CV == 16 && NP <= 8) };
         let mut acc = [[_mm256_setzero_ps(); 2]; NP];
-        for (a, p) in acc.iter_mut().zip(part.iter()) {
-            *a = [
-                _mm256_loadu_ps(p.as_ptr()),
-                _mm256_loadu_ps(p.as_ptr().add(8)),
-            ];
+        if !zero {
+            for (a, p) in acc.iter_mut().zip(part.iter()) {
+                *a = [
+                    _mm256_loadu_ps(p.as_ptr()),
+                    _mm256_loadu_ps(p.as_ptr().add(8)),
+                ];
+            }
         }
         let w = wp.as_ptr();
         for (kk, &o) in offsets.iter().enumerate() {
@@ -295,7 +331,11 @@ mod tests {
                 let want: BTreeSet<_> = (r0..r0 + rows)
                     .flat_map(|r| (0..wo).map(move |c| (r, c)))
                     .collect();
-                assert_eq!(seen.len(), want.len(), "wo {wo}, rows {rows}: outputs repeated");
+                assert_eq!(
+                    seen.len(),
+                    want.len(),
+                    "wo {wo}, rows {rows}: outputs repeated"
+                );
                 assert_eq!(seen.into_iter().collect::<BTreeSet<_>>(), want, "wo {wo}");
             }
         }

@@ -78,6 +78,7 @@ pub(crate) use im2col::SharedMut;
 mod op;
 #[cfg(test)]
 mod tests;
+mod winograd;
 
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;

@@ -256,7 +256,7 @@ fn gradients_are_deterministic() -> Result<()> {
 #[test]
 fn direct_kernels_match_im2col_on_model_layers() {
     use super::im2col::Geom;
-    use super::{direct, direct_cv, direct_grad, kernels};
+    use super::{direct, direct_cv, direct_grad, kernels, winograd};
     use crate::config::Config;
     let mut state = 0x9E37_79B9_7F4A_7C15u64;
     let mut rand = |len: usize| -> Vec<f32> {
@@ -273,7 +273,7 @@ fn direct_kernels_match_im2col_on_model_layers() {
         let scale = b.iter().fold(1f32, |m, v| m.max(v.abs()));
         a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
     };
-    let (mut ran, mut ran_cv) = (0, 0);
+    let (mut ran, mut ran_cv, mut ran_wino) = (0, 0, 0);
     for cfg in [Config::tiny(), Config::paper()] {
         let tile = if cfg.name == "paper" { 16 } else { 24 };
         for l in cfg.layers() {
@@ -308,10 +308,23 @@ fn direct_kernels_match_im2col_on_model_layers() {
                 if direct::applies(&g) {
                     ran += 1;
                     ran_cv += usize::from(direct_cv::applies(&g));
-                    let got = direct::forward_best(&g, &x, &w, &b, relu);
                     let want = kernels::forward(&g, &x, &w, &b, relu);
-                    let e = max_rel(&got, &want);
-                    assert!(e < 1e-5, "{} forward {g:?}: {e}", l.name);
+                    // The dispatched kernel, and each kernel that takes the layer.
+                    let mut paths = vec![
+                        ("best", direct::forward_best(&g, &x, &w, &b, relu)),
+                        ("pixels", direct::forward(&g, &x, &w, &b, relu)),
+                    ];
+                    if direct_cv::applies(&g) {
+                        paths.push(("channels", direct_cv::forward(&g, &x, &w, &b, relu)));
+                    }
+                    if winograd::applies(&g) {
+                        ran_wino += 1;
+                        paths.push(("winograd", winograd::forward(&g, &x, &w, &b, relu)));
+                    }
+                    for (path, got) in paths {
+                        let e = max_rel(&got, &want);
+                        assert!(e < 1e-5, "{} forward ({path}) {g:?}: {e}", l.name);
+                    }
                 }
                 if direct_grad::applies(&g) {
                     let y = kernels::forward(&g, &x, &w, &b, relu);
@@ -333,8 +346,8 @@ fn direct_kernels_match_im2col_on_model_layers() {
     }
     if direct::available() {
         assert!(
-            ran >= 40 && ran_cv >= 10,
-            "AVX2 kernels ran on {ran} layers ({ran_cv} channel-vectorised)"
+            ran >= 40 && ran_cv >= 10 && ran_wino >= 10,
+            "AVX2 kernels ran on {ran} layers ({ran_cv} channel-vectorised, {ran_wino} Winograd)"
         );
     }
 }
@@ -393,4 +406,67 @@ fn direct_path_finite_differences_f32() -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Winograd on shapes the model's layers miss: sizes that leave partial tiles on both
+/// edges, images of several work units, more input channels than a tap block (128), both
+/// kernel sizes, with and without ReLU, against the im2col path; large inputs (1e4) too,
+/// with the error relative to the outputs' scale.
+#[test]
+fn winograd_matches_im2col_on_edge_shapes() {
+    use super::im2col::Geom;
+    use super::{kernels, winograd};
+    let mut state = 0x2545_F491_4F6C_DD1Du64;
+    let mut rand = |len: usize, scale: f32| -> Vec<f32> {
+        (0..len)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                ((state >> 40) as f32 / (1u64 << 23) as f32 - 1.0) * scale
+            })
+            .collect()
+    };
+    let shapes = [
+        // (n, cin, h, w, cout, k)
+        (2, 9, 8, 13, 32, 3),
+        (1, 8, 7, 7, 32, 5),
+        (1, 130, 12, 11, 32, 5),
+        (1, 16, 40, 37, 48, 3),
+        (3, 20, 29, 26, 96, 5),
+        (1, 24, 6, 50, 32, 3),
+    ];
+    let mut ran = 0;
+    for (n, cin, h, w, cout, k) in shapes {
+        let g = Geom {
+            n,
+            cin,
+            h,
+            w,
+            cout,
+            kh: k,
+            kw: k,
+        };
+        if !winograd::applies(&g) {
+            continue;
+        }
+        for (scale, relu) in [(1.0, false), (1.0, true), (1e4, false)] {
+            ran += 1;
+            let x = rand(g.n * g.cin * g.hw(), scale);
+            let wt = rand(g.cout * g.k(), 0.3);
+            let b = rand(g.cout, 0.1);
+            let want = kernels::forward(&g, &x, &wt, &b, relu);
+            let got = winograd::forward(&g, &x, &wt, &b, relu);
+            let top = want.iter().fold(1f32, |m, v| m.max(v.abs()));
+            let e = got
+                .iter()
+                .zip(&want)
+                .fold(0f32, |m, (a, b)| m.max((a - b).abs()))
+                / top;
+            assert!(e < 1e-5, "{g:?} scale {scale} relu {relu}: {e}");
+        }
+    }
+    if super::direct::available() {
+        assert_eq!(ran, 3 * shapes.len(), "Winograd took every shape");
+    }
 }
