@@ -41,6 +41,21 @@ pub(crate) fn applies(g: &Geom) -> bool {
     available() && g.k() <= MAX_K && direct::applies(&transposed(g))
 }
 
+/// Whether [`input_grad`] runs this layer's input gradient by Winograd (`winograd.rs`),
+/// for layers whose weight gradient stays on the im2col path (more than [`MAX_K`] taps).
+pub(crate) fn input_by_winograd(g: &Geom) -> bool {
+    available() && super::winograd::applies(&transposed(g))
+}
+
+/// The input gradient alone: the forward kernels on the padded, masked output gradient
+/// with flipped weights, as in [`backward`].
+pub(crate) fn input_grad(g: &Geom, w: &[f32], y: &[f32], dy: &[f32], relu: bool) -> Vec<f32> {
+    let mask = Mask { dy, y, relu };
+    let t = transposed(g);
+    let (padded, _) = mask.laid_out(g, t.w, g.kh - 1, g.kw - 1);
+    direct::forward_best(&t, &padded, &flipped(g, w), &vec![0f32; g.cin], false)
+}
+
 /// The input gradient's convolution: `gy` padded to `[n, cout, h + kh - 1, w + kw - 1]`
 /// (1x1: not padded) -> `[n, cin, h, w]`.
 fn transposed(g: &Geom) -> Geom {

@@ -15,12 +15,18 @@
 //!   `direct.rs` vectorises along output pixels (tiles of 6 output channels x 16 pixels,
 //!   input read at a per-tap offset, bias and ReLU fused, taps blocked for L1);
 //!   `direct_cv.rs` vectorises along output channels for wide layers (`Cout` a multiple of
-//!   16, `K >= 256`: tiles of 16 channels x 6 pixels, no partial tile per row).
+//!   16, `K >= 256`: tiles of 16 channels x 6 pixels; rows' leftovers gathered into tiles
+//!   of their own). `winograd.rs` runs the 3x3 and 5x5 layers with at least 32 output
+//!   channels (a multiple of 16) as Winograd F(4x4, 3x3) / F(2x2, 5x5): 36 products per
+//!   6x6 input tile instead of 144 / 100, the products on `direct_cv.rs`'s tile; its f32
+//!   error is that of a direct sum (tested against im2col to 1e-5 of the outputs' scale,
+//!   inputs of 1e4 included).
 //!   `direct_grad.rs`: the input gradient is `direct.rs`'s forward on the zero-padded,
 //!   ReLU-masked output gradient with flipped, transposed weights; the weight gradient a
 //!   reduction vectorised along pixels (3 channels x 4 taps per tile), with accumulators
-//!   summed in a fixed order (deterministic). `DEEPSTEREO_CONV=im2col` or `pixels` turns
-//!   these off (all, or the channel-vectorised one) to compare paths in benchmarks.
+//!   summed in a fixed order (deterministic). `DEEPSTEREO_CONV=im2col`, `pixels` or
+//!   `direct` turns these off (all; the channel-vectorised one and Winograd; Winograd) to
+//!   compare paths in benchmarks.
 //! - **otherwise (f64, other CPUs, layers too small for a tile)**: one product in "column
 //!   space" (`im2col.rs`), described below.
 //! - off the CPU: candle's `conv2d`.
@@ -49,6 +55,14 @@
 //!   its training step 1.2-1.45x faster (`DEEPSTEREO_CONV=im2col` against the default in
 //!   `examples/forward_probe.rs`, runs alternated; `paper`'s forward 1.1x). The `paper`
 //!   backward stays on im2col + `gemm` (its direct backward was ~15% slower).
+//! - Winograd took the `paper` forward from about 0.85-0.95 of onnxruntime's speed to
+//!   1.2 (`PROBE_ORT=1 target/release/examples/forward_probe paper 3`, against
+//!   `DEEPSTEREO_CONV=direct`); its big 5x5 layers ran 1.7x faster than the direct kernel.
+//!   Its work units are 24 tiles: with 48, the unit's transformed input and products
+//!   (1.1 MB at 64 -> 96 channels) spilled out of L2 and the layer ran a third slower. The
+//!   input is split into `M x M` phase planes per image (per thread, into a reused buffer)
+//!   so that the transforms read and write whole vectors; with 16 output channels the
+//!   per-input-channel transform outweighs the saved products (direct 1.5x faster there).
 //! - Rows whose byte stride is a multiple of 4 KiB (depth rows of a 64x64 tile) put all
 //!   the taps of a tile in one L1 set; the model shifts them by a cache line.
 //! - candle's own autograd over an im2col op plus `broadcast_matmul` (weights `[Cout, K]`

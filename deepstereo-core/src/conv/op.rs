@@ -112,6 +112,16 @@ impl ConvOp {
         })
     }
 
+    /// Wide layers: the input gradient by [`direct_grad::input_grad`] (Winograd), the
+    /// weight and bias gradients by the im2col path.
+    fn bwd_split(&self, t: (&Tensor, &Tensor, &Tensor, &Tensor, &Tensor)) -> Result<Grads> {
+        self.bwd_with::<f32>(t, |g, x, w, y, dy| {
+            let dx = direct_grad::input_grad(g, w, y, dy, self.relu);
+            let r = kernels::backward(g, x, w, y, dy, self.relu, false, true);
+            (Some(dx), r.dw, r.db)
+        })
+    }
+
     /// [`direct_grad::backward`] (f32, AVX2 and FMA).
     fn bwd_direct(&self, t: (&Tensor, &Tensor, &Tensor, &Tensor, &Tensor)) -> Result<Grads> {
         let need_dx = t.0.track_op();
@@ -184,6 +194,11 @@ impl CustomOp3 for ConvOp {
         let t = (x, w, b, y, &dy);
         match x.dtype() {
             DType::F32 if direct_grad::applies(&geom(x.dims(), w.dims())?) => self.bwd_direct(t),
+            DType::F32
+                if x.track_op() && direct_grad::input_by_winograd(&geom(x.dims(), w.dims())?) =>
+            {
+                self.bwd_split(t)
+            }
             DType::F32 => self.bwd_typed::<f32>(t),
             DType::F64 => self.bwd_typed::<f64>(t),
             dt => bail!("conv2d: f32 or f64 only, got {dt:?}"),

@@ -273,7 +273,7 @@ fn direct_kernels_match_im2col_on_model_layers() {
         let scale = b.iter().fold(1f32, |m, v| m.max(v.abs()));
         a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
     };
-    let (mut ran, mut ran_cv, mut ran_wino) = (0, 0, 0);
+    let (mut ran, mut ran_cv, mut ran_wino, mut ran_split) = (0, 0, 0, 0);
     for cfg in [Config::tiny(), Config::paper()] {
         let tile = if cfg.name == "paper" { 16 } else { 24 };
         for l in cfg.layers() {
@@ -326,6 +326,15 @@ fn direct_kernels_match_im2col_on_model_layers() {
                         assert!(e < 1e-5, "{} forward ({path}) {g:?}: {e}", l.name);
                     }
                 }
+                if direct_grad::input_by_winograd(&g) && !direct_grad::applies(&g) {
+                    ran_split += 1;
+                    let y = kernels::forward(&g, &x, &w, &b, relu);
+                    let dy = rand(y.len());
+                    let got = direct_grad::input_grad(&g, &w, &y, &dy, relu);
+                    let want = kernels::backward(&g, &x, &w, &y, &dy, relu, true, false);
+                    let e = max_rel(&got, want.dx.as_ref().expect("dx"));
+                    assert!(e < 1e-5, "{} dx (Winograd) {g:?} relu {relu}: {e}", l.name);
+                }
                 if direct_grad::applies(&g) {
                     let y = kernels::forward(&g, &x, &w, &b, relu);
                     let dy = rand(y.len());
@@ -346,8 +355,9 @@ fn direct_kernels_match_im2col_on_model_layers() {
     }
     if direct::available() {
         assert!(
-            ran >= 40 && ran_cv >= 10 && ran_wino >= 10,
-            "AVX2 kernels ran on {ran} layers ({ran_cv} channel-vectorised, {ran_wino} Winograd)"
+            ran >= 40 && ran_cv >= 10 && ran_wino >= 10 && ran_split >= 10,
+            "AVX2 kernels ran on {ran} layers ({ran_cv} channel-vectorised, {ran_wino} Winograd, \
+             {ran_split} Winograd input gradients)"
         );
     }
 }
