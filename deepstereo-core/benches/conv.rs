@@ -3,6 +3,10 @@
 //! the crate's kernels and candle's built-in conv2d; with the workspace's `.venv`
 //! present, also PyTorch and onnxruntime on the same shapes (`python/bench_conv.py`).
 //!
+//! GFLOP/s count the direct convolution's multiply-adds (x 2) for every runtime; the
+//! crate's Winograd layers (`DEEPSTEREO_CONV=direct` turns them off) do fewer, so their
+//! figure can pass the matmul's.
+//!
 //! `cargo bench -p deepstereo-core --bench conv`; `CONV_BENCH_REF=0` skips candle's conv2d,
 //! `CONV_BENCH_PY=0` skips Python, `CONV_BENCH_CONFIGS=tiny` picks presets. Times are the
 //! best of several runs (the machine is shared); Python times each shape right after Rust.

@@ -10,8 +10,10 @@
 //!
 //! Threads: Rust uses all cores (rayon), PyTorch `torch.set_num_threads(cores)`,
 //! onnxruntime its default (one per core). Times are the best of several runs (the machine
-//! may be shared). GFLOP/s count 2 x multiply-adds of the convolutions (the config's
-//! cost model) and are set against a 2048^2 f32 matmul measured in the same run. The
+//! may be shared). GFLOP/s count 2 x multiply-adds of the convolutions as written (the
+//! config's cost model, the same for every runtime) and are set against a 2048^2 f32
+//! matmul measured in the same run; candle's Winograd layers do fewer products than that
+//! count, so its figure can pass the matmul's (and the machine's peak). The
 //! Python side also checks that its outputs match candle's (same model, same inputs).
 //!
 //! `cargo bench -p deepstereo-train --bench network`; `NET_BENCH_CONFIGS=tiny` picks

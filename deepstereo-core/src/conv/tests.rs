@@ -457,8 +457,9 @@ fn winograd_matches_im2col_on_edge_shapes() {
             kh: k,
             kw: k,
         };
-        if !winograd::applies(&g) {
-            continue;
+        // Called directly: some of these shapes save too little for `applies` to pick it.
+        if !super::direct::available() {
+            return;
         }
         for (scale, relu) in [(1.0, false), (1.0, true), (1e4, false)] {
             ran += 1;
@@ -476,7 +477,5 @@ fn winograd_matches_im2col_on_edge_shapes() {
             assert!(e < 1e-5, "{g:?} scale {scale} relu {relu}: {e}");
         }
     }
-    if super::direct::available() {
-        assert_eq!(ran, 3 * shapes.len(), "Winograd took every shape");
-    }
+    assert_eq!(ran, 3 * shapes.len());
 }
