@@ -29,16 +29,32 @@ impl PadRows {
         let (n, c, h, w) = l.shape().dims4()?;
         let st = l.stride();
         let (o, hp, wp) = (l.start_offset(), h + 2 * self.p, w + self.extra);
-        let mut y = vec![T::zero(); n * c * hp * wp];
-        y.par_chunks_mut(hp * wp)
+        let len = n * c * hp * wp;
+        // Each plane is written whole below (zero rows, data rows with their zero tails),
+        // in parallel: no serial zero fill of the buffer first.
+        let mut y = Vec::<T>::with_capacity(len);
+        y.spare_capacity_mut()[..len]
+            .par_chunks_mut(hp * wp)
             .enumerate()
             .for_each(|(i, plane)| {
                 let base = o + i / c * st[0] + i % c * st[1];
-                for r in 0..h {
-                    let src = &x[base + r * st[2]..][..w];
-                    plane[(r + self.p) * wp..][..w].copy_from_slice(src);
+                for (r, row) in plane.chunks_exact_mut(wp).enumerate() {
+                    let data = (self.p..self.p + h).contains(&r);
+                    let (head, tail) = row.split_at_mut(if data { w } else { 0 });
+                    if data {
+                        let src = &x[base + (r - self.p) * st[2]..][..w];
+                        for (d, &v) in head.iter_mut().zip(src) {
+                            d.write(v);
+                        }
+                    }
+                    for d in tail {
+                        d.write(T::zero());
+                    }
                 }
             });
+        // SAFETY: every plane's rows were written whole above, so all `len` values are
+        // initialised.
+        unsafe { y.set_len(len) };
         Ok(y)
     }
 
