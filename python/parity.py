@@ -52,7 +52,8 @@ OUTPUTS = ("image", "selection")
 
 def variant_config() -> ref.Config:
     """Exercises what `tiny` does not: three levels, towers reading different numbers of
-    levels, 5x5 kernels, no colour skip, two views."""
+    levels, 5x5 kernels, no colour skip, two views, and layers wide enough (32 output
+    channels) for candle's Winograd convolutions (F(2x2, 5x5) and F(4x4, 3x3))."""
     C = ref.Conv
     return ref.Config(
         name="variant",
@@ -60,9 +61,9 @@ def variant_config() -> ref.Config:
         planes=12,
         levels=3,
         tile=16,
-        select=ref.TowerConfig(3, [C(3, 8), C(3, 8)], [C(5, 12), C(3, 8)]),
+        select=ref.TowerConfig(3, [C(3, 8), C(3, 8)], [C(5, 32), C(3, 8)]),
         depth_convs=[C(3, 8), C(5, 1)],
-        colour=ref.TowerConfig(2, [C(3, 8)], [C(3, 8)]),
+        colour=ref.TowerConfig(2, [C(3, 8)], [C(3, 32)]),
         colour_skip=False,
     )
 
