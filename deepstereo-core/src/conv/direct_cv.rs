@@ -7,8 +7,8 @@
 //! unaligned vector loads), `2 NP` FMAs into 12 registers. Rows are cut into tiles of `NP`
 //! consecutive outputs; the last `Wo % NP` outputs of each row are gathered across a work
 //! block's rows into tiles of their own, so nothing is computed twice but the padding of
-//! a block's last gathered tile (shifting a row's last tile left instead had wasted up to
-//! a fifth of the `paper` training patches' layers, e.g. 4 of 24 outputs in rows of 20).
+//! a block's last gathered tile (shifting a row's last tile left instead recomputed 4 of
+//! 24 outputs in rows of 20 and 4 of 12 in rows of 8, sizes of the `paper` layers).
 //! Row tiles' outputs leave through an 8 x 8 register transpose and masked stores of `NP`
 //! lanes (channels are planes in NCHW; scalar stores had taken about 8% of a `paper`
 //! forward); gathered tiles store theirs one by one.

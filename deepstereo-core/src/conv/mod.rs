@@ -55,14 +55,15 @@
 //!   its training step 1.2-1.45x faster (`DEEPSTEREO_CONV=im2col` against the default in
 //!   `examples/forward_probe.rs`, runs alternated; `paper`'s forward 1.1x). The `paper`
 //!   backward stays on im2col + `gemm` (its direct backward was ~15% slower).
-//! - Winograd took the `paper` forward from about 0.85-0.95 of onnxruntime's speed to
-//!   1.2 (`PROBE_ORT=1 target/release/examples/forward_probe paper 3`, against
-//!   `DEEPSTEREO_CONV=direct`); its big 5x5 layers ran 1.7x faster than the direct kernel.
-//!   Its work units are 24 tiles: with 48, the unit's transformed input and products
-//!   (1.1 MB at 64 -> 96 channels) spilled out of L2 and the layer ran a third slower. The
+//! - Winograd took the `paper` forward 1.45-1.5x faster and its training step 1.1x
+//!   (`target/release/examples/forward_probe paper 3`, and `... paper 3 32 step`, runs
+//!   alternated with `DEEPSTEREO_CONV=direct`). Work units of 24 tiles keep a unit's
+//!   transformed input and products in L2 (48 spilled out of L2 and ran slower); the
 //!   input is split into `M x M` phase planes per image (per thread, into a reused buffer)
-//!   so that the transforms read and write whole vectors; with 16 output channels the
-//!   per-input-channel transform outweighs the saved products (direct 1.5x faster there).
+//!   so that the transforms read and write whole vectors. With 16 output channels the
+//!   per-input-channel transform outweighs the saved products (the direct kernel was
+//!   faster on `paper`'s 16-channel layers), and small outputs pad the tiles too much
+//!   (`winograd::MIN_SAVING`).
 //! - Rows whose byte stride is a multiple of 4 KiB (depth rows of a 64x64 tile) put all
 //!   the taps of a tile in one L1 set; the model shifts them by a cache line.
 //! - candle's own autograd over an im2col op plus `broadcast_matmul` (weights `[Cout, K]`

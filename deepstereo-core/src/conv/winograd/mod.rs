@@ -16,8 +16,7 @@
 //! transform the unit's input tiles into `V[pos][ci][slot]` (`transforms.rs`), multiply
 //! into `M[pos][co][slot]`, transform back with bias and ReLU into the output (tiles that
 //! overhang the output's edge read zeros and drop the outputs past it). 24 slots keep a
-//! unit's `V` and `M` in L2 (with 48, 1.1 MB at 64 -> 96 channels, the layer ran about
-//! 1.4x slower).
+//! unit's `V` and `M` in L2 (with 48, 1.1 MB at 64 -> 96 channels, the layer ran slower).
 
 mod algos;
 mod transforms;
@@ -42,7 +41,7 @@ const LANES: usize = 8;
 /// Runs of units per thread (each allocates its scratch once).
 const CHUNKS_PER_THREAD: usize = 4;
 /// Fewest output channels for this path: the input transform's cost is per input
-/// channel, the products' per output channel (with 16 outputs the direct kernel was 1.5x
+/// channel, the products' per output channel (with 16 outputs the direct kernel was
 /// faster on the `paper` layers).
 const MIN_COUT: usize = 32;
 /// Least [`saving`] for this path (the transforms cost the rest): the `paper` layer with
