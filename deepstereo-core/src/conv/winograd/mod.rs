@@ -117,7 +117,7 @@ fn transform_weights<T: Algo>(g: &Geom, w: &[f32]) -> LineAligned {
 const SLACK: usize = 16;
 
 /// How an image's tiles are laid out: tile `(ty, tx)` sits at slot `F = ty * wp + tx`
-/// (slots with `tx >= tx` are padding), and the input is split into `M x M` phase planes
+/// (the `wp - tx` slots past each row's last tile are padding), and the input is split into `M x M` phase planes
 /// `[hp, wp]` (`x[r][c]` at phase `(r % M, c % M)`, position `(r / M, c / M)`), so that input
 /// `(i, j)` of every tile is one fixed offset from its slot: consecutive slots read
 /// consecutive floats.

@@ -10,6 +10,7 @@ use std::arch::x86_64::*;
 
 /// `[e(0), .., e(5)]` (or `e(0)..e(3)`), expanded in place: constant indices let the
 /// transforms compile to straight-line code with their coefficients folded.
+#[cfg(target_arch = "x86_64")]
 macro_rules! arr6 {
     (|$i:ident| $e:expr) => {
         [
@@ -40,6 +41,7 @@ macro_rules! arr6 {
         ]
     };
 }
+#[cfg(target_arch = "x86_64")]
 macro_rules! arr4 {
     (|$i:ident| $e:expr) => {
         [
