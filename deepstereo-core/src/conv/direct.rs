@@ -128,14 +128,15 @@ pub(crate) fn applies(g: &Geom) -> bool {
     available() && flat_len(g) >= NC && kernels_allowed() != Kernels::Im2col
 }
 
-/// Weights `[Cout, K]` as panels of [`MR`] output channels, each `[K, MR]`.
-fn pack(w: &[f32], cout: usize, k: usize) -> LineAligned {
-    let panels = cout.div_ceil(MR);
-    let mut p = LineAligned::zeros(panels * k * MR);
+/// Weights `[Cout, K]` as panels of `width` output channels, each `[K, width]` (the last
+/// panel zero-padded), from a cache line on: the layout the tile kernels read.
+pub(crate) fn pack(w: &[f32], cout: usize, k: usize, width: usize) -> LineAligned {
+    let panels = cout.div_ceil(width);
+    let mut p = LineAligned::zeros(panels * k * width);
     for co in 0..cout {
-        let (panel, r) = (co / MR, co % MR);
+        let (panel, r) = (co / width, co % width);
         for kk in 0..k {
-            p[(panel * k + kk) * MR + r] = w[co * k + kk];
+            p[(panel * k + kk) * width + r] = w[co * k + kk];
         }
     }
     p
@@ -260,7 +261,7 @@ pub(crate) fn forward_best(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool
 pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> Vec<f32> {
     let (k, p, cout, wo) = (g.k(), g.p(), g.cout, g.wo());
     let offsets = tap_offsets(g);
-    let wp = pack(w, cout, k);
+    let wp = pack(w, cout, k, MR);
     let len = g.n * cout * p;
     // Every output is written below (all blocks, panels and tiles) before `set_len`.
     let mut y = Vec::<f32>::with_capacity(len);

@@ -14,7 +14,7 @@
 //! forward); gathered tiles store theirs one by one.
 //! Taps are blocked by [`KC`] as in `direct.rs`.
 
-use super::direct::{available, kernels_allowed, tap_offsets, Kernels, LineAligned};
+use super::direct::{available, kernels_allowed, pack, tap_offsets, Kernels};
 use super::im2col::{Geom, SharedMut};
 use rayon::prelude::*;
 
@@ -39,19 +39,6 @@ pub(crate) fn applies(g: &Geom) -> bool {
         && g.cout.is_multiple_of(CV)
         && g.k() >= MIN_K
         && g.wo() >= NP
-}
-
-/// Weights `[Cout, K]` as panels of [`CV`] output channels, each `[K, CV]`, from a cache
-/// line on (each tap's `CV` weights fill one line).
-fn pack(w: &[f32], cout: usize, k: usize) -> LineAligned {
-    let mut p = LineAligned::zeros(cout * k);
-    for co in 0..cout {
-        let (panel, r) = (co / CV, co % CV);
-        for kk in 0..k {
-            p[(panel * k + kk) * CV + r] = w[co * k + kk];
-        }
-    }
-    p
 }
 
 /// A tile's outputs: [`NP`] consecutive outputs of row `r` from column `c`, or [`NP`]
@@ -108,7 +95,7 @@ fn block_rows(g: &Geom) -> usize {
 pub(crate) fn forward(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> Vec<f32> {
     let (k, p, cout, wo, ho) = (g.k(), g.p(), g.cout, g.wo(), g.ho());
     let offsets = tap_offsets(g);
-    let wp = pack(w, cout, k);
+    let wp = pack(w, cout, k, CV); // each tap's CV weights fill one cache line
     let rows = block_rows(g);
     let per_image = ho.div_ceil(rows);
     let len = g.n * cout * p;

@@ -189,16 +189,13 @@ impl CustomOp3 for ConvOp {
 
     fn bwd(&self, x: &Tensor, w: &Tensor, b: &Tensor, y: &Tensor, dy: &Tensor) -> Result<Grads> {
         let work = if x.track_op() { 2.0 } else { 1.0 }; // dW, and dx when asked for
-        let _timer = CallTimer::start(geom(x.dims(), w.dims())?, "backward", work);
+        let g = geom(x.dims(), w.dims())?;
+        let _timer = CallTimer::start(g, "backward", work);
         let dy = dy.contiguous()?;
         let t = (x, w, b, y, &dy);
         match x.dtype() {
-            DType::F32 if direct_grad::applies(&geom(x.dims(), w.dims())?) => self.bwd_direct(t),
-            DType::F32
-                if x.track_op() && direct_grad::input_by_winograd(&geom(x.dims(), w.dims())?) =>
-            {
-                self.bwd_split(t)
-            }
+            DType::F32 if direct_grad::applies(&g) => self.bwd_direct(t),
+            DType::F32 if x.track_op() && direct_grad::input_by_winograd(&g) => self.bwd_split(t),
             DType::F32 => self.bwd_typed::<f32>(t),
             DType::F64 => self.bwd_typed::<f64>(t),
             dt => bail!("conv2d: f32 or f64 only, got {dt:?}"),
