@@ -33,19 +33,21 @@ fn slice<'a, T: WithDType>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
     }
 }
 
-/// `dx` of a one-input op from `dy`, computed on CPU slices by `f32` or `f64` (the same
-/// generic function, once per type).
-fn plane_grad(
-    x: &Tensor,
-    dy: &Tensor,
-    f32: impl Fn(&[f32]) -> Vec<f32>,
-    f64: impl Fn(&[f64]) -> Vec<f64>,
-) -> Result<Option<Tensor>> {
+/// A one-input op over `[N, C, H, W]` planes whose input gradient is computed on CPU
+/// slices, for either float type.
+trait PlaneBackward {
+    /// `dx` (`x_dims` long) from the contiguous `dy`.
+    fn dx<T: WithDType>(&self, dy: &[T], x_dims: (usize, usize, usize, usize)) -> Vec<T>;
+}
+
+/// `dx` of a [`PlaneBackward`] op from `dy`.
+fn plane_grad(op: &impl PlaneBackward, x: &Tensor, dy: &Tensor) -> Result<Option<Tensor>> {
+    let dims = x.dims4()?;
     let dy = dy.contiguous()?;
     let (st, l) = dy.storage_and_layout();
     let dx = match x.dtype() {
-        DType::F32 => Tensor::from_vec(f32(data::<f32>(&st, l)?), x.shape(), x.device())?,
-        DType::F64 => Tensor::from_vec(f64(data::<f64>(&st, l)?), x.shape(), x.device())?,
+        DType::F32 => Tensor::from_vec(op.dx(data::<f32>(&st, l)?, dims), x.shape(), x.device())?,
+        DType::F64 => Tensor::from_vec(op.dx(data::<f64>(&st, l)?, dims), x.shape(), x.device())?,
         dt => bail!("fused op: f32 or f64 only, got {dt:?}"),
     };
     Ok(Some(dx))

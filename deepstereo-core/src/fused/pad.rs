@@ -1,6 +1,6 @@
 //! [`pad_rows`]: the depth convolutions' zero padding.
 
-use super::{on_cpu, plane_grad};
+use super::{on_cpu, plane_grad, PlaneBackward};
 use candle_core::{bail, CpuStorage, CustomOp1, Layout, Result, Shape, Tensor, WithDType};
 use rayon::prelude::*;
 
@@ -57,12 +57,10 @@ impl PadRows {
         unsafe { y.set_len(len) };
         Ok(y)
     }
+}
 
-    fn bwd_typed<T: WithDType>(
-        &self,
-        dy: &[T],
-        (n, c, h, w): (usize, usize, usize, usize),
-    ) -> Vec<T> {
+impl PlaneBackward for PadRows {
+    fn dx<T: WithDType>(&self, dy: &[T], (n, c, h, w): (usize, usize, usize, usize)) -> Vec<T> {
         let (hp, wp) = (h + 2 * self.p, w + self.extra);
         let mut dx = vec![T::zero(); n * c * h * w];
         dx.par_chunks_mut(h * w)
@@ -93,12 +91,6 @@ impl CustomOp1 for PadRows {
     }
 
     fn bwd(&self, x: &Tensor, _y: &Tensor, dy: &Tensor) -> Result<Option<Tensor>> {
-        let dims = x.dims4()?;
-        plane_grad(
-            x,
-            dy,
-            |g| self.bwd_typed(g, dims),
-            |g| self.bwd_typed(g, dims),
-        )
+        plane_grad(self, x, dy)
     }
 }

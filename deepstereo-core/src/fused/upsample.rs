@@ -1,6 +1,6 @@
 //! [`upsample_crop`]: nearest upsampling by an integer factor and a crop in one pass.
 
-use super::{on_cpu, plane_grad, slice};
+use super::{on_cpu, plane_grad, slice, PlaneBackward};
 use candle_core::{bail, CpuStorage, CustomOp1, Layout, Result, Shape, Tensor, WithDType};
 use rayon::prelude::*;
 
@@ -55,8 +55,10 @@ impl UpsampleCrop {
             .for_each(|(dst, src)| self.plane(src, wi, dst));
         y
     }
+}
 
-    fn bwd_typed<T: WithDType>(&self, dy: &[T], dims: (usize, usize, usize, usize)) -> Vec<T> {
+impl PlaneBackward for UpsampleCrop {
+    fn dx<T: WithDType>(&self, dy: &[T], dims: (usize, usize, usize, usize)) -> Vec<T> {
         let (n, c, hi, wi) = dims;
         let mut dx = vec![T::zero(); n * c * hi * wi];
         dx.par_chunks_mut(hi * wi)
@@ -83,12 +85,6 @@ impl CustomOp1 for UpsampleCrop {
     }
 
     fn bwd(&self, x: &Tensor, _y: &Tensor, dy: &Tensor) -> Result<Option<Tensor>> {
-        let dims = x.dims4()?;
-        plane_grad(
-            x,
-            dy,
-            |g| self.bwd_typed(g, dims),
-            |g| self.bwd_typed(g, dims),
-        )
+        plane_grad(self, x, dy)
     }
 }
