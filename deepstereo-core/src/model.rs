@@ -10,7 +10,7 @@
 //! `colour.levels.{l}.{i}.*`, `colour.merge.{i}.*`, `colour.out.*`.
 
 use crate::config::{Config, TowerConfig};
-use crate::conv::Conv2d;
+use crate::conv::{depth_head, pointwise_colours, Conv2d};
 use crate::fused::{composite, pad_rows, select_softmax, upsample_crop};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
@@ -58,6 +58,14 @@ impl Tower {
             levels,
             merge,
         })
+    }
+
+    /// The convolutions in order when the tower is one level of 1x1 convolutions (its
+    /// merge then needs no crop or concatenation).
+    fn pointwise(&self) -> Option<Vec<&Conv2d>> {
+        let convs: Vec<&Conv2d> = self.levels.first()?.iter().chain(&self.merge).collect();
+        let ones = convs.iter().all(|c| c.weight().dims()[2..] == [1, 1]);
+        (self.levels.len() == 1 && ones && !convs.is_empty()).then_some(convs)
     }
 
     /// `inputs[l]`: `[N, C_in, H_l, W_l]` (N = B*D planes folded into the batch), each
@@ -167,6 +175,18 @@ impl DeepStereo {
     /// `inputs[l]`: `[B, D, 4V, H_l, W_l]` with `H_l = Config::input_size(l, th)`, for
     /// `l < Config::levels`. `th`, `tw` multiples of `Config::tile_align()`.
     pub fn forward(&self, inputs: &[Tensor]) -> Result<Output> {
+        self.run(inputs, false)
+    }
+
+    /// [`Self::forward`] for rendering (no gradients flow through it): the depth layers
+    /// and the selection softmax, and a colour tower of one level of 1x1 convolutions with
+    /// its output layer, each run as one fused pass over blocks of pixels where the CPU
+    /// kernels apply (`conv/chain.rs`), else as in [`Self::forward`].
+    pub fn infer(&self, inputs: &[Tensor]) -> Result<Output> {
+        self.run(inputs, true)
+    }
+
+    fn run(&self, inputs: &[Tensor], fuse: bool) -> Result<Output> {
         let cfg = &self.cfg;
         if inputs.len() != cfg.levels {
             candle_core::bail!("expected {} input levels, got {}", cfg.levels, inputs.len());
@@ -194,6 +214,42 @@ impl DeepStereo {
         };
         // Selection tower.
         let s = self.select.forward(&folded(&cfg.select, 0)?, th, tw)?; // [B*D, C, th, tw]
+        let fused = if fuse {
+            depth_head(&s, d, &self.depth, &self.log_scale)?
+        } else {
+            None
+        };
+        let selection = match fused {
+            Some(sel) => sel, // [B, D, th*tw]
+            None => self.selection(&s, b, d, th, tw)?,
+        };
+
+        // Colour tower: one fused pass for a 1x1 tower when rendering (the tile sits at
+        // `pad(0)` in level 0), else layer by layer.
+        let p = cfg.pad(0);
+        let pointwise = match self.colour.pointwise() {
+            Some(convs) if fuse => {
+                let x0 = inputs[0].reshape((b * d, cin, h0, w0))?; // [B*D, 4V, H_0, W_0]
+                let (out, skip) = (&self.colour_out, cfg.colour_skip);
+                pointwise_colours(&x0, p, (th, tw), &convs, out, skip)?
+            }
+            _ => None,
+        };
+        let out = match pointwise {
+            Some(out) => out,
+            None => self.colours(inputs, &folded, th, tw)?,
+        }; // [B*D, 3, th, tw]
+        let colours = out.reshape((b, d, 3, th * tw))?; // [B, D, 3, th*tw]
+        let image = composite(&colours, &selection)? // sum over D of s * c
+            .reshape((b, 3, th, tw))?; // [B, 3, th, tw]
+        let selection = selection.reshape((b, d, th, tw))?; // [B, D, th, tw]
+        Ok(Output { image, selection })
+    }
+
+    /// The depth layers and the softmax, one op at a time: `s` `[B*D, C, th, tw]` ->
+    /// `[B, D, th*tw]`.
+    fn selection(&self, s: &Tensor, b: usize, d: usize, th: usize, tw: usize) -> Result<Tensor> {
+        let cfg = &self.cfg;
         let c = s.dim(1)?;
         let mut x = s
             .reshape((b, d, c, th * tw))? // [B, D, C, th*tw]
@@ -202,7 +258,11 @@ impl DeepStereo {
                                // channels and planes in the same cache sets; a few zero columns (their outputs
                                // are dropped) shift them apart.
         let pp = th * tw;
-        let extra = if pp % ALIASING_ROW == 0 { ROW_SHIFT } else { 0 };
+        let extra = if pp.is_multiple_of(ALIASING_ROW) {
+            ROW_SHIFT
+        } else {
+            0
+        };
         let last = self.depth.len() - 1;
         for (i, conv) in self.depth.iter().enumerate() {
             let p = cfg.depth_convs[i].kernel / 2;
@@ -214,11 +274,21 @@ impl DeepStereo {
             }; // [B, C', D, pp + extra]
         }
         let x = x.narrow(3, 0, pp)?.reshape((b, d, pp))?; // [B, D, th*tw]
-                                                          // softmax over D of tanh(x) * exp(log_scale)
-        let selection = select_softmax(&x, &self.log_scale)?; // [B, D, th*tw]
+        select_softmax(&x, &self.log_scale) // softmax_D(tanh(x) exp(log_scale)), [B, D, th*tw]
+    }
 
-        // Colour tower. The skip input is the tile's own pixels, which is also the colour
-        // tower's level-0 input when its convolutions are 1x1 (then cropped once).
+    /// The colour tower and its output layer, one op at a time: `[B*D, 3, th, tw]`.
+    fn colours(
+        &self,
+        inputs: &[Tensor],
+        folded: &dyn Fn(&TowerConfig, usize) -> Result<Vec<Tensor>>,
+        th: usize,
+        tw: usize,
+    ) -> Result<Tensor> {
+        // The skip input is the tile's own pixels, which is also the colour tower's
+        // level-0 input when its convolutions are 1x1 (then cropped once).
+        let cfg = &self.cfg;
+        let (b, d, cin, _, _) = inputs[0].dims5()?;
         let p = cfg.pad(0);
         let centre = || {
             inputs[0]
@@ -235,22 +305,17 @@ impl DeepStereo {
             folded(&cfg.colour, 0)?
         };
         let f = self.colour.forward(&colour_in, th, tw)?; // [B*D, C, th, tw]
-        let out = if cfg.colour_skip {
+        if cfg.colour_skip {
             let skip = if shared {
                 colour_in[0].clone()
             } else {
                 centre()?
             };
             // conv([f, skip]) without concatenating.
-            self.colour_out.forward_pair(&f, &skip)?
+            self.colour_out.forward_pair(&f, &skip)
         } else {
-            self.colour_out.forward(&f)?
-        }; // [B*D, 3, th, tw]
-        let colours = out.reshape((b, d, 3, th * tw))?; // [B, D, 3, th*tw]
-        let image = composite(&colours, &selection)? // sum over D of s * c
-            .reshape((b, 3, th, tw))?; // [B, 3, th, tw]
-        let selection = selection.reshape((b, d, th, tw))?; // [B, D, th, tw]
-        Ok(Output { image, selection })
+            self.colour_out.forward(&f)
+        } // [B*D, 3, th, tw]
     }
 }
 

@@ -40,7 +40,7 @@ impl Backend for CandleBackend {
     fn run(&self, inputs: &TileInputs, planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
         let c = self.config().in_channels();
         let tensors = inputs_to_tensors(inputs, 1, planes, c, &self.device)?;
-        let out = self.model.forward(&tensors)?;
+        let out = self.model.infer(&tensors)?;
         let image = out.image.flatten_all()?.to_vec1::<f32>()?;
         let selection = out.selection.flatten_all()?.to_vec1::<f32>()?;
         Ok((image, selection))

@@ -2,9 +2,12 @@
 //! the same weights and inputs (issue 9's acceptance figures):
 //!
 //! - **forward** of one render tile (`B = 1`, the preset's planes, a 64-pixel tile for
-//!   `tiny`, 32 for `paper`): candle (this crate's conv kernels, the renderer's path),
-//!   onnxruntime through `ort` on the exported graph, onnxruntime from Python on the same
-//!   file, and PyTorch (`python/deepstereo_ref.py`, `torch.no_grad`);
+//!   `tiny`, 32 for `paper`): candle (`DeepStereo::infer`, the renderer's path: this
+//!   crate's conv kernels, the depth layers and a 1x1 colour tower fused), onnxruntime
+//!   through `ort` on the exported graph (thread spinning off, as the renderer runs it),
+//!   onnxruntime from Python on the same file (its defaults), and PyTorch
+//!   (`python/deepstereo_ref.py`, `torch.no_grad`); the ratio printed takes the faster
+//!   onnxruntime;
 //! - **training step** on a training batch from procedural scenes (forward, L1 loss,
 //!   backward, Adam update): candle against PyTorch.
 //!
@@ -165,7 +168,7 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         .iter()
         .map(|(s, d)| Tensor::from_slice(d, s.as_slice(), &Device::Cpu))
         .collect::<candle_core::Result<_>>()?;
-    let image = t.model.forward(&xs)?.image;
+    let image = t.model.infer(&xs)?.image;
     let shape = image.dims().to_vec();
     let out = vec![NamedArray::f32("image", &shape, &tensor_f32(&image)?)];
     write_safetensors(&dir.path().join("candle.safetensors"), &out, None)?;
@@ -179,7 +182,7 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         12.0,
         || {
             Ok(t.model
-                .forward(&xs)?
+                .infer(&xs)?
                 .image
                 .flatten_all()?
                 .to_vec1::<f32>()

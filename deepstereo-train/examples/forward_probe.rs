@@ -78,12 +78,7 @@ fn main() -> Result<()> {
         let mut ort_best = f64::MAX;
         for _ in 0..iters {
             let t0 = Instant::now();
-            let out = t
-                .model
-                .forward(&xs)?
-                .image
-                .flatten_all()?
-                .to_vec1::<f32>()?;
+            let out = t.model.infer(&xs)?.image.flatten_all()?.to_vec1::<f32>()?;
             std::hint::black_box(out);
             times.push(t0.elapsed().as_secs_f64() * 1e3);
             if let Some(ort) = &ort {

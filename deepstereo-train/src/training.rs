@@ -90,7 +90,7 @@ pub fn validate(
     let (mut se, mut n) = (0f64, 0usize);
     for b in batches {
         let (x, y) = batch_tensors(b, device)?;
-        let out = model.forward(&x)?;
+        let out = model.infer(&x)?;
         let d = out.image.clamp(0f32, 1f32)?.sub(&y)?;
         se += d.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
         n += d.elem_count();

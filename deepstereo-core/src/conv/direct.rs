@@ -360,6 +360,38 @@ enum End {
     },
 }
 
+/// `y[r * stride + 0..NC] = act(bias[r] + sum_k wp[k * MR + r] * x[offsets[k] + 0..NC])`
+/// for `r < mr`: one whole tile, all taps at once (the fused chains of `chain.rs`).
+///
+/// # Safety
+/// AVX2 and FMA present ([`available`]); `x + offsets[k] + NC` in bounds for every `k`;
+/// `wp` holds `offsets.len() * MR` values; `bias` holds `mr`; `y + r * stride + NC` in
+/// bounds for `r < mr` and not accessed by another thread.
+#[allow(clippy::too_many_arguments)]
+pub(crate) unsafe fn store_tile(
+    mr: usize,
+    offsets: &[usize],
+    x: *const f32,
+    wp: &[f32],
+    bias: &[f32],
+    y: *mut f32,
+    stride: usize,
+    relu: bool,
+) {
+    let mut unused = [[0f32; NC]; MR];
+    let end = End::Store { y, stride, relu };
+    tile_dispatch(
+        mr,
+        false,
+        offsets,
+        x,
+        wp,
+        Start::Bias(bias),
+        end,
+        &mut unused,
+    );
+}
+
 /// Adds one tap block to a tile's sums, for `mr` (1..=MR) output channels and 8
 /// (`half`) or [`NC`] outputs.
 ///

@@ -31,6 +31,12 @@
 //!   space" (`im2col.rs`), described below.
 //! - off the CPU: candle's `conv2d`.
 //!
+//! For rendering only (no gradients), `chain.rs` runs a whole chain of small layers per
+//! block of 16 pixels on `direct.rs`'s tile, activations kept in a per-thread scratch:
+//! [`depth_head`] (the depth convolutions and the selection softmax) and
+//! [`pointwise_colours`] (a colour tower of 1x1 convolutions and its output layer);
+//! [`crate::model::DeepStereo::infer`] uses them.
+//!
 //! Column space: `Y [Cout, N*P] = W [Cout, K] x cols [K, N*P]`, `P = Ho*Wo`,
 //! `K = Cin*kh*kw`. The
 //! columns are cut into chunks (whole images, grouped when small, or balanced runs of
@@ -84,15 +90,19 @@
 //!   (e.g. 128x28x24x24 -> 3, 1x1: 12 ms -> 4.5 ms); it has to be set before the process
 //!   starts (a binary can re-exec itself with it).
 
+mod chain;
 mod direct;
 mod direct_cv;
 mod direct_grad;
 mod im2col;
 mod kernels;
+pub use chain::{depth_head, pointwise_colours};
 pub(crate) use im2col::SharedMut;
 mod op;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_chain;
 mod winograd;
 
 use candle_core::{Module, Result, Tensor};
@@ -120,6 +130,10 @@ impl Conv2d {
 
     pub fn weight(&self) -> &Tensor {
         &self.weight
+    }
+
+    pub fn bias(&self) -> &Tensor {
+        &self.bias
     }
 
     /// `relu(conv(x) + bias)`, with the ReLU fused into the kernels (forward and backward).

@@ -26,6 +26,22 @@ pub fn select_softmax(x: &Tensor, log_scale: &Tensor) -> Result<Tensor> {
 
 struct SelectSoftmax;
 
+/// [`select_softmax`] of columns `j0..j1` of one batch item: `x`, `s` `[d, p]` (for the
+/// fused depth head, `conv/chain.rs`).
+///
+/// # Safety
+/// `s` addresses `d * p` values of which no other thread touches these columns.
+pub(crate) unsafe fn softmax_columns(
+    x: &[f32],
+    s: *mut f32,
+    a: f32,
+    dp: (usize, usize),
+    j0: usize,
+    j1: usize,
+) {
+    SelectSoftmax::columns(x, s, a, dp, j0, j1)
+}
+
 impl SelectSoftmax {
     /// Softmax over `d` of `tanh(x) a` for columns `j0..j1` of one batch item (`x`, `s`:
     /// `[d, p]`).

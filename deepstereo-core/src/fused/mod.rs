@@ -18,6 +18,7 @@ mod pad;
 mod tests;
 mod upsample;
 
+pub(crate) use head::softmax_columns;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;
 pub use upsample::upsample_crop;

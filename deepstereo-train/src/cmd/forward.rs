@@ -80,7 +80,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
                 }
                 inputs.push(Tensor::from_vec(data, shape, &Device::Cpu)?);
             }
-            let out = t.model.forward(&inputs)?;
+            let out = t.model.infer(&inputs)?;
             (
                 out.image.flatten_all()?.to_vec1::<f32>()?,
                 out.image.dims().to_vec(),

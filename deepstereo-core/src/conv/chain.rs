@@ -1,0 +1,305 @@
+//! Inference-only chains of small convolutions evaluated block by block: [`PX`] pixels at
+//! a time, every layer of the chain before the next block, intermediate activations in a
+//! per-thread scratch buffer that stays in L1/L2 (they never go to memory). No gradients:
+//! training runs the layers one by one through [`super::op`].
+//!
+//! - [`depth_head`]: the selection tower's convolutions across depth and its softmax,
+//!   reading the 2D tower's `[B, D, C, H, W]` output directly (no transpose or padding
+//!   copies; zero rows stand for the padding along depth);
+//! - [`pointwise_colours`]: a colour tower of 1x1 convolutions and its output layer
+//!   (with the skip input), reading the tile's pixels straight out of the level-0 input
+//!   (no crop copy, no concatenation).
+//!
+//! A block's scratch holds rows of `C x PX` floats (channel-major, pixels innermost); a
+//! layer with `k` taps along rows writes output row `r` from input rows `r .. r + k`
+//! through `direct.rs`'s tile (same tap order, so the sums equal the layer-by-layer path's).
+
+use super::direct::{available, kernels_allowed, pack, store_tile, Kernels, LineAligned, MR, NC};
+use super::{Conv2d, SharedMut};
+use candle_core::{bail, DType, Result, Storage, Tensor};
+use rayon::prelude::*;
+
+/// Pixels per block: one tile of the kernel.
+const PX: usize = NC;
+/// Work items wanted per thread (blocks are grouped into this many runs per thread).
+const RUNS_PER_THREAD: usize = 8;
+
+/// Whether the fused chains run these tensors: f32 on the CPU, with the AVX2 kernels.
+fn fast(ts: &[&Tensor]) -> bool {
+    available()
+        && kernels_allowed() != Kernels::Im2col
+        && ts
+            .iter()
+            .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
+}
+
+/// Runs `f(block)` for blocks `0..n` on all threads, each run of blocks with its own
+/// scratch from `init`.
+fn par_blocks<S>(n: usize, init: impl Fn() -> S + Sync, f: impl Fn(&mut S, usize) + Sync) {
+    let runs = (rayon::current_num_threads() * RUNS_PER_THREAD).clamp(1, n.max(1));
+    let per = n.div_ceil(runs);
+    (0..n.div_ceil(per)).into_par_iter().for_each(|run| {
+        let mut s = init();
+        for blk in run * per..((run + 1) * per).min(n) {
+            f(&mut s, blk);
+        }
+    });
+}
+
+/// The f32 elements of a contiguous CPU tensor, passed to `f`.
+fn with_data<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> Result<R>) -> Result<R> {
+    let t = t.contiguous()?;
+    let (st, l) = t.storage_and_layout();
+    let Storage::Cpu(cpu) = &*st else {
+        bail!("fused chain: CPU tensor expected")
+    };
+    let Some((a, b)) = l.contiguous_offsets() else {
+        bail!("fused chain: contiguous tensor expected")
+    };
+    f(&cpu.as_slice::<f32>()?[a..b])
+}
+
+/// A convolution along the rows of a block's scratch (`k` taps), mixing channels.
+struct Layer {
+    wp: LineAligned,
+    bias: Vec<f32>,
+    cin: usize,
+    cout: usize,
+    k: usize,
+    relu: bool,
+}
+
+impl Layer {
+    /// From a `[C_out, C_in, k, 1]` convolution.
+    fn new(conv: &Conv2d, relu: bool) -> Result<Self> {
+        let (cout, cin, k, kw) = conv.weight().dims4()?;
+        if kw != 1 {
+            bail!("fused chain: expected a k x 1 kernel, got {k} x {kw}");
+        }
+        let w = conv.weight().flatten_all()?.to_vec1::<f32>()?;
+        Ok(Self {
+            wp: pack(&w, cout, cin * k, MR),
+            bias: conv.bias().to_vec1::<f32>()?,
+            cin,
+            cout,
+            k,
+            relu,
+        })
+    }
+
+    /// Tap `c * k + t` (the weights' order) reads row `t`, channel `c` of an input whose
+    /// rows are `cin * PX` floats apart.
+    fn offsets(&self) -> Vec<usize> {
+        let stride = self.cin * PX;
+        (0..self.cin)
+            .flat_map(|c| (0..self.k).map(move |t| t * stride + c * PX))
+            .collect()
+    }
+
+    /// Output rows `0..rows` (`cout * PX` floats apart from `y`) from input rows
+    /// `0..rows + k - 1` at `x`.
+    ///
+    /// # Safety
+    /// [`available`]; `x` holds `(rows + k - 1) * cin * PX` floats, `y` `rows * cout * PX`;
+    /// `offs` is [`Self::offsets`].
+    unsafe fn run(&self, offs: &[usize], x: *const f32, y: *mut f32, rows: usize) {
+        let kk = self.cin * self.k;
+        for r in 0..rows {
+            for panel in 0..self.cout.div_ceil(MR) {
+                let mr = (self.cout - panel * MR).min(MR);
+                store_tile(
+                    mr,
+                    offs,
+                    x.add(r * self.cin * PX),
+                    &self.wp[panel * kk * MR..][..kk * MR],
+                    &self.bias[panel * MR..][..mr],
+                    y.add((r * self.cout + panel * MR) * PX),
+                    PX,
+                    self.relu,
+                );
+            }
+        }
+    }
+}
+
+/// Selection probabilities `[B, D, H * W]` from the 2D selection features `s`
+/// (`[B * D, C, H, W]`): the depth convolutions `convs` (`[C_out, C_in, k, 1]`, zero
+/// padding of `k / 2` planes on both sides, ReLU between them) and
+/// `softmax_D(tanh(x) exp(log_scale))`. `None` where the fused kernels do not run (not
+/// f32 on a CPU with AVX2); the caller then runs the layers one by one.
+pub fn depth_head(
+    s: &Tensor,
+    planes: usize,
+    convs: &[Conv2d],
+    log_scale: &Tensor,
+) -> Result<Option<Tensor>> {
+    if !fast(&[s, log_scale]) {
+        return Ok(None);
+    }
+    let (n, c, h, w) = s.dims4()?;
+    let (b, d, p) = (n / planes, planes, h * w);
+    if b * d != n || convs.is_empty() {
+        bail!("depth_head: {n} planes are not batches of {planes}, or no convolutions");
+    }
+    let last = convs.len() - 1;
+    let layers = convs
+        .iter()
+        .enumerate()
+        .map(|(i, cv)| Layer::new(cv, i < last))
+        .collect::<Result<Vec<_>>>()?;
+    let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
+    if layers[0].cin != c || !chained || layers[last].cout != 1 {
+        bail!("depth_head: convolutions do not chain from {c} channels to 1");
+    }
+    let a = log_scale.flatten_all()?.to_vec1::<f32>()?[0].exp();
+    let offs: Vec<Vec<usize>> = layers.iter().map(Layer::offsets).collect();
+    // Layer i reads buffer i: D rows and k_i / 2 zero rows above and below; the last
+    // layer writes D rows of one channel.
+    let pads: Vec<usize> = layers.iter().map(|l| l.k / 2).collect();
+    let sizes: Vec<usize> = layers
+        .iter()
+        .zip(&pads)
+        .map(|(l, &pd)| (d + 2 * pd) * l.cin * PX)
+        .chain([d * PX])
+        .collect();
+    let blocks = p.div_ceil(PX);
+    let mut out = vec![0f32; b * d * p];
+    let op = SharedMut(out.as_mut_ptr());
+    with_data(s, |s| {
+        let init = || {
+            let bufs: Vec<LineAligned> = sizes.iter().map(|&n| LineAligned::zeros(n)).collect();
+            (bufs, vec![0f32; d * PX])
+        };
+        par_blocks(b * blocks, init, |(bufs, soft), blk| {
+            let (bi, q0) = (blk / blocks, (blk % blocks) * PX);
+            let np = PX.min(p - q0);
+            let (pad0, src) = (pads[0], &s[bi * d * c * p..][..d * c * p]);
+            for (row, plane) in src.chunks_exact(c * p).enumerate() {
+                for (ch, x) in plane.chunks_exact(p).enumerate() {
+                    let dst = &mut bufs[0][((row + pad0) * c + ch) * PX..][..PX];
+                    dst[..np].copy_from_slice(&x[q0..q0 + np]);
+                    dst[np..].fill(0.0);
+                }
+            }
+            for (i, l) in layers.iter().enumerate() {
+                let (lo, hi) = bufs.split_at_mut(i + 1);
+                let pd = pads.get(i + 1).copied().unwrap_or(0);
+                // SAFETY: `fast` checked the CPU; buffer i holds (d + 2 pad_i) rows of
+                // cin_i channels, buffer i + 1 rows pd .. pd + d of cout_i channels.
+                unsafe {
+                    let y = hi[0].as_mut_ptr().add(pd * l.cout * PX);
+                    l.run(&offs[i], lo[i].as_ptr(), y, d);
+                }
+            }
+            // SAFETY: `soft` holds d * PX values; columns 0..np.
+            unsafe {
+                let logits = &bufs[layers.len()][..];
+                crate::fused::softmax_columns(logits, soft.as_mut_ptr(), a, (d, PX), 0, np);
+            }
+            for (row, sr) in soft.chunks_exact(PX).enumerate() {
+                // SAFETY: block (bi, q0) owns columns q0 .. q0 + np of batch item bi.
+                unsafe {
+                    let dst = op.get().add((bi * d + row) * p + q0);
+                    std::ptr::copy_nonoverlapping(sr.as_ptr(), dst, np);
+                }
+            }
+        });
+        Ok(())
+    })?;
+    Tensor::from_vec(out, (b, d, p), s.device()).map(Some)
+}
+
+/// The colours `[N, 3, th, tw]` of a colour tower of 1x1 convolutions (`convs`, ReLU
+/// after each) and its output layer `out` (no ReLU; its input the last features and,
+/// when `skip`, the tile's own input channels after them), on the tile's pixels of the
+/// level-0 input `x` (`[N, C, H, W]`, the tile at rows and columns `crop ..`). `None`
+/// where the fused kernels do not run.
+pub fn pointwise_colours(
+    x: &Tensor,
+    crop: usize,
+    (th, tw): (usize, usize),
+    convs: &[&Conv2d],
+    out: &Conv2d,
+    skip: bool,
+) -> Result<Option<Tensor>> {
+    if !fast(&[x]) {
+        return Ok(None);
+    }
+    let (n, c, h, w) = x.dims4()?;
+    if crop + th > h || crop + tw > w || convs.is_empty() {
+        bail!("pointwise_colours: a {th}x{tw} tile at {crop} does not fit {h}x{w}");
+    }
+    let layers = convs
+        .iter()
+        .map(|cv| Layer::new(cv, true))
+        .collect::<Result<Vec<_>>>()?;
+    let head = Layer::new(out, false)?;
+    let f = layers[layers.len() - 1].cout;
+    let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
+    let head_in = f + if skip { c } else { 0 };
+    let pointwise = layers.iter().chain([&head]).all(|l| l.k == 1);
+    if layers[0].cin != c || !chained || head.cin != head_in || !pointwise {
+        bail!("pointwise_colours: 1x1 convolutions do not chain from {c} channels");
+    }
+    let (p, cout) = (th * tw, head.cout);
+    // Scratch: `cat` = [features f; input c] (the output layer's input), two ping-pong
+    // buffers for the layers in between, and the output block.
+    let widest = layers.iter().map(|l| l.cout).max().unwrap_or(f);
+    let offs: Vec<Vec<usize>> = layers.iter().map(Layer::offsets).collect();
+    let head_offs = head.offsets();
+    let blocks = p.div_ceil(PX);
+    let mut y = vec![0f32; n * cout * p];
+    let yp = SharedMut(y.as_mut_ptr());
+    with_data(x, |x| {
+        let init = || {
+            let cat = LineAligned::zeros((f + c) * PX);
+            let pp = [
+                LineAligned::zeros(widest * PX),
+                LineAligned::zeros(widest * PX),
+            ];
+            (cat, pp, LineAligned::zeros(cout * PX))
+        };
+        par_blocks(n * blocks, init, |(cat, pp, yb), blk| {
+            let (ni, q0) = (blk / blocks, (blk % blocks) * PX);
+            let np = PX.min(p - q0);
+            // The block's pixels, row run by row run, into the input part of `cat`.
+            let plane = &x[ni * c * h * w..][..c * h * w];
+            let mut q = q0;
+            while q < q0 + np {
+                let (r, col) = (q / tw, q % tw);
+                let run = (tw - col).min(q0 + np - q);
+                let src = (r + crop) * w + col + crop;
+                for ch in 0..c {
+                    let dst = &mut cat[(f + ch) * PX + q - q0..][..run];
+                    dst.copy_from_slice(&plane[ch * h * w + src..][..run]);
+                }
+                q += run;
+            }
+            for ch in 0..c {
+                cat[(f + ch) * PX + np..(f + ch + 1) * PX].fill(0.0);
+            }
+            // SAFETY: `fast` checked the CPU; every buffer holds its layer's channels x
+            // PX; the first layer reads `cat`'s input part, the last writes its features.
+            unsafe {
+                let mut src = cat.as_ptr().add(f * PX);
+                for (i, l) in layers.iter().enumerate() {
+                    let dst = if i + 1 == layers.len() {
+                        cat.as_mut_ptr()
+                    } else {
+                        pp[i % 2].as_mut_ptr()
+                    };
+                    l.run(&offs[i], src, dst, 1);
+                    src = dst;
+                }
+                // [features; input] or the features alone (`head.cin` channels of `cat`).
+                head.run(&head_offs, cat.as_ptr(), yb.as_mut_ptr(), 1);
+                for ch in 0..cout {
+                    let dst = yp.get().add((ni * cout + ch) * p + q0);
+                    std::ptr::copy_nonoverlapping(yb.as_ptr().add(ch * PX), dst, np);
+                }
+            }
+        });
+        Ok(())
+    })?;
+    Tensor::from_vec(y, (n, cout, th, tw), x.device()).map(Some)
+}
