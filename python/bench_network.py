@@ -5,9 +5,14 @@
 DIR holds what the Rust side wrote: `weights.safetensors` (the model), `model.onnx` (its
 export), `tile.safetensors` (one render tile's inputs, `level0`..), `candle.safetensors`
 (candle's image on that tile) and `batch.safetensors` (a training batch: `level0`.. and
-`target`). Prints one JSON line: best seconds of PyTorch's forward (`torch.no_grad`), of a
-PyTorch training step (forward, L1 loss, backward, Adam) and of onnxruntime's forward, and
-the largest absolute difference of PyTorch's and onnxruntime's images from candle's.
+`target`). After loading, prints one JSON line with the largest absolute difference of
+PyTorch's and onnxruntime's images from candle's, then serves the Rust side, which
+alternates its own runs with these so that a change in the machine's speed hits every
+runtime alike: each line on stdin, `torch_fwd` (PyTorch forward, `torch.no_grad`),
+`ort_fwd` (onnxruntime forward) or `torch_step` (forward, L1 loss, backward, Adam), runs
+once and answers its wall time in seconds; `quit` (or the end of stdin) ends it. After
+each run it waits [SETTLE_S] before answering, so that the runtimes' spinning worker
+threads are idle when the other side starts.
 """
 
 import json
@@ -24,18 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import deepstereo_ref as ref  # noqa: E402
 
 
-def timed(f, budget_s, max_reps=8):
-    """Best wall time of f() in seconds: one warm-up run, then 2..max_reps runs."""
-    t0 = time.perf_counter()
-    f()
-    first = time.perf_counter() - t0
-    reps = int(min(max_reps, max(2, budget_s / max(first, 1e-6))))
-    best = float("inf")
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        f()
-        best = min(best, time.perf_counter() - t0)
-    return best
+# Seconds to wait after a run before answering (OpenMP and onnxruntime workers spin for a
+# while after each parallel region; they must not take the cores from the next runtime).
+SETTLE_S = 0.3
 
 
 def levels(arrays, n):
@@ -53,39 +49,41 @@ def main():
 
     with torch.no_grad():
         image = model(xs)[0].numpy()
-        torch_fwd = timed(lambda: model(xs), 6.0, max_reps=30)
+
+    def torch_fwd():
+        with torch.no_grad():
+            model(xs)
 
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     sess = ort.InferenceSession(str(d / "model.onnx"), opts, providers=["CPUExecutionProvider"])
     feed = {f"level{l}": a for l, a in enumerate(tile)}
     ort_image = sess.run(["image"], feed)[0]
-    ort_fwd = timed(lambda: sess.run(None, feed), 6.0, max_reps=30)
 
     batch = load_file(str(d / "batch.safetensors"))
     bx = [torch.from_numpy(a) for a in levels(batch, n)]
     by = torch.from_numpy(batch["target"])
-    model.train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
 
-    def step():
+    def torch_step():
+        model.train()
         opt.zero_grad(set_to_none=True)
         loss = (model(bx)[0] - by).abs().mean()
         loss.backward()
         opt.step()
 
-    torch_step = timed(step, 8.0, max_reps=12)
     diff = max(float(np.abs(image - candle).max()), float(np.abs(ort_image - candle).max()))
-    print(
-        json.dumps(
-            {
-                "torch_fwd_s": torch_fwd,
-                "torch_step_s": torch_step,
-                "ort_fwd_s": ort_fwd,
-                "max_abs_diff": diff,
-            }
-        )
-    )
+    print(json.dumps({"max_abs_diff": diff}), flush=True)
+    runs = {"torch_fwd": torch_fwd, "ort_fwd": lambda: sess.run(None, feed), "torch_step": torch_step}
+    for line in sys.stdin:
+        cmd = line.strip()
+        if cmd == "quit":
+            break
+        t0 = time.perf_counter()
+        runs[cmd]()
+        elapsed = time.perf_counter() - t0
+        time.sleep(SETTLE_S)
+        print(elapsed, flush=True)
 
 
 if __name__ == "__main__":

@@ -12,8 +12,11 @@
 //!   backward, Adam update): candle against PyTorch.
 //!
 //! Threads: Rust uses all cores (rayon), PyTorch `torch.set_num_threads(cores)`,
-//! onnxruntime its default (one per core). Times are the best of several runs (the machine
-//! may be shared). GFLOP/s count 2 x multiply-adds of the convolutions as written (the
+//! onnxruntime its default (one per core). The runtimes take turns, round after round
+//! (the Python side is a server process that waits 0.3 s after each run, so that spinning
+//! worker threads are idle when the next runtime starts), and each figure is its best
+//! round: the machine's speed drifts over minutes, and turns make a drift hit all of them
+//! alike. GFLOP/s count 2 x multiply-adds of the convolutions as written (the
 //! config's cost model, the same for every runtime) and are set against a 2048^2 f32
 //! matmul measured in the same run; candle's Winograd layers do fewer products than that
 //! count, so its figure can pass the matmul's (and the machine's peak). The
@@ -37,49 +40,39 @@ use deepstereo_train::training::batch_tensors;
 use std::path::Path;
 use std::time::Instant;
 
-/// Best seconds of `f`: one warm-up run, then 2..=12 runs within `budget_s`.
-fn timed(budget_s: f64, mut f: impl FnMut() -> Result<()>) -> Result<f64> {
-    let t = Instant::now();
-    f()?;
-    let first = t.elapsed().as_secs_f64();
-    let reps = ((budget_s / first) as usize).clamp(2, 12);
-    let mut best = f64::MAX;
-    for _ in 0..reps {
+/// Seconds of one call of `f`.
+fn seconds(mut f: impl FnMut() -> Result<()>) -> impl FnMut() -> Result<f64> {
+    move || {
         let t = Instant::now();
         f()?;
-        best = best.min(t.elapsed().as_secs_f64());
+        Ok(t.elapsed().as_secs_f64())
     }
-    Ok(best)
 }
 
-/// Best seconds of `a` and of `b`, run alternately (one warm-up each, then 3..=30
-/// rounds within `budget_s`: the shared machine's times spread by +-30%, so the best of
-/// many is the steadier figure).
-fn interleaved(
-    budget_s: f64,
-    mut a: impl FnMut() -> Result<()>,
-    mut b: impl FnMut() -> Result<()>,
-) -> Result<(f64, f64)> {
+/// Best seconds of each of `runs` (each returns its own time), run in turn round after
+/// round: one warm-up round, then 3..=30 rounds within `budget_s`. The shared machine's
+/// speed drifts by tens of percent over minutes; alternating makes a drift hit every
+/// runtime alike, and the best of many rounds is the steadier figure.
+fn alternate(budget_s: f64, runs: &mut [&mut dyn FnMut() -> Result<f64>]) -> Result<Vec<f64>> {
     let t = Instant::now();
-    a()?;
-    b()?;
-    let rounds = ((budget_s / t.elapsed().as_secs_f64()) as usize).clamp(3, 30);
-    let (mut best_a, mut best_b) = (f64::MAX, f64::MAX);
-    for _ in 0..rounds {
-        let t = Instant::now();
-        a()?;
-        best_a = best_a.min(t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        b()?;
-        best_b = best_b.min(t.elapsed().as_secs_f64());
+    for r in runs.iter_mut() {
+        r()?;
     }
-    Ok((best_a, best_b))
+    let rounds = ((budget_s / t.elapsed().as_secs_f64()) as usize).clamp(3, 30);
+    let mut best = vec![f64::MAX; runs.len()];
+    for _ in 0..rounds {
+        for (r, b) in runs.iter_mut().zip(best.iter_mut()) {
+            *b = b.min(r()?);
+        }
+    }
+    Ok(best)
 }
 
 fn matmul_gflops() -> Result<f64> {
     let a = Tensor::randn(0f32, 1., (2048, 2048), &Device::Cpu)?;
     let b = Tensor::randn(0f32, 1., (2048, 2048), &Device::Cpu)?;
-    let s = timed(1.0, || Ok(a.matmul(&b).map(drop)?))?;
+    let mut mm = seconds(|| Ok(a.matmul(&b).map(drop)?));
+    let s = alternate(1.0, &mut [&mut mm])?[0];
     Ok(2.0 * 2048f64.powi(3) / s * 1e-9)
 }
 
@@ -111,45 +104,79 @@ fn arrays(levels: &[(Vec<usize>, Vec<f32>)]) -> Vec<NamedArray> {
         .collect()
 }
 
-struct PyTimes {
-    torch_fwd: f64,
-    torch_step: f64,
-    ort_py_fwd: f64,
+/// `python/bench_network.py` serving timed PyTorch and onnxruntime runs on the files in
+/// a directory (see its documentation).
+struct Python {
+    child: std::process::Child,
+    input: std::process::ChildStdin,
+    output: std::io::BufReader<std::process::ChildStdout>,
+    /// Largest difference of PyTorch's and onnxruntime's images from candle's.
     max_diff: f64,
 }
 
-/// `python/bench_network.py` on the files in `dir`, or `None` without the venv.
-fn python(dir: &Path, threads: usize) -> Result<Option<PyTimes>> {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let py = root.join(".venv/bin/python");
-    if !py.is_file() {
-        eprintln!("note: no .venv (run `bash tests/run-all.sh` once): PyTorch and Python onnxruntime skipped");
-        return Ok(None);
+impl Python {
+    /// Starts the server, or `None` without the workspace's venv.
+    fn start(dir: &Path, threads: usize) -> Result<Option<Self>> {
+        use std::process::{Command, Stdio};
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let py = root.join(".venv/bin/python");
+        if !py.is_file() {
+            eprintln!("note: no .venv (run `bash tests/run-all.sh` once): PyTorch and Python onnxruntime skipped");
+            return Ok(None);
+        }
+        let mut child = Command::new(py)
+            .arg(root.join("python/bench_network.py"))
+            .arg(dir)
+            .arg(threads.to_string())
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .context("running python/bench_network.py")?;
+        let (Some(input), Some(out)) = (child.stdin.take(), child.stdout.take()) else {
+            bail!("python/bench_network.py: no pipes");
+        };
+        let mut py = Self {
+            child,
+            input,
+            output: std::io::BufReader::new(out),
+            max_diff: f64::NAN,
+        };
+        let v: serde_json::Value = serde_json::from_str(&py.line()?)
+            .context("python/bench_network.py: first line is not JSON")?;
+        py.max_diff = v["max_abs_diff"]
+            .as_f64()
+            .context("python/bench_network.py: no max_abs_diff")?;
+        Ok(Some(py))
     }
-    let out = std::process::Command::new(py)
-        .arg(root.join("python/bench_network.py"))
-        .arg(dir)
-        .arg(threads.to_string())
-        .output()
-        .context("running python/bench_network.py")?;
-    if !out.status.success() {
-        bail!(
-            "python/bench_network.py failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+
+    fn line(&mut self) -> Result<String> {
+        use std::io::BufRead;
+        let mut s = String::new();
+        if self.output.read_line(&mut s)? == 0 {
+            bail!("python/bench_network.py ended early (its error is above)");
+        }
+        Ok(s)
     }
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout)
-        .with_context(|| format!("bench_network.py: {}", String::from_utf8_lossy(&out.stdout)))?;
-    let get = |k: &str| {
-        v[k].as_f64()
-            .with_context(|| format!("bench_network.py: no {k}"))
-    };
-    Ok(Some(PyTimes {
-        torch_fwd: get("torch_fwd_s")?,
-        torch_step: get("torch_step_s")?,
-        ort_py_fwd: get("ort_fwd_s")?,
-        max_diff: get("max_abs_diff")?,
-    }))
+
+    /// Seconds of one `cmd` run on the Python side.
+    fn time(&mut self, cmd: &str) -> Result<f64> {
+        use std::io::Write;
+        writeln!(self.input, "{cmd}")?;
+        self.input.flush()?;
+        let s = self.line()?;
+        s.trim()
+            .parse()
+            .with_context(|| format!("bench_network.py answered {s:?} to {cmd}"))
+    }
+}
+
+impl Drop for Python {
+    fn drop(&mut self) {
+        use std::io::Write;
+        let _ = writeln!(self.input, "quit");
+        let _ = self.input.flush();
+        let _ = self.child.wait();
+    }
 }
 
 fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
@@ -177,19 +204,6 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         .iter()
         .map(|(s, d)| (s.as_slice(), d.as_slice()))
         .collect();
-    // Candle and ort alternate, so that a change in the shared machine's load hits both.
-    let (fwd, ort_fwd) = interleaved(
-        12.0,
-        || {
-            Ok(t.model
-                .infer(&xs)?
-                .image
-                .flatten_all()?
-                .to_vec1::<f32>()
-                .map(drop)?)
-        },
-        || Ok(ort.forward(&views).map(drop)?),
-    )?;
 
     // One training step on a batch of procedural patches.
     let opts = SynthOptions {
@@ -211,13 +225,43 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
     train_arrays.push(NamedArray::f32("target", &b.target_shape, &b.target));
     write_safetensors(&dir.path().join("batch.safetensors"), &train_arrays, None)?;
     let mut opt = Optimizer::new(OptimizerKind::Adam, 1e-4, named_vars(&t.varmap))?;
-    let step = timed(8.0, || {
+
+    // Every runtime in turn, round after round (see `alternate`).
+    let mut py = Python::start(dir.path(), threads)?;
+    let mut candle_fwd = seconds(|| {
+        Ok(t.model
+            .infer(&xs)?
+            .image
+            .flatten_all()?
+            .to_vec1::<f32>()
+            .map(drop)?)
+    });
+    let mut ort_fwd = seconds(|| Ok(ort.forward(&views).map(drop)?));
+    let mut candle_step = seconds(|| {
         let loss = l1_loss(&t.model.forward(&x)?.image, &y)?;
         let grads = loss.backward()?;
         opt.step(&grads)
-    })?;
+    });
+    let (fwd, ort_fwd, py_fwd, step, py_step) = match py.as_mut() {
+        Some(p) => {
+            let p = std::cell::RefCell::new(p);
+            let mut ort_py = || p.borrow_mut().time("ort_fwd");
+            let mut torch_fwd = || p.borrow_mut().time("torch_fwd");
+            let f = alternate(
+                12.0,
+                &mut [&mut candle_fwd, &mut ort_fwd, &mut ort_py, &mut torch_fwd],
+            )?;
+            let mut torch_step = || p.borrow_mut().time("torch_step");
+            let s = alternate(12.0, &mut [&mut candle_step, &mut torch_step])?;
+            (f[0], f[1], Some((f[2], f[3])), s[0], Some(s[1]))
+        }
+        None => {
+            let f = alternate(12.0, &mut [&mut candle_fwd, &mut ort_fwd])?;
+            let s = alternate(8.0, &mut [&mut candle_step])?;
+            (f[0], f[1], None, s[0], None)
+        }
+    };
 
-    let py = python(dir.path(), threads)?;
     // The config's cost model counts multiply-adds per output pixel of a `cfg.tile` tile
     // (the borders the convolutions need included); the render tile has its own.
     let at_tile = Config {
@@ -246,27 +290,21 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
     };
     row("forward", "candle", fwd, fwd_flop, fwd);
     row("forward", "onnxruntime (ort, Rust)", ort_fwd, fwd_flop, fwd);
-    if let Some(p) = &py {
-        row(
-            "forward",
-            "onnxruntime (Python)",
-            p.ort_py_fwd,
-            fwd_flop,
-            fwd,
-        );
-        row("forward", "PyTorch", p.torch_fwd, fwd_flop, fwd);
+    if let Some((ort_py, torch)) = py_fwd {
+        row("forward", "onnxruntime (Python)", ort_py, fwd_flop, fwd);
+        row("forward", "PyTorch", torch, fwd_flop, fwd);
     }
     row("training step", "candle", step, step_flop, step);
-    if let Some(p) = &py {
-        row("training step", "PyTorch", p.torch_step, step_flop, step);
+    if let (Some(torch_step), Some((ort_py, _)), Some(p)) = (py_step, py_fwd, &py) {
+        row("training step", "PyTorch", torch_step, step_flop, step);
         println!(
             "outputs: PyTorch and onnxruntime vs candle, max abs difference {:.1e}",
             p.max_diff
         );
         println!(
             "RATIO {name}: candle's speed relative to onnxruntime's forward {:.2}, to PyTorch's training step {:.2} (issue 9 asks for >= 1)",
-            ort_fwd.min(p.ort_py_fwd) / fwd,
-            p.torch_step / step
+            ort_fwd.min(ort_py) / fwd,
+            torch_step / step
         );
     }
     Ok(())
