@@ -9,10 +9,10 @@ export), `tile.safetensors` (one render tile's inputs, `level0`..), `candle.safe
 PyTorch's and onnxruntime's images from candle's, then serves the Rust side, which
 alternates its own runs with these so that a change in the machine's speed hits every
 runtime alike: each line on stdin, `torch_fwd` (PyTorch forward, `torch.no_grad`),
-`ort_fwd` (onnxruntime forward) or `torch_step` (forward, L1 loss, backward, Adam), runs
-once and answers its wall time in seconds; `quit` (or the end of stdin) ends it. After
-each run it waits [SETTLE_S] before answering, so that the runtimes' spinning worker
-threads are idle when the other side starts.
+`ort_fwd` (onnxruntime forward) or `torch_step` (forward, L1 loss, backward, Adam) and a
+count N, runs N times back to back and answers the best wall time in seconds; `quit` (or
+the end of stdin) ends it. After each turn it waits SETTLE_S before answering, so that
+the runtimes' spinning worker threads are idle when the other side starts.
 """
 
 import json
@@ -76,14 +76,16 @@ def main():
     print(json.dumps({"max_abs_diff": diff}), flush=True)
     runs = {"torch_fwd": torch_fwd, "ort_fwd": lambda: sess.run(None, feed), "torch_step": torch_step}
     for line in sys.stdin:
-        cmd = line.strip()
+        cmd, *reps = line.split()
         if cmd == "quit":
             break
-        t0 = time.perf_counter()
-        runs[cmd]()
-        elapsed = time.perf_counter() - t0
+        best = float("inf")
+        for _ in range(int(reps[0]) if reps else 1):
+            t0 = time.perf_counter()
+            runs[cmd]()
+            best = min(best, time.perf_counter() - t0)
         time.sleep(SETTLE_S)
-        print(elapsed, flush=True)
+        print(best, flush=True)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
-//! Times the network's forward on one render tile, or (`step` as fourth argument) a
-//! training step as in `benches/network.rs`, in a loop, for profiling
-//! (`perf record -g target/release/examples/forward_probe tiny 200`).
+//! Times the network's forward on one render tile (`DeepStereo::infer`, the renderer's
+//! path), or (`step` as fourth argument) a training step as in `benches/network.rs`, in a
+//! loop, for profiling (`perf record -g target/release/examples/forward_probe tiny 200`).
 //!
 //! `cargo run --release -p deepstereo-train --example forward_probe -- [preset] [iterations] [tile] [step]`;
 //! `PROBE_ORT=1` also times onnxruntime on the same tile after each forward (needs the
