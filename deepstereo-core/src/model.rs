@@ -178,12 +178,17 @@ impl DeepStereo {
         self.run(inputs, false)
     }
 
-    /// [`Self::forward`] for rendering (no gradients flow through it): the depth layers
-    /// and the selection softmax, and a colour tower of one level of 1x1 convolutions with
-    /// its output layer, each run as one fused pass over blocks of pixels where the CPU
-    /// kernels apply (`conv/chain.rs`), else as in [`Self::forward`].
+    /// [`Self::forward`] for rendering: the depth layers and the selection softmax, and a
+    /// colour tower of one level of 1x1 convolutions with its output layer, each run as
+    /// one fused pass over blocks of pixels where the CPU kernels apply (`conv/chain.rs`),
+    /// else as in [`Self::forward`]. The outputs are detached (the fused passes record no
+    /// gradients, so none flow through any of it); train with [`Self::forward`].
     pub fn infer(&self, inputs: &[Tensor]) -> Result<Output> {
-        self.run(inputs, true)
+        let out = self.run(inputs, true)?;
+        Ok(Output {
+            image: out.image.detach(),
+            selection: out.selection.detach(),
+        })
     }
 
     fn run(&self, inputs: &[Tensor], fuse: bool) -> Result<Output> {
@@ -254,9 +259,10 @@ impl DeepStereo {
         let mut x = s
             .reshape((b, d, c, th * tw))? // [B, D, C, th*tw]
             .transpose(1, 2)?; // [B, C, D, th*tw], a view
-                               // Rows of th*tw pixels whose byte stride is a multiple of 512 put a layer's
-                               // channels and planes in the same cache sets; a few zero columns (their outputs
-                               // are dropped) shift them apart.
+
+        // Rows of th*tw pixels whose byte stride is a multiple of 512 put a layer's
+        // channels and planes in the same cache sets; a few zero columns (their outputs
+        // are dropped) shift them apart.
         let pp = th * tw;
         let extra = if pp.is_multiple_of(ALIASING_ROW) {
             ROW_SHIFT

@@ -36,6 +36,9 @@ fn fast(ts: &[&Tensor]) -> bool {
 /// Runs `f(block)` for blocks `0..n` on all threads, each run of blocks with its own
 /// scratch from `init`.
 fn par_blocks<S>(n: usize, init: impl Fn() -> S + Sync, f: impl Fn(&mut S, usize) + Sync) {
+    if n == 0 {
+        return;
+    }
     let runs = (rayon::current_num_threads() * RUNS_PER_THREAD).clamp(1, n.max(1));
     let per = n.div_ceil(runs);
     (0..n.div_ceil(per)).into_par_iter().for_each(|run| {
@@ -126,17 +129,18 @@ impl Layer {
 /// (`[B * D, C, H, W]`): the depth convolutions `convs` (`[C_out, C_in, k, 1]`, zero
 /// padding of `k / 2` planes on both sides, ReLU between them) and
 /// `softmax_D(tanh(x) exp(log_scale))`. `None` where the fused kernels do not run (not
-/// f32 on a CPU with AVX2); the caller then runs the layers one by one.
+/// f32 on a CPU with AVX2, or nothing to compute); the caller then runs the layers one by
+/// one.
 pub fn depth_head(
     s: &Tensor,
     planes: usize,
     convs: &[Conv2d],
     log_scale: &Tensor,
 ) -> Result<Option<Tensor>> {
-    if !fast(&[s, log_scale]) {
+    let (n, c, h, w) = s.dims4()?;
+    if !fast(&[s, log_scale]) || planes == 0 || n * h * w == 0 {
         return Ok(None);
     }
-    let (n, c, h, w) = s.dims4()?;
     let (b, d, p) = (n / planes, planes, h * w);
     if b * d != n || convs.is_empty() {
         bail!("depth_head: {n} planes are not batches of {planes}, or no convolutions");
@@ -151,7 +155,10 @@ pub fn depth_head(
     if layers[0].cin != c || !chained || layers[last].cout != 1 {
         bail!("depth_head: convolutions do not chain from {c} channels to 1");
     }
-    let a = log_scale.flatten_all()?.to_vec1::<f32>()?[0].exp();
+    let Some(ls) = log_scale.flatten_all()?.to_vec1::<f32>()?.first().copied() else {
+        bail!("depth_head: empty log_scale");
+    };
+    let a = ls.exp();
     let offs: Vec<Vec<usize>> = layers.iter().map(Layer::offsets).collect();
     // Layer i reads buffer i: D rows and k_i / 2 zero rows above and below; the last
     // layer writes D rows of one channel.
@@ -222,10 +229,10 @@ pub fn pointwise_colours(
     out: &Conv2d,
     skip: bool,
 ) -> Result<Option<Tensor>> {
-    if !fast(&[x]) {
+    let (n, c, h, w) = x.dims4()?;
+    if !fast(&[x]) || n * th * tw == 0 {
         return Ok(None);
     }
-    let (n, c, h, w) = x.dims4()?;
     if crop + th > h || crop + tw > w || convs.is_empty() {
         bail!("pointwise_colours: a {th}x{tw} tile at {crop} does not fit {h}x{w}");
     }
