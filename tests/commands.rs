@@ -1,6 +1,7 @@
 //! The user-facing commands end to end on a small generated scene, with the embedded
 //! model: `render` (by view, along a path), `eval --json`, `report` and `demo` write what
-//! their help and the README promise, with finite values of the documented shapes.
+//! their help and the README promise, with finite values of the documented shapes; and
+//! `forward` refuses inputs without planes by name.
 
 use deepstereo_tests::*;
 use std::path::{Path, PathBuf};
@@ -325,4 +326,34 @@ fn fewer_source_views_than_the_model_takes_work_and_more_are_refused() {
     let csv = std::fs::read_to_string(out.join("report.csv")).expect("report.csv");
     assert!(csv.contains("deepstereo-candle-1views,8,1,"), "{csv}");
     assert!(csv.contains("deepstereo-candle-4views,8,4,"), "{csv}");
+}
+
+#[test]
+fn forward_refuses_inputs_without_planes() {
+    use deepstereo_core::tensorio::{write_safetensors, NamedArray};
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let inputs = tmp.path().join("empty.safetensors");
+    // The embedded tiny model: level sizes of an 8x8 tile, but no planes.
+    let arrays = [
+        NamedArray::f32("level0", &[1, 0, 16, 16, 16], &[]),
+        NamedArray::f32("level1", &[1, 0, 16, 12, 12], &[]),
+    ];
+    write_safetensors(&inputs, &arrays, None).expect("write inputs");
+    let out = tmp.path().join("out.safetensors");
+    let res = run_deepstereo([
+        "forward",
+        "--inputs",
+        &inputs.to_string_lossy(),
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    assert_ne!(res.code, Some(0), "inputs without planes were accepted");
+    assert!(!res.timed_out && res.code.is_some(), "crashed");
+    assert!(
+        res.stderr.contains("level0") && res.stderr.contains("at least 1"),
+        "{}",
+        res.stderr
+    );
+    assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
+    assert!(!out.exists(), "an output was written");
 }

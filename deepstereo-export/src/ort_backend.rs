@@ -194,9 +194,9 @@ impl OrtBackend {
         }
         let mut inputs = Vec::with_capacity(levels.len());
         for (l, (shape, data)) in levels.iter().enumerate() {
-            if shape.len() != 5 || shape[2] != cfg.in_channels() {
+            if shape.len() != 5 || shape[2] != cfg.in_channels() || shape[..2].contains(&0) {
                 return Err(Error::Input(format!(
-                    "level {l}: expected shape [B, D, {}, H, W], got {shape:?}",
+                    "level {l}: expected shape [B, D, {}, H, W] with B and D at least 1, got {shape:?}",
                     cfg.in_channels()
                 )));
             }

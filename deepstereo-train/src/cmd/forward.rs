@@ -71,9 +71,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             let mut inputs = Vec::with_capacity(cfg.levels);
             for l in 0..cfg.levels {
                 let (shape, data) = read_f32(&st, &input_name(l), &a.inputs)?;
-                if shape.len() != 5 {
+                if shape.len() != 5 || shape[..2].contains(&0) {
                     bail!(
-                        "{}: '{}' must be [B, D, 4V, H, W], got {shape:?}",
+                        "{}: '{}' must be [B, D, 4V, H, W] with B and D at least 1, got {shape:?}",
                         a.inputs.display(),
                         input_name(l)
                     );
