@@ -232,13 +232,13 @@ impl DeepStereo {
         // Colour tower: one fused pass for a 1x1 tower when rendering (the tile sits at
         // `pad(0)` in level 0), else layer by layer.
         let p = cfg.pad(0);
-        let pointwise = match self.colour.pointwise() {
-            Some(convs) if fuse => {
+        let pointwise = match fuse.then(|| self.colour.pointwise()).flatten() {
+            Some(convs) => {
                 let x0 = inputs[0].reshape((b * d, cin, h0, w0))?; // [B*D, 4V, H_0, W_0]
                 let (out, skip) = (&self.colour_out, cfg.colour_skip);
                 pointwise_colours(&x0, p, (th, tw), &convs, out, skip)?
             }
-            _ => None,
+            None => None,
         };
         let out = match pointwise {
             Some(out) => out,

@@ -16,7 +16,7 @@
 
 use super::direct::{available, kernels_allowed, pack, store_tile, Kernels, LineAligned, MR, NC};
 use super::{Conv2d, SharedMut};
-use candle_core::{bail, DType, Result, Storage, Tensor};
+use candle_core::{bail, DType, Result, Tensor};
 use rayon::prelude::*;
 
 /// Pixels per block: one tile of the kernel.
@@ -53,13 +53,7 @@ fn par_blocks<S>(n: usize, init: impl Fn() -> S + Sync, f: impl Fn(&mut S, usize
 fn with_data<R>(t: &Tensor, f: impl FnOnce(&[f32]) -> Result<R>) -> Result<R> {
     let t = t.contiguous()?;
     let (st, l) = t.storage_and_layout();
-    let Storage::Cpu(cpu) = &*st else {
-        bail!("fused chain: CPU tensor expected")
-    };
-    let Some((a, b)) = l.contiguous_offsets() else {
-        bail!("fused chain: contiguous tensor expected")
-    };
-    f(&cpu.as_slice::<f32>()?[a..b])
+    f(super::op::data::<f32>(&st, l)?)
 }
 
 /// A convolution along the rows of a block's scratch (`k` taps), mixing channels.

@@ -50,7 +50,7 @@ struct ConvOp {
 }
 
 /// The contiguous elements of a CPU tensor's storage.
-fn data<'a, T: WithDType>(s: &'a Storage, l: &Layout) -> Result<&'a [T]> {
+pub(super) fn data<'a, T: WithDType>(s: &'a Storage, l: &Layout) -> Result<&'a [T]> {
     let (Storage::Cpu(cpu), Some((a, b))) = (s, l.contiguous_offsets()) else {
         bail!("conv2d: expected a contiguous CPU tensor")
     };
