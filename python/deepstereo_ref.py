@@ -8,8 +8,11 @@ tensor names (`select.levels.{l}.{i}.weight`, `select.merge.{i}.bias`,
 is an error). The configuration is the JSON of `deepstereo_core::config::Config` stored in
 the file's metadata under `deepstereo.config`.
 
-Shapes: input level `l` is `[B, D, 4V, H_l, W_l]`; outputs `image` `[B, 3, th, tw]` and
-`selection` `[B, D, th, tw]`, with `th = H_0 - 2 pad(0)`.
+Shapes: input level `l` is `[B, D, 4V, H_l, W_l]` (the paper's family) or
+`[B, D, V, 4, H_l, W_l]` (the any-number-of-views family, config `pool`, any V: its view
+pooling and colour blend mirror `deepstereo-core/src/pool.rs`, tensors `views.encode.{i}.*`
+and `colour.blend.{i}.*`); outputs `image` `[B, 3, th, tw]` and `selection`
+`[B, D, th, tw]`, with `th = H_0 - 2 pad(0)`.
 """
 
 from __future__ import annotations
@@ -27,6 +30,11 @@ CONFIG_KEY = "deepstereo.config"
 FORMAT_KEY = "format"
 FORMAT_VALUE = "deepstereo-weights-v1"
 INIT_LOG_SCALE = 2.3
+# pool.rs constants.
+POOL_EPS = 1e-6
+BLEND_EPS = 1e-12
+BLEND_LOGIT_BOUND = 20.0
+ENCODER_IN = 7
 
 
 # --- configuration (mirrors config.rs) -------------------------------------------------
@@ -83,6 +91,28 @@ class TowerConfig:
 
 
 @dataclass
+class ViewPool:
+    encoder: list[Conv]
+    blend: list[Conv]
+
+    @staticmethod
+    def from_json(d: dict[str, Any]) -> "ViewPool":
+        return ViewPool(
+            encoder=[Conv(int(c["kernel"]), int(c["channels"])) for c in d["encoder"]],
+            blend=[Conv(int(c["kernel"]), int(c["channels"])) for c in d["blend"]],
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {"encoder": [c.__dict__ for c in self.encoder], "blend": [c.__dict__ for c in self.blend]}
+
+    def features(self) -> int:
+        return self.encoder[-1].channels if self.encoder else ENCODER_IN
+
+    def pooled_channels(self) -> int:
+        return 4 + 2 * self.features()
+
+
+@dataclass
 class Config:
     name: str
     views: int
@@ -93,6 +123,7 @@ class Config:
     depth_convs: list[Conv]
     colour: TowerConfig
     colour_skip: bool
+    pool: ViewPool | None = None
 
     @staticmethod
     def from_json(d: dict[str, Any] | str) -> "Config":
@@ -108,24 +139,26 @@ class Config:
             depth_convs=[Conv(int(c["kernel"]), int(c["channels"])) for c in d["depth_convs"]],
             colour=TowerConfig.from_json(d["colour"]),
             colour_skip=bool(d["colour_skip"]),
+            pool=ViewPool.from_json(d["pool"]) if d.get("pool") is not None else None,
         )
         cfg.validate()
         return cfg
 
     def to_json(self) -> str:
-        return json.dumps(
-            {
-                "name": self.name,
-                "views": self.views,
-                "planes": self.planes,
-                "levels": self.levels,
-                "tile": self.tile,
-                "select": self.select.to_json(),
-                "depth_convs": [c.__dict__ for c in self.depth_convs],
-                "colour": self.colour.to_json(),
-                "colour_skip": self.colour_skip,
-            }
-        )
+        d = {
+            "name": self.name,
+            "views": self.views,
+            "planes": self.planes,
+            "levels": self.levels,
+            "tile": self.tile,
+            "select": self.select.to_json(),
+            "depth_convs": [c.__dict__ for c in self.depth_convs],
+            "colour": self.colour.to_json(),
+            "colour_skip": self.colour_skip,
+        }
+        if self.pool is not None:
+            d["pool"] = self.pool.to_json()
+        return json.dumps(d)
 
     def validate(self) -> None:
         if self.views <= 0 or self.planes <= 0:
@@ -143,9 +176,18 @@ class Config:
             raise ValueError("the last depth conv must have 1 channel")
         if self.tile <= 0 or self.tile % self.tile_align() != 0:
             raise ValueError(f"tile {self.tile} must be a positive multiple of {self.tile_align()}")
+        if self.pool is not None:
+            for c in self.pool.encoder + self.pool.blend:
+                if c.kernel != 1 or c.channels <= 0:
+                    raise ValueError(f"pool: encoder and blend layers must be 1x1, got {c}")
+            if self.colour_skip:
+                raise ValueError("pool: colour_skip must be false")
 
     def in_channels(self) -> int:
         return 4 * self.views
+
+    def tower_in_channels(self) -> int:
+        return self.pool.pooled_channels() if self.pool is not None else self.in_channels()
 
     def tile_align(self) -> int:
         return 1 << (self.levels - 1)
@@ -210,9 +252,9 @@ class SelectTower(Tower):
     """`select.*`: the 2D tower, the convolutions along depth and `log_scale`."""
 
     def __init__(self, cfg: Config):
-        super().__init__(cfg.select, cfg.in_channels())
+        super().__init__(cfg.select, cfg.tower_in_channels())
         self.depth = nn.ModuleList()
-        ch = cfg.select.out_channels(cfg.in_channels())
+        ch = cfg.select.out_channels(cfg.tower_in_channels())
         for c in cfg.depth_convs:
             # Weights [C_out, C_in, k, 1]; zero padding along depth keeps D.
             self.depth.append(nn.Conv2d(ch, c.channels, (c.kernel, 1), padding=(c.kernel // 2, 0)))
@@ -221,13 +263,68 @@ class SelectTower(Tower):
 
 
 class ColourTower(Tower):
-    """`colour.*`: the 2D tower and the linear RGB layer `out`."""
+    """`colour.*`: the 2D tower and the linear RGB layer `out`; pooled, also `blend`."""
 
     def __init__(self, cfg: Config):
-        super().__init__(cfg.colour, cfg.in_channels())
-        cin = cfg.in_channels()
-        cout_in = cfg.colour.out_channels(cin) + (cin if cfg.colour_skip else 0)
+        super().__init__(cfg.colour, cfg.tower_in_channels())
+        cin = cfg.tower_in_channels()
+        cout_in = cfg.colour.out_channels(cin) + (cfg.in_channels() if cfg.colour_skip else 0)
         self.out = nn.Conv2d(cout_in, 3, 1)
+        if cfg.pool is not None:
+            self.blend = nn.ModuleList()
+            ch = cfg.pool.features() + cfg.colour.out_channels(cin)
+            for cout in [c.channels for c in cfg.pool.blend] + [1]:
+                self.blend.append(nn.Conv2d(ch, cout, 1))
+                ch = cout
+
+    def blend_forward(self, e: torch.Tensor, x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+        """`Blend::forward`: e `[N, V, C_f, th, tw]`, x (RGBA) `[N, V, 4, th, tw]`, f
+        `[N, C_c, th, tw]` -> `[N, 3, th, tw]`."""
+        n, v, cf, th, tw = e.shape
+        y = torch.cat([e, f.unsqueeze(1).expand(n, v, f.shape[1], th, tw)], 2).reshape(n * v, -1, th, tw)
+        last = len(self.blend) - 1
+        for i, conv in enumerate(self.blend):
+            y = conv(y)
+            if i < last:
+                y = F.relu(y)
+        logits = torch.tanh(y.reshape(n, v, 1, th, tw) / BLEND_LOGIT_BOUND) * BLEND_LOGIT_BOUND
+        rgb, a = x[:, :, :3], x[:, :, 3:4]
+        ex = torch.exp(logits) * a
+        w = ex / (ex.sum(1, keepdim=True) + BLEND_EPS)
+        return (rgb * w).sum(1)
+
+
+class Views(nn.Module):
+    """`views.*`: the per-view encoder and the alpha-weighted pooling (`pool.rs`)."""
+
+    def __init__(self, pool: ViewPool):
+        super().__init__()
+        self.encode = nn.ModuleList()
+        ch = ENCODER_IN
+        for c in pool.encoder:
+            self.encode.append(nn.Conv2d(ch, c.channels, 1))
+            ch = c.channels
+
+    def pool_forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`ViewEncoder::forward`: `[B, D, V, 4, H, W]` -> (stats `[B, D, 4 + 2 C_f, H, W]`,
+        features `[B*D, V, C_f, H, W]`)."""
+        b, d, v, four, h, w = x.shape
+        if four != 4:
+            raise ValueError(f"expected [B, D, V, 4, H, W], got {tuple(x.shape)}")
+        x = x.reshape(b * d, v, 4, h, w)
+        rgb, a = x[:, :, :3], x[:, :, 3:4]
+        asum = a.sum(1, keepdim=True)
+        den = asum + POOL_EPS
+        mean_rgb = (rgb * a).sum(1, keepdim=True) / den
+        e = torch.cat([x, rgb - mean_rgb], 2).reshape(b * d * v, ENCODER_IN, h, w)
+        for conv in self.encode:
+            e = F.relu(conv(e))
+        e = e.reshape(b * d, v, -1, h, w)
+        mean_e = (e * a).sum(1, keepdim=True) / den
+        var_e = ((e - mean_e) ** 2 * a).sum(1, keepdim=True) / den
+        cover = asum / (asum + 1.0)
+        stats = torch.cat([mean_rgb, cover, mean_e, var_e], 2).reshape(b, d, -1, h, w)
+        return stats, e
 
 
 class DeepStereo(nn.Module):
@@ -237,6 +334,8 @@ class DeepStereo(nn.Module):
         self.cfg = cfg
         self.select = SelectTower(cfg)
         self.colour = ColourTower(cfg)
+        if cfg.pool is not None:
+            self.views = Views(cfg.pool)
 
     def _folded(self, inputs: list[torch.Tensor], t: TowerConfig) -> list[torch.Tensor]:
         cfg = self.cfg
@@ -252,9 +351,15 @@ class DeepStereo(nn.Module):
         cfg = self.cfg
         if len(inputs) != cfg.levels:
             raise ValueError(f"expected {cfg.levels} input levels, got {len(inputs)}")
+        raw = inputs
+        features = None
+        if cfg.pool is not None:
+            pooled = [self.views.pool_forward(x) for x in inputs]
+            inputs = [p[0] for p in pooled]
+            features = pooled[0][1]
         b, d, cin, h0, w0 = inputs[0].shape
-        if cin != cfg.in_channels():
-            raise ValueError(f"expected {cfg.in_channels()} input channels, got {cin}")
+        if cin != cfg.tower_in_channels():
+            raise ValueError(f"expected {cfg.tower_in_channels()} input channels, got {cin}")
         th, tw = h0 - 2 * cfg.pad(0), w0 - 2 * cfg.pad(0)
         # Selection tower.
         s = self.select.tower_forward(self._folded(inputs, cfg.select), th, tw)  # [B*D, C, th, tw]
@@ -269,6 +374,13 @@ class DeepStereo(nn.Module):
         selection = torch.softmax(logits, 2).reshape(b, d, th, tw)
         # Colour tower.
         f = self.colour.tower_forward(self._folded(inputs, cfg.colour), th, tw)  # [B*D, C, th, tw]
+        if features is not None:
+            p = cfg.pad(0)
+            x0 = raw[0].reshape(b * d, -1, 4, h0, w0)[:, :, :, p : p + th, p : p + tw]
+            e0 = features[:, :, :, p : p + th, p : p + tw]
+            colours = self.colour.blend_forward(e0, x0, f) + self.colour.out(f)
+            image = (colours.reshape(b, d, 3, th, tw) * selection.unsqueeze(2)).sum(1)
+            return image, selection
         if cfg.colour_skip:
             p = cfg.pad(0)
             centre = inputs[0][:, :, :, p : p + th, p : p + tw].reshape(b * d, cin, th, tw)

@@ -81,6 +81,36 @@ pub const MAX_CHANNELS: usize = 4096;
 /// Most convolutions in one list (`level_convs`, `merge_convs` or `depth_convs`).
 pub const MAX_CONVS: usize = 32;
 
+/// The any-number-of-views family (see `model.rs`): each source view's plane-sweep slice
+/// goes through `encoder` (1x1 convolutions, ReLU after each, weights shared across
+/// views, planes and levels) on `[R, G, B, A, R - m_R, G - m_G, B - m_B]` (`m`: the
+/// alpha-weighted mean colour across views); views are then pooled by alpha-weighted
+/// statistics, and the colour at each plane is a learned per-pixel blend of the source
+/// colours (`blend`: 1x1 layers on each view's features and the colour tower's, then one
+/// logit per view, softmax over the views that see the pixel) plus the colour tower's
+/// linear RGB.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ViewPool {
+    /// Per-view convolutions (kernel 1).
+    pub encoder: Vec<Conv>,
+    /// Hidden layers of the blend head (kernel 1); a 1-channel logit layer follows.
+    pub blend: Vec<Conv>,
+}
+
+/// Channels of a view's encoder input: its RGBA and its colour minus the mean colour.
+pub const ENCODER_IN: usize = 7;
+
+impl ViewPool {
+    /// Channels of one view's features `e_v`.
+    pub fn features(&self) -> usize {
+        self.encoder.last().map_or(ENCODER_IN, |c| c.channels)
+    }
+    /// Channels of the pooled tower input: mean RGB, coverage, mean and variance of `e`.
+    pub fn pooled_channels(&self) -> usize {
+        4 + 2 * self.features()
+    }
+}
+
 /// The whole network's configuration. Serialized as JSON into the weights' metadata.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Config {
@@ -101,6 +131,11 @@ pub struct Config {
     pub colour: TowerConfig,
     /// Feed the raw centre RGBA of the sources to the colour tower's linear layer.
     pub colour_skip: bool,
+    /// `Some`: the any-number-of-views family (inputs `[B, D, V, 4, H, W]`, any `V`;
+    /// `views` is then only the default); `None`: the paper's (views concatenated,
+    /// inputs `[B, D, 4V, H, W]`, exactly `views`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pool: Option<ViewPool>,
 }
 
 impl Config {
@@ -127,6 +162,7 @@ impl Config {
                 merge_convs: vec![c(5, 96), c(5, 64), c(3, 32)],
             },
             colour_skip: false,
+            pool: None,
         }
     }
 
@@ -151,6 +187,35 @@ impl Config {
                 merge_convs: vec![c(1, 12)],
             },
             colour_skip: true,
+            pool: None,
+        }
+    }
+
+    /// The any-number-of-views family ([`ViewPool`]), sized to train on 2 CPU cores: 6
+    /// views by default (any number works), 32 planes, 3 levels, 24x24 output tiles.
+    pub fn nviews() -> Self {
+        Self {
+            name: "nviews".into(),
+            views: 6,
+            planes: 32,
+            levels: 3,
+            tile: 24,
+            select: TowerConfig {
+                levels: 3,
+                level_convs: vec![c(3, 16), c(3, 16)],
+                merge_convs: vec![c(3, 24), c(3, 16)],
+            },
+            depth_convs: vec![c(3, 16), c(3, 8), c(3, 1)],
+            colour: TowerConfig {
+                levels: 1,
+                level_convs: vec![c(1, 16)],
+                merge_convs: vec![c(1, 16)],
+            },
+            colour_skip: false,
+            pool: Some(ViewPool {
+                encoder: vec![c(1, 12), c(1, 8)],
+                blend: vec![c(1, 12)],
+            }),
         }
     }
 
@@ -159,13 +224,40 @@ impl Config {
         match name {
             "paper" => Some(Self::paper()),
             "tiny" => Some(Self::tiny()),
+            "nviews" => Some(Self::nviews()),
             _ => None,
         }
     }
 
-    /// Input channels per plane: RGBA of every source view.
+    /// Input channels per plane with the default number of views: RGBA of every source.
     pub fn in_channels(&self) -> usize {
         4 * self.views
+    }
+
+    /// Channels per plane the towers read: the concatenated RGBA of the sources (paper
+    /// family) or the pooled statistics ([`ViewPool::pooled_channels`]).
+    pub fn tower_in_channels(&self) -> usize {
+        self.pool
+            .as_ref()
+            .map_or(self.in_channels(), ViewPool::pooled_channels)
+    }
+
+    /// Whether the model takes `v` source views: exactly `views` for the paper family,
+    /// 1 to [`MAX_VIEWS`] for the any-number-of-views family.
+    pub fn accepts_views(&self, v: usize) -> bool {
+        match self.pool {
+            Some(_) => (1..=MAX_VIEWS).contains(&v),
+            None => v == self.views,
+        }
+    }
+
+    /// Shape of an input level for `v` views: `[B, D, 4V, H, W]` (paper family) or
+    /// `[B, D, V, 4, H, W]` (any-number-of-views family); the same bytes either way.
+    pub fn input_shape(&self, b: usize, d: usize, v: usize, h: usize, w: usize) -> Vec<usize> {
+        match self.pool {
+            Some(_) => vec![b, d, v, 4, h, w],
+            None => vec![b, d, 4 * v, h, w],
+        }
     }
 
     /// Tile origins and sizes must be multiples of this (`2^(L-1)`).
@@ -257,6 +349,23 @@ impl Config {
                 }
             }
         }
+        if let Some(pool) = &self.pool {
+            for conv in pool.encoder.iter().chain(&pool.blend) {
+                if conv.kernel != 1 || conv.channels == 0 || conv.channels > MAX_CHANNELS {
+                    return Err(format!(
+                        "pool: encoder and blend layers must be 1x1 with 1 to {MAX_CHANNELS} channels, got {conv:?}"
+                    ));
+                }
+            }
+            if pool.encoder.len() > MAX_CONVS || pool.blend.len() > MAX_CONVS {
+                return Err(format!("at most {MAX_CONVS} convolutions per list"));
+            }
+            if self.colour_skip {
+                return Err(
+                    "pool: colour_skip must be false (the blend feeds the source colours)".into(),
+                );
+            }
+        }
         if self.depth_convs.last().map(|c| c.channels) != Some(1) {
             return Err("the last depth conv must have 1 channel".into());
         }
@@ -286,7 +395,23 @@ impl Config {
         let d = self.planes as f64;
         let area = (t * t) as f64;
         let mut out = Vec::new();
-        let cin = self.in_channels();
+        let cin = self.tower_in_channels();
+        if let Some(pool) = &self.pool {
+            // Every level's whole input, each of the default `views` views.
+            let pixels: usize = (0..self.levels).map(|l| self.input_size(l, t).pow(2)).sum();
+            let mut ch = ENCODER_IN;
+            for (i, conv) in pool.encoder.iter().enumerate() {
+                let macs = (pixels * ch * conv.channels * self.views) as f64;
+                out.push(LayerInfo::new(
+                    format!("views.encode.{i}"),
+                    *conv,
+                    ch,
+                    t,
+                    macs * d / area,
+                ));
+                ch = conv.channels;
+            }
+        }
         for (name, tower) in [("select", &self.select), ("colour", &self.colour)] {
             let rf = tower.merge_reduction();
             for l in 0..tower.levels {
@@ -341,6 +466,24 @@ impl Config {
                     t,
                     (cin_out * 3) as f64 * d,
                 ));
+                if let Some(pool) = &self.pool {
+                    let mut hin = pool.features() + ch;
+                    let hidden = pool.blend.iter().chain([&Conv {
+                        kernel: 1,
+                        channels: 1,
+                    }]);
+                    for (i, conv) in hidden.enumerate() {
+                        let macs = (hin * conv.channels * self.views) as f64 * d;
+                        out.push(LayerInfo::new(
+                            format!("colour.blend.{i}"),
+                            *conv,
+                            hin,
+                            t,
+                            macs,
+                        ));
+                        hin = conv.channels;
+                    }
+                }
             }
         }
         out

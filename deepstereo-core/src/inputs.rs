@@ -6,7 +6,7 @@
 //! tile needs are warped.
 
 use crate::camera::Camera;
-use crate::config::Config;
+use crate::config::{Config, MAX_VIEWS};
 use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
 use crate::sweep::{sweep_into, Region, Source, CHANNELS};
@@ -54,12 +54,15 @@ pub fn level_camera(camera: &Camera, l: usize, width: u32, height: u32) -> Camer
     }
 }
 
-/// The input tensors' data for one tile: `levels[l]` is `[D, 4V, h_l, w_l]` f32.
+/// The input tensors' data for one tile: `levels[l]` is `[D, V, 4, h_l, w_l]` f32 (the
+/// paper family reads the same bytes as `[D, 4V, h_l, w_l]`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TileInputs {
     pub levels: Vec<Vec<f32>>,
     /// `(h_l, w_l)` per level.
     pub sizes: Vec<(usize, usize)>,
+    /// Source views `V`.
+    pub views: usize,
 }
 
 /// Checks a tile placement against the config's alignment.
@@ -89,12 +92,18 @@ pub fn tile_inputs(
     (th, tw): (usize, usize),
 ) -> Result<TileInputs> {
     check_tile(cfg, x0, y0, th, tw)?;
-    if sources.len() != cfg.views {
-        return Err(Error::Invalid(format!(
-            "the model takes {} source views, got {}",
-            cfg.views,
-            sources.len()
-        )));
+    if !cfg.accepts_views(sources.len()) {
+        return Err(Error::Invalid(match cfg.pool {
+            Some(_) => format!(
+                "the model takes 1 to {MAX_VIEWS} source views, got {}",
+                sources.len()
+            ),
+            None => format!(
+                "the model takes {} source views, got {}",
+                cfg.views,
+                sources.len()
+            ),
+        }));
     }
     let mut levels = Vec::with_capacity(cfg.levels);
     let mut sizes = Vec::with_capacity(cfg.levels);
@@ -129,5 +138,9 @@ pub fn tile_inputs(
         levels.push(buf);
         sizes.push((region.height, region.width));
     }
-    Ok(TileInputs { levels, sizes })
+    Ok(TileInputs {
+        levels,
+        sizes,
+        views: sources.len(),
+    })
 }

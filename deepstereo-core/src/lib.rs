@@ -18,6 +18,7 @@ pub mod inputs;
 pub mod metrics;
 pub mod model;
 pub mod plot;
+pub mod pool;
 pub mod prune;
 pub mod render;
 pub mod sweep;

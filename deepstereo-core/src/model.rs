@@ -1,17 +1,23 @@
 //! The DeepStereo network (Flynn et al. 2016) in candle.
 //!
 //! Shape letters, used everywhere: `B` batch, `D` planes, `V` source views, `C` channels,
-//! `H`, `W` spatial. Input level `l` is a plane-sweep tensor `[B, D, 4V, H_l, W_l]`.
+//! `H`, `W` spatial. Input level `l` is a plane-sweep tensor `[B, D, 4V, H_l, W_l]` (the
+//! paper's family: views concatenated, exactly `Config::views` of them) or
+//! `[B, D, V, 4, H_l, W_l]` (the any-number-of-views family, `Config::pool`: any `V`;
+//! its view pooling and colour blend are in [`crate::pool`]). Both families then run the
+//! same towers on `[B*D, C, H_l, W_l]`.
 //!
 //! Parameter names equal the PyTorch reference's attribute names (`python/deepstereo_ref.py`),
 //! so one safetensors file loads in both:
 //! `select.levels.{l}.{i}.{weight,bias}`, `select.merge.{i}.*`, `select.depth.{i}.*`
 //! (weights `[C_out, C_in, k, 1]`: convolutions along depth), `select.log_scale` `[1]`,
-//! `colour.levels.{l}.{i}.*`, `colour.merge.{i}.*`, `colour.out.*`.
+//! `colour.levels.{l}.{i}.*`, `colour.merge.{i}.*`, `colour.out.*`; the
+//! any-number-of-views family adds `views.encode.{i}.*` and `colour.blend.{i}.*`.
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};
 use crate::fused::{composite, pad_rows, select_softmax, upsample_crop};
+use crate::pool::{view_dims, Blend, ViewEncoder};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
 use candle_nn::VarBuilder;
@@ -123,6 +129,8 @@ pub struct DeepStereo {
     log_scale: Tensor,
     colour: Tower,
     colour_out: Conv2d,
+    /// The any-number-of-views family's encoder and blend.
+    pool: Option<(ViewEncoder, Blend)>,
 }
 
 /// Pixels per depth row at which rows alias in the caches (128 floats = 512 bytes).
@@ -137,7 +145,7 @@ pub const INIT_LOG_SCALE: f64 = 2.3;
 impl DeepStereo {
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {
         cfg.validate().map_err(candle_core::Error::msg)?;
-        let cin = cfg.in_channels();
+        let cin = cfg.tower_in_channels();
         let select = Tower::new(&cfg.select, cin, vb.pp("select"))?;
         let mut ch = cfg.select.out_channels(cin);
         let mut depth = Vec::new();
@@ -158,6 +166,13 @@ impl DeepStereo {
         let colour = Tower::new(&cfg.colour, cin, vb.pp("colour"))?;
         let cout_in = cfg.colour.out_channels(cin) + if cfg.colour_skip { cin } else { 0 };
         let colour_out = Conv2d::new(cout_in, 3, (1, 1), vb.pp("colour").pp("out"))?;
+        let pool = match &cfg.pool {
+            Some(p) => Some((
+                ViewEncoder::new(p, vb.pp("views").pp("encode"))?,
+                Blend::new(p, cfg.colour.out_channels(cin), vb.pp("colour").pp("blend"))?,
+            )),
+            None => None,
+        };
         Ok(Self {
             cfg: cfg.clone(),
             select,
@@ -165,6 +180,7 @@ impl DeepStereo {
             log_scale,
             colour,
             colour_out,
+            pool,
         })
     }
 
@@ -172,7 +188,8 @@ impl DeepStereo {
         &self.cfg
     }
 
-    /// `inputs[l]`: `[B, D, 4V, H_l, W_l]` with `H_l = Config::input_size(l, th)`, for
+    /// `inputs[l]`: `[B, D, 4V, H_l, W_l]` (paper family) or `[B, D, V, 4, H_l, W_l]`
+    /// (any-number-of-views family, `V >= 1`) with `H_l = Config::input_size(l, th)`, for
     /// `l < Config::levels`. `th`, `tw` multiples of `Config::tile_align()`.
     pub fn forward(&self, inputs: &[Tensor]) -> Result<Output> {
         self.run(inputs, false)
@@ -196,24 +213,48 @@ impl DeepStereo {
         if inputs.len() != cfg.levels {
             candle_core::bail!("expected {} input levels, got {}", cfg.levels, inputs.len());
         }
-        let (b, d, cin, h0, w0) = inputs[0].dims5()?;
-        if cin != cfg.in_channels() {
-            candle_core::bail!(
-                "expected {} input channels (4 x {} views), got {cin}",
-                cfg.in_channels(),
-                cfg.views
-            );
-        }
+        // The towers' input per level, `[B, D, C, H_l, W_l]`: the sweep itself (paper
+        // family) or the pooled statistics; and, pooled, level 0's view features.
+        let (towers_in, features) = match &self.pool {
+            Some((encoder, _)) => {
+                let v = view_dims(&inputs[0])?.1;
+                let mut stats = Vec::with_capacity(inputs.len());
+                let mut features = None;
+                for (l, x) in inputs.iter().enumerate() {
+                    if view_dims(x)?.1 != v {
+                        candle_core::bail!("input level {l} has a different number of views");
+                    }
+                    let pooled = encoder.forward(x)?;
+                    stats.push(pooled.stats);
+                    if l == 0 {
+                        features = Some(pooled.features);
+                    }
+                }
+                (stats, features)
+            }
+            None => {
+                let cin = inputs[0].dims5()?.2;
+                if cin != cfg.in_channels() {
+                    candle_core::bail!(
+                        "expected {} input channels (4 x {} views), got {cin}",
+                        cfg.in_channels(),
+                        cfg.views
+                    );
+                }
+                (inputs.to_vec(), None)
+            }
+        };
+        let (b, d, cin, h0, w0) = towers_in[0].dims5()?;
         let (th, tw) = (h0 - 2 * cfg.pad(0), w0 - 2 * cfg.pad(0));
         let folded = |t: &TowerConfig, from: usize| -> Result<Vec<Tensor>> {
             (from..t.levels)
                 .map(|l| {
-                    let x = &inputs[l];
+                    let x = &towers_in[l];
                     let (_, _, _, h, w) = x.dims5()?;
                     let off = cfg.pad(l) - t.pad(l);
                     x.narrow(3, off, h - 2 * off)?
                         .narrow(4, off, w - 2 * off)?
-                        .reshape((b * d, cin, h - 2 * off, w - 2 * off)) // [B*D, 4V, H_l, W_l]
+                        .reshape((b * d, cin, h - 2 * off, w - 2 * off)) // [B*D, C, H_l, W_l]
                 })
                 .collect()
         };
@@ -230,19 +271,32 @@ impl DeepStereo {
         };
 
         // Colour tower: one fused pass for a 1x1 tower when rendering (the tile sits at
-        // `pad(0)` in level 0), else layer by layer.
+        // `pad(0)` in level 0), else layer by layer; pooled, plus the blend of the
+        // sources' colours.
         let p = cfg.pad(0);
-        let pointwise = match fuse.then(|| self.colour.pointwise()).flatten() {
-            Some(convs) => {
-                let x0 = inputs[0].reshape((b * d, cin, h0, w0))?; // [B*D, 4V, H_0, W_0]
-                let (out, skip) = (&self.colour_out, cfg.colour_skip);
-                pointwise_colours(&x0, p, (th, tw), &convs, out, skip)?
+        let out = match (&self.pool, features) {
+            (Some((_, blend)), Some(e)) => {
+                let f = self.colour.forward(&folded(&cfg.colour, 0)?, th, tw)?; // [B*D, C_c, th, tw]
+                let centre = |t: &Tensor| t.narrow(3, p, th)?.narrow(4, p, tw); // [B*D, V, C, th, tw]
+                let (n, v, h, w, _) = view_dims(&inputs[0])?;
+                let x0 = inputs[0].reshape((n, v, 4, h, w))?; // [B*D, V, 4, H_0, W_0]
+                let blended = blend.forward(&centre(&e)?, &centre(&x0)?, &f)?; // [B*D, 3, th, tw]
+                (blended + self.colour_out.forward(&f)?)?
             }
-            None => None,
-        };
-        let out = match pointwise {
-            Some(out) => out,
-            None => self.colours(inputs, &folded, th, tw)?,
+            _ => {
+                let pointwise = match fuse.then(|| self.colour.pointwise()).flatten() {
+                    Some(convs) => {
+                        let x0 = inputs[0].reshape((b * d, cin, h0, w0))?; // [B*D, 4V, H_0, W_0]
+                        let (out, skip) = (&self.colour_out, cfg.colour_skip);
+                        pointwise_colours(&x0, p, (th, tw), &convs, out, skip)?
+                    }
+                    None => None,
+                };
+                match pointwise {
+                    Some(out) => out,
+                    None => self.colours(inputs, &folded, th, tw)?,
+                }
+            }
         }; // [B*D, 3, th, tw]
         let colours = out.reshape((b, d, 3, th * tw))?; // [B, D, 3, th*tw]
         let image = composite(&colours, &selection)? // sum over D of s * c

@@ -38,8 +38,7 @@ impl Backend for CandleBackend {
         self.model.config()
     }
     fn run(&self, inputs: &TileInputs, planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
-        let c = self.config().in_channels();
-        let tensors = inputs_to_tensors(inputs, 1, planes, c, &self.device)?;
+        let tensors = inputs_to_tensors(self.config(), inputs, 1, planes, &self.device)?;
         let out = self.model.infer(&tensors)?;
         let image = out.image.flatten_all()?.to_vec1::<f32>()?;
         let selection = out.selection.flatten_all()?.to_vec1::<f32>()?;
@@ -47,19 +46,23 @@ impl Backend for CandleBackend {
     }
 }
 
-/// Wraps per-level data `[B * D * C * h * w]` as tensors `[B, D, C, h, w]`.
+/// Wraps per-level data `[B * D * V * 4 * h * w]` as the tensors the model `cfg` takes:
+/// `[B, D, 4V, h, w]` or `[B, D, V, 4, h, w]` ([`Config::input_shape`]).
 pub fn inputs_to_tensors(
+    cfg: &Config,
     inputs: &TileInputs,
     b: usize,
     d: usize,
-    c: usize,
     device: &Device,
 ) -> Result<Vec<Tensor>> {
     inputs
         .levels
         .iter()
         .zip(&inputs.sizes)
-        .map(|(data, &(h, w))| Ok(Tensor::from_slice(data, (b, d, c, h, w), device)?))
+        .map(|(data, &(h, w))| {
+            let shape = cfg.input_shape(b, d, inputs.views, h, w);
+            Ok(Tensor::from_slice(data, shape, device)?)
+        })
         .collect()
 }
 
@@ -123,7 +126,6 @@ pub fn render_view_pruned(
     };
     let (ntx, nty) = (w.div_ceil(tile), h.div_ceil(tile));
     let total = ntx * nty;
-    let v = cfg.views;
     let mut stats = PruneStats {
         tiles: total,
         planes_total: total * tile * tile * d,
@@ -211,6 +213,7 @@ pub fn render_view_pruned(
                             )));
                         }
                         let (ih, iw) = inputs.sizes[0];
+                        let v = inputs.views;
                         let p = cfg.pad(0);
                         let tt = tile * tile;
                         for yy in 0..rows.len() {
@@ -279,15 +282,21 @@ fn write_depth(out: &mut Rendered, pix: usize, rho: f64, best: f32, coverage: f3
 pub fn empty_response(backend: &dyn Backend, planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
     let cfg = backend.config();
     let a = cfg.tile_align();
-    let c = cfg.in_channels();
+    // One empty view is as empty as any number for the pooled family.
+    let views = if cfg.pool.is_some() { 1 } else { cfg.views };
     let sizes: Vec<(usize, usize)> = (0..cfg.levels)
         .map(|l| (cfg.input_size(l, a), cfg.input_size(l, a)))
         .collect();
     let levels = sizes
         .iter()
-        .map(|(h, w)| vec![0.0f32; planes * c * h * w])
+        .map(|(h, w)| vec![0.0f32; planes * 4 * views * h * w])
         .collect();
-    let (img, sel) = backend.run(&TileInputs { levels, sizes }, planes)?;
+    let inputs = TileInputs {
+        levels,
+        sizes,
+        views,
+    };
+    let (img, sel) = backend.run(&inputs, planes)?;
     let n = a * a;
     Ok((
         (0..3).map(|ch| img[ch * n].clamp(0.0, 1.0)).collect(),

@@ -44,7 +44,7 @@ pub fn init_seeded(cfg: &Config, dtype: DType, device: &Device, seed: u64) -> Re
     let varmap = VarMap::new();
     let model = DeepStereo::new(cfg, VarBuilder::from_varmap(&varmap, dtype, device))?;
     reinit(&varmap, seed)?;
-    if cfg.colour_skip {
+    if cfg.colour_skip || cfg.pool.is_some() {
         init_colour_mean(cfg, &varmap)?;
     }
     Ok(Trainable { model, varmap })
@@ -98,19 +98,21 @@ const COLOUR_OUT_INIT_SCALE: f64 = 0.1;
 
 /// Starts the colour tower's linear layer near "the mean of the sources' colours" (the
 /// raw RGBA skip, weight `1/V` on each source's matching channel) plus small random
-/// weights, so training starts from a sensible image instead of black.
+/// weights, so training starts from a sensible image instead of black. In the
+/// any-number-of-views family the blend already gives the sources' colours, so the
+/// linear layer (a correction added to it) starts small.
 fn init_colour_mean(cfg: &Config, varmap: &VarMap) -> Result<()> {
     let vars = named_vars(varmap);
     let Some((_, w)) = vars.iter().find(|(n, _)| n == "colour.out.weight") else {
         return Ok(());
     };
     let (cout, cin) = (w.as_tensor().dim(0)?, w.as_tensor().dim(1)?);
-    let skip0 = cin - cfg.in_channels();
     let mut data = tensor_f32(w.as_tensor())?;
     for v in data.iter_mut() {
         *v *= COLOUR_OUT_INIT_SCALE as f32;
     }
-    for k in 0..cfg.views {
+    let skip0 = cin.saturating_sub(cfg.in_channels());
+    for k in (0..cfg.views).filter(|_| cfg.colour_skip) {
         for c in 0..cout {
             data[c * cin + skip0 + 4 * k + c] += 1.0 / cfg.views as f32;
         }

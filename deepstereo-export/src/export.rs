@@ -18,6 +18,8 @@ use deepstereo_core::weights::{self, Trainable, CONFIG_KEY};
 use prost::Message;
 use std::collections::{BTreeMap, BTreeSet};
 
+mod pool;
+
 /// The opset written by default.
 pub const DEFAULT_OPSET: i64 = 17;
 /// The oldest opset this exporter writes (`Shape` with `start`/`end`, `Softmax` on one
@@ -140,22 +142,26 @@ pub fn build_model(cfg: &Config, weights: &[Weight], opset: i64) -> Result<Model
     let cin = cfg.in_channels();
     let inputs = (0..cfg.levels)
         .map(|l| {
-            value_info(
-                &input_name(l),
-                vec![
-                    dim("batch"),
-                    dim("planes"),
-                    fixed(cin),
-                    dim(&format!("level{l}_height")),
-                    dim(&format!("level{l}_width")),
-                ],
-                &format!(
-                    "plane sweep at 1/{} resolution: [B, D, 4V, H_{l}, W_{l}] (RGBA of each source per plane), \
-                     H_{l} = (th >> {l}) + {}",
-                    1 << l,
-                    2 * cfg.pad(l)
+            let (h, w) = (
+                dim(&format!("level{l}_height")),
+                dim(&format!("level{l}_width")),
+            );
+            let (dims, layout) = match cfg.pool {
+                Some(_) => (
+                    vec![dim("batch"), dim("planes"), dim("views"), fixed(4), h, w],
+                    "[B, D, V, 4, H, W] (RGBA of each source per plane, any V >= 1)",
                 ),
-            )
+                None => (
+                    vec![dim("batch"), dim("planes"), fixed(cin), h, w],
+                    "[B, D, 4V, H, W] (RGBA of each source per plane)",
+                ),
+            };
+            let doc = format!(
+                "plane sweep at 1/{} resolution: {layout}, H_{l} = (th >> {l}) + {}",
+                1 << l,
+                2 * cfg.pad(l)
+            );
+            value_info(&input_name(l), dims, &doc)
         })
         .collect();
     let outputs = vec![
@@ -337,10 +343,11 @@ impl<'w> Graph<'w> {
             vec![attr_int("start", 0), attr_int("end", 2)],
             "batch_planes",
         );
+        let hw_axis = if cfg.pool.is_some() { 4 } else { 3 };
         let hw0 = g.op(
             "Shape",
             &[&level0],
-            vec![attr_int("start", 3), attr_int("end", 5)],
+            vec![attr_int("start", hw_axis), attr_int("end", hw_axis + 2)],
             "level0_size",
         );
         let p0 = 2 * cfg.pad(0) as i64;
@@ -585,14 +592,21 @@ impl<'w> Graph<'w> {
         self.op("Reshape", &[x, &shape], vec![], hint)
     }
 
-    /// `folded(t)` of `DeepStereo::forward`: each level the tower reads, cropped to its
-    /// footprint and with planes folded into the batch.
-    fn folded(&mut self, cfg: &Config, t: &TowerConfig, prefix: &str) -> Vec<String> {
-        let cin = cfg.in_channels();
+    /// `folded(t)` of `DeepStereo::forward`: each level the tower reads (`levels[l]`,
+    /// `[B, D, cin, H_l, W_l]`), cropped to its footprint and with planes folded into the
+    /// batch.
+    fn folded(
+        &mut self,
+        cfg: &Config,
+        t: &TowerConfig,
+        prefix: &str,
+        levels: &[String],
+        cin: usize,
+    ) -> Vec<String> {
         (0..t.levels)
             .map(|l| {
                 let off = (cfg.pad(l) - t.pad(l)) as i64;
-                let mut x = input_name(l);
+                let mut x = levels[l].clone();
                 if off > 0 {
                     // x.narrow(3, off, h - 2 off).narrow(4, off, w - 2 off)
                     let s = self.const_i64(&[off, off], "starts");
@@ -612,12 +626,20 @@ impl<'w> Graph<'w> {
 
     /// `DeepStereo::forward`; returns the names of `image` and `selection`.
     fn forward(&mut self, cfg: &Config) -> Result<(String, String)> {
-        let cin = cfg.in_channels();
+        let cin = cfg.tower_in_channels();
         let bd = self.bd.clone();
         let tile = self.tile.clone();
+        // The towers' inputs: the sweep itself, or the pooled statistics.
+        let (towers_in, features) = match &cfg.pool {
+            Some(pool) => {
+                let (stats, features) = self.pooled(cfg, pool)?;
+                (stats, Some(features))
+            }
+            None => ((0..cfg.levels).map(input_name).collect(), None),
+        };
 
         // Selection tower.
-        let inputs = self.folded(cfg, &cfg.select, "select");
+        let inputs = self.folded(cfg, &cfg.select, "select", &towers_in, cin);
         let s = self.tower(&cfg.select, "select", &inputs, cin)?; // [B*D, C, th, tw]
         let c = cfg.select.out_channels(cin);
         let tail = self.const_i64(&[c as i64, -1], "select_tail");
@@ -670,13 +692,17 @@ impl<'w> Graph<'w> {
         let selection = self.op("Reshape", &[&sel, &sel_shape], vec![], "selection"); // [B, D, th, tw]
 
         // Colour tower.
-        let inputs = self.folded(cfg, &cfg.colour, "colour");
+        let inputs = self.folded(cfg, &cfg.colour, "colour", &towers_in, cin);
         let mut f = self.tower(&cfg.colour, "colour", &inputs, cin)?; // [B*D, C, th, tw]
         let mut cout_in = cfg.colour.out_channels(cin);
+        let blended = match (&cfg.pool, &features) {
+            (Some(pool), Some(e)) => Some(self.blend(cfg, pool, e, &f)?), // [B*D, 3, th, tw]
+            _ => None,
+        };
         if cfg.colour_skip {
             let p = cfg.pad(0) as i64;
             let centre = self.crop_to_tile(&input_name(0), [p, p], 0, [3, 4], "colour.centre");
-            let centre = self.fold_planes(&centre, cin, "colour.centre.folded"); // [B*D, 4V, th, tw]
+            let centre = self.fold_planes(&centre, cfg.in_channels(), "colour.centre.folded"); // [B*D, 4V, th, tw]
             f = self.op(
                 "Concat",
                 &[&f, &centre],
@@ -685,7 +711,10 @@ impl<'w> Graph<'w> {
             );
             cout_in += cin;
         }
-        let colours = self.conv(&f, "colour.out", (cout_in, 3), (1, 1), [0; 4])?; // [B*D, 3, th, tw]
+        let mut colours = self.conv(&f, "colour.out", (cout_in, 3), (1, 1), [0; 4])?; // [B*D, 3, th, tw]
+        if let Some(blended) = blended {
+            colours = self.op("Add", &[&blended, &colours], vec![], "colour.sum");
+        }
         let three = self.const_i64(&[3], "three");
         let col_shape = self.op(
             "Concat",

@@ -182,7 +182,8 @@ impl OrtBackend {
         &self.library
     }
 
-    /// Runs the network on `levels[l]` = (shape `[B, D, 4V, H_l, W_l]`, data).
+    /// Runs the network on `levels[l]` = (shape `[B, D, 4V, H_l, W_l]`, or
+    /// `[B, D, V, 4, H_l, W_l]` for the any-number-of-views family, data).
     pub fn forward(&self, levels: &[(&[usize], &[f32])]) -> Result<Forward> {
         let cfg = &self.cfg;
         if levels.len() != cfg.levels {
@@ -194,10 +195,22 @@ impl OrtBackend {
         }
         let mut inputs = Vec::with_capacity(levels.len());
         for (l, (shape, data)) in levels.iter().enumerate() {
-            if shape.len() != 5 || shape[2] != cfg.in_channels() || shape[..2].contains(&0) {
+            let ok = match cfg.pool {
+                Some(_) => shape.len() == 6 && shape[3] == 4 && !shape[..3].contains(&0),
+                None => {
+                    shape.len() == 5 && shape[2] == cfg.in_channels() && !shape[..2].contains(&0)
+                }
+            };
+            if !ok {
+                let want = match cfg.pool {
+                    Some(_) => "[B, D, V, 4, H, W] with B, D and V at least 1".to_string(),
+                    None => format!(
+                        "[B, D, {}, H, W] with B and D at least 1",
+                        cfg.in_channels()
+                    ),
+                };
                 return Err(Error::Input(format!(
-                    "level {l}: expected shape [B, D, {}, H, W] with B and D at least 1, got {shape:?}",
-                    cfg.in_channels()
+                    "level {l}: expected shape {want}, got {shape:?}"
                 )));
             }
             if shape.iter().product::<usize>() != data.len() {
@@ -243,11 +256,10 @@ impl Backend for OrtBackend {
         inputs: &TileInputs,
         planes: usize,
     ) -> deepstereo_core::Result<(Vec<f32>, Vec<f32>)> {
-        let c = self.cfg.in_channels();
-        let shapes: Vec<[usize; 5]> = inputs
+        let shapes: Vec<Vec<usize>> = inputs
             .sizes
             .iter()
-            .map(|&(h, w)| [1, planes, c, h, w])
+            .map(|&(h, w)| self.cfg.input_shape(1, planes, inputs.views, h, w))
             .collect();
         let levels: Vec<(&[usize], &[f32])> = shapes
             .iter()

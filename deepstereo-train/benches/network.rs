@@ -34,7 +34,7 @@ use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use deepstereo_core::weights::{init_seeded, named_vars, save, tensor_f32};
 use deepstereo_export::export::{export_trainable, input_name, DEFAULT_OPSET};
 use deepstereo_export::OrtBackend;
-use deepstereo_train::data::{make_batch, synth_scenes};
+use deepstereo_train::data::{make_batch, synth_scenes, Sampling};
 use deepstereo_train::optim::{Optimizer, OptimizerKind};
 use deepstereo_train::training::batch_tensors;
 use std::path::Path;
@@ -221,7 +221,7 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         ..SynthOptions::default()
     };
     let scenes = synth_scenes(4, 1, &opts, cfg.levels)?;
-    let b = make_batch(&cfg, &scenes, 9, 0, batch)?;
+    let b = make_batch(&cfg, &Sampling::fixed(&cfg), &scenes, 9, 0, batch)?;
     let (x, y) = batch_tensors(&b, &Device::Cpu)?;
     let mut train_arrays: Vec<NamedArray> = b
         .levels

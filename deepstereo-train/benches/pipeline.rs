@@ -8,7 +8,7 @@ use deepstereo_core::config::Config;
 use deepstereo_core::model::l1_loss;
 use deepstereo_core::synth::SynthOptions;
 use deepstereo_core::weights::{init_seeded, named_vars};
-use deepstereo_train::data::{make_batch, synth_scenes};
+use deepstereo_train::data::{make_batch, synth_scenes, Sampling};
 use deepstereo_train::optim::{Optimizer, OptimizerKind};
 use deepstereo_train::training::batch_tensors;
 use std::time::Instant;
@@ -29,7 +29,7 @@ fn bench(cfg: &Config, batch: usize, reps: usize) -> Result<()> {
     let mut sample_t = Vec::new();
     for b in 0..reps as u64 {
         let t0 = Instant::now();
-        make_batch(cfg, &scenes, 9, b, batch)?;
+        make_batch(cfg, &Sampling::fixed(cfg), &scenes, 9, b, batch)?;
         sample_t.push(t0.elapsed().as_secs_f64());
     }
     let t = init_seeded(cfg, DType::F32, &Device::Cpu, 0)?;
@@ -37,7 +37,7 @@ fn bench(cfg: &Config, batch: usize, reps: usize) -> Result<()> {
     let mut step_t = Vec::new();
     let mut fwd_t = Vec::new();
     for b in 0..reps as u64 {
-        let batch_data = make_batch(cfg, &scenes, 9, b, batch)?;
+        let batch_data = make_batch(cfg, &Sampling::fixed(cfg), &scenes, 9, b, batch)?;
         let (x, y) = batch_tensors(&batch_data, &Device::Cpu)?;
         let t0 = Instant::now();
         let out = t.model.forward(&x)?;

@@ -15,7 +15,7 @@ use deepstereo_core::synth::SynthOptions;
 use deepstereo_core::weights::{init_seeded, named_vars};
 use deepstereo_export::export::{export_trainable, DEFAULT_OPSET};
 use deepstereo_export::OrtBackend;
-use deepstereo_train::data::{make_batch, synth_scenes};
+use deepstereo_train::data::{make_batch, synth_scenes, Sampling};
 use deepstereo_train::optim::{Optimizer, OptimizerKind};
 use deepstereo_train::training::batch_tensors;
 use std::time::Instant;
@@ -40,7 +40,10 @@ fn main() -> Result<()> {
         };
         let scenes = synth_scenes(4, 1, &opts, cfg.levels)?;
         let batch = if name == "paper" { 1 } else { 8 };
-        let (x, y) = batch_tensors(&make_batch(&cfg, &scenes, 9, 0, batch)?, &Device::Cpu)?;
+        let (x, y) = batch_tensors(
+            &make_batch(&cfg, &Sampling::fixed(&cfg), &scenes, 9, 0, batch)?,
+            &Device::Cpu,
+        )?;
         let mut opt = Optimizer::new(OptimizerKind::Adam, 1e-4, named_vars(&t.varmap))?;
         for _ in 0..iters {
             let t0 = Instant::now();

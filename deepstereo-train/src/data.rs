@@ -106,15 +106,65 @@ pub fn synth_scenes(
         .collect()
 }
 
-/// One minibatch: inputs per level `[B, D, 4V, h_l, w_l]` and targets `[B, 3, t, t]`, as
-/// flat f32 data with their shapes.
+/// One minibatch: inputs per level (`[B, D, 4V, h_l, w_l]`, or `[B, D, V, 4, h_l, w_l]`
+/// for the any-number-of-views family) and targets `[B, 3, t, t]`, as flat f32 data with
+/// their shapes.
 pub struct Batch {
     pub index: u64,
     pub levels: Vec<Vec<f32>>,
-    pub level_shapes: Vec<[usize; 5]>,
+    pub level_shapes: Vec<Vec<usize>>,
+    /// Source views `V` of every sample in the batch.
+    pub views: usize,
     pub target: Vec<f32>,
     pub target_shape: [usize; 4],
 }
+
+/// How samples are drawn beyond what the model's config fixes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Sampling {
+    /// Source views per batch, drawn uniformly from this range for every batch (the
+    /// any-number-of-views family); the paper's family takes exactly `Config::views`.
+    pub views: (usize, usize),
+}
+
+impl Sampling {
+    /// Exactly the config's views.
+    pub fn fixed(cfg: &Config) -> Self {
+        Self {
+            views: (cfg.views, cfg.views),
+        }
+    }
+
+    /// Checks the range against the model.
+    pub fn check(&self, cfg: &Config) -> anyhow::Result<()> {
+        let (lo, hi) = self.views;
+        if lo == 0 || lo > hi {
+            bail!("the views range {lo}-{hi} must be 1 or more and increasing");
+        }
+        if !cfg.accepts_views(lo) || !cfg.accepts_views(hi) {
+            bail!(
+                "the views range {lo}-{hi} does not suit the '{}' model, which takes {}",
+                cfg.name,
+                if cfg.pool.is_some() {
+                    format!("1 to {}", deepstereo_core::config::MAX_VIEWS)
+                } else {
+                    format!("exactly {}", cfg.views)
+                }
+            );
+        }
+        Ok(())
+    }
+
+    /// The number of views of batch `b`.
+    pub fn views_of(&self, seed: u64, b: u64) -> usize {
+        let (lo, hi) = self.views;
+        let r = mix(seed ^ mix(b ^ VIEWS_SALT));
+        lo + (r % (hi - lo + 1) as u64) as usize
+    }
+}
+
+/// Salt of the per-batch view count's random stream.
+const VIEWS_SALT: u64 = 0x0076_1e35_ca17_0000;
 
 /// A deterministic 64-bit mix (splitmix64 finalizer).
 pub fn mix(mut z: u64) -> u64 {
@@ -124,13 +174,14 @@ pub fn mix(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// Builds sample `k` of batch `b`: returns per-level inputs and the target patch.
+/// Builds sample `k` of batch `b` with `views` sources: returns per-level inputs and the
+/// target patch. A pooled model gets empty views (alpha 0, which change nothing) where
+/// a scene has fewer.
 fn sample(
     cfg: &Config,
     scenes: &[SceneData],
-    seed: u64,
-    b: u64,
-    k: usize,
+    (seed, b, k): (u64, u64, usize),
+    views: usize,
 ) -> anyhow::Result<(Vec<Vec<f32>>, Vec<f32>)> {
     let mut state = mix(seed ^ mix(b.wrapping_mul(0x1000_0000_01B3) ^ mix(k as u64)));
     let mut next = || {
@@ -139,15 +190,15 @@ fn sample(
     };
     let s = &scenes[(next() % scenes.len() as u64) as usize];
     let n = s.cameras.len();
-    if n <= cfg.views {
+    let pad = cfg.pool.is_some();
+    if n < 2 || (n <= views && !pad) {
         bail!(
-            "scene {} has {n} views; the model needs {} sources plus a target",
+            "scene {} has {n} views; the model needs {views} sources plus a target",
             s.name,
-            cfg.views
         );
     }
     let target = (next() % n as u64) as usize;
-    let src = s.sources(target, cfg.views);
+    let src = s.sources(target, views);
     let t = cfg.tile;
     let a = cfg.tile_align() as u64;
     let cam = &s.cameras[target];
@@ -161,7 +212,9 @@ fn sample(
     let x0 = (next() % ((w - t as u64) / a + 1)) * a;
     let y0 = (next() % ((h - t as u64) / a + 1)) * a;
     let inv = inverse_depths(s.near, s.far, cfg.planes);
-    let srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
+    let empty = PyramidSource::empty(cam, cfg.levels);
+    let mut srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
+    srcs.resize(views, &empty);
     let inputs = tile_inputs(cfg, cam, &srcs, &inv, (x0 as i64, y0 as i64), (t, t))?;
     let img = &s.pyramids[target].images[0];
     let mut patch = vec![0f32; 3 * t * t];
@@ -179,6 +232,7 @@ fn sample(
 /// Builds batch `b` of `batch` samples, samples in parallel.
 pub fn make_batch(
     cfg: &Config,
+    sampling: &Sampling,
     scenes: &[SceneData],
     seed: u64,
     b: u64,
@@ -187,14 +241,19 @@ pub fn make_batch(
     if scenes.is_empty() {
         bail!("no scenes to sample from");
     }
+    sampling.check(cfg)?;
+    let views = sampling.views_of(seed, b);
     let samples: Vec<(Vec<Vec<f32>>, Vec<f32>)> = (0..batch)
         .into_par_iter()
-        .map(|k| sample(cfg, scenes, seed, b, k))
+        .map(|k| sample(cfg, scenes, (seed, b, k), views))
         .collect::<anyhow::Result<_>>()?;
     let t = cfg.tile;
-    let (d, c) = (cfg.planes, cfg.in_channels());
-    let level_shapes: Vec<[usize; 5]> = (0..cfg.levels)
-        .map(|l| [batch, d, c, cfg.input_size(l, t), cfg.input_size(l, t)])
+    let d = cfg.planes;
+    let level_shapes: Vec<Vec<usize>> = (0..cfg.levels)
+        .map(|l| {
+            let s = cfg.input_size(l, t);
+            cfg.input_shape(batch, d, views, s, s)
+        })
         .collect();
     let levels = (0..cfg.levels)
         .map(|l| {
@@ -209,6 +268,7 @@ pub fn make_batch(
         index: b,
         levels,
         level_shapes,
+        views,
         target,
         target_shape: [batch, 3, t, t],
     })
@@ -217,6 +277,7 @@ pub fn make_batch(
 /// Background producer of batches `start, start + 1, ...`, a few ahead of the trainer.
 pub fn spawn_loader(
     cfg: Config,
+    sampling: Sampling,
     scenes: std::sync::Arc<Vec<SceneData>>,
     seed: u64,
     start: u64,
@@ -227,7 +288,7 @@ pub fn spawn_loader(
     std::thread::spawn(move || {
         let mut b = start;
         loop {
-            let r = make_batch(&cfg, &scenes, seed, b, batch);
+            let r = make_batch(&cfg, &sampling, &scenes, seed, b, batch);
             let failed = r.is_err();
             if tx.send(r).is_err() || failed {
                 return;
@@ -255,12 +316,13 @@ mod tests {
     #[test]
     fn batch_shapes_follow_the_config() -> anyhow::Result<()> {
         let cfg = Config::tiny();
-        let b = make_batch(&cfg, &scenes(&cfg), 1, 0, 3)?;
+        let b = make_batch(&cfg, &Sampling::fixed(&cfg), &scenes(&cfg), 1, 0, 3)?;
         assert_eq!(b.target_shape, [3, 3, cfg.tile, cfg.tile]);
         assert_eq!(b.target.len(), 3 * 3 * cfg.tile * cfg.tile);
         for l in 0..cfg.levels {
             let s = cfg.input_size(l, cfg.tile);
             assert_eq!(b.level_shapes[l], [3, cfg.planes, cfg.in_channels(), s, s]);
+            assert_eq!(b.views, cfg.views);
             assert_eq!(
                 b.levels[l].len(),
                 b.level_shapes[l].iter().product::<usize>()
@@ -274,9 +336,10 @@ mod tests {
     fn batches_are_deterministic_and_differ_between_indices() -> anyhow::Result<()> {
         let cfg = Config::tiny();
         let sc = scenes(&cfg);
-        let a = make_batch(&cfg, &sc, 5, 7, 2)?;
-        let b = make_batch(&cfg, &sc, 5, 7, 2)?;
-        let c = make_batch(&cfg, &sc, 5, 8, 2)?;
+        let fixed = Sampling::fixed(&cfg);
+        let a = make_batch(&cfg, &fixed, &sc, 5, 7, 2)?;
+        let b = make_batch(&cfg, &fixed, &sc, 5, 7, 2)?;
+        let c = make_batch(&cfg, &fixed, &sc, 5, 8, 2)?;
         assert!(a.levels == b.levels && a.target == b.target);
         assert!(a.target != c.target);
         Ok(())
@@ -287,9 +350,11 @@ mod tests {
     #[test]
     fn alpha_is_zero_where_sources_do_not_see() -> anyhow::Result<()> {
         let cfg = Config::tiny();
-        let b = make_batch(&cfg, &scenes(&cfg), 3, 0, 8)?;
+        let b = make_batch(&cfg, &Sampling::fixed(&cfg), &scenes(&cfg), 3, 0, 8)?;
         let l = cfg.levels - 1;
-        let [_, d, c, h, w] = b.level_shapes[l];
+        let [_, d, c, h, w] = b.level_shapes[l][..] else {
+            anyhow::bail!("expected a 5-d level shape");
+        };
         let plane = h * w;
         let mut zeros = 0usize;
         for (i, chunk) in b.levels[l].chunks_exact(plane).enumerate() {
@@ -305,6 +370,37 @@ mod tests {
             zeros > 0,
             "expected uncovered pixels at level {l} ({d} planes)"
         );
+        Ok(())
+    }
+
+    /// The pooled family: the view count varies across batches within the range, shapes
+    /// carry it, and scenes with fewer views than asked are padded with empty views.
+    #[test]
+    fn pooled_batches_draw_their_view_count() -> anyhow::Result<()> {
+        let cfg = Config::nviews();
+        let sc = scenes(&cfg); // 6 views each: 5 sources at most
+        let sampling = Sampling { views: (2, 8) };
+        let mut seen = std::collections::BTreeSet::new();
+        for b in 0..12 {
+            let batch = make_batch(&cfg, &sampling, &sc, 9, b, 2)?;
+            assert!((2..=8).contains(&batch.views));
+            let s = cfg.input_size(0, cfg.tile);
+            assert_eq!(batch.level_shapes[0], [2, cfg.planes, batch.views, 4, s, s]);
+            seen.insert(batch.views);
+            if batch.views > 5 {
+                // The padded views' alpha is zero everywhere.
+                let v = batch.views;
+                let plane = s * s;
+                for (i, chunk) in batch.levels[0].chunks_exact(plane).enumerate() {
+                    if (i / 4) % v >= 5 {
+                        assert!(chunk.iter().all(|&x| x == 0.0));
+                    }
+                }
+            }
+        }
+        assert!(seen.len() >= 3, "view counts drawn: {seen:?}");
+        assert!(Sampling { views: (0, 3) }.check(&cfg).is_err());
+        assert!(Sampling { views: (2, 8) }.check(&Config::tiny()).is_err());
         Ok(())
     }
 

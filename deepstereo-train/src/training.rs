@@ -5,7 +5,9 @@
 //! Files in the run directory: `model.safetensors` (weights + config, what `render` loads),
 //! `checkpoint.safetensors` (weights, optimizer state, step, run options), `log.jsonl`.
 
-use crate::data::{make_batch, spawn_loader, synth_scenes, Batch, SceneData, VALIDATION_SALT};
+use crate::data::{
+    make_batch, spawn_loader, synth_scenes, Batch, Sampling, SceneData, VALIDATION_SALT,
+};
 use crate::optim::{Optimizer, OptimizerKind};
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
@@ -44,6 +46,19 @@ pub struct RunOptions {
     pub seed: u64,
     pub val_scenes: usize,
     pub val_batches: usize,
+    /// Source views per batch, a range (`None`: the config's).
+    #[serde(default)]
+    pub views: Option<(usize, usize)>,
+}
+
+impl RunOptions {
+    /// How samples are drawn.
+    pub fn sampling(&self) -> Sampling {
+        match self.views {
+            Some(views) => Sampling { views },
+            None => Sampling::fixed(&self.config),
+        }
+    }
 }
 
 /// How long and how often.
@@ -145,6 +160,8 @@ pub fn train(
     if run.batch == 0 {
         bail!("--batch must be at least 1");
     }
+    let sampling = run.sampling();
+    sampling.check(&run.config)?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let device = Device::Cpu;
     let t = weights::init_seeded(&run.config, candle_core::DType::F32, &device, run.seed)?;
@@ -180,10 +197,11 @@ pub fn train(
     };
     let val_seed = run.seed ^ VALIDATION_SALT;
     let val: Vec<Batch> = (0..run.val_batches as u64)
-        .map(|b| make_batch(&run.config, val_src, val_seed, b, run.batch))
+        .map(|b| make_batch(&run.config, &sampling, val_src, val_seed, b, run.batch))
         .collect::<Result<_>>()?;
     let rx = spawn_loader(
         run.config.clone(),
+        sampling,
         Arc::new(train_scenes),
         run.seed,
         start,

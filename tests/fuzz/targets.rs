@@ -231,6 +231,7 @@ fn small_config(levels: usize, skip: bool) -> Config {
             merge_convs: vec![],
         },
         colour_skip: skip,
+        pool: None,
     }
 }
 

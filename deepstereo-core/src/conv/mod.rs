@@ -148,6 +148,13 @@ impl Conv2d {
     /// The convolution of the channel concatenation `[a, b]` (`[N, Ca + Cb, H, W]`)
     /// without building it: `conv(a, w[:, ..Ca]) + conv(b, w[:, Ca..]) + bias`.
     pub fn forward_pair(&self, a: &Tensor, b: &Tensor) -> Result<Tensor> {
+        let (ya, yb) = self.forward_split(a, b)?;
+        ya + yb
+    }
+
+    /// The two parts of [`Self::forward_pair`] apart: `(conv(a, w[:, ..Ca]) + bias,
+    /// conv(b, w[:, Ca..]))`; `a` and `b` may have different batch sizes.
+    pub fn forward_split(&self, a: &Tensor, b: &Tensor) -> Result<(Tensor, Tensor)> {
         let ca = a.dim(1)?;
         let cin = self.weight.dim(1)?;
         if ca + b.dim(1)? != cin {
@@ -159,20 +166,19 @@ impl Conv2d {
         let wa = self.weight.narrow(1, 0, ca)?.contiguous()?;
         let wb = self.weight.narrow(1, ca, cin - ca)?.contiguous()?;
         let zero = self.bias.zeros_like()?;
-        let (ya, yb) = if op::supported(a, &self.weight) && op::supported(b, &self.weight) {
-            (
+        if op::supported(a, &self.weight) && op::supported(b, &self.weight) {
+            Ok((
                 op::conv2d(a, &wa, &self.bias, false)?,
                 op::conv2d(b, &wb, &zero, false)?,
-            )
+            ))
         } else {
             let ya = a.conv2d(&wa, 0, 1, 1, 1)?;
             let c = self.bias.dim(0)?;
-            (
+            Ok((
                 ya.broadcast_add(&self.bias.reshape((1, c, 1, 1))?)?,
                 b.conv2d(&wb, 0, 1, 1, 1)?,
-            )
-        };
-        ya + yb
+            ))
+        }
     }
 
     /// The same convolution through candle's built-in `conv2d` (for tests and benchmarks;

@@ -37,6 +37,7 @@ pub fn small() -> Config {
             merge_convs: vec![c(3, 3)],
         },
         colour_skip: true,
+        pool: None,
     }
 }
 

@@ -17,7 +17,7 @@ pub struct Args {
     /// Also generate this many procedural scenes in memory (seeded by --seed).
     #[arg(long, default_value_t = 0)]
     pub synthetic: usize,
-    /// Model config: a preset (`tiny`, `paper`) or a JSON file of a Config.
+    /// Model config: a preset (`tiny`, `paper`, `nviews`) or a JSON file of a Config.
     #[arg(long, default_value = "tiny")]
     pub config: String,
     /// Total optimizer steps (a resumed run continues up to this count).
@@ -65,6 +65,28 @@ pub struct Args {
     /// Print log lines instead of a progress bar.
     #[arg(long)]
     pub no_progress: bool,
+    /// Source views per sample, `K` or a range `MIN-MAX` drawn afresh for every batch
+    /// (the any-number-of-views family, e.g. `2-8`; the paper's family takes exactly
+    /// its config's). Default: the config's views.
+    #[arg(long)]
+    pub views: Option<String>,
+}
+
+/// Parses `K` or `MIN-MAX`.
+pub fn parse_range(s: &str) -> anyhow::Result<(usize, usize)> {
+    let parse = |t: &str| -> anyhow::Result<usize> {
+        t.trim()
+            .parse()
+            .with_context(|| format!("--views '{s}': '{t}' is not a whole number"))
+    };
+    let (lo, hi) = match s.split_once('-') {
+        Some((a, b)) => (parse(a)?, parse(b)?),
+        None => (parse(s)?, parse(s)?),
+    };
+    if lo == 0 || lo > hi {
+        bail!("--views '{s}': expected K or MIN-MAX with 1 <= MIN <= MAX");
+    }
+    Ok((lo, hi))
 }
 
 /// Parses `WxH`.
@@ -93,7 +115,7 @@ pub fn load_config(s: &str) -> anyhow::Result<Config> {
     }
     let p = Path::new(s);
     let text = std::fs::read_to_string(p).with_context(|| {
-        format!("--config '{s}' is neither a preset (tiny, paper) nor a readable file")
+        format!("--config '{s}' is neither a preset (tiny, paper, nviews) nor a readable file")
     })?;
     let c: Config = serde_json::from_str(&text)
         .with_context(|| format!("{}: invalid config JSON", p.display()))?;
@@ -126,6 +148,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         seed: a.seed,
         val_scenes: a.val_scenes,
         val_batches: a.val_batches,
+        views: a.views.as_deref().map(parse_range).transpose()?,
     };
     let sched = Schedule {
         steps: a.steps,

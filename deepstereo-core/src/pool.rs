@@ -1,0 +1,160 @@
+//! The any-number-of-views family's view pooling and colour blend ([`ViewPool`]).
+//!
+//! The paper's network concatenates the sources' RGBA along channels, so it takes a fixed
+//! number of views in a fixed order. This family removes both limits: every step that
+//! sees views either runs on each view alone with weights shared across views, or
+//! combines views by alpha-weighted sums, which do not depend on the views' order and
+//! are unchanged by a view whose alpha is zero (it adds exact zeros).
+//!
+//! Per input level, with `N = B * D` planes folded into the batch and `a_v` a view's
+//! alpha (1 where the source sees the pixel):
+//! 1. `m = sum_v a_v rgb_v / (sum_v a_v + eps)`: the mean colour, `[N, 1, 3, H, W]`.
+//! 2. `e_v = encoder([rgba_v, rgb_v - m])`: 1x1 layers, ReLU after each, on
+//!    `[N * V, 7, H, W]` -> `[N, V, C_f, H, W]`.
+//! 3. Tower input `[m, s / (1 + s), mean_a(e), var_a(e)]`: `[B, D, 4 + 2 C_f, H, W]`,
+//!    where `s = sum_v a_v` (how many views see the pixel, bounded) and `mean_a` /
+//!    `var_a` are the alpha-weighted mean and variance over views (variance is the
+//!    classical photo-consistency cue).
+//!
+//! The towers then run as in the paper's family. The colour at each plane is
+//! `sum_v w_v rgb_v + out(f)`: a learned per-pixel blend of the source colours plus the
+//! colour tower's linear RGB (`f`: its features `[N, C_c, th, tw]`), with
+//! `w_v = a_v exp(l_v) / (sum_u a_u exp(l_u) + eps)` and the logit
+//! `l_v = B tanh(blend([e_v, f]) / B)` (1x1 layers, ReLU between, bounded by
+//! [`BLEND_LOGIT_BOUND`] so that `exp` never overflows, whatever a view that is not there
+//! computes).
+//!
+//! Parameter names (equal to the PyTorch reference's): `views.encode.{i}.{weight,bias}`,
+//! `colour.blend.{i}.{weight,bias}` (the last one the 1-channel logit layer).
+
+use crate::config::{ViewPool, ENCODER_IN};
+use crate::conv::Conv2d;
+use candle_core::{Module, Result, Tensor};
+use candle_nn::VarBuilder;
+
+/// Added to the alpha sum before dividing (pixels no view sees get zero statistics).
+pub const POOL_EPS: f64 = 1e-6;
+/// Added to the blend weights' sum (pixels no view sees get colour `out(f)` alone).
+pub const BLEND_EPS: f64 = 1e-12;
+/// Bound on the blend logits: `exp(+-20)` stays far inside f32's range.
+pub const BLEND_LOGIT_BOUND: f64 = 20.0;
+
+/// The per-view encoder (`views.encode.*`).
+#[derive(Debug, Clone)]
+pub struct ViewEncoder {
+    convs: Vec<Conv2d>,
+}
+
+/// One level's pooled tower input and, for the colour blend, the views' features.
+pub struct Pooled {
+    /// `[B, D, 4 + 2 C_f, H, W]`.
+    pub stats: Tensor,
+    /// `[B * D, V, C_f, H, W]`.
+    pub features: Tensor,
+}
+
+/// Splits an input level `[B, D, V, 4, H, W]` into its dims, checking the rank and the 4.
+pub fn view_dims(x: &Tensor) -> Result<(usize, usize, usize, usize, usize)> {
+    match *x.dims() {
+        [b, d, v, 4, h, w] => Ok((b * d, v, h, w, b)),
+        ref got => candle_core::bail!(
+            "expected an input level [B, D, V, 4, H, W] (any-number-of-views model), got {got:?}"
+        ),
+    }
+}
+
+/// `sum_v a_v t_v / den` over dim 1: `t` `[N, V, C, H, W]`, `a` `[N, V, 1, H, W]`,
+/// `den` `[N, 1, 1, H, W]` -> `[N, 1, C, H, W]`.
+fn weighted_mean(t: &Tensor, a: &Tensor, den: &Tensor) -> Result<Tensor> {
+    t.broadcast_mul(a)?.sum_keepdim(1)?.broadcast_div(den)
+}
+
+impl ViewEncoder {
+    pub fn new(pool: &ViewPool, vb: VarBuilder) -> Result<Self> {
+        let mut ch = ENCODER_IN;
+        let mut convs = Vec::with_capacity(pool.encoder.len());
+        for (i, c) in pool.encoder.iter().enumerate() {
+            convs.push(Conv2d::new(ch, c.channels, (1, 1), vb.pp(i))?);
+            ch = c.channels;
+        }
+        Ok(Self { convs })
+    }
+
+    /// Steps 1-3 of the module doc for one level `x` `[B, D, V, 4, H, W]`.
+    pub fn forward(&self, x: &Tensor) -> Result<Pooled> {
+        let (n, v, h, w, b) = view_dims(x)?;
+        let x = x.reshape((n, v, 4, h, w))?; // [N, V, 4, H, W]
+        let rgb = x.narrow(2, 0, 3)?; // [N, V, 3, H, W]
+        let a = x.narrow(2, 3, 1)?; // [N, V, 1, H, W]
+        let asum = a.sum_keepdim(1)?; // [N, 1, 1, H, W]
+        let den = (&asum + POOL_EPS)?; // [N, 1, 1, H, W]
+        let mean_rgb = weighted_mean(&rgb, &a, &den)?; // [N, 1, 3, H, W]
+        let diff = rgb.broadcast_sub(&mean_rgb)?; // [N, V, 3, H, W]
+        let mut e = Tensor::cat(&[&x, &diff], 2)?.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
+        for conv in &self.convs {
+            e = conv.forward_relu(&e)?;
+        }
+        let cf = e.dim(1)?;
+        let e = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
+        let mean_e = weighted_mean(&e, &a, &den)?; // [N, 1, C_f, H, W]
+        let var_e = weighted_mean(&e.broadcast_sub(&mean_e)?.sqr()?, &a, &den)?; // [N, 1, C_f, H, W]
+        let cover = asum.div(&(&asum + 1.0)?)?; // [N, 1, 1, H, W]
+        let stats = Tensor::cat(&[&mean_rgb, &cover, &mean_e, &var_e], 2)? // [N, 1, 4 + 2 C_f, H, W]
+            .reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
+        Ok(Pooled { stats, features: e })
+    }
+}
+
+/// The colour blend head (`colour.blend.*`).
+#[derive(Debug, Clone)]
+pub struct Blend {
+    /// Hidden layers, then the 1-channel logit layer.
+    layers: Vec<Conv2d>,
+}
+
+impl Blend {
+    /// `features`: `C_f`; `colour`: `C_c` (the colour tower's output channels).
+    pub fn new(pool: &ViewPool, colour: usize, vb: VarBuilder) -> Result<Self> {
+        let mut ch = pool.features() + colour;
+        let mut layers = Vec::with_capacity(pool.blend.len() + 1);
+        let widths = pool.blend.iter().map(|c| c.channels).chain([1]);
+        for (i, cout) in widths.enumerate() {
+            layers.push(Conv2d::new(ch, cout, (1, 1), vb.pp(i))?);
+            ch = cout;
+        }
+        Ok(Self { layers })
+    }
+
+    /// The blended source colours `sum_v w_v rgb_v` `[N, 3, th, tw]` from the views'
+    /// features `e` `[N, V, C_f, th, tw]`, their RGBA `x` `[N, V, 4, th, tw]` and the
+    /// colour tower's features `f` `[N, C_c, th, tw]`, all at the tile's pixels.
+    pub fn forward(&self, e: &Tensor, x: &Tensor, f: &Tensor) -> Result<Tensor> {
+        let (n, v, cf, th, tw) = e.dims5()?;
+        // First layer on [e_v, f] without repeating f for every view: its part for f is
+        // computed once per plane and broadcast over the views.
+        let (ye, yf) = self.layers[0].forward_split(&e.reshape((n * v, cf, th, tw))?, f)?;
+        let c0 = ye.dim(1)?;
+        let mut y = ye
+            .reshape((n, v, c0, th, tw))? // [N, V, C_0, th, tw]
+            .broadcast_add(&yf.unsqueeze(1)?)?; // + [N, 1, C_0, th, tw]
+        let last = self.layers.len() - 1;
+        if last > 0 {
+            y = y.relu()?.reshape((n * v, c0, th, tw))?; // [N*V, C_0, th, tw]
+            for (i, conv) in self.layers.iter().enumerate().skip(1) {
+                y = if i < last {
+                    conv.forward_relu(&y)?
+                } else {
+                    conv.forward(&y)?
+                };
+            }
+        }
+        let logits = y.reshape((n, v, 1, th, tw))?; // [N, V, 1, th, tw]
+        let logits = ((logits / BLEND_LOGIT_BOUND)?.tanh()? * BLEND_LOGIT_BOUND)?;
+        let rgb = x.narrow(2, 0, 3)?; // [N, V, 3, th, tw]
+        let a = x.narrow(2, 3, 1)?; // [N, V, 1, th, tw]
+        let ex = logits.exp()?.mul(&a)?; // [N, V, 1, th, tw]
+        let den = (ex.sum_keepdim(1)? + BLEND_EPS)?; // [N, 1, 1, th, tw]
+        let wts = ex.broadcast_div(&den)?; // [N, V, 1, th, tw]
+        rgb.broadcast_mul(&wts)?.sum(1) // [N, 3, th, tw]
+    }
+}

@@ -1,0 +1,271 @@
+//! The any-number-of-views family: invariance to the views' order and to views that see
+//! nothing, every view count from 1 to 16, gradients through the pooling and the blend by
+//! finite differences, the fused inference path against training's, and tiled renders.
+
+use anyhow::Result;
+use candle_core::{DType, Device, Tensor};
+use deepstereo_core::config::{Config, Conv, TowerConfig, ViewPool};
+use deepstereo_core::geometry::inverse_depths;
+use deepstereo_core::inputs::PyramidSource;
+use deepstereo_core::render::{render_view, CandleBackend};
+use deepstereo_core::synth::{generate, SynthOptions};
+use deepstereo_core::weights::{init_seeded, named_vars};
+
+/// A small pooled config: 2 levels, merge and depth convs, two encoder and blend layers.
+fn small() -> Config {
+    let c = |k, ch| Conv {
+        kernel: k,
+        channels: ch,
+    };
+    Config {
+        name: "small-pooled".into(),
+        views: 3,
+        planes: 5,
+        levels: 2,
+        tile: 4,
+        select: TowerConfig {
+            levels: 2,
+            level_convs: vec![c(3, 4)],
+            merge_convs: vec![c(3, 4)],
+        },
+        depth_convs: vec![c(3, 3), c(3, 1)],
+        colour: TowerConfig {
+            levels: 1,
+            level_convs: vec![c(1, 3)],
+            merge_convs: vec![c(1, 3)],
+        },
+        colour_skip: false,
+        pool: Some(ViewPool {
+            encoder: vec![c(1, 4), c(1, 3)],
+            blend: vec![c(1, 4)],
+        }),
+    }
+}
+
+/// Deterministic pseudo-random values in [lo, hi).
+fn rand_vec(n: usize, seed: u64, lo: f64, hi: f64) -> Vec<f64> {
+    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..n)
+        .map(|_| {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            lo + (hi - lo) * ((s >> 11) as f64 / (1u64 << 53) as f64)
+        })
+        .collect()
+}
+
+/// Random inputs `[B, D, V, 4, H, W]` per level: colours in [0, 1], alphas 0, 1 or
+/// fractional.
+fn inputs(cfg: &Config, b: usize, v: usize, dtype: DType, seed: u64) -> Result<Vec<Tensor>> {
+    (0..cfg.levels)
+        .map(|l| {
+            let s = cfg.input_size(l, cfg.tile);
+            let n = b * cfg.planes * v * 4 * s * s;
+            let mut data = rand_vec(n, seed + l as u64, 0.0, 1.0);
+            for (i, x) in data.iter_mut().enumerate() {
+                if (i / (s * s)) % 4 == 3 {
+                    *x = if *x < 0.2 {
+                        0.0
+                    } else if *x > 0.5 {
+                        1.0
+                    } else {
+                        *x
+                    };
+                }
+            }
+            let t = Tensor::from_vec(data, (b, cfg.planes, v, 4, s, s), &Device::Cpu)?;
+            Ok(t.to_dtype(dtype)?)
+        })
+        .collect()
+}
+
+/// The views of every level in the order `order` (indices into the views axis).
+fn reorder(x: &[Tensor], order: &[usize]) -> Result<Vec<Tensor>> {
+    x.iter()
+        .map(|t| {
+            let idx = Tensor::from_vec(
+                order.iter().map(|&i| i as u32).collect::<Vec<_>>(),
+                order.len(),
+                t.device(),
+            )?;
+            Ok(t.index_select(&idx, 2)?)
+        })
+        .collect()
+}
+
+/// Gradients below this are compared absolutely.
+const GRAD_FLOOR: f64 = 1e-5;
+
+fn max_diff(a: &Tensor, b: &Tensor) -> Result<f32> {
+    Ok(a.sub(b)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?)
+}
+
+#[test]
+fn views_order_does_not_matter() -> Result<()> {
+    let cfg = Config::nviews();
+    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 3)?;
+    let x = inputs(&cfg, 1, 5, DType::F32, 1)?;
+    let a = t.model.forward(&x)?;
+    let b = t.model.forward(&reorder(&x, &[3, 0, 4, 2, 1])?)?;
+    let (di, ds) = (
+        max_diff(&a.image, &b.image)?,
+        max_diff(&a.selection, &b.selection)?,
+    );
+    println!("shuffled views: image {di:e}, selection {ds:e}");
+    assert!(di < 1e-6 && ds < 1e-6, "image {di}, selection {ds}");
+    Ok(())
+}
+
+#[test]
+fn a_view_that_sees_nothing_changes_nothing() -> Result<()> {
+    let cfg = Config::nviews();
+    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 4)?;
+    let x = inputs(&cfg, 2, 3, DType::F32, 2)?;
+    let with = |extra: usize, at: usize| -> Result<Vec<Tensor>> {
+        x.iter()
+            .map(|t| {
+                let mut shape = t.dims().to_vec();
+                shape[2] = extra;
+                let zeros = Tensor::zeros(shape, t.dtype(), t.device())?;
+                let (front, back) = (t.narrow(2, 0, at)?, t.narrow(2, at, 3 - at)?);
+                Ok(Tensor::cat(&[&front, &zeros, &back], 2)?)
+            })
+            .collect()
+    };
+    let base = t.model.forward(&x)?;
+    for (extra, at) in [(1, 3), (1, 0), (4, 1)] {
+        let o = t.model.forward(&with(extra, at)?)?;
+        let di = max_diff(&base.image, &o.image)?;
+        let ds = max_diff(&base.selection, &o.selection)?;
+        println!("{extra} empty views at {at}: image {di:e}, selection {ds:e}");
+        assert!(di < 1e-6 && ds < 1e-6, "image {di}, selection {ds}");
+    }
+    Ok(())
+}
+
+#[test]
+fn every_view_count_from_1_to_16_runs() -> Result<()> {
+    let cfg = small();
+    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 5)?;
+    for v in 1..=16 {
+        let x = inputs(&cfg, 2, v, DType::F32, 10 + v as u64)?;
+        let o = t.model.forward(&x)?;
+        let f = t.model.infer(&x)?;
+        assert_eq!(o.image.dims(), [2, 3, cfg.tile, cfg.tile]);
+        let sums = o.selection.sum(1)?.flatten_all()?.to_vec1::<f32>()?;
+        assert!(sums.iter().all(|s| (s - 1.0).abs() < 1e-5), "V={v}");
+        let img = o.image.flatten_all()?.to_vec1::<f32>()?;
+        assert!(img.iter().all(|p| p.is_finite()), "V={v}");
+        let di = max_diff(&o.image, &f.image)?;
+        assert!(di < 1e-5, "V={v}: infer differs from forward by {di}");
+    }
+    Ok(())
+}
+
+#[test]
+fn wrong_input_layout_is_an_error() -> Result<()> {
+    let cfg = small();
+    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 5)?;
+    let s = cfg.input_size(0, cfg.tile);
+    let flat = Tensor::zeros((1, cfg.planes, 12, s, s), DType::F32, &Device::Cpu)?;
+    let err = t.model.forward(&[flat.clone(), flat]).err();
+    assert!(err.is_some_and(|e| e.to_string().contains("[B, D, V, 4, H, W]")));
+    Ok(())
+}
+
+#[test]
+fn gradients_through_the_pooling_match_finite_differences_f64() -> Result<()> {
+    let cfg = small();
+    let t = init_seeded(&cfg, DType::F64, &Device::Cpu, 6)?;
+    let x = inputs(&cfg, 2, 3, DType::F64, 7)?;
+    let (th, d) = (cfg.tile, cfg.planes);
+    let dev = &Device::Cpu;
+    let r1 = Tensor::from_vec(
+        rand_vec(2 * 3 * th * th, 11, -1.0, 1.0),
+        (2, 3, th, th),
+        dev,
+    )?;
+    let r2 = Tensor::from_vec(
+        rand_vec(2 * d * th * th, 13, -1.0, 1.0),
+        (2, d, th, th),
+        dev,
+    )?;
+    let loss_of = || -> Result<Tensor> {
+        let o = t.model.forward(&x)?;
+        Ok(((o.image * &r1)?.sum_all()? + (o.selection * &r2)?.sum_all()?)?)
+    };
+    let grads = loss_of()?.backward()?;
+    let eps = 1e-6;
+    let mut worst = 0f64;
+    let mut checked = 0;
+    for (name, var) in named_vars(&t.varmap) {
+        let g = grads
+            .get(var.as_tensor())
+            .ok_or_else(|| anyhow::anyhow!("no gradient for {name}"))?
+            .flatten_all()?
+            .to_vec1::<f64>()?;
+        let w0 = var.as_tensor().flatten_all()?.to_vec1::<f64>()?;
+        for i in [0, w0.len() / 2, w0.len() - 1] {
+            let eval = |delta: f64| -> Result<f64> {
+                let mut w = w0.clone();
+                w[i] += delta;
+                var.set(&Tensor::from_vec(w, var.as_tensor().dims(), dev)?)?;
+                Ok(loss_of()?.to_scalar::<f64>()?)
+            };
+            let fd = (eval(eps)? - eval(-eps)?) / (2.0 * eps);
+            var.set(&Tensor::from_vec(w0.clone(), var.as_tensor().dims(), dev)?)?;
+            // Relative, with a floor for gradients that are zero in exact arithmetic (the
+            // logit layer's bias cancels in the softmax over views).
+            let err = (fd - g[i]).abs() / fd.abs().max(g[i].abs()).max(GRAD_FLOOR);
+            worst = worst.max(err);
+            checked += 1;
+            assert!(
+                err < 1e-4,
+                "{name}[{i}]: autograd {} vs finite difference {fd}",
+                g[i]
+            );
+        }
+    }
+    println!("{checked} gradients, worst relative error {worst:.2e}");
+    assert!(checked >= 3 * 16, "only {checked} gradients checked");
+    Ok(())
+}
+
+#[test]
+fn tiled_render_equals_whole_image_render_any_views() -> Result<()> {
+    let cfg = Config::nviews();
+    let opts = SynthOptions {
+        views: 9,
+        width: 70,
+        height: 52,
+        ..SynthOptions::default()
+    };
+    let s = generate(22, &opts)?;
+    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 8)?;
+    let backend = CandleBackend {
+        model: t.model,
+        device: Device::Cpu,
+    };
+    let pyr: Vec<PyramidSource> = s
+        .cameras
+        .iter()
+        .zip(&s.images)
+        .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
+        .collect();
+    let inv = inverse_depths(s.near, s.far, 10);
+    for v in [2, 8] {
+        let srcs: Vec<&PyramidSource> = pyr[1..=v].iter().collect();
+        let whole = render_view(&backend, &s.cameras[0], &srcs, &inv, 80, &|_, _| {})?;
+        let mut worst = 0f32;
+        for tile in [4, 12, 24] {
+            let tiled = render_view(&backend, &s.cameras[0], &srcs, &inv, tile, &|_, _| {})?;
+            for (a, b) in whole.image.data.iter().zip(&tiled.image.data) {
+                worst = worst.max((a - b).abs());
+            }
+        }
+        println!("{v} views: worst image difference tiled vs whole {worst:e}");
+        assert!(worst < 1e-5, "{v} views: tiled render differs by {worst}");
+    }
+    Ok(())
+}
