@@ -47,6 +47,8 @@ import deepstereo_ref as ref  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 TOL = 1e-4
+# Reordering the views or adding views that see nothing changes the output by at most this.
+INVARIANCE_TOL = 1e-6
 OUTPUTS = ("image", "selection")
 
 
@@ -65,6 +67,25 @@ def variant_config() -> ref.Config:
         depth_convs=[C(3, 8), C(5, 1)],
         colour=ref.TowerConfig(2, [C(3, 8)], [C(3, 32)]),
         colour_skip=False,
+    )
+
+
+def pooled_variant_config() -> ref.Config:
+    """The any-number-of-views family with what `nviews` does not have: three encoder
+    layers, no blend hidden layer, a 3x3 colour tower over two levels and a wide (32)
+    select layer."""
+    C = ref.Conv
+    return ref.Config(
+        name="pooled-variant",
+        views=3,
+        planes=10,
+        levels=2,
+        tile=8,
+        select=ref.TowerConfig(2, [C(3, 8)], [C(3, 32), C(3, 8)]),
+        depth_convs=[C(3, 4), C(3, 1)],
+        colour=ref.TowerConfig(2, [C(3, 6)], [C(3, 6)]),
+        colour_skip=False,
+        pool=ref.ViewPool(encoder=[C(1, 6), C(1, 6), C(1, 5)], blend=[]),
     )
 
 
@@ -182,7 +203,7 @@ class Parity:
             self.record(f"{model.name}/{case}", pair, res[pair[0]], res[pair[1]], relative)
         return res
 
-    def record(self, case: str, pair: tuple[str, str], a: dict, b: dict, relative: bool) -> None:
+    def record(self, case: str, pair: tuple[str, str], a: dict, b: dict, relative: bool, tol: float = TOL) -> None:
         diffs, tols = {}, {}
         for o in OUTPUTS:
             x, y = np.asarray(a[o], np.float64), np.asarray(b[o], np.float64)
@@ -194,7 +215,7 @@ class Parity:
                 self.fail(f"{case}: non-finite {o} from {pair[0]} or {pair[1]}")
             d = np.abs(x - y)
             diffs[o] = (float(d.max()) if d.size else 0.0, float(d.mean()) if d.size else 0.0)
-            tols[o] = TOL * max(1.0, float(np.abs(y).max())) if relative else TOL
+            tols[o] = tol * max(1.0, float(np.abs(y).max())) if relative else tol
         row = Row(case, f"{pair[0]} vs {pair[1]}", diffs, tols)
         self.rows.append(row)
         if not row.ok:
@@ -216,13 +237,18 @@ class Parity:
 # --- inputs ----------------------------------------------------------------------------
 
 
-def level_shapes(cfg: ref.Config, b: int, d: int, th: int, tw: int) -> list[tuple[int, ...]]:
-    return [(b, d, cfg.in_channels(), cfg.input_size(l, th), cfg.input_size(l, tw)) for l in range(cfg.levels)]
+def level_shapes(cfg: ref.Config, b: int, d: int, th: int, tw: int, v: int | None = None) -> list[tuple[int, ...]]:
+    """`[B, D, 4V, H, W]`, or `[B, D, V, 4, H, W]` for the any-number-of-views family."""
+    v = cfg.views if v is None else v
+    sizes = [(cfg.input_size(l, th), cfg.input_size(l, tw)) for l in range(cfg.levels)]
+    if cfg.pool is not None:
+        return [(b, d, v, 4, h, w) for h, w in sizes]
+    return [(b, d, 4 * v, h, w) for h, w in sizes]
 
 
-def make_inputs(cfg: ref.Config, b: int, d: int, th: int, tw: int, fill, rng: np.random.Generator) -> dict[str, np.ndarray]:
+def make_inputs(cfg: ref.Config, b: int, d: int, th: int, tw: int, fill, rng: np.random.Generator, v: int | None = None) -> dict[str, np.ndarray]:
     out = {}
-    for l, shape in enumerate(level_shapes(cfg, b, d, th, tw)):
+    for l, shape in enumerate(level_shapes(cfg, b, d, th, tw, v)):
         x = fill(shape, rng).astype(np.float32)
         out[f"level{l}"] = x
     return out
@@ -230,8 +256,11 @@ def make_inputs(cfg: ref.Config, b: int, d: int, th: int, tw: int, fill, rng: np
 
 def rgb_alpha(shape, rng, rgb, alpha):
     """Volume with colour `rgb(shape)` premultiplied by `alpha(shape)` per source view."""
-    b, d, c, h, w = shape
-    v = c // 4
+    if len(shape) == 6:
+        b, d, v, _, h, w = shape
+    else:
+        b, d, c, h, w = shape
+        v = c // 4
     x = np.empty((b, d, v, 4, h, w), np.float64)
     a = alpha((b, d, v, 1, h, w))
     x[:, :, :, :3] = rgb((b, d, v, 3, h, w)) * a
@@ -257,6 +286,28 @@ def cases(cfg: ref.Config):
         ("large values (1e4)", 1, 6, t, t, lambda s, r: 1e4 * r.random(s), True),
         ("small values (1e-6)", 1, 6, t, t, lambda s, r: 1e-6 * r.random(s), False),
     ]
+
+
+def pooled_cases(p: "Parity", model: "Model", rng: np.random.Generator) -> None:
+    """The any-number-of-views family at V = 1, 2, 5 and 10, with the views shuffled, and
+    with empty views added: every runtime against candle, and candle against itself."""
+    cfg = model.cfg
+    t = cfg.tile
+    psv = lambda s, r: rgb_alpha(s, r, r.random, lambda s2: np.clip(r.random(s2) * 1.6 - 0.3, 0, 1))  # noqa: E731
+    for v in (1, 2, 5, 10):
+        x = make_inputs(cfg, 2, cfg.planes, t, t, psv, rng, v)
+        base = p.compare(model, f"V={v}", x)
+        print(f"  V={v}: done", flush=True)
+        if v < 2:
+            continue
+        order = rng.permutation(v)
+        shuffled = {k: np.ascontiguousarray(a[:, :, order]) for k, a in x.items()}
+        res = p.compare(model, f"V={v} shuffled", shuffled)
+        p.record(f"{model.name}/V={v} shuffled", ("candle", "candle unshuffled"), res["candle"], base["candle"], False, INVARIANCE_TOL)
+        empty = {k: np.concatenate([a, np.zeros_like(a[:, :, :2])], 2) for k, a in x.items()}
+        res = p.compare(model, f"V={v} + 2 empty", empty)
+        p.record(f"{model.name}/V={v} + 2 empty", ("candle", "candle without"), res["candle"], base["candle"], False, INVARIANCE_TOL)
+        print(f"  V={v}: shuffled and with empty views: done", flush=True)
 
 
 # --- real sweeps -----------------------------------------------------------------------
@@ -415,6 +466,14 @@ def main() -> int:
         w = work / "variant.safetensors"
         ref.init_weights(variant_config(), str(w), seed=3)
         models.append(p.load_model("py-variant", w))
+        # The any-number-of-views family: Rust-initialised `nviews`, Python-initialised variant.
+        if example.is_file():
+            w = work / "rust_nviews.safetensors"
+            run([example, "nviews", w], "init_weights nviews")
+            models.append(p.load_model("rust-nviews", w))
+        w = work / "pooled_variant.safetensors"
+        ref.init_weights(pooled_variant_config(), str(w), seed=4)
+        models.append(p.load_model("py-pooled", w))
         for extra in args.weights:
             models.append(p.load_model(extra.stem, extra))
         reference_loader_checks(p, models[0].weights)
@@ -425,6 +484,8 @@ def main() -> int:
             for name, b, d, th, tw, fill, relative in cases(m.cfg):
                 p.compare(m, name, make_inputs(m.cfg, b, d, th, tw, fill, rng), relative)
                 print(f"  {name}: done", flush=True)
+            if m.cfg.pool is not None:
+                pooled_cases(p, m, rng)
         newest_opset(p, models[0])
 
         # Real plane sweeps, through `deepstereo sweep --model`.

@@ -53,8 +53,9 @@ pub fn candle_backend(model: Option<&Path>) -> Result<CandleBackend> {
 pub struct RenderSettings {
     /// Planes (`None`: the model's default).
     pub planes: Option<usize>,
-    /// Source views (at most the model's, which is the default; the model's remaining
-    /// inputs are then empty views, alpha 0 everywhere, as for pixels no source sees).
+    /// Source views (default: the model's). The paper's family takes at most its
+    /// config's (its remaining inputs are then empty views, alpha 0 everywhere, as for
+    /// pixels no source sees); the any-number-of-views family any number.
     pub views: Option<usize>,
     /// Output tile side for rendering (bounded memory).
     pub tile: usize,
@@ -66,6 +67,15 @@ impl RenderSettings {
     /// The number of real source views to use with a model of config `cfg`.
     pub fn source_count(&self, cfg: &Config) -> Result<usize> {
         let k = self.views.unwrap_or(cfg.views);
+        if cfg.pool.is_some() {
+            if !cfg.accepts_views(k) {
+                bail!(
+                    "--views {k}: this model takes 1 to {} source views",
+                    deepstereo_core::config::MAX_VIEWS
+                );
+            }
+            return Ok(k);
+        }
         if k == 0 || k > cfg.views {
             bail!(
                 "--views {k}: this model takes 1 to {} source views (fewer leave its other inputs empty)",
@@ -155,7 +165,7 @@ pub fn render_camera(
     let empty = srcs
         .first()
         .map(|s| PyramidSource::empty(&s.cameras[0], cfg.levels));
-    if let Some(e) = &empty {
+    if let Some(e) = empty.as_ref().filter(|_| cfg.pool.is_none()) {
         while srcs.len() < cfg.views {
             srcs.push(e);
         }

@@ -16,7 +16,8 @@ pub struct Args {
     /// With `--backend ort --onnx FILE` it may be left out (the ONNX file holds the config).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Input safetensors with `level0..level{L-1}`, each [B, D, 4V, H_l, W_l] f32 (as
+    /// Input safetensors with `level0..level{L-1}`, each [B, D, 4V, H_l, W_l] f32
+    /// ([B, D, V, 4, H_l, W_l] for the any-number-of-views family) (as
     /// `deepstereo sweep --model` writes them).
     #[arg(long)]
     pub inputs: PathBuf,
@@ -71,9 +72,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             let mut inputs = Vec::with_capacity(cfg.levels);
             for l in 0..cfg.levels {
                 let (shape, data) = read_f32(&st, &input_name(l), &a.inputs)?;
-                if shape.len() != 5 || shape[..2].contains(&0) {
+                let (rank, layout) = match cfg.pool {
+                    Some(_) => (6, "[B, D, V, 4, H, W] with B, D and V"),
+                    None => (5, "[B, D, 4V, H, W] with B and D"),
+                };
+                if shape.len() != rank || shape[..rank - 3].contains(&0) {
                     bail!(
-                        "{}: '{}' must be [B, D, 4V, H, W] with B and D at least 1, got {shape:?}",
+                        "{}: '{}' must be {layout} at least 1, got {shape:?}",
                         a.inputs.display(),
                         input_name(l)
                     );

@@ -56,7 +56,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bail!("--views must be at least 1");
     }
     if let Some(c) = &cfg {
-        if views != c.views {
+        if !c.accepts_views(views) {
             bail!("--views {views}: the model takes {} source views", c.views);
         }
     }
@@ -133,7 +133,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         for (l, (data, &(lh, lw))) in inputs.levels.iter().zip(&inputs.sizes).enumerate() {
             arrays.push(NamedArray::f32(
                 &deepstereo_export::input_name(l),
-                &[1, d, cfg.in_channels(), lh, lw],
+                &cfg.input_shape(1, d, inputs.views, lh, lw),
                 data,
             ));
         }
