@@ -29,6 +29,7 @@
 
 use crate::config::{ViewPool, ENCODER_IN};
 use crate::conv::Conv2d;
+use crate::fused;
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
@@ -80,8 +81,35 @@ impl ViewEncoder {
         Ok(Self { convs })
     }
 
-    /// Steps 1-3 of the module doc for one level `x` `[B, D, V, 4, H, W]`.
+    /// Steps 1-3 of the module doc for one level `x` `[B, D, V, 4, H, W]`: fused passes
+    /// on the CPU (`fused/pool.rs`), else candle ops ([`Self::forward_reference`]).
     pub fn forward(&self, x: &Tensor) -> Result<Pooled> {
+        let (n, v, h, w, b) = view_dims(x)?;
+        let xp = x.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
+        let Some((enc, front)) = fused::pool_front(&xp)? else {
+            return self.forward_reference(x);
+        };
+        let e = self.encode(enc.reshape((n * v, ENCODER_IN, h, w))?)?; // [N*V, C_f, H, W]
+        let cf = e.dim(1)?;
+        let e = e.reshape((n, v, cf, h * w))?; // [N, V, C_f, P]
+        let Some(moments) = fused::view_stats(&e, &xp)? else {
+            return self.forward_reference(x);
+        }; // [N, 2 C_f, P]
+        let stats = Tensor::cat(&[&front, &moments], 1)? // [N, 4 + 2 C_f, P]
+            .reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
+        let features = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
+        Ok(Pooled { stats, features })
+    }
+
+    fn encode(&self, mut e: Tensor) -> Result<Tensor> {
+        for conv in &self.convs {
+            e = conv.forward_relu(&e)?;
+        }
+        Ok(e)
+    }
+
+    /// [`Self::forward`] as candle ops (the fused passes' reference and fallback).
+    pub fn forward_reference(&self, x: &Tensor) -> Result<Pooled> {
         let (n, v, h, w, b) = view_dims(x)?;
         let x = x.reshape((n, v, 4, h, w))?; // [N, V, 4, H, W]
         let rgb = x.narrow(2, 0, 3)?; // [N, V, 3, H, W]
@@ -90,10 +118,8 @@ impl ViewEncoder {
         let den = (&asum + POOL_EPS)?; // [N, 1, 1, H, W]
         let mean_rgb = weighted_mean(&rgb, &a, &den)?; // [N, 1, 3, H, W]
         let diff = rgb.broadcast_sub(&mean_rgb)?; // [N, V, 3, H, W]
-        let mut e = Tensor::cat(&[&x, &diff], 2)?.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
-        for conv in &self.convs {
-            e = conv.forward_relu(&e)?;
-        }
+        let e_in = Tensor::cat(&[&x, &diff], 2)?.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
+        let e = self.encode(e_in)?;
         let cf = e.dim(1)?;
         let e = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
         let mean_e = weighted_mean(&e, &a, &den)?; // [N, 1, C_f, H, W]
@@ -148,13 +174,116 @@ impl Blend {
                 };
             }
         }
-        let logits = y.reshape((n, v, 1, th, tw))?; // [N, V, 1, th, tw]
-        let logits = ((logits / BLEND_LOGIT_BOUND)?.tanh()? * BLEND_LOGIT_BOUND)?;
-        let rgb = x.narrow(2, 0, 3)?; // [N, V, 3, th, tw]
-        let a = x.narrow(2, 3, 1)?; // [N, V, 1, th, tw]
-        let ex = logits.exp()?.mul(&a)?; // [N, V, 1, th, tw]
-        let den = (ex.sum_keepdim(1)? + BLEND_EPS)?; // [N, 1, 1, th, tw]
-        let wts = ex.broadcast_div(&den)?; // [N, V, 1, th, tw]
-        rgb.broadcast_mul(&wts)?.sum(1) // [N, 3, th, tw]
+        let p = th * tw;
+        let xp = x.contiguous()?.reshape((n, v, 4, p))?; // [N, V, 4, P]
+        match fused::blend_colours(&y.reshape((n, v, p))?, &xp)? {
+            Some(c) => c.reshape((n, 3, th, tw)), // [N, 3, th, tw]
+            None => blend_reference(&y.reshape((n, v, 1, th, tw))?, x),
+        }
+    }
+}
+
+/// The blend of the source colours from the raw logits `y` `[N, V, 1, th, tw]` and the
+/// sources' RGBA `x` `[N, V, 4, th, tw]`, as candle ops: `[N, 3, th, tw]`.
+pub fn blend_reference(y: &Tensor, x: &Tensor) -> Result<Tensor> {
+    let logits = ((y / BLEND_LOGIT_BOUND)?.tanh()? * BLEND_LOGIT_BOUND)?;
+    let rgb = x.narrow(2, 0, 3)?; // [N, V, 3, th, tw]
+    let a = x.narrow(2, 3, 1)?; // [N, V, 1, th, tw]
+    let ex = logits.exp()?.mul(&a)?; // [N, V, 1, th, tw]
+    let den = (ex.sum_keepdim(1)? + BLEND_EPS)?; // [N, 1, 1, th, tw]
+    let wts = ex.broadcast_div(&den)?; // [N, V, 1, th, tw]
+    rgb.broadcast_mul(&wts)?.sum(1) // [N, 3, th, tw]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Conv;
+    use candle_core::{DType, Device, Var};
+
+    fn rand(shape: &[usize], seed: u64, alpha: bool) -> Result<Tensor> {
+        let n: usize = shape.iter().product();
+        let mut s = seed | 1;
+        let v: Vec<f64> = (0..n)
+            .map(|i| {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                let u = (s >> 11) as f64 / (1u64 << 53) as f64;
+                // Alpha planes (channel 3 of 4): 0, 1 or fractional.
+                let c = (i / (shape[shape.len() - 1] * shape[shape.len() - 2])) % 4;
+                match (alpha && c == 3, u) {
+                    (true, u) if u < 0.3 => 0.0,
+                    (true, u) if u > 0.6 => 1.0,
+                    _ => u,
+                }
+            })
+            .collect();
+        Tensor::from_vec(v, shape, &Device::Cpu)
+    }
+
+    /// The fused passes equal the candle composition, values and gradients (f64).
+    #[test]
+    fn fused_pooling_and_blend_equal_the_candle_ops() -> Result<()> {
+        let pool = ViewPool {
+            encoder: vec![Conv {
+                kernel: 1,
+                channels: 5,
+            }],
+            blend: vec![],
+        };
+        let vm = candle_nn::VarMap::new();
+        let enc = ViewEncoder::new(
+            &pool,
+            VarBuilder::from_varmap(&vm, DType::F64, &Device::Cpu),
+        )?;
+        let x = rand(&[2, 3, 4, 4, 5, 6], 7, true)?; // [B, D, V, 4, H, W]
+        let a = enc.forward(&x)?;
+        let b = enc.forward_reference(&x)?;
+        let d = (a.stats.clone() - &b.stats)?
+            .abs()?
+            .max_all()?
+            .to_scalar::<f64>()?;
+        assert!(d < 1e-12, "stats differ by {d}");
+        // Gradients to the encoder's weights through the variance.
+        let r = rand(a.stats.dims(), 9, false)?;
+        let ga = (a.stats * &r)?.sum_all()?.backward()?;
+        let gb = (b.stats * &r)?.sum_all()?.backward()?;
+        for (name, var) in vm
+            .data()
+            .lock()
+            .map_err(|_| candle_core::Error::msg("lock"))?
+            .iter()
+        {
+            let (ta, tb) = (ga.get(var.as_tensor()), gb.get(var.as_tensor()));
+            let (Some(ta), Some(tb)) = (ta, tb) else {
+                candle_core::bail!("no gradient for {name}");
+            };
+            let d = (ta - tb)?.abs()?.max_all()?.to_scalar::<f64>()?;
+            assert!(d < 1e-10, "{name}: gradients differ by {d}");
+        }
+        // The blend: values and the gradient to the logits.
+        let (n, v, th, tw) = (4, 3, 3, 5);
+        let y = Var::from_tensor(&((rand(&[n, v, 1, th, tw], 3, false)? - 0.5)? * 60.0)?)?;
+        let xs = rand(&[n, v, 4, th, tw], 5, true)?;
+        let p = th * tw;
+        let fused = fused::blend_colours(&y.reshape((n, v, p))?, &xs.reshape((n, v, 4, p))?)?
+            .ok_or_else(|| candle_core::Error::msg("fused blend did not run"))?
+            .reshape((n, 3, th, tw))?;
+        let reference = blend_reference(y.as_tensor(), &xs)?;
+        let d = (&fused - &reference)?
+            .abs()?
+            .max_all()?
+            .to_scalar::<f64>()?;
+        assert!(d < 1e-12, "blend differs by {d}");
+        let r = rand(&[n, 3, th, tw], 11, false)?;
+        let ga = (fused * &r)?.sum_all()?.backward()?;
+        let gb = (reference * &r)?.sum_all()?.backward()?;
+        let (Some(ta), Some(tb)) = (ga.get(y.as_tensor()), gb.get(y.as_tensor())) else {
+            candle_core::bail!("no gradient for the logits");
+        };
+        let d = (ta - tb)?.abs()?.max_all()?.to_scalar::<f64>()?;
+        assert!(d < 1e-10, "blend gradients differ by {d}");
+        Ok(())
     }
 }

@@ -24,6 +24,8 @@ pub const VALIDATION_SALT: u64 = 0x005e_ed0f_7a11_da7e;
 /// One scene ready for sampling: cameras and image pyramids of every view.
 pub struct SceneData {
     pub name: String,
+    /// Procedural (made by `synth`) rather than read from a directory.
+    pub synthetic: bool,
     pub cameras: Vec<Camera>,
     pub pyramids: Vec<PyramidSource>,
     pub near: f64,
@@ -41,6 +43,7 @@ impl SceneData {
             .collect();
         Self {
             name,
+            synthetic: true,
             cameras: s.cameras.clone(),
             pyramids,
             near: s.near,
@@ -62,6 +65,7 @@ impl SceneData {
             .collect::<anyhow::Result<Vec<_>>>()?;
         Ok(Self {
             name: dir.display().to_string(),
+            synthetic: false,
             cameras: scene.views.iter().map(|v| v.camera).collect(),
             pyramids,
             near: scene.near,
@@ -125,13 +129,26 @@ pub struct Sampling {
     /// Source views per batch, drawn uniformly from this range for every batch (the
     /// any-number-of-views family); the paper's family takes exactly `Config::views`.
     pub views: (usize, usize),
+    /// Share (percent) of samples drawn from procedural scenes when real ones are
+    /// there too (`None`: every scene equally likely).
+    pub synthetic_percent: Option<u32>,
+    /// Photometric augmentation (an exposure and white-balance gain per sample, on the
+    /// sources and the target alike) and horizontal flips.
+    pub augment: bool,
 }
 
+/// Largest exposure change of the augmentation, as a log factor (`exp(+-0.25)`).
+pub const AUGMENT_EXPOSURE: f64 = 0.25;
+/// Largest per-channel white-balance change of the augmentation (`1 +- 0.1`).
+pub const AUGMENT_WHITE_BALANCE: f64 = 0.1;
+
 impl Sampling {
-    /// Exactly the config's views.
+    /// Exactly the config's views, no augmentation, every scene equally likely.
     pub fn fixed(cfg: &Config) -> Self {
         Self {
             views: (cfg.views, cfg.views),
+            synthetic_percent: None,
+            augment: false,
         }
     }
 
@@ -140,6 +157,9 @@ impl Sampling {
         let (lo, hi) = self.views;
         if lo == 0 || lo > hi {
             bail!("the views range {lo}-{hi} must be 1 or more and increasing");
+        }
+        if self.synthetic_percent.is_some_and(|p| p > 100) {
+            bail!("the share of procedural samples is a percentage (0 to 100)");
         }
         if !cfg.accepts_views(lo) || !cfg.accepts_views(hi) {
             bail!(
@@ -179,6 +199,7 @@ pub fn mix(mut z: u64) -> u64 {
 /// a scene has fewer.
 fn sample(
     cfg: &Config,
+    sampling: &Sampling,
     scenes: &[SceneData],
     (seed, b, k): (u64, u64, usize),
     views: usize,
@@ -188,7 +209,7 @@ fn sample(
         state = mix(state);
         state
     };
-    let s = &scenes[(next() % scenes.len() as u64) as usize];
+    let s = pick_scene(scenes, sampling.synthetic_percent, next(), next());
     let n = s.cameras.len();
     let pad = cfg.pool.is_some();
     if n < 2 || (n <= views && !pad) {
@@ -215,7 +236,7 @@ fn sample(
     let empty = PyramidSource::empty(cam, cfg.levels);
     let mut srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
     srcs.resize(views, &empty);
-    let inputs = tile_inputs(cfg, cam, &srcs, &inv, (x0 as i64, y0 as i64), (t, t))?;
+    let mut inputs = tile_inputs(cfg, cam, &srcs, &inv, (x0 as i64, y0 as i64), (t, t))?;
     let img = &s.pyramids[target].images[0];
     let mut patch = vec![0f32; 3 * t * t];
     for y in 0..t {
@@ -226,7 +247,53 @@ fn sample(
             }
         }
     }
+    if sampling.augment {
+        let unit = |r: u64| (r >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0;
+        let exposure = (AUGMENT_EXPOSURE * unit(next())).exp();
+        let gains: Vec<f32> = (0..3)
+            .map(|_| (exposure * (1.0 + AUGMENT_WHITE_BALANCE * unit(next()))) as f32)
+            .collect();
+        let flip = next() & 1 == 1;
+        for (data, &(h, w)) in inputs.levels.iter_mut().zip(&inputs.sizes) {
+            augment_planes(data, h * w, w, &gains, flip);
+        }
+        augment_planes(&mut patch, t * t, t, &gains, flip);
+    }
     Ok((inputs.levels, patch))
+}
+
+/// Scales the colour channels of `data` (planes of `plane` values, channels cycling
+/// RGBA, or RGB for a 3-plane target) by `gains` and optionally mirrors every row of
+/// `w` values. Premultiplied colours stay consistent: alpha is left alone.
+fn augment_planes(data: &mut [f32], plane: usize, w: usize, gains: &[f32], flip: bool) {
+    let cycle = if data.len() == 3 * plane { 3 } else { 4 };
+    for (i, p) in data.chunks_exact_mut(plane).enumerate() {
+        if let Some(&g) = gains.get(i % cycle) {
+            p.iter_mut().for_each(|x| *x *= g);
+        }
+        if flip {
+            p.chunks_exact_mut(w).for_each(|row| row.reverse());
+        }
+    }
+}
+
+/// A scene for one sample: with `synthetic_percent`, first procedural or real with that
+/// chance (when both kinds are there), then uniformly among that kind.
+fn pick_scene(
+    scenes: &[SceneData],
+    synthetic_percent: Option<u32>,
+    r1: u64,
+    r2: u64,
+) -> &SceneData {
+    let synth = scenes.iter().filter(|s| s.synthetic).count();
+    match synthetic_percent {
+        Some(p) if synth > 0 && synth < scenes.len() => {
+            let want = r1 % 100 < p as u64;
+            let pool: Vec<&SceneData> = scenes.iter().filter(|s| s.synthetic == want).collect();
+            pool[(r2 % pool.len() as u64) as usize]
+        }
+        _ => &scenes[(r1 % scenes.len() as u64) as usize],
+    }
 }
 
 /// Builds batch `b` of `batch` samples, samples in parallel.
@@ -245,7 +312,7 @@ pub fn make_batch(
     let views = sampling.views_of(seed, b);
     let samples: Vec<(Vec<Vec<f32>>, Vec<f32>)> = (0..batch)
         .into_par_iter()
-        .map(|k| sample(cfg, scenes, (seed, b, k), views))
+        .map(|k| sample(cfg, sampling, scenes, (seed, b, k), views))
         .collect::<anyhow::Result<_>>()?;
     let t = cfg.tile;
     let d = cfg.planes;
@@ -379,7 +446,10 @@ mod tests {
     fn pooled_batches_draw_their_view_count() -> anyhow::Result<()> {
         let cfg = Config::nviews();
         let sc = scenes(&cfg); // 6 views each: 5 sources at most
-        let sampling = Sampling { views: (2, 8) };
+        let sampling = Sampling {
+            views: (2, 8),
+            ..Sampling::fixed(&cfg)
+        };
         let mut seen = std::collections::BTreeSet::new();
         for b in 0..12 {
             let batch = make_batch(&cfg, &sampling, &sc, 9, b, 2)?;
@@ -399,9 +469,39 @@ mod tests {
             }
         }
         assert!(seen.len() >= 3, "view counts drawn: {seen:?}");
-        assert!(Sampling { views: (0, 3) }.check(&cfg).is_err());
-        assert!(Sampling { views: (2, 8) }.check(&Config::tiny()).is_err());
+        let range = |lo, hi| Sampling {
+            views: (lo, hi),
+            ..Sampling::fixed(&cfg)
+        };
+        assert!(range(0, 3).check(&cfg).is_err());
+        assert!(range(2, 8).check(&Config::tiny()).is_err());
         Ok(())
+    }
+
+    /// Augmentation scales colours (not alpha) by one gain per channel for the sources
+    /// and the target alike, and flips them together.
+    #[test]
+    fn augmentation_scales_colours_and_flips_consistently() {
+        let (plane, w) = (6, 3);
+        let mut vol: Vec<f32> = (0..8 * plane).map(|i| i as f32).collect(); // 2 views
+        let orig = vol.clone();
+        augment_planes(&mut vol, plane, w, &[2.0, 3.0, 4.0], true);
+        for (i, (a, o)) in vol
+            .chunks_exact(plane)
+            .zip(orig.chunks_exact(plane))
+            .enumerate()
+        {
+            let g = [2.0, 3.0, 4.0, 1.0][i % 4];
+            assert_eq!(
+                a[0],
+                o[2] * g,
+                "plane {i}: first value is the mirrored row's last"
+            );
+            assert_eq!(a[3], o[5] * g);
+        }
+        let mut target: Vec<f32> = (0..3 * plane).map(|i| i as f32).collect();
+        augment_planes(&mut target, plane, w, &[2.0, 3.0, 4.0], false);
+        assert_eq!(target[2 * plane + 1], (2 * plane + 1) as f32 * 4.0);
     }
 
     #[test]

@@ -49,14 +49,24 @@ pub struct RunOptions {
     /// Source views per batch, a range (`None`: the config's).
     #[serde(default)]
     pub views: Option<(usize, usize)>,
+    /// Scenes validated on (never trained on), beside the procedural validation scenes.
+    #[serde(default)]
+    pub val_data: Vec<PathBuf>,
+    /// Percent of samples from procedural scenes when real ones are there too.
+    #[serde(default)]
+    pub synthetic_percent: Option<u32>,
+    /// Photometric augmentation and flips.
+    #[serde(default)]
+    pub augment: bool,
 }
 
 impl RunOptions {
-    /// How samples are drawn.
+    /// How training samples are drawn.
     pub fn sampling(&self) -> Sampling {
-        match self.views {
-            Some(views) => Sampling { views },
-            None => Sampling::fixed(&self.config),
+        Sampling {
+            views: self.views.unwrap_or((self.config.views, self.config.views)),
+            synthetic_percent: self.synthetic_percent,
+            augment: self.augment,
         }
     }
 }
@@ -140,11 +150,18 @@ fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<SceneData>)> {
     if train.is_empty() {
         bail!("no training scenes: pass --data DIR or --synthetic N");
     }
-    let val = if run.synthetic > 0 {
+    let mut val = if run.synthetic > 0 {
         synth_scenes(run.val_scenes, run.seed ^ VALIDATION_SALT, &synth, levels)?
     } else {
         Vec::new()
     };
+    for dir in &run.val_data {
+        for d in crate::cmd::scene_dirs(dir)? {
+            val.push(
+                SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?,
+            );
+        }
+    }
     Ok((train, val))
 }
 
@@ -196,8 +213,10 @@ pub fn train(
         &val_scenes
     };
     let val_seed = run.seed ^ VALIDATION_SALT;
+    // Validation: the config's views, no augmentation, every validation scene alike.
+    let val_sampling = Sampling::fixed(&run.config);
     let val: Vec<Batch> = (0..run.val_batches as u64)
-        .map(|b| make_batch(&run.config, &sampling, val_src, val_seed, b, run.batch))
+        .map(|b| make_batch(&run.config, &val_sampling, val_src, val_seed, b, run.batch))
         .collect::<Result<_>>()?;
     let rx = spawn_loader(
         run.config.clone(),

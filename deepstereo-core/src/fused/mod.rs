@@ -5,6 +5,8 @@
 //!   (the towers' coarse levels), with its backward (sums over each source pixel's block);
 //! - [`select_softmax`]: the selection tower's head, `softmax_D(tanh(x) exp(log_scale))`;
 //! - [`composite`]: the rendered colour `sum_z s_z c_z`;
+//! - [`pool_front`], [`view_stats`], [`blend_colours`]: the any-number-of-views family's
+//!   steps across views (`pool.rs` there);
 //! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding) and
 //!   optionally zero columns on the right, reading a transposed view directly (no
 //!   separate transpose copy).
@@ -14,6 +16,7 @@
 
 mod head;
 mod pad;
+mod pool;
 #[cfg(test)]
 mod tests;
 mod upsample;
@@ -21,6 +24,7 @@ mod upsample;
 pub(crate) use head::softmax_columns;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;
+pub use pool::{blend_colours, pool_front, view_stats};
 pub use upsample::upsample_crop;
 
 use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};

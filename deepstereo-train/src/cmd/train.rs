@@ -70,6 +70,18 @@ pub struct Args {
     /// its config's). Default: the config's views.
     #[arg(long)]
     pub views: Option<String>,
+    /// Scene directories to validate on (never trained on), beside the procedural
+    /// validation scenes.
+    #[arg(long, num_args = 1..)]
+    pub val_data: Vec<PathBuf>,
+    /// Percent of samples drawn from the procedural scenes when real ones (--data) are
+    /// there too (default: every scene equally likely).
+    #[arg(long)]
+    pub synthetic_percent: Option<u32>,
+    /// Photometric augmentation (a random exposure and white balance per sample, on the
+    /// sources and the target alike) and random horizontal flips.
+    #[arg(long)]
+    pub augment: bool,
 }
 
 /// Parses `K` or `MIN-MAX`.
@@ -149,6 +161,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         val_scenes: a.val_scenes,
         val_batches: a.val_batches,
         views: a.views.as_deref().map(parse_range).transpose()?,
+        val_data: a.val_data,
+        synthetic_percent: a.synthetic_percent,
+        augment: a.augment,
     };
     let sched = Schedule {
         steps: a.steps,

@@ -1,0 +1,450 @@
+//! The any-number-of-views family's per-pixel steps across views (`crate::pool` has the
+//! maths): each a single pass over the pixels, in parallel, instead of a dozen broadcast
+//! ops and their backward passes.
+//!
+//! - [`pool_front`]: from the sweep `x` `[N, V, 4, P]`, the encoder's input
+//!   `[N * V, 7, P]` (RGBA and colour minus the alpha-weighted mean) and the pooled
+//!   input's first channels `[N, 4, P]` (the mean colour and the coverage `s / (1 + s)`).
+//!   The sweep is data: no gradient flows to it.
+//! - [`view_stats`]: alpha-weighted mean and variance over views of the features `e`
+//!   `[N, V, C, P]` -> `[N, 2C, P]`, with its gradient to `e` (alphas read from `x`).
+//! - [`blend_colours`]: the blend of the source colours from the raw logits `y`
+//!   `[N, V, P]` -> `[N, 3, P]`, with its gradient to `y`.
+//!
+//! `P` is the pixels of a plane (`H * W`). Off the CPU, or for dtypes other than f32 and
+//! f64, the same maths runs as candle ops (`pool.rs`); tests compare the two.
+
+use super::{data, on_cpu, slice};
+use crate::pool::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
+use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
+use num_traits::Float;
+use rayon::prelude::*;
+
+fn cast<T: Float>(v: f64) -> T {
+    T::from(v).unwrap_or_else(T::zero)
+}
+
+/// `(encoder input [N*V, 7, P], front [N, 4, P])` from `x` `[N, V, 4, P]`; `None` off
+/// the CPU.
+pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
+    let (n, v, c, p) = x.dims4()?;
+    if c != 4 {
+        bail!("pool_front: expected [N, V, 4, P], got {:?}", x.dims());
+    }
+    if !on_cpu(&[x]) {
+        return Ok(None);
+    }
+    let x = x.contiguous()?;
+    fn run<T: WithDType + Float>(
+        x: &Tensor,
+        (n, v, p): (usize, usize, usize),
+    ) -> Result<(Tensor, Tensor)> {
+        let (st, l) = x.storage_and_layout();
+        let xs = data::<T>(&st, l)?;
+        let mut enc = vec![T::zero(); n * v * 7 * p];
+        let mut front = vec![T::zero(); n * 4 * p];
+        enc.par_chunks_mut(v * 7 * p)
+            .zip(front.par_chunks_mut(4 * p))
+            .enumerate()
+            .for_each(|(i, (enc, front))| {
+                let xi = &xs[i * v * 4 * p..][..v * 4 * p];
+                let (m, rest) = front.split_at_mut(3 * p);
+                let cover = &mut rest[..p];
+                // sum_v a_v rgb_v and sum_v a_v, then the mean and the coverage.
+                for k in 0..v {
+                    let a = &xi[(k * 4 + 3) * p..][..p];
+                    for (ch, mc) in m.chunks_exact_mut(p).enumerate() {
+                        let rgb = &xi[(k * 4 + ch) * p..][..p];
+                        for j in 0..p {
+                            mc[j] = mc[j] + a[j] * rgb[j];
+                        }
+                    }
+                    for j in 0..p {
+                        cover[j] = cover[j] + a[j];
+                    }
+                }
+                for j in 0..p {
+                    let den = cover[j] + cast(POOL_EPS);
+                    for ch in 0..3 {
+                        m[ch * p + j] = m[ch * p + j] / den;
+                    }
+                    cover[j] = cover[j] / (cover[j] + T::one());
+                }
+                for k in 0..v {
+                    let (xk, ek) = (&xi[k * 4 * p..][..4 * p], &mut enc[k * 7 * p..][..7 * p]);
+                    ek[..4 * p].copy_from_slice(xk);
+                    for ch in 0..3 {
+                        for j in 0..p {
+                            ek[(4 + ch) * p + j] = xk[ch * p + j] - m[ch * p + j];
+                        }
+                    }
+                }
+            });
+        let dev = x.device();
+        Ok((
+            Tensor::from_vec(enc, (n * v, 7, p), dev)?,
+            Tensor::from_vec(front, (n, 4, p), dev)?,
+        ))
+    }
+    match x.dtype() {
+        DType::F32 => run::<f32>(&x, (n, v, p)).map(Some),
+        DType::F64 => run::<f64>(&x, (n, v, p)).map(Some),
+        _ => Ok(None),
+    }
+}
+
+/// Alpha-weighted mean and variance over views: `e` `[N, V, C, P]` with the sources'
+/// RGBA `x` `[N, V, 4, P]` (alpha: channel 3) -> `[N, 2C, P]` (means, then variances);
+/// `None` off the CPU.
+pub fn view_stats(e: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
+    let (n, v, _, p) = e.dims4()?;
+    if x.dims() != [n, v, 4, p] {
+        bail!(
+            "view_stats: sources {:?} do not match features {:?}",
+            x.dims(),
+            e.dims()
+        );
+    }
+    if !on_cpu(&[e, x]) {
+        return Ok(None);
+    }
+    e.contiguous()?
+        .apply_op2(&x.contiguous()?, ViewStats)
+        .map(Some)
+}
+
+/// View `k`'s alpha plane of item `i` in `x` `[N, V, 4, P]`.
+fn alpha<T>(x: &[T], (i, k, v, p): (usize, usize, usize, usize)) -> &[T] {
+    &x[((i * v + k) * 4 + 3) * p..][..p]
+}
+
+/// `sum_v a_v + eps` per pixel of item `i`.
+fn alpha_sum<T: Float>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<T> {
+    let mut den = vec![cast::<T>(POOL_EPS); p];
+    for k in 0..v {
+        for (d, &a) in den.iter_mut().zip(alpha(x, (i, k, v, p))) {
+            *d = *d + a;
+        }
+    }
+    den
+}
+
+struct ViewStats;
+
+impl ViewStats {
+    fn fwd<T: Float + Send + Sync>(
+        e: &[T],
+        x: &[T],
+        (n, v, c, p): (usize, usize, usize, usize),
+    ) -> Vec<T> {
+        let mut out = vec![T::zero(); n * 2 * c * p];
+        out.par_chunks_mut(2 * c * p)
+            .enumerate()
+            .for_each(|(i, o)| {
+                let (means, vars) = o.split_at_mut(c * p);
+                let den = alpha_sum(x, (i, v, p));
+                for ch in 0..c {
+                    let mean = &mut means[ch * p..][..p];
+                    let var = &mut vars[ch * p..][..p];
+                    for k in 0..v {
+                        let (ak, ek) = (
+                            alpha(x, (i, k, v, p)),
+                            &e[((i * v + k) * c + ch) * p..][..p],
+                        );
+                        for j in 0..p {
+                            mean[j] = mean[j] + ak[j] * ek[j];
+                        }
+                    }
+                    for j in 0..p {
+                        mean[j] = mean[j] / den[j];
+                    }
+                    for k in 0..v {
+                        let (ak, ek) = (
+                            alpha(x, (i, k, v, p)),
+                            &e[((i * v + k) * c + ch) * p..][..p],
+                        );
+                        for j in 0..p {
+                            let dev = ek[j] - mean[j];
+                            var[j] = var[j] + ak[j] * dev * dev;
+                        }
+                    }
+                    for j in 0..p {
+                        var[j] = var[j] / den[j];
+                    }
+                }
+            });
+        out
+    }
+
+    /// `de` from the output gradient `g` `[N, 2C, P]`: with `den = sum a + eps`,
+    /// `d mean / d e_v = a_v / den`, `d var / d e_v = 2 a_v (e_v - m) / den`, and through
+    /// the mean `d var / d m = -2 m eps / den`.
+    fn bwd<T: Float + Send + Sync>(
+        e: &[T],
+        x: &[T],
+        g: &[T],
+        (n, v, c, p): (usize, usize, usize, usize),
+    ) -> Vec<T> {
+        let mut de = vec![T::zero(); e.len()];
+        debug_assert_eq!(e.len(), n * v * c * p);
+        let eps = cast::<T>(POOL_EPS);
+        let two = cast::<T>(2.0);
+        de.par_chunks_mut(v * c * p)
+            .enumerate()
+            .for_each(|(i, dei)| {
+                let den = alpha_sum(x, (i, v, p));
+                let mut mean = vec![T::zero(); p];
+                for ch in 0..c {
+                    mean.iter_mut().for_each(|m| *m = T::zero());
+                    for k in 0..v {
+                        let (ak, ek) = (
+                            alpha(x, (i, k, v, p)),
+                            &e[((i * v + k) * c + ch) * p..][..p],
+                        );
+                        for j in 0..p {
+                            mean[j] = mean[j] + ak[j] * ek[j];
+                        }
+                    }
+                    let gm = &g[(i * 2 * c + ch) * p..][..p];
+                    let gv = &g[(i * 2 * c + c + ch) * p..][..p];
+                    for j in 0..p {
+                        mean[j] = mean[j] / den[j];
+                    }
+                    for k in 0..v {
+                        let ak = alpha(x, (i, k, v, p));
+                        let ek = &e[((i * v + k) * c + ch) * p..][..p];
+                        let d = &mut dei[(k * c + ch) * p..][..p];
+                        for j in 0..p {
+                            let through_mean = gm[j] - gv[j] * two * mean[j] * eps / den[j];
+                            d[j] =
+                                ak[j] / den[j] * (through_mean + gv[j] * two * (ek[j] - mean[j]));
+                        }
+                    }
+                }
+            });
+        de
+    }
+}
+
+impl CustomOp2 for ViewStats {
+    fn name(&self) -> &'static str {
+        "deepstereo-view-stats"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (n, v, c, p) = l1.shape().dims4()?;
+        let y = match s1 {
+            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
+                slice::<f32>(s1, l1)?,
+                slice::<f32>(s2, l2)?,
+                (n, v, c, p),
+            )),
+            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
+                slice::<f64>(s1, l1)?,
+                slice::<f64>(s2, l2)?,
+                (n, v, c, p),
+            )),
+            _ => bail!("view_stats: f32 or f64 only"),
+        };
+        Ok((y, Shape::from((n, 2 * c, p))))
+    }
+
+    fn bwd(
+        &self,
+        e: &Tensor,
+        x: &Tensor,
+        _y: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let dims = e.dims4()?;
+        let g = g.contiguous()?;
+        fn run<T: WithDType + Float>(
+            e: &Tensor,
+            x: &Tensor,
+            g: &Tensor,
+            dims: (usize, usize, usize, usize),
+        ) -> Result<Tensor> {
+            let de = {
+                let (es, el) = e.storage_and_layout();
+                let (xs, xl) = x.storage_and_layout();
+                let (gs, gl) = g.storage_and_layout();
+                ViewStats::bwd(
+                    data::<T>(&es, el)?,
+                    data::<T>(&xs, xl)?,
+                    data::<T>(&gs, gl)?,
+                    dims,
+                )
+            };
+            Tensor::from_vec(de, e.shape(), e.device())
+        }
+        let de = match e.dtype() {
+            DType::F32 => run::<f32>(e, x, &g, dims)?,
+            DType::F64 => run::<f64>(e, x, &g, dims)?,
+            dt => bail!("view_stats: f32 or f64 only, got {dt:?}"),
+        };
+        Ok((Some(de), None))
+    }
+}
+
+/// The blended source colours from the raw logits `y` `[N, V, P]` and the sources' RGBA
+/// `x` `[N, V, 4, P]`: `sum_v w_v rgb_v` with `w_v = a_v exp(L(y_v)) / (sum_u a_u
+/// exp(L(y_u)) + eps)`, `L(y) = B tanh(y / B)`; `[N, 3, P]`. `None` off the CPU.
+pub fn blend_colours(y: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
+    let (n, v, p) = y.dims3()?;
+    if x.dims() != [n, v, 4, p] {
+        bail!(
+            "blend_colours: sources {:?} do not match logits {:?}",
+            x.dims(),
+            y.dims()
+        );
+    }
+    if !on_cpu(&[y, x]) {
+        return Ok(None);
+    }
+    y.contiguous()?
+        .apply_op2(&x.contiguous()?, BlendColours)
+        .map(Some)
+}
+
+struct BlendColours;
+
+impl BlendColours {
+    /// `exp(L(y_v)) a_v` of one pixel's views into `ex`, returning their sum plus eps.
+    fn weights<T: Float>(y: &[T], x: &[T], (v, p, j): (usize, usize, usize), ex: &mut [T]) -> T {
+        let b = cast::<T>(BLEND_LOGIT_BOUND);
+        let mut den = cast::<T>(BLEND_EPS);
+        for k in 0..v {
+            let l = b * (y[k * p + j] / b).tanh();
+            ex[k] = l.exp() * x[(k * 4 + 3) * p + j];
+            den = den + ex[k];
+        }
+        den
+    }
+
+    fn fwd<T: Float + Send + Sync>(y: &[T], x: &[T], (n, v, p): (usize, usize, usize)) -> Vec<T> {
+        let mut out = vec![T::zero(); n * 3 * p];
+        out.par_chunks_mut(3 * p).enumerate().for_each(|(i, o)| {
+            let (yi, xi) = (&y[i * v * p..][..v * p], &x[i * v * 4 * p..][..v * 4 * p]);
+            let mut ex = vec![T::zero(); v];
+            for j in 0..p {
+                let den = Self::weights(yi, xi, (v, p, j), &mut ex);
+                for ch in 0..3 {
+                    let mut s = T::zero();
+                    for (k, &w) in ex.iter().enumerate() {
+                        s = s + w * xi[(k * 4 + ch) * p + j];
+                    }
+                    o[ch * p + j] = s / den;
+                }
+            }
+        });
+        out
+    }
+
+    /// `dy` from the output gradient `g` `[N, 3, P]`: `d out_c / d L_v = w_v (rgb_vc -
+    /// out_c)`, `d L / d y = 1 - tanh(y / B)^2`.
+    fn bwd<T: Float + Send + Sync>(
+        y: &[T],
+        x: &[T],
+        g: &[T],
+        (_, v, p): (usize, usize, usize),
+    ) -> Vec<T> {
+        let mut dy = vec![T::zero(); y.len()];
+        let b = cast::<T>(BLEND_LOGIT_BOUND);
+        dy.par_chunks_mut(v * p).enumerate().for_each(|(i, d)| {
+            let (yi, xi) = (&y[i * v * p..][..v * p], &x[i * v * 4 * p..][..v * 4 * p]);
+            let gi = &g[i * 3 * p..][..3 * p];
+            let mut ex = vec![T::zero(); v];
+            for j in 0..p {
+                let den = Self::weights(yi, xi, (v, p, j), &mut ex);
+                let mut out = [T::zero(); 3];
+                for (ch, o) in out.iter_mut().enumerate() {
+                    for (k, &w) in ex.iter().enumerate() {
+                        *o = *o + w * xi[(k * 4 + ch) * p + j];
+                    }
+                    *o = *o / den;
+                }
+                for (k, &w) in ex.iter().enumerate() {
+                    let mut gl = T::zero();
+                    for ch in 0..3 {
+                        gl = gl + gi[ch * p + j] * (xi[(k * 4 + ch) * p + j] - out[ch]);
+                    }
+                    let t = (yi[k * p + j] / b).tanh();
+                    d[k * p + j] = gl * w / den * (T::one() - t * t);
+                }
+            }
+        });
+        dy
+    }
+}
+
+impl CustomOp2 for BlendColours {
+    fn name(&self) -> &'static str {
+        "deepstereo-blend-colours"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (n, v, p) = l1.shape().dims3()?;
+        let y = match s1 {
+            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
+                slice::<f32>(s1, l1)?,
+                slice::<f32>(s2, l2)?,
+                (n, v, p),
+            )),
+            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
+                slice::<f64>(s1, l1)?,
+                slice::<f64>(s2, l2)?,
+                (n, v, p),
+            )),
+            _ => bail!("blend_colours: f32 or f64 only"),
+        };
+        Ok((y, Shape::from((n, 3, p))))
+    }
+
+    fn bwd(
+        &self,
+        y: &Tensor,
+        x: &Tensor,
+        _out: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let dims = y.dims3()?;
+        let g = g.contiguous()?;
+        fn run<T: WithDType + Float>(
+            y: &Tensor,
+            x: &Tensor,
+            g: &Tensor,
+            dims: (usize, usize, usize),
+        ) -> Result<Tensor> {
+            let dy = {
+                let (ys, yl) = y.storage_and_layout();
+                let (xs, xl) = x.storage_and_layout();
+                let (gs, gl) = g.storage_and_layout();
+                BlendColours::bwd(
+                    data::<T>(&ys, yl)?,
+                    data::<T>(&xs, xl)?,
+                    data::<T>(&gs, gl)?,
+                    dims,
+                )
+            };
+            Tensor::from_vec(dy, y.shape(), y.device())
+        }
+        let dy = match y.dtype() {
+            DType::F32 => run::<f32>(y, x, &g, dims)?,
+            DType::F64 => run::<f64>(y, x, &g, dims)?,
+            dt => bail!("blend_colours: f32 or f64 only, got {dt:?}"),
+        };
+        Ok((Some(dy), None))
+    }
+}

@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# The default model's training run (issue 20): the `nviews` preset on the real captures
+# of ../shared/data/train that load without flags, plus procedural scenes; validated on
+# scenes never trained on. Starts the run, or continues it from its committed checkpoint
+# (`--resume`) when deepstereo-train/runs/nviews-real/checkpoint.safetensors exists.
+# Run from the repository root: bash deepstereo-train/scripts/train_default.sh [STEPS]
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+DATA=../shared/data
+OUT=deepstereo-train/runs/nviews-real
+STEPS="${1:-20000}"
+TRAIN=()
+for s in bird blowtorch can cup duckqueen maryrose milk mouse statue; do
+  TRAIN+=("$DATA/train/$s")
+done
+VAL=("$DATA/val/juicebox" "$DATA/val/moldgoldcape" "$DATA/templeRing" "$DATA/ethiopianHead")
+RESUME=()
+if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
+cargo build --release -p deepstereo-train
+exec nice -n 19 target/release/deepstereo train --config nviews --views 2-10 \
+  --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12 \
+  --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8 \
+  --steps "$STEPS" --batch 8 --optimizer adam --lr 1e-3 --seed 1 \
+  --checkpoint-every 100 --validate-every 200 --log-every 20 --no-progress \
+  --out "$OUT" "${RESUME[@]}"
