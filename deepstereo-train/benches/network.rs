@@ -22,7 +22,7 @@
 //! count, so its figure can pass the matmul's (and the machine's peak). The
 //! Python side also checks that its outputs match candle's (same model, same inputs).
 //!
-//! `cargo bench -p deepstereo-train --bench network`; `NET_BENCH_CONFIGS=tiny` picks
+//! `cargo bench -p deepstereo-train --bench network`; `NET_BENCH_CONFIGS=tiny,nviews` picks
 //! presets; without the workspace's `.venv` only the Rust side runs.
 
 use anyhow::{bail, Context, Result};
@@ -84,13 +84,14 @@ fn matmul_gflops() -> Result<f64> {
     Ok(2.0 * 2048f64.powi(3) / s * 1e-9)
 }
 
-/// Deterministic inputs in [0, 1) of the render tile: `[1, D, 4V, H_l, W_l]` per level.
+/// Deterministic inputs in [0, 1) of the render tile: `[1, D, 4V, H_l, W_l]` (or
+/// `[1, D, V, 4, H_l, W_l]`) per level, with the config's default views.
 fn tile_inputs(cfg: &Config, tile: usize) -> Vec<(Vec<usize>, Vec<f32>)> {
     let mut state = 0x2545_F491_4F6C_DD1Du64;
     (0..cfg.levels)
         .map(|l| {
             let s = cfg.input_size(l, tile);
-            let shape = vec![1, cfg.planes, cfg.in_channels(), s, s];
+            let shape = cfg.input_shape(1, cfg.planes, cfg.views, s, s);
             let data = (0..shape.iter().product::<usize>())
                 .map(|_| {
                     state ^= state << 13;
@@ -322,7 +323,7 @@ fn main() -> Result<()> {
     // As the `deepstereo` binary does (PyTorch and onnxruntime keep their own pools).
     deepstereo_train::alloc::tune_allocator();
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let configs = std::env::var("NET_BENCH_CONFIGS").unwrap_or_else(|_| "tiny,paper".into());
+    let configs = std::env::var("NET_BENCH_CONFIGS").unwrap_or_else(|_| "tiny,nviews,paper".into());
     let mm = matmul_gflops()?;
     println!("{threads} threads; candle 2048^2 f32 matmul {mm:.1} GFLOP/s");
     for name in configs.split(',') {
