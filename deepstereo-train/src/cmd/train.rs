@@ -178,9 +178,15 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
     let lines = train(&run, &sched, &a.out, a.resume, stop)?;
     if let Some(last) = lines.last() {
+        let num = |v: Option<f64>, digits: usize| {
+            v.map_or_else(|| "-".to_string(), |x| format!("{x:.digits$}"))
+        };
+        let val = lines.iter().rev().find_map(|l| l.val_psnr);
         eprintln!(
-            "step {}: loss {:?}, validation PSNR {:?}",
-            last.step, last.loss, last.val_psnr
+            "step {}: loss {}, last validation PSNR {} dB",
+            last.step,
+            num(last.loss, 5),
+            num(val, 2)
         );
     }
     eprintln!("model: {}", a.out.join("model.safetensors").display());
