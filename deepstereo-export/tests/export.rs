@@ -207,6 +207,7 @@ fn ort_backend_renders_through_the_backend_trait() -> anyhow::Result<()> {
         sizes: (0..cfg.levels)
             .map(|l| (cfg.input_size(l, th), cfg.input_size(l, tw)))
             .collect(),
+        views: cfg.views,
     };
     let candle = CandleBackend {
         model: t.model.clone(),
