@@ -86,25 +86,28 @@ impl RenderSettings {
     }
 }
 
-/// The `k` source views for `target` (`exclude`: its own index in the scene, if any):
-/// the nearest with pruning off; with pruning on, those that see most of the target
-/// frustum for their distance ([`rank_views`]).
+/// The `k` source views for `target`, never one of `exclude` (its own index in the
+/// scene, and in an evaluation every held-out view: sources come from the other views
+/// only): the nearest with pruning off; with pruning on, those that see most of the
+/// target frustum for their distance ([`rank_views`]).
 pub fn pick_sources(
     scene: &Scene,
     target: &Camera,
-    exclude: Option<usize>,
+    exclude: &[usize],
     k: usize,
     settings: &RenderSettings,
 ) -> Vec<usize> {
-    if settings.prune.is_on() {
-        let cams: Vec<Camera> = scene.views.iter().map(|v| v.camera).collect();
-        rank_views(&cams, target, k, exclude, scene.near, scene.far).0
+    let allowed: Vec<usize> = (0..scene.views.len())
+        .filter(|i| !exclude.contains(i))
+        .collect();
+    let picked = if settings.prune.is_on() {
+        let cams: Vec<Camera> = allowed.iter().map(|&i| scene.views[i].camera).collect();
+        rank_views(&cams, target, k, None, scene.near, scene.far).0
     } else {
-        match exclude {
-            Some(t) => scene.nearest_views(t, k),
-            None => nearest_to_point(&scene.views, target.pose.centre(), k, None),
-        }
-    }
+        let views: Vec<_> = allowed.iter().map(|&i| scene.views[i].clone()).collect();
+        nearest_to_point(&views, target.pose.centre(), k, None)
+    };
+    picked.into_iter().map(|j| allowed[j]).collect()
 }
 
 /// A scene's views prepared for rendering (pyramids built once).
@@ -299,7 +302,7 @@ pub fn evaluate(
         }
         let truth = scene.load_image(t)?;
         let cam = scene.views[t].camera;
-        let srcs = pick_sources(scene, &cam, Some(t), k, settings);
+        let srcs = pick_sources(scene, &cam, targets, k, settings);
         let t0 = Instant::now();
         let (r, inv) = render_camera(
             backend,

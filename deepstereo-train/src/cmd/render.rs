@@ -62,7 +62,7 @@ pub fn run(a: Args) -> Result<()> {
             bail!("--frames must be at least 1");
         }
         for (f, cam) in path_cameras(&scene, kind, a.frames)?.iter().enumerate() {
-            let srcs = pick_sources(&scene, cam, None, v, &settings);
+            let srcs = pick_sources(&scene, cam, &[], v, &settings);
             let (r, _) = render_camera(
                 backend.as_ref(),
                 &scene,
@@ -86,11 +86,11 @@ pub fn run(a: Args) -> Result<()> {
                 );
             }
             let cam = scene.views[t].camera;
-            (cam, pick_sources(&scene, &cam, Some(t), v, &settings))
+            (cam, pick_sources(&scene, &cam, &[t], v, &settings))
         }
         (None, Some(p)) => {
             let cam = read_pose(p)?;
-            (cam, pick_sources(&scene, &cam, None, v, &settings))
+            (cam, pick_sources(&scene, &cam, &[], v, &settings))
         }
         _ => bail!("pass one of --target I, --pose FILE or --path KIND"),
     };
