@@ -191,8 +191,10 @@ impl Config {
         }
     }
 
-    /// The any-number-of-views family ([`ViewPool`]), sized to train on 2 CPU cores: 6
-    /// views by default (any number works), 32 planes, 3 levels, 24x24 output tiles.
+    /// The any-number-of-views family ([`ViewPool`]), sized to train on 2 CPU cores and
+    /// to render within twice `tiny`'s time: 6 views by default (any number works), 32
+    /// planes, 3 levels, 24x24 output tiles; widths multiples of 6 (the convolution
+    /// kernels' tile).
     pub fn nviews() -> Self {
         Self {
             name: "nviews".into(),
@@ -202,19 +204,19 @@ impl Config {
             tile: 24,
             select: TowerConfig {
                 levels: 3,
-                level_convs: vec![c(3, 16), c(3, 16)],
-                merge_convs: vec![c(3, 24), c(3, 16)],
+                level_convs: vec![c(3, 12), c(3, 12)],
+                merge_convs: vec![c(3, 12), c(3, 12)],
             },
-            depth_convs: vec![c(3, 16), c(3, 8), c(3, 1)],
+            depth_convs: vec![c(3, 12), c(3, 6), c(3, 1)],
             colour: TowerConfig {
                 levels: 1,
-                level_convs: vec![c(1, 16)],
-                merge_convs: vec![c(1, 16)],
+                level_convs: vec![c(1, 12)],
+                merge_convs: vec![],
             },
             colour_skip: false,
             pool: Some(ViewPool {
-                encoder: vec![c(1, 12), c(1, 8)],
-                blend: vec![c(1, 12)],
+                encoder: vec![c(1, 6), c(1, 6)],
+                blend: vec![c(1, 6)],
             }),
         }
     }

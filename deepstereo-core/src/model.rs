@@ -224,7 +224,7 @@ impl DeepStereo {
                     if view_dims(x)?.1 != v {
                         candle_core::bail!("input level {l} has a different number of views");
                     }
-                    let pooled = encoder.forward(x)?;
+                    let pooled = encoder.forward(x, fuse)?;
                     stats.push(pooled.stats);
                     if l == 0 {
                         features = Some(pooled.features);

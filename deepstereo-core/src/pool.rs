@@ -28,7 +28,7 @@
 //! `colour.blend.{i}.{weight,bias}` (the last one the 1-channel logit layer).
 
 use crate::config::{ViewPool, ENCODER_IN};
-use crate::conv::Conv2d;
+use crate::conv::{pointwise_chain, Conv2d};
 use crate::fused;
 use candle_core::{Module, Result, Tensor};
 use candle_nn::VarBuilder;
@@ -83,13 +83,22 @@ impl ViewEncoder {
 
     /// Steps 1-3 of the module doc for one level `x` `[B, D, V, 4, H, W]`: fused passes
     /// on the CPU (`fused/pool.rs`), else candle ops ([`Self::forward_reference`]).
-    pub fn forward(&self, x: &Tensor) -> Result<Pooled> {
+    /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain.
+    pub fn forward(&self, x: &Tensor, fuse: bool) -> Result<Pooled> {
         let (n, v, h, w, b) = view_dims(x)?;
         let xp = x.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
         let Some((enc, front)) = fused::pool_front(&xp)? else {
             return self.forward_reference(x);
         };
-        let e = self.encode(enc.reshape((n * v, ENCODER_IN, h, w))?)?; // [N*V, C_f, H, W]
+        let enc = enc.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
+        let chained = match fuse {
+            true => pointwise_chain(&enc, &self.convs.iter().collect::<Vec<_>>())?,
+            false => None,
+        };
+        let e = match chained {
+            Some(e) => e,
+            None => self.encode(enc)?,
+        }; // [N*V, C_f, H, W]
         let cf = e.dim(1)?;
         let e = e.reshape((n, v, cf, h * w))?; // [N, V, C_f, P]
         let Some(moments) = fused::view_stats(&e, &xp)? else {
@@ -238,7 +247,7 @@ mod tests {
             VarBuilder::from_varmap(&vm, DType::F64, &Device::Cpu),
         )?;
         let x = rand(&[2, 3, 4, 4, 5, 6], 7, true)?; // [B, D, V, 4, H, W]
-        let a = enc.forward(&x)?;
+        let a = enc.forward(&x, false)?;
         let b = enc.forward_reference(&x)?;
         let d = (a.stats.clone() - &b.stats)?
             .abs()?

@@ -55,7 +55,7 @@ fn main() -> Result<()> {
         let xs: Vec<Tensor> = (0..cfg.levels)
             .map(|l| {
                 let s = cfg.input_size(l, tile);
-                let shape = (1, cfg.planes, cfg.in_channels(), s, s);
+                let shape = cfg.input_shape(1, cfg.planes, cfg.views, s, s);
                 Tensor::rand(0f32, 1., shape, &Device::Cpu)
             })
             .collect::<candle_core::Result<_>>()?;

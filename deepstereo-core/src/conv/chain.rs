@@ -218,10 +218,35 @@ pub fn depth_head(
 pub fn pointwise_colours(
     x: &Tensor,
     crop: usize,
+    tile: (usize, usize),
+    convs: &[&Conv2d],
+    out: &Conv2d,
+    skip: bool,
+) -> Result<Option<Tensor>> {
+    pointwise_run(x, crop, tile, convs, out, skip, false)
+}
+
+/// A chain of 1x1 convolutions with a ReLU after every one, the last included, over the
+/// whole of `x` `[N, C, H, W]` -> `[N, C_out, H, W]` (the any-number-of-views family's
+/// per-view encoder when rendering); `None` where the fused kernels do not run.
+pub fn pointwise_chain(x: &Tensor, convs: &[&Conv2d]) -> Result<Option<Tensor>> {
+    let (_, _, h, w) = x.dims4()?;
+    match convs.split_last() {
+        Some((last, first)) if !first.is_empty() => {
+            pointwise_run(x, 0, (h, w), first, last, false, true)
+        }
+        _ => Ok(None),
+    }
+}
+
+fn pointwise_run(
+    x: &Tensor,
+    crop: usize,
     (th, tw): (usize, usize),
     convs: &[&Conv2d],
     out: &Conv2d,
     skip: bool,
+    head_relu: bool,
 ) -> Result<Option<Tensor>> {
     let (n, c, h, w) = x.dims4()?;
     if !fast(&[x]) || n * th * tw == 0 {
@@ -234,7 +259,7 @@ pub fn pointwise_colours(
         .iter()
         .map(|cv| Layer::new(cv, true))
         .collect::<Result<Vec<_>>>()?;
-    let head = Layer::new(out, false)?;
+    let head = Layer::new(out, head_relu)?;
     let f = layers[layers.len() - 1].cout;
     let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
     let head_in = f + if skip { c } else { 0 };

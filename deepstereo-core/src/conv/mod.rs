@@ -96,7 +96,7 @@ mod direct_cv;
 mod direct_grad;
 mod im2col;
 mod kernels;
-pub use chain::{depth_head, pointwise_colours};
+pub use chain::{depth_head, pointwise_chain, pointwise_colours};
 pub(crate) use im2col::SharedMut;
 mod op;
 #[cfg(test)]
