@@ -169,12 +169,21 @@ impl Blend {
         // computed once per plane and broadcast over the views.
         let (ye, yf) = self.layers[0].forward_split(&e.reshape((n * v, cf, th, tw))?, f)?;
         let c0 = ye.dim(1)?;
-        let mut y = ye
-            .reshape((n, v, c0, th, tw))? // [N, V, C_0, th, tw]
-            .broadcast_add(&yf.unsqueeze(1)?)?; // + [N, 1, C_0, th, tw]
+        let p = th * tw;
         let last = self.layers.len() - 1;
+        let mut y = if last > 0 {
+            // relu(ye + yf) with yf broadcast over the views: fused on the CPU.
+            let (ye4, yf3) = (ye.reshape((n, v, c0, p))?, yf.reshape((n, c0, p))?);
+            match fused::add_views_relu(&ye4, &yf3)? {
+                Some(h) => h, // [N, V, C_0, P]
+                None => ye4.broadcast_add(&yf3.unsqueeze(1)?)?.relu()?,
+            }
+            .reshape((n * v, c0, th, tw))? // [N*V, C_0, th, tw]
+        } else {
+            ye.reshape((n, v, c0, th, tw))? // [N, V, C_0, th, tw]
+                .broadcast_add(&yf.unsqueeze(1)?)? // + [N, 1, C_0, th, tw]
+        };
         if last > 0 {
-            y = y.relu()?.reshape((n * v, c0, th, tw))?; // [N*V, C_0, th, tw]
             for (i, conv) in self.layers.iter().enumerate().skip(1) {
                 y = if i < last {
                     conv.forward_relu(&y)?
@@ -183,7 +192,6 @@ impl Blend {
                 };
             }
         }
-        let p = th * tw;
         let xp = x.contiguous()?.reshape((n, v, 4, p))?; // [N, V, 4, P]
         match fused::blend_colours(&y.reshape((n, v, p))?, &xp)? {
             Some(c) => c.reshape((n, 3, th, tw)), // [N, 3, th, tw]

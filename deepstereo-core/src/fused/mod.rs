@@ -24,7 +24,7 @@ mod upsample;
 pub(crate) use head::softmax_columns;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;
-pub use pool::{blend_colours, pool_front, view_stats};
+pub use pool::{add_views_relu, blend_colours, pool_front, view_stats};
 pub use upsample::upsample_crop;
 
 use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};

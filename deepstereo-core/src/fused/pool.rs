@@ -448,3 +448,123 @@ impl CustomOp2 for BlendColours {
         Ok((Some(dy), None))
     }
 }
+
+/// `relu(a + b)` with `b` broadcast over the views: `a` `[N, V, C, P]`, `b` `[N, C, P]`
+/// -> `[N, V, C, P]` (the blend's first layer: its part for the colour tower's features
+/// is computed once per plane); `None` off the CPU.
+pub fn add_views_relu(a: &Tensor, b: &Tensor) -> Result<Option<Tensor>> {
+    let (n, _, c, p) = a.dims4()?;
+    if b.dims() != [n, c, p] {
+        bail!(
+            "add_views_relu: {:?} does not broadcast over {:?}",
+            b.dims(),
+            a.dims()
+        );
+    }
+    if !on_cpu(&[a, b]) {
+        return Ok(None);
+    }
+    a.contiguous()?
+        .apply_op2(&b.contiguous()?, AddViewsRelu)
+        .map(Some)
+}
+
+struct AddViewsRelu;
+
+impl AddViewsRelu {
+    fn fwd<T: Float + Send + Sync>(a: &[T], b: &[T], (v, cp): (usize, usize)) -> Vec<T> {
+        let mut y = vec![T::zero(); a.len()];
+        y.par_chunks_mut(cp).enumerate().for_each(|(iv, yc)| {
+            let (ac, bc) = (&a[iv * cp..][..cp], &b[(iv / v) * cp..][..cp]);
+            for ((o, &x), &z) in yc.iter_mut().zip(ac).zip(bc) {
+                *o = (x + z).max(T::zero());
+            }
+        });
+        y
+    }
+
+    /// `(da, db)`: the output gradient where the output is positive, and its sum over
+    /// the views.
+    fn bwd<T: Float + Send + Sync>(y: &[T], g: &[T], (v, cp): (usize, usize)) -> (Vec<T>, Vec<T>) {
+        let mut da = vec![T::zero(); y.len()];
+        da.par_chunks_mut(cp).enumerate().for_each(|(iv, d)| {
+            let (yc, gc) = (&y[iv * cp..][..cp], &g[iv * cp..][..cp]);
+            for ((o, &yv), &gv) in d.iter_mut().zip(yc).zip(gc) {
+                *o = if yv > T::zero() { gv } else { T::zero() };
+            }
+        });
+        let mut db = vec![T::zero(); y.len() / v];
+        db.par_chunks_mut(cp).enumerate().for_each(|(i, d)| {
+            for k in 0..v {
+                for (o, &x) in d.iter_mut().zip(&da[(i * v + k) * cp..][..cp]) {
+                    *o = *o + x;
+                }
+            }
+        });
+        (da, db)
+    }
+}
+
+impl CustomOp2 for AddViewsRelu {
+    fn name(&self) -> &'static str {
+        "deepstereo-add-views-relu"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (n, v, c, p) = l1.shape().dims4()?;
+        let y = match s1 {
+            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
+                slice::<f32>(s1, l1)?,
+                slice::<f32>(s2, l2)?,
+                (v, c * p),
+            )),
+            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
+                slice::<f64>(s1, l1)?,
+                slice::<f64>(s2, l2)?,
+                (v, c * p),
+            )),
+            _ => bail!("add_views_relu: f32 or f64 only"),
+        };
+        Ok((y, Shape::from((n, v, c, p))))
+    }
+
+    fn bwd(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        y: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (_, v, c, p) = a.dims4()?;
+        let g = g.contiguous()?;
+        fn run<T: WithDType + Float>(
+            a: &Tensor,
+            b: &Tensor,
+            y: &Tensor,
+            g: &Tensor,
+            vcp: (usize, usize),
+        ) -> Result<(Tensor, Tensor)> {
+            let (da, db) = {
+                let (ys, yl) = y.storage_and_layout();
+                let (gs, gl) = g.storage_and_layout();
+                AddViewsRelu::bwd(data::<T>(&ys, yl)?, data::<T>(&gs, gl)?, vcp)
+            };
+            Ok((
+                Tensor::from_vec(da, a.shape(), a.device())?,
+                Tensor::from_vec(db, b.shape(), b.device())?,
+            ))
+        }
+        let (da, db) = match a.dtype() {
+            DType::F32 => run::<f32>(a, b, y, &g, (v, c * p))?,
+            DType::F64 => run::<f64>(a, b, y, &g, (v, c * p))?,
+            dt => bail!("add_views_relu: f32 or f64 only, got {dt:?}"),
+        };
+        Ok((Some(da), Some(db)))
+    }
+}
