@@ -285,9 +285,13 @@ pub fn train(
                     .unwrap_or_default()
             ));
             if !sched.progress {
+                let left =
+                    (sched.steps - step) as f64 * run.batch as f64 / line.samples_per_s.max(1e-9);
                 eprintln!(
-                    "step {step}: loss {loss_v:.5} ({:.1} samples/s){}",
+                    "step {step}/{}: loss {loss_v:.5} ({:.1} samples/s, {} left){}",
+                    sched.steps,
                     line.samples_per_s,
+                    duration(left),
                     line.val_psnr
                         .map(|p| format!(" val {p:.2} dB"))
                         .unwrap_or_default()
@@ -313,6 +317,16 @@ pub fn train(
     bar.finish();
     plot_log(&log_path, &out.join("curve.png"))?;
     Ok(lines)
+}
+
+/// `1h02m`, `3m05s` or `12s`.
+fn duration(seconds: f64) -> String {
+    let s = seconds.clamp(0.0, 1e9) as u64;
+    match (s / 3600, s % 3600 / 60, s % 60) {
+        (0, 0, sec) => format!("{sec}s"),
+        (0, m, sec) => format!("{m}m{sec:02}s"),
+        (h, m, _) => format!("{h}h{m:02}m"),
+    }
 }
 
 fn progress_bar(sched: &Schedule, start: u64) -> indicatif::ProgressBar {

@@ -62,7 +62,8 @@ pub struct Args {
     /// Views per procedural scene.
     #[arg(long, default_value_t = 10)]
     pub synth_views: usize,
-    /// Print log lines instead of a progress bar.
+    /// Print log lines instead of a progress bar (the default when standard error is
+    /// not a terminal).
     #[arg(long)]
     pub no_progress: bool,
     /// Source views per sample, `K` or a range `MIN-MAX` drawn afresh for every batch
@@ -170,7 +171,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         checkpoint_every: a.checkpoint_every,
         validate_every: a.validate_every,
         log_every: a.log_every,
-        progress: !a.no_progress,
+        // A progress bar on a terminal, plain lines in a log file or a pipe.
+        progress: !a.no_progress && std::io::IsTerminal::is_terminal(&std::io::stderr()),
     };
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
