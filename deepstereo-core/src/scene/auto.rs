@@ -388,14 +388,16 @@ fn match_reference(
     let region = Region::full(&cam.intrinsics);
     let mut cost_sum = vec![0.0f32; d * hw];
     let mut cost_n = vec![0u8; d * hw];
-    for z in 0..d {
-        let rho = rho_of(z as f64);
-        for nb in neighbours {
-            let src = Source {
-                camera: &nb.camera,
-                image: &nb.image,
-            };
-            let vol = sweep(cam, region, &[src], &[rho]);
+    let inv_depths: Vec<f64> = (0..d).map(|z| rho_of(z as f64)).collect();
+    for nb in neighbours {
+        let src = Source {
+            camera: &nb.camera,
+            image: &nb.image,
+        };
+        // One sweep over every plane: the reference's rays (lens distortion inverted
+        // iteratively) are computed once.
+        let volume = sweep(cam, region, &[src], &inv_depths);
+        for (z, vol) in volume.chunks_exact(4 * hw).enumerate() {
             let (rgb, alpha) = vol.split_at(3 * hw);
             let g: Vec<f64> = (0..hw)
                 .map(|p| (rgb[p] as f64 + rgb[hw + p] as f64 + rgb[2 * hw + p] as f64) / 3.0)

@@ -57,9 +57,6 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         s => s.describe().to_string(),
     };
     println!("near    {:.6}  far {}  ({source})", scene.near, scene.far);
-    for note in &scene.notes {
-        println!("note    {note}");
-    }
     for (i, v) in scene.views.iter().enumerate() {
         let k = &v.camera.intrinsics;
         let c = v.camera.pose.centre();
