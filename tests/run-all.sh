@@ -20,6 +20,20 @@ if [ ! -x "$VENV/bin/python" ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; 
   echo "$WANT" > "$STAMP"
 fi
 
+echo "== COLMAP (for tests/poses.rs: deepstereo poses runs the real binary)"
+if ! command -v colmap >/dev/null 2>&1; then
+  if command -v apt-get >/dev/null 2>&1; then
+    SUDO=""
+    if [ "$(id -u)" != 0 ] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
+    $SUDO apt-get update && $SUDO apt-get install -y colmap
+  else
+    echo "error: COLMAP is not installed and apt-get is not available to install it;" >&2
+    echo "       install COLMAP (https://colmap.github.io/install.html) and put it on the PATH" >&2
+    exit 1
+  fi
+fi
+export DEEPSTEREO_REQUIRE_COLMAP=1
+
 echo "== Rust build and tests"
 cargo build --release --workspace --bins --examples
 cargo test --release --workspace

@@ -5,6 +5,7 @@
 
 pub mod alloc;
 pub mod cmd;
+pub mod colmap_run;
 pub mod data;
 pub mod inference;
 pub mod optim;

@@ -4,6 +4,7 @@
 //! axes, world-to-camera, pixel centres at `i + 0.5`) exactly once; nothing downstream
 //! knows which format a scene came from.
 
+pub mod auto;
 pub mod colmap;
 pub mod llff;
 pub mod middlebury;
@@ -89,6 +90,20 @@ pub enum BoundsSource {
     File,
     Points,
     User,
+    /// Estimated from the images themselves ([`auto`]).
+    Auto,
+}
+
+impl BoundsSource {
+    /// How `inspect` and the logs describe it.
+    pub fn describe(self) -> &'static str {
+        match self {
+            BoundsSource::File => "from the scene's files",
+            BoundsSource::Points => "from the scene's sparse points",
+            BoundsSource::User => "given by --near/--far",
+            BoundsSource::Auto => "automatic, from matched image points",
+        }
+    }
 }
 
 /// Options that change how a scene is read.
@@ -152,11 +167,12 @@ impl Scene {
         Self::from_raw(dir, format, raw, opts)
     }
 
-    /// Resolves bounds (user > file > sparse points) and validates every camera.
+    /// Resolves bounds (user > file > sparse points > estimated from the images, see
+    /// [`auto`]) and validates every camera.
     pub fn from_raw(
         dir: &Path,
         format: SceneFormat,
-        raw: RawScene,
+        mut raw: RawScene,
         opts: &LoadOptions,
     ) -> Result<Scene> {
         if raw.views.is_empty() {
@@ -180,10 +196,13 @@ impl Scene {
                 } else if let Some((n, f)) = bounds_from_points(&raw.views, &raw.points) {
                     (n, f, BoundsSource::Points)
                 } else {
-                    return Err(Error::format(
-                        dir,
-                        "the scene gives no depth bounds and has no sparse points: pass --near and --far",
+                    let est = auto::estimate(dir, &raw.views)?;
+                    raw.notes.push(format!(
+                        "depth bounds estimated from the images: {} matched points in {} reference views",
+                        est.matched, est.references
                     ));
+                    raw.points = est.points;
+                    (est.near, est.far, BoundsSource::Auto)
                 };
                 (opts.near.unwrap_or(n), opts.far.unwrap_or(f), src)
             }

@@ -197,6 +197,17 @@ pub fn scene_seed(base: u64, index: usize) -> u64 {
 
 /// Generates one scene; the same seed and options give a bit-identical scene.
 pub fn generate(seed: u64, opts: &SynthOptions) -> Result<SynthScene> {
+    generate_impl(seed, opts, false)
+}
+
+/// As [`generate`], but every view has the same ideal intrinsics: the first view's focal
+/// length (`fx` for both axes) and the principal point at the image centre, as one real
+/// camera (structure-from-motion tools estimate one such camera for a photo set).
+pub fn generate_one_camera(seed: u64, opts: &SynthOptions) -> Result<SynthScene> {
+    generate_impl(seed, opts, true)
+}
+
+fn generate_impl(seed: u64, opts: &SynthOptions, one_camera: bool) -> Result<SynthScene> {
     opts.validate()?;
     let mut rng = Rng::new(seed);
     let rig = match opts.rig {
@@ -204,7 +215,16 @@ pub fn generate(seed: u64, opts: &SynthOptions) -> Result<SynthScene> {
         r => r,
     };
     let (mut rig_rng, mut content_rng, mut exposure_rng) = (rng.fork(), rng.fork(), rng.fork());
-    let layout = rig::build(rig, &mut rig_rng, opts.views, opts.width, opts.height)?;
+    let mut layout = rig::build(rig, &mut rig_rng, opts.views, opts.width, opts.height)?;
+    if let (true, Some(first)) = (one_camera, layout.cameras.first().copied()) {
+        let k = first.intrinsics;
+        let (w, h) = (k.width as f64, k.height as f64);
+        let shared =
+            crate::camera::Intrinsics::pinhole(k.fx, k.fx, 0.5 * w, 0.5 * h, k.width, k.height);
+        for c in &mut layout.cameras {
+            c.intrinsics = shared;
+        }
+    }
     let surfaces = layout::build(&mut content_rng, &layout, &opts.textures);
     let gains: Vec<f32> = (0..opts.views)
         .map(|_| (1.0 + exposure_rng.sym(EXPOSURE_JITTER)) as f32)

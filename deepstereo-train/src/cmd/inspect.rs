@@ -50,10 +50,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!("scene   {}", scene.root.display());
     println!("format  {}", scene.format.name());
     println!("views   {}", scene.views.len());
-    println!(
-        "near    {:.6}  far {}  (from {:?})",
-        scene.near, scene.far, scene.bounds_source
-    );
+    let source = match scene.bounds_source {
+        deepstereo_core::scene::BoundsSource::Auto => {
+            format!("automatic, from {} matched points", scene.points.len())
+        }
+        s => s.describe().to_string(),
+    };
+    println!("near    {:.6}  far {}  ({source})", scene.near, scene.far);
     for (i, v) in scene.views.iter().enumerate() {
         let k = &v.camera.intrinsics;
         let c = v.camera.pose.centre();

@@ -6,6 +6,7 @@ pub mod export;
 pub mod forward;
 pub mod inspect;
 pub mod model_args;
+pub mod poses;
 pub mod render;
 pub mod report;
 pub mod sweep;
@@ -46,6 +47,8 @@ pub enum Command {
     Forward(forward::Args),
     /// Write procedural posed scenes (images, exact depths, transforms.json) for training.
     Synth(synth::Args),
+    /// Find camera poses for a folder of photographs with COLMAP; writes a COLMAP scene.
+    Poses(poses::Args),
 }
 
 /// Runs one parsed command line.
@@ -61,6 +64,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Export(a) => export::run(a),
         Command::Forward(a) => forward::run(a),
         Command::Synth(a) => synth::run(a),
+        Command::Poses(a) => poses::run(a),
     }
 }
 
