@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The default model's training run (issue 20): the `nviews` preset on the real captures
-# of ../shared/data/train that load without flags, plus procedural scenes; validated on
-# scenes never trained on. Starts the run, or continues it from its committed checkpoint
+# of ../shared/data/train (all but `lego`, a render whose transparent background the
+# reader drops), plus procedural scenes; NeRF-format scenes get automatic depth bounds.
+# Validated on scenes never trained on. Starts the run, or continues it from its committed checkpoint
 # (`--resume`) when deepstereo-train/runs/nviews-real/checkpoint.safetensors exists.
 # Run from the repository root: bash deepstereo-train/scripts/train_default.sh [STEPS]
 set -euo pipefail
@@ -10,10 +11,10 @@ DATA=../shared/data
 OUT=deepstereo-train/runs/nviews-real
 STEPS="${1:-20000}"
 TRAIN=()
-for s in bird blowtorch can cup duckqueen maryrose milk mouse statue; do
+for s in bird blowtorch can cityscape cup duckqueen figurine fruit maryrose milk mouse plant statue; do
   TRAIN+=("$DATA/train/$s")
 done
-VAL=("$DATA/val/juicebox" "$DATA/val/moldgoldcape" "$DATA/templeRing" "$DATA/ethiopianHead")
+VAL=("$DATA/val/juicebox" "$DATA/val/moldgoldcape" "$DATA/val/stitch" "$DATA/templeRing" "$DATA/ethiopianHead" "$DATA/fox")
 RESUME=()
 if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
 cargo build --release -p deepstereo-train
