@@ -17,7 +17,7 @@
 use super::{data, on_cpu, slice};
 use crate::pool::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
-use num_traits::Float;
+use num_traits::{Float, NumAssignOps};
 use rayon::prelude::*;
 
 fn cast<T: Float>(v: f64) -> T {
@@ -35,7 +35,7 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
         return Ok(None);
     }
     let x = x.contiguous()?;
-    fn run<T: WithDType + Float>(
+    fn run<T: WithDType + Float + NumAssignOps>(
         x: &Tensor,
         (n, v, p): (usize, usize, usize),
     ) -> Result<(Tensor, Tensor)> {
@@ -56,19 +56,19 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
                     for (ch, mc) in m.chunks_exact_mut(p).enumerate() {
                         let rgb = &xi[(k * 4 + ch) * p..][..p];
                         for j in 0..p {
-                            mc[j] = mc[j] + a[j] * rgb[j];
+                            mc[j] += a[j] * rgb[j];
                         }
                     }
                     for j in 0..p {
-                        cover[j] = cover[j] + a[j];
+                        cover[j] += a[j];
                     }
                 }
                 for j in 0..p {
                     let den = cover[j] + cast(POOL_EPS);
                     for ch in 0..3 {
-                        m[ch * p + j] = m[ch * p + j] / den;
+                        m[ch * p + j] /= den;
                     }
-                    cover[j] = cover[j] / (cover[j] + T::one());
+                    cover[j] /= cover[j] + T::one();
                 }
                 for k in 0..v {
                     let (xk, ek) = (&xi[k * 4 * p..][..4 * p], &mut enc[k * 7 * p..][..7 * p]);
@@ -119,11 +119,11 @@ fn alpha<T>(x: &[T], (i, k, v, p): (usize, usize, usize, usize)) -> &[T] {
 }
 
 /// `sum_v a_v + eps` per pixel of item `i`.
-fn alpha_sum<T: Float>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<T> {
+fn alpha_sum<T: Float + NumAssignOps>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<T> {
     let mut den = vec![cast::<T>(POOL_EPS); p];
     for k in 0..v {
         for (d, &a) in den.iter_mut().zip(alpha(x, (i, k, v, p))) {
-            *d = *d + a;
+            *d += a;
         }
     }
     den
@@ -132,7 +132,7 @@ fn alpha_sum<T: Float>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<T> {
 struct ViewStats;
 
 impl ViewStats {
-    fn fwd<T: Float + Send + Sync>(
+    fn fwd<T: Float + NumAssignOps + Send + Sync>(
         e: &[T],
         x: &[T],
         (n, v, c, p): (usize, usize, usize, usize),
@@ -152,11 +152,11 @@ impl ViewStats {
                             &e[((i * v + k) * c + ch) * p..][..p],
                         );
                         for j in 0..p {
-                            mean[j] = mean[j] + ak[j] * ek[j];
+                            mean[j] += ak[j] * ek[j];
                         }
                     }
                     for j in 0..p {
-                        mean[j] = mean[j] / den[j];
+                        mean[j] /= den[j];
                     }
                     for k in 0..v {
                         let (ak, ek) = (
@@ -165,11 +165,11 @@ impl ViewStats {
                         );
                         for j in 0..p {
                             let dev = ek[j] - mean[j];
-                            var[j] = var[j] + ak[j] * dev * dev;
+                            var[j] += ak[j] * dev * dev;
                         }
                     }
                     for j in 0..p {
-                        var[j] = var[j] / den[j];
+                        var[j] /= den[j];
                     }
                 }
             });
@@ -179,7 +179,7 @@ impl ViewStats {
     /// `de` from the output gradient `g` `[N, 2C, P]`: with `den = sum a + eps`,
     /// `d mean / d e_v = a_v / den`, `d var / d e_v = 2 a_v (e_v - m) / den`, and through
     /// the mean `d var / d m = -2 m eps / den`.
-    fn bwd<T: Float + Send + Sync>(
+    fn bwd<T: Float + NumAssignOps + Send + Sync>(
         e: &[T],
         x: &[T],
         g: &[T],
@@ -202,13 +202,13 @@ impl ViewStats {
                             &e[((i * v + k) * c + ch) * p..][..p],
                         );
                         for j in 0..p {
-                            mean[j] = mean[j] + ak[j] * ek[j];
+                            mean[j] += ak[j] * ek[j];
                         }
                     }
                     let gm = &g[(i * 2 * c + ch) * p..][..p];
                     let gv = &g[(i * 2 * c + c + ch) * p..][..p];
                     for j in 0..p {
-                        mean[j] = mean[j] / den[j];
+                        mean[j] /= den[j];
                     }
                     for k in 0..v {
                         let ak = alpha(x, (i, k, v, p));
@@ -264,7 +264,7 @@ impl CustomOp2 for ViewStats {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let dims = e.dims4()?;
         let g = g.contiguous()?;
-        fn run<T: WithDType + Float>(
+        fn run<T: WithDType + Float + NumAssignOps>(
             e: &Tensor,
             x: &Tensor,
             g: &Tensor,
@@ -316,18 +316,27 @@ struct BlendColours;
 
 impl BlendColours {
     /// `exp(L(y_v)) a_v` of one pixel's views into `ex`, returning their sum plus eps.
-    fn weights<T: Float>(y: &[T], x: &[T], (v, p, j): (usize, usize, usize), ex: &mut [T]) -> T {
+    fn weights<T: Float + NumAssignOps>(
+        y: &[T],
+        x: &[T],
+        (v, p, j): (usize, usize, usize),
+        ex: &mut [T],
+    ) -> T {
         let b = cast::<T>(BLEND_LOGIT_BOUND);
         let mut den = cast::<T>(BLEND_EPS);
         for k in 0..v {
             let l = b * (y[k * p + j] / b).tanh();
             ex[k] = l.exp() * x[(k * 4 + 3) * p + j];
-            den = den + ex[k];
+            den += ex[k];
         }
         den
     }
 
-    fn fwd<T: Float + Send + Sync>(y: &[T], x: &[T], (n, v, p): (usize, usize, usize)) -> Vec<T> {
+    fn fwd<T: Float + NumAssignOps + Send + Sync>(
+        y: &[T],
+        x: &[T],
+        (n, v, p): (usize, usize, usize),
+    ) -> Vec<T> {
         let mut out = vec![T::zero(); n * 3 * p];
         out.par_chunks_mut(3 * p).enumerate().for_each(|(i, o)| {
             let (yi, xi) = (&y[i * v * p..][..v * p], &x[i * v * 4 * p..][..v * 4 * p]);
@@ -337,7 +346,7 @@ impl BlendColours {
                 for ch in 0..3 {
                     let mut s = T::zero();
                     for (k, &w) in ex.iter().enumerate() {
-                        s = s + w * xi[(k * 4 + ch) * p + j];
+                        s += w * xi[(k * 4 + ch) * p + j];
                     }
                     o[ch * p + j] = s / den;
                 }
@@ -348,7 +357,7 @@ impl BlendColours {
 
     /// `dy` from the output gradient `g` `[N, 3, P]`: `d out_c / d L_v = w_v (rgb_vc -
     /// out_c)`, `d L / d y = 1 - tanh(y / B)^2`.
-    fn bwd<T: Float + Send + Sync>(
+    fn bwd<T: Float + NumAssignOps + Send + Sync>(
         y: &[T],
         x: &[T],
         g: &[T],
@@ -365,14 +374,14 @@ impl BlendColours {
                 let mut out = [T::zero(); 3];
                 for (ch, o) in out.iter_mut().enumerate() {
                     for (k, &w) in ex.iter().enumerate() {
-                        *o = *o + w * xi[(k * 4 + ch) * p + j];
+                        *o += w * xi[(k * 4 + ch) * p + j];
                     }
-                    *o = *o / den;
+                    *o /= den;
                 }
                 for (k, &w) in ex.iter().enumerate() {
                     let mut gl = T::zero();
                     for ch in 0..3 {
-                        gl = gl + gi[ch * p + j] * (xi[(k * 4 + ch) * p + j] - out[ch]);
+                        gl += gi[ch * p + j] * (xi[(k * 4 + ch) * p + j] - out[ch]);
                     }
                     let t = (yi[k * p + j] / b).tanh();
                     d[k * p + j] = gl * w / den * (T::one() - t * t);
@@ -421,7 +430,7 @@ impl CustomOp2 for BlendColours {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let dims = y.dims3()?;
         let g = g.contiguous()?;
-        fn run<T: WithDType + Float>(
+        fn run<T: WithDType + Float + NumAssignOps>(
             y: &Tensor,
             x: &Tensor,
             g: &Tensor,
@@ -472,7 +481,11 @@ pub fn add_views_relu(a: &Tensor, b: &Tensor) -> Result<Option<Tensor>> {
 struct AddViewsRelu;
 
 impl AddViewsRelu {
-    fn fwd<T: Float + Send + Sync>(a: &[T], b: &[T], (v, cp): (usize, usize)) -> Vec<T> {
+    fn fwd<T: Float + NumAssignOps + Send + Sync>(
+        a: &[T],
+        b: &[T],
+        (v, cp): (usize, usize),
+    ) -> Vec<T> {
         let mut y = vec![T::zero(); a.len()];
         y.par_chunks_mut(cp).enumerate().for_each(|(iv, yc)| {
             let (ac, bc) = (&a[iv * cp..][..cp], &b[(iv / v) * cp..][..cp]);
@@ -485,7 +498,11 @@ impl AddViewsRelu {
 
     /// `(da, db)`: the output gradient where the output is positive, and its sum over
     /// the views.
-    fn bwd<T: Float + Send + Sync>(y: &[T], g: &[T], (v, cp): (usize, usize)) -> (Vec<T>, Vec<T>) {
+    fn bwd<T: Float + NumAssignOps + Send + Sync>(
+        y: &[T],
+        g: &[T],
+        (v, cp): (usize, usize),
+    ) -> (Vec<T>, Vec<T>) {
         let mut da = vec![T::zero(); y.len()];
         da.par_chunks_mut(cp).enumerate().for_each(|(iv, d)| {
             let (yc, gc) = (&y[iv * cp..][..cp], &g[iv * cp..][..cp]);
@@ -497,7 +514,7 @@ impl AddViewsRelu {
         db.par_chunks_mut(cp).enumerate().for_each(|(i, d)| {
             for k in 0..v {
                 for (o, &x) in d.iter_mut().zip(&da[(i * v + k) * cp..][..cp]) {
-                    *o = *o + x;
+                    *o += x;
                 }
             }
         });
@@ -543,7 +560,7 @@ impl CustomOp2 for AddViewsRelu {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let (_, v, c, p) = a.dims4()?;
         let g = g.contiguous()?;
-        fn run<T: WithDType + Float>(
+        fn run<T: WithDType + Float + NumAssignOps>(
             a: &Tensor,
             b: &Tensor,
             y: &Tensor,
