@@ -357,7 +357,9 @@ fn measure_on_ethiopian_head() {
     let Some(data) = deepstereo_tests::shared_data() else {
         return;
     };
-    let src = data.join("ethiopianHead");
+    // DEEPSTEREO_MEASURE_SCENE picks another LLFF scene with `images_4/` (val/juicebox).
+    let name = std::env::var("DEEPSTEREO_MEASURE_SCENE").unwrap_or("ethiopianHead".into());
+    let src = data.join(&name);
     let tmp = tempfile::tempdir().expect("tempdir");
     // DEEPSTEREO_MEASURE_DIR keeps the scenes for a look afterwards;
     // DEEPSTEREO_MEASURE_POSES_ARGS adds options to `deepstereo poses`.
@@ -403,7 +405,7 @@ fn measure_on_ethiopian_head() {
         &cameras_by_name(&truth, &names),
     );
     println!(
-        "ethiopianHead, {} of {} views registered: median rotation error {rot:.3} deg, median \
+        "{name}, {} of {} views registered: median rotation error {rot:.3} deg, median \
          centre error {:.3}% of the spread; deepstereo poses took {secs:.1} s",
         names.len(),
         picked.len(),
