@@ -100,14 +100,17 @@ impl Colmap {
 
     /// SIFT features of every image of `images` into `database`, one camera shared by all
     /// images, at most `max_size` pixels on the longer side.
+    /// `camera_params` (COLMAP's comma-separated list for the model), when given, is the
+    /// camera's starting point instead of COLMAP's guess.
     pub fn extract(
         &self,
         database: &Path,
         images: &Path,
         camera_model: &str,
+        camera_params: Option<&str>,
         max_size: u32,
     ) -> anyhow::Result<()> {
-        let args = vec![
+        let mut args = vec![
             "--database_path".into(),
             path_arg(database),
             "--image_path".into(),
@@ -123,6 +126,9 @@ impl Colmap {
             "--SiftExtraction.max_image_size".into(),
             max_size.to_string(),
         ];
+        if let Some(p) = camera_params {
+            args.extend(["--ImageReader.camera_params".into(), p.to_string()]);
+        }
         self.run("feature extraction", "feature_extractor", &args)
     }
 
@@ -147,6 +153,7 @@ impl Colmap {
         images: &Path,
         sparse: &Path,
         init_tri_angle: f64,
+        refine_focal: bool,
     ) -> anyhow::Result<()> {
         std::fs::create_dir_all(sparse).with_context(|| sparse.display().to_string())?;
         let args = vec![
@@ -160,6 +167,8 @@ impl Colmap {
             self.threads(),
             "--Mapper.init_min_tri_angle".into(),
             init_tri_angle.to_string(),
+            "--Mapper.ba_refine_focal_length".into(),
+            if refine_focal { "1" } else { "0" }.into(),
         ];
         self.run("mapping", "mapper", &args).map_err(|e| {
             let log = std::fs::read_to_string(&self.log).unwrap_or_default();

@@ -1,21 +1,25 @@
 //! Depth bounds found from a scene's own images when it gives none (no file bounds, no
 //! sparse points, no `--near`/`--far`).
 //!
-//! # Method: a coarse photo-consistency plane sweep with known poses
+//! # Method: a coarse-to-fine photo-consistency plane sweep with the known poses
 //! 1. Up to [`AUTO_REFERENCES`] reference views, evenly spaced over the scene's view list,
 //!    each with its [`AUTO_NEIGHBOURS`] nearest neighbours (by camera centre) among the
 //!    views that look the same way (optical axes within [`MAX_AXIS_ANGLE_DEG`]) from a
 //!    different place (baseline above [`MIN_BASELINE_FRACTION`] of the cameras' spread).
 //!    Images are box-downscaled by powers of two to at most [`AUTO_MAX_WIDTH`] pixels wide,
 //!    intrinsics scaled to match.
-//! 2. For each reference, [`AUTO_PLANES`] fronto-parallel planes uniform in inverse depth
-//!    from `rho_max` to 0 (infinity), `rho_max` putting [`DISPARITY_FRACTION`] of the
+//! 2. For each reference, [`COARSE_PLANES`] fronto-parallel planes uniform in inverse
+//!    depth from `rho_max` to 0 (infinity), `rho_max` putting [`DISPARITY_FRACTION`] of the
 //!    image width of disparity between the reference and its nearest neighbour
 //!    (`rho_max = DISPARITY_FRACTION * w / (fx * baseline)`): a range far wider than any
 //!    scene needs. Each neighbour is warped onto each plane by [`crate::sweep::sweep`];
 //!    the cost of a pixel at a plane is `1 - NCC` of the grey levels in a
 //!    `(2 * WINDOW_RADIUS + 1)^2` window (insensitive to exposure changes), averaged over
-//!    the neighbours whose warp covers the whole window.
+//!    the neighbours; a plane counts only where every neighbour's warp covers the whole
+//!    window. Bounds are taken from this pass (step 4), then the sweep is run again with
+//!    [`FINE_PLANES`] planes between those bounds (the coarse pass resolves inverse depth
+//!    only to `rho_max / COARSE_PLANES`, too coarse near infinity), and step 4 is applied
+//!    to the second pass's matches.
 //! 3. A pixel is kept only if its reference window is textured (grey standard deviation
 //!    at least [`MIN_TEXTURE_STD`]), enough planes were scored, its best cost is low
 //!    ([`MAX_COST`]), distinct (at most [`RATIO`] times the best cost more than
@@ -23,16 +27,28 @@
 //!    the nearest plane (a surface nearer than the search). Its inverse depth is refined by
 //!    a parabola through the three costs around the minimum, and the pixel becomes a world
 //!    point (the reference ray at that depth).
+//!    A minimum on the farthest plane passes a weaker test ([`FAR_END_RATIO`]): distant,
+//!    smooth textures have broad minima there.
 //! 4. Bounds: the [`DEPTH_PERCENTILES`] of the points' inverse depths (in their reference
 //!    views), widened in inverse depth by [`REL_MARGIN`] of themselves, [`SPAN_MARGIN`] of
 //!    their span and [`STEP_MARGIN`] plane steps (the sweep's resolution). `far` is
 //!    infinite when its inverse depth falls to [`INFINITE_FAR_FRACTION`] of near's or
-//!    below. The points within the bounds (at most [`MAX_POINTS`], subsampled with a fixed
+//!    below: a far bound too near leaves distant, weakly textured surfaces (that no
+//!    matcher finds) without a plane, one too far costs at most that fraction of the
+//!    planes. The points within the bounds (at most [`MAX_POINTS`], subsampled with a fixed
 //!    stride; points at infinity placed at the depth of half a plane step) become the
 //!    scene's sparse points, so that per-target pruning gets per-view ranges too.
 //!
 //! Deterministic: references, neighbours and planes are fixed by the poses, the references
 //! are processed independently and their points concatenated in order. Nothing is written.
+//!
+//! # Limits
+//! Surfaces without texture at the matching scale give no points: a scene whose nearest
+//! or farthest surfaces are plain gets bounds that miss them (a procedural scene whose
+//! backdrop is smooth noise, for one, gets a far bound of 23 against a true 1124); pass
+//! `--near`/`--far` then. Cost: about 2 s for a 10-view 160x120 scene, 1.8 s for a 302-view
+//! video at 480x270 and 5 s for 67 views at 1080x1920 (decoding the full-size JPEGs
+//! dominates) on 2 cores.
 
 use super::View;
 use crate::camera::Camera;

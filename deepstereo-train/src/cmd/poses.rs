@@ -55,6 +55,11 @@ pub struct Args {
     /// smaller values admit forward-facing, small-baseline captures (COLMAP's default 16).
     #[arg(long, default_value_t = 4.0)]
     pub init_tri_angle: f64,
+    /// Known focal length in pixels of the images (fixed, not refined); the principal
+    /// point is the image centre. Without it COLMAP estimates the focal length, which
+    /// small or object-centred sets can get wrong.
+    #[arg(long)]
+    pub focal: Option<f64>,
     /// Threads COLMAP may use (default: the machine's cores).
     #[arg(long)]
     pub threads: Option<usize>,
@@ -78,6 +83,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     if !(args.init_tri_angle > 0.0 && args.init_tri_angle < 90.0) {
         bail!("--init-tri-angle must be between 0 and 90 degrees");
+    }
+    if args.focal.is_some_and(|f| !(f.is_finite() && f > 0.0)) {
+        bail!("--focal must be a positive number of pixels");
     }
     if args.max_size == 0 {
         bail!("--max-size must be positive");
@@ -140,6 +148,23 @@ fn list_images(dir: &Path) -> anyhow::Result<Vec<PathBuf>> {
         image_size(p)?;
     }
     Ok(out)
+}
+
+/// COLMAP's parameter list for `model` with focal length `f`, the principal point at the
+/// centre of a `w x h` image and no distortion.
+fn camera_params(model: &str, f: f64, w: u32, h: u32) -> String {
+    let (cx, cy) = (0.5 * w as f64, 0.5 * h as f64);
+    let v: Vec<f64> = match model {
+        "PINHOLE" => vec![f, f, cx, cy],
+        "SIMPLE_RADIAL" => vec![f, cx, cy, 0.0],
+        "RADIAL" => vec![f, cx, cy, 0.0, 0.0],
+        "OPENCV" => vec![f, f, cx, cy, 0.0, 0.0, 0.0, 0.0],
+        _ => vec![f, cx, cy],
+    };
+    v.iter()
+        .map(|x| x.to_string())
+        .collect::<Vec<_>>()
+        .join(",")
 }
 
 /// A fresh temporary directory next to `out` (same file system, so the final rename is
@@ -210,12 +235,31 @@ fn build(args: &Args, images: &[PathBuf], tmp: &Path) -> anyhow::Result<()> {
         }
         Ok(())
     })?;
+    let params = match args.focal {
+        Some(f) => {
+            let (w, h) = image_size(&images[0])?;
+            Some(camera_params(&args.camera_model, f, w, h))
+        }
+        None => None,
+    };
     stage(2, "feature extraction", || {
-        colmap.extract(&db, &img_dir, &args.camera_model, args.max_size)
+        colmap.extract(
+            &db,
+            &img_dir,
+            &args.camera_model,
+            params.as_deref(),
+            args.max_size,
+        )
     })?;
     stage(3, "matching", || colmap.do_match(&db, args.matcher))?;
     stage(4, "mapping", || {
-        colmap.map(&db, &img_dir, &work, args.init_tri_angle)
+        colmap.map(
+            &db,
+            &img_dir,
+            &work,
+            args.init_tri_angle,
+            args.focal.is_none(),
+        )
     })?;
     let sparse = tmp.join("sparse").join("0");
     let names = stage(5, "writing the model", || {
