@@ -8,6 +8,7 @@ pub mod inspect;
 pub mod model_args;
 pub mod render;
 pub mod report;
+pub mod samples;
 pub mod sweep;
 pub mod synth;
 pub mod train;
@@ -46,6 +47,8 @@ pub enum Command {
     Forward(forward::Args),
     /// Write procedural posed scenes (images, exact depths, transforms.json) for training.
     Synth(synth::Args),
+    /// Write the trainer's samples as numbered safetensors shards (for train_ddp.py).
+    Samples(samples::Args),
 }
 
 /// Runs one parsed command line.
@@ -61,6 +64,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Export(a) => export::run(a),
         Command::Forward(a) => forward::run(a),
         Command::Synth(a) => synth::run(a),
+        Command::Samples(a) => samples::run(a),
     }
 }
 
