@@ -6,9 +6,12 @@ For `tiny` (the paper's family) and `nviews` (any number of views, 2-5 per shard
 the same Rust-initialised weights (`deepstereo train --steps 0`) and the shards of
 `deepstereo samples` with the trainer's seed and a shard size equal to its batch:
 
-(a) `deepstereo train` (candle) and `train_ddp.py` (one process) for STEPS steps, Adam and
-    Adagrad, give the same weights (every tensor within 1e-5 of its largest magnitude):
-    the same samples and the same update;
+(a) the update: `examples/candle_step` (candle, optim.rs) takes STEPS steps and writes
+    its gradients; `optim_ref.py` applied to the same gradients gives the same weights
+    (Adam and Adagrad, every tensor within 1e-6 of its largest magnitude); the gradients
+    of PyTorch on the same batch agree with candle's (1e-4 over all tensors); and one step
+    of `deepstereo train` (the online sampler) equals one step of `train_ddp.py` on the
+    shards (every tensor within 1e-5 relative): the shards are the trainer's batches;
 (b) `torchrun --nproc-per-node 2` (gloo, CPU) with half the batch per process gives the
     weights of one process with the whole batch;
 (c) a DDP run stopped at a checkpoint and resumed gives the weights of the uninterrupted
@@ -31,19 +34,33 @@ import time
 from pathlib import Path
 
 import torch
-from safetensors.torch import load_file
+from safetensors.torch import load_file, save_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import deepstereo_ref as ref  # noqa: E402
 import train_ddp  # noqa: E402
+from optim_ref import RefOptimizer  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 WEIGHT_TOL = 1e-5
 IMAGE_TOL = 1e-4
 SEED = 3
 BATCH = 4  # the global batch, and the shard size
-STEPS = 2
-LR = {"adam": 1e-3, "adagrad": 5e-4}
+STEPS = 2  # steps of the update check (a); (b) and (c) run STEPS + 1
+# The update check feeds candle's gradients to optim_ref.py: the same float32 operations,
+# so the weights agree to rounding.
+UPDATE_LR = 1e-3
+UPDATE_TOL = 1e-6
+# The runs that compute their own gradients (candle against PyTorch, 2 processes against
+# 1) use a smaller rate: Adam's and Adagrad's first steps are about lr * sign(g), so a
+# weight whose gradient is at float32's noise floor (dead ReLUs, biases a softmax ignores:
+# two thirds of tiny's select.merge.0 gradients are under 1e-7 at init) can move by up to
+# lr differently in two correct implementations; that difference scales with lr.
+LR = 1e-4
+# Gradients of candle and PyTorch on the same batch, all tensors together: candle sums its
+# float32 reductions in order (the output bias sums ~7e4 terms), PyTorch pairwise, so they
+# differ by a few 1e-5 (measured 3.4e-5 for tiny, 2.0e-5 for nviews).
+GRAD_TOL = 1e-4
 # Scenes and sampling shared by `train` and `samples` (small, to keep the check short).
 SCENES = ["--synthetic", "2", "--synth-size", "64x48", "--synth-views", "6"]
 FAMILIES = {"tiny": [], "nviews": ["--views", "2-5"]}
@@ -72,6 +89,9 @@ def worst(a: Path, b: Path) -> tuple[float, str]:
 class Check:
     def __init__(self, binary: Path, work: Path):
         self.bin, self.work = binary, work
+        self.example = binary.parent / "examples" / "candle_step"
+        if not self.example.is_file():
+            raise SystemExit(f"error: {self.example} not found: build it with `cargo build --release -p deepstereo-train --examples`")
         self.failures: list[str] = []
 
     def expect(self, ok: bool, msg: str) -> None:
@@ -82,6 +102,17 @@ class Check:
     def same_weights(self, what: str, a: Path, b: Path, tol: float = WEIGHT_TOL) -> None:
         d, name = worst(a, b)
         self.expect(d <= tol, f"{what}: worst tensor {name} differs by {d:.2e} relative (tolerance {tol:.0e})")
+
+    def same_gradients(self, preset: str, net: ref.DeepStereo, x: dict, candle: dict) -> None:
+        net.zero_grad()
+        loss = (net([x[f"level{l}"] for l in range(net.cfg.levels)])[0] - x["target"]).abs().mean()
+        loss.backward()
+        diff = sum(float((p.grad.double() - candle[k].double()).square().sum()) for k, p in net.named_parameters())
+        norm = sum(float(candle[k].double().square().sum()) for k, _ in net.named_parameters())
+        rel = (diff / max(norm, 1e-30)) ** 0.5
+        per = max((float((p.grad - candle[k]).norm() / max(float(candle[k].norm()), 1e-30)), k) for k, p in net.named_parameters())
+        self.expect(rel <= GRAD_TOL, f"{preset}: gradients of candle and PyTorch on shard 0: {rel:.2e} relative over all tensors (tolerance {GRAD_TOL:.0e}; worst tensor {per[1]} {per[0]:.1e})")
+        net.zero_grad()
 
     def ddp(self, args: list, procs: int = 1) -> None:
         if procs == 1:
@@ -100,16 +131,33 @@ class Check:
         run([self.bin, "samples", *common, "--count", BATCH * (STEPS + 2), "--shard-size", BATCH, "--out", shards], "samples")
         views = sorted({train_ddp.metadata_of(p)["views"] for p in shards.glob("shard-*")})
         print(f"== {preset}: shards of {BATCH} samples, views {', '.join(views)}", flush=True)
-        # (a) candle against one PyTorch process.
+        # (a) the update: optim_ref.py on candle's own gradients gives candle's weights.
+        x0 = load_file(str(shards / "shard-00000.safetensors"))
         for opt in ("adam", "adagrad"):
-            hyper = ["--optimizer", opt, "--lr", LR[opt], "--steps", STEPS]
+            ex = w / f"example-{opt}"
+            run([self.example, init, opt, UPDATE_LR, ex, *[shards / f"shard-{s:05}.safetensors" for s in range(STEPS)]], "example candle_step")
+            net = ref.load(str(init))
+            ro = RefOptimizer(opt, UPDATE_LR, list(net.named_parameters()))
+            for s in range(STEPS):
+                g = load_file(str(ex / f"grads-{s}.safetensors"))
+                if s == 0 and opt == "adam":
+                    self.same_gradients(preset, net, x0, g)
+                for k, p in net.named_parameters():
+                    p.grad = g[k].clone()
+                ro.step()
+            mine = ex / "torch.safetensors"
+            save_file({k: v.detach().contiguous() for k, v in net.state_dict().items()}, str(mine))
+            self.same_weights(f"{preset} {opt}: optim_ref.py on candle's gradients, {STEPS} steps at lr {UPDATE_LR:g}", mine, ex / "model.safetensors", UPDATE_TOL)
+        # (a) end to end: `deepstereo train` (online sampler) against train_ddp.py on the shards.
+        for opt in ("adam", "adagrad"):
+            hyper = ["--optimizer", opt, "--lr", LR, "--steps", 1]
             run([self.bin, "train", *common, *hyper, "--batch", BATCH, "--val-scenes", "0", "--val-batches", "0", "--no-progress", "--out", w / f"candle-{opt}"], "train")
             self.ddp(["--shards", shards, "--init", init, *hyper, "--batch", BATCH, "--out", w / f"torch-{opt}"])
-            self.same_weights(f"{preset} {opt}: candle and PyTorch after {STEPS} steps", w / f"torch-{opt}" / "model.safetensors", w / f"candle-{opt}" / "model.safetensors")
+            self.same_weights(f"{preset} {opt}: one step of `deepstereo train` and of train_ddp.py", w / f"torch-{opt}" / "model.safetensors", w / f"candle-{opt}" / "model.safetensors")
         # (b) two processes against one, the same global batch.
-        hyper = ["--shards", shards, "--init", init, "--optimizer", "adam", "--lr", LR["adam"], "--batch", BATCH // 2]
+        hyper = ["--shards", shards, "--init", init, "--optimizer", "adam", "--lr", LR, "--batch", BATCH // 2]
         steps = STEPS + 1
-        self.ddp(["--shards", shards, "--init", init, "--optimizer", "adam", "--lr", LR["adam"], "--batch", BATCH, "--steps", steps, "--out", w / "one"])
+        self.ddp(["--shards", shards, "--init", init, "--optimizer", "adam", "--lr", LR, "--batch", BATCH, "--steps", steps, "--out", w / "one"])
         self.ddp([*hyper, "--steps", steps, "--out", w / "two"], procs=2)
         self.same_weights(f"{preset}: 2 processes x {BATCH // 2} and 1 x {BATCH}, {steps} steps", w / "two" / "model.safetensors", w / "one" / "model.safetensors")
         # (c) resumed against uninterrupted, both in two processes.

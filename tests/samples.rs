@@ -45,7 +45,10 @@ fn shard(dir: &Path, i: usize) -> std::path::PathBuf {
 
 fn assert_same_shards(a: &Path, b: &Path) {
     for i in 0..SHARDS {
-        let (x, y) = (read_safetensors(&shard(a, i)), read_safetensors(&shard(b, i)));
+        let (x, y) = (
+            read_safetensors(&shard(a, i)),
+            read_safetensors(&shard(b, i)),
+        );
         assert_eq!(
             x.keys().collect::<Vec<_>>(),
             ["level0", "level1", "target"],
@@ -75,17 +78,26 @@ fn same_seed_same_shards_and_reruns_keep_complete_ones() {
         .expect("config JSON");
     assert_eq!(cfg["name"], "tiny");
     // Different shards hold different samples.
-    let (s0, s1) = (read_safetensors(&shard(&a, 0)), read_safetensors(&shard(&a, 1)));
+    let (s0, s1) = (
+        read_safetensors(&shard(&a, 0)),
+        read_safetensors(&shard(&a, 1)),
+    );
     assert!(s0["target"].bytes != s1["target"].bytes);
 
     // A rerun with everything in place writes nothing.
     let before: Vec<_> = (0..SHARDS)
-        .map(|i| std::fs::metadata(shard(&a, i)).and_then(|m| m.modified()).expect("mtime"))
+        .map(|i| {
+            std::fs::metadata(shard(&a, i))
+                .and_then(|m| m.modified())
+                .expect("mtime")
+        })
         .collect();
     let res = samples(&a);
     assert!(res.stderr.contains("all 3 shards"), "{}", res.stderr);
     for (i, t) in before.iter().enumerate() {
-        let now = std::fs::metadata(shard(&a, i)).and_then(|m| m.modified()).expect("mtime");
+        let now = std::fs::metadata(shard(&a, i))
+            .and_then(|m| m.modified())
+            .expect("mtime");
         assert_eq!(*t, now, "shard {i} was rewritten");
     }
 
@@ -94,8 +106,14 @@ fn same_seed_same_shards_and_reruns_keep_complete_ones() {
     let bytes = std::fs::read(shard(&a, 2)).expect("read");
     std::fs::write(shard(&a, 2), &bytes[..bytes.len() / 2]).expect("truncate");
     let res = samples(&a);
-    assert!(res.stderr.contains("writing 2 of 3 shards (1 complete)"), "{}", res.stderr);
-    let kept = std::fs::metadata(shard(&a, 1)).and_then(|m| m.modified()).expect("mtime");
+    assert!(
+        res.stderr.contains("writing 2 of 3 shards (1 complete)"),
+        "{}",
+        res.stderr
+    );
+    let kept = std::fs::metadata(shard(&a, 1))
+        .and_then(|m| m.modified())
+        .expect("mtime");
     assert_eq!(kept, before[1], "the complete shard was rewritten");
     assert_same_shards(&a, &b);
     for e in std::fs::read_dir(&a).expect("dir") {

@@ -36,7 +36,8 @@ pub const SAMPLES_KEY: &str = "samples";
 pub const TARGET_NAME: &str = "target";
 
 #[derive(Debug, clap::Args)]
-#[command(after_help = "Shard b holds batch b of `deepstereo train` with the same scenes, \
+#[command(
+    after_help = "Shard b holds batch b of `deepstereo train` with the same scenes, \
 --seed, --views, --augment, --synthetic-percent and --batch = --shard-size: tensors \
 `level0..level{L-1}` ([K, D, 4V, H_l, W_l], or [K, D, V, 4, H_l, W_l] for the \
 any-number-of-views family) and `target` ([K, 3, t, t]), f32; metadata `deepstereo.config` \
@@ -44,7 +45,8 @@ any-number-of-views family) and `target` ([K, 3, t, t]), f32; metadata `deepster
 `samples`, `format` = deepstereo-samples-v1 and `deepstereo.samples` (the options). A shard \
 is also a valid `deepstereo forward --inputs` file. Shards are written in parallel and \
 atomically; rerunning the same command keeps complete shards and writes the missing ones \
-(a shard made with other options is an error: choose another --out).")]
+(a shard made with other options is an error: choose another --out)."
+)]
 pub struct Args {
     /// Scene directories (any readable format), or directories of scenes such as
     /// `deepstereo synth` writes. May be repeated and combined with --synthetic.
@@ -149,7 +151,8 @@ fn check_shard(
         .chain(std::iter::once(TARGET_NAME.to_string()));
     for name in names {
         match st.tensor(&name) {
-            Ok(v) if v.dtype() == safetensors::Dtype::F32 && v.shape().first() == Some(&samples) => {}
+            Ok(v)
+                if v.dtype() == safetensors::Dtype::F32 && v.shape().first() == Some(&samples) => {}
             Ok(v) => {
                 return Ok(Existing::Incomplete(format!(
                     "tensor '{name}' has shape {:?}",
