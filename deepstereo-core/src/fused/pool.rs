@@ -56,17 +56,17 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
                     for (ch, mc) in m.chunks_exact_mut(p).enumerate() {
                         let rgb = &xi[(k * 4 + ch) * p..][..p];
                         for j in 0..p {
-                            mc[j] = mc[j] + a[j] * rgb[j];
+                            mc[j] += a[j] * rgb[j];
                         }
                     }
                     for j in 0..p {
-                        cover[j] = cover[j] + a[j];
+                        cover[j] += a[j];
                     }
                 }
                 for j in 0..p {
                     let den = cover[j] + cast(POOL_EPS);
                     for ch in 0..3 {
-                        m[ch * p + j] = m[ch * p + j] / den;
+                        m[ch * p + j] /= den;
                     }
                     cover[j] = cover[j] / (cover[j] + T::one());
                 }
