@@ -68,16 +68,18 @@ def main() -> int:
             run([sys.executable, ROOT / "python" / "train_ddp.py", *ddp, "--batch", a.batch, "--out", w / preset / "one"])
             row["ddp1"] = rate(w / preset / "one" / "log.jsonl")
             env = dict(os.environ, OMP_NUM_THREADS="1")
+            run([sys.executable, ROOT / "python" / "train_ddp.py", *ddp, "--batch", a.batch, "--threads", "1", "--out", w / preset / "one-1t"], env)
+            row["ddp1_1t"] = rate(w / preset / "one-1t" / "log.jsonl")
             launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2"]
             run([*launcher, ROOT / "python" / "train_ddp.py", *ddp, "--batch", a.batch // 2, "--out", w / preset / "two"], env)
             row["ddp2"] = rate(w / preset / "two" / "log.jsonl")
             rows.append(row)
             print(f"{preset}: {row}", file=sys.stderr, flush=True)
     print(f"\ncpu cores: {os.cpu_count()}; global batch {a.batch}; {a.steps} steps; Adam; median samples/s over windows of {WINDOW} steps after the first\n")
-    print("| config | candle `train` | train_ddp.py, 1 process | train_ddp.py, 2 processes (gloo) | `deepstereo samples` writing |")
-    print("|---|---|---|---|---|")
+    print("| config | candle `train` | train_ddp.py, 1 process x all cores | train_ddp.py, 1 process x 1 thread | train_ddp.py, 2 processes x 1 thread (gloo) | `deepstereo samples` writing |")
+    print("|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['config']} | {r['candle']:.1f} | {r['ddp1']:.1f} | {r['ddp2']:.1f} | {r['samples_s_write']:.0f} |")
+        print(f"| {r['config']} | {r['candle']:.1f} | {r['ddp1']:.1f} | {r['ddp1_1t']:.1f} | {r['ddp2']:.1f} | {r['samples_s_write']:.0f} |")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
     return 0
