@@ -40,4 +40,7 @@ cargo test --release --workspace
 
 echo "== Python parity (candle vs PyTorch vs onnxruntime vs ort)"
 "$VENV/bin/python" python/parity.py --bin "$ROOT/target/release/deepstereo"
+
+echo "== DDP training (train_ddp.py against candle; torchrun, 2 processes, gloo; resume)"
+"$VENV/bin/python" python/ddp_check.py --bin "$ROOT/target/release/deepstereo"
 echo "== all tests passed"

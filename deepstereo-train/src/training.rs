@@ -128,28 +128,47 @@ pub fn psnr_from_mse(mse: f64) -> f64 {
     -10.0 * mse.max(1e-12).log10()
 }
 
-fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<SceneData>)> {
-    let levels = run.config.levels;
-    let synth = SynthOptions {
-        views: run.synth_views,
-        width: run.synth_width,
-        height: run.synth_height,
-        ..SynthOptions::default()
-    };
+/// The training scenes of a run, in the order the sampler indexes them: the scenes of
+/// every `data` directory (sorted within each), then `synthetic` procedural scenes of
+/// `seed`. `deepstereo samples` and the trainer share this, so they draw the same samples.
+pub fn training_scenes(
+    data: &[PathBuf],
+    synthetic: usize,
+    synth: &SynthOptions,
+    seed: u64,
+    levels: usize,
+) -> Result<Vec<SceneData>> {
     let mut train = Vec::new();
-    for dir in &run.data {
+    for dir in data {
         for d in crate::cmd::scene_dirs(dir)? {
             train.push(
                 SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?,
             );
         }
     }
-    if run.synthetic > 0 {
-        train.extend(synth_scenes(run.synthetic, run.seed, &synth, levels)?);
+    if synthetic > 0 {
+        train.extend(synth_scenes(synthetic, seed, synth, levels)?);
     }
     if train.is_empty() {
         bail!("no training scenes: pass --data DIR or --synthetic N");
     }
+    Ok(train)
+}
+
+/// The procedural scene options of a run.
+pub fn synth_options(run: &RunOptions) -> SynthOptions {
+    SynthOptions {
+        views: run.synth_views,
+        width: run.synth_width,
+        height: run.synth_height,
+        ..SynthOptions::default()
+    }
+}
+
+fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<SceneData>)> {
+    let levels = run.config.levels;
+    let synth = synth_options(run);
+    let train = training_scenes(&run.data, run.synthetic, &synth, run.seed, levels)?;
     let mut val = if run.synthetic > 0 {
         synth_scenes(run.val_scenes, run.seed ^ VALIDATION_SALT, &synth, levels)?
     } else {

@@ -9,6 +9,7 @@ pub mod model_args;
 pub mod poses;
 pub mod render;
 pub mod report;
+pub mod samples;
 pub mod sweep;
 pub mod synth;
 pub mod train;
@@ -49,6 +50,8 @@ pub enum Command {
     Synth(synth::Args),
     /// Find camera poses for a folder of photographs with COLMAP; writes a COLMAP scene.
     Poses(poses::Args),
+    /// Write the trainer's samples as numbered safetensors shards (for train_ddp.py).
+    Samples(samples::Args),
 }
 
 /// Runs one parsed command line.
@@ -65,6 +68,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Forward(a) => forward::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Poses(a) => poses::run(a),
+        Command::Samples(a) => samples::run(a),
     }
 }
 

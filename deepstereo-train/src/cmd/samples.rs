@@ -1,0 +1,263 @@
+//! `deepstereo samples`: the trainer's samples written to disk as numbered safetensors
+//! shards, for other trainers (`python/train_ddp.py`, PyTorch DistributedDataParallel).
+//!
+//! Shard `b` is exactly batch `b` of `deepstereo train` with the same scenes, `--seed`,
+//! `--views`, `--augment` and `--synthetic-percent` and `--batch` equal to `--shard-size`
+//! (it calls the same sampler, `data::make_batch`, with batch index `b`). Every shard is
+//! written atomically; a rerun keeps the shards that are complete (they parse, hold the
+//! expected tensors and were made with the same options) and writes the rest.
+
+use super::train::{load_config, parse_range, parse_size};
+use crate::data::{make_batch, Sampling};
+use crate::training::training_scenes;
+use anyhow::{bail, Context};
+use deepstereo_core::config::Config;
+use deepstereo_core::synth::SynthOptions;
+use deepstereo_core::tensorio::{write_safetensors, NamedArray};
+use deepstereo_core::weights::CONFIG_KEY;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// Metadata key of the format of a shard.
+pub const FORMAT_KEY: &str = "format";
+/// Value of [`FORMAT_KEY`] in a shard.
+pub const SHARD_FORMAT: &str = "deepstereo-samples-v1";
+/// Metadata key of the options that made a shard (JSON of [`SampleOptions`]).
+pub const OPTIONS_KEY: &str = "deepstereo.samples";
+/// Metadata key of the source views of every sample in a shard.
+pub const VIEWS_KEY: &str = "views";
+/// Metadata key of the shard's index (its batch index in the sampler).
+pub const SHARD_KEY: &str = "shard";
+/// Metadata key of the number of samples in the shard.
+pub const SAMPLES_KEY: &str = "samples";
+/// Name of the target tensor in a shard (inputs are `level0..`).
+pub const TARGET_NAME: &str = "target";
+
+#[derive(Debug, clap::Args)]
+#[command(
+    after_help = "Shard b holds batch b of `deepstereo train` with the same scenes, \
+--seed, --views, --augment, --synthetic-percent and --batch = --shard-size: tensors \
+`level0..level{L-1}` ([K, D, 4V, H_l, W_l], or [K, D, V, 4, H_l, W_l] for the \
+any-number-of-views family) and `target` ([K, 3, t, t]), f32; metadata `deepstereo.config` \
+(the model config JSON), `views` (V, the same for every sample of a shard), `shard`, \
+`samples`, `format` = deepstereo-samples-v1 and `deepstereo.samples` (the options). A shard \
+is also a valid `deepstereo forward --inputs` file. Shards are written in parallel and \
+atomically; rerunning the same command keeps complete shards and writes the missing ones \
+(a shard made with other options is an error: choose another --out)."
+)]
+pub struct Args {
+    /// Scene directories (any readable format), or directories of scenes such as
+    /// `deepstereo synth` writes. May be repeated and combined with --synthetic.
+    #[arg(long, num_args = 1..)]
+    pub data: Vec<PathBuf>,
+    /// Also generate this many procedural scenes in memory (seeded by --seed).
+    #[arg(long, default_value_t = 0)]
+    pub synthetic: usize,
+    /// Size of procedural scenes' images, WxH.
+    #[arg(long, default_value = "160x120")]
+    pub synth_size: String,
+    /// Views per procedural scene.
+    #[arg(long, default_value_t = 10)]
+    pub synth_views: usize,
+    /// Model config: a preset (`tiny`, `paper`, `nviews`) or a JSON file of a Config.
+    #[arg(long, default_value = "tiny")]
+    pub config: String,
+    /// Source views per sample, `K` or a range `MIN-MAX` drawn afresh for every shard
+    /// (the any-number-of-views family). Default: the config's views.
+    #[arg(long)]
+    pub views: Option<String>,
+    /// Photometric augmentation and random horizontal flips, as `train --augment`.
+    #[arg(long)]
+    pub augment: bool,
+    /// Percent of samples drawn from the procedural scenes when real ones are there too.
+    #[arg(long)]
+    pub synthetic_percent: Option<u32>,
+    /// Total number of samples (the last shard holds the remainder).
+    #[arg(long)]
+    pub count: usize,
+    /// Seed of the samples (and of the procedural scenes), as `train --seed`.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Samples per shard (`train --batch` of the matching candle run).
+    #[arg(long, default_value_t = 8)]
+    pub shard_size: usize,
+    /// Output directory: `shard-00000.safetensors`, `shard-00001.safetensors`, ...
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// What decides a shard's content (stored in every shard; a rerun must match).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SampleOptions {
+    pub data: Vec<PathBuf>,
+    pub synthetic: usize,
+    pub synth_width: u32,
+    pub synth_height: u32,
+    pub synth_views: usize,
+    pub views: (usize, usize),
+    pub augment: bool,
+    pub synthetic_percent: Option<u32>,
+    pub seed: u64,
+    pub shard_size: usize,
+}
+
+/// The file name of shard `i`.
+pub fn shard_name(i: usize) -> String {
+    format!("shard-{i:05}.safetensors")
+}
+
+/// Why an existing shard is not kept.
+enum Existing {
+    Missing,
+    Incomplete(String),
+    Complete,
+}
+
+/// Checks the shard at `path`: it parses, holds every tensor with `samples` samples and
+/// was made with `opts` and `cfg` (a complete shard made otherwise is an error).
+fn check_shard(
+    path: &Path,
+    cfg: &Config,
+    opts_json: &str,
+    cfg_json: &str,
+    samples: usize,
+) -> anyhow::Result<Existing> {
+    if !path.exists() {
+        return Ok(Existing::Missing);
+    }
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let st = match safetensors::SafeTensors::deserialize(&bytes) {
+        Ok(st) => st,
+        Err(e) => return Ok(Existing::Incomplete(format!("does not parse ({e})"))),
+    };
+    let (_, meta) = match safetensors::SafeTensors::read_metadata(&bytes) {
+        Ok(m) => m,
+        Err(e) => return Ok(Existing::Incomplete(format!("no metadata ({e})"))),
+    };
+    let m = meta.metadata().clone().unwrap_or_default();
+    let same = m.get(OPTIONS_KEY).map(String::as_str) == Some(opts_json)
+        && m.get(CONFIG_KEY).map(String::as_str) == Some(cfg_json);
+    if !same {
+        bail!(
+            "{} was written with other options or another config: choose another --out \
+             (or delete the shards)",
+            path.display()
+        );
+    }
+    let names = (0..cfg.levels)
+        .map(deepstereo_export::input_name)
+        .chain(std::iter::once(TARGET_NAME.to_string()));
+    for name in names {
+        match st.tensor(&name) {
+            Ok(v)
+                if v.dtype() == safetensors::Dtype::F32 && v.shape().first() == Some(&samples) => {}
+            Ok(v) => {
+                return Ok(Existing::Incomplete(format!(
+                    "tensor '{name}' has shape {:?}",
+                    v.shape()
+                )))
+            }
+            Err(_) => return Ok(Existing::Incomplete(format!("no tensor '{name}'"))),
+        }
+    }
+    Ok(Existing::Complete)
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    let cfg = load_config(&a.config)?;
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    if a.count == 0 || a.shard_size == 0 {
+        bail!("--count and --shard-size must be at least 1");
+    }
+    let (w, h) = parse_size(&a.synth_size)?;
+    let sampling = Sampling {
+        views: match a.views.as_deref() {
+            Some(s) => parse_range(s)?,
+            None => (cfg.views, cfg.views),
+        },
+        synthetic_percent: a.synthetic_percent,
+        augment: a.augment,
+    };
+    sampling.check(&cfg)?;
+    let opts = SampleOptions {
+        data: a.data.clone(),
+        synthetic: a.synthetic,
+        synth_width: w,
+        synth_height: h,
+        synth_views: a.synth_views,
+        views: sampling.views,
+        augment: a.augment,
+        synthetic_percent: a.synthetic_percent,
+        seed: a.seed,
+        shard_size: a.shard_size,
+    };
+    let opts_json = serde_json::to_string(&opts)?;
+    let cfg_json = serde_json::to_string(&cfg)?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create {}", a.out.display()))?;
+    let shards = a.count.div_ceil(a.shard_size);
+    let size_of = |i: usize| a.shard_size.min(a.count - i * a.shard_size);
+    let mut todo = Vec::new();
+    for i in 0..shards {
+        let path = a.out.join(shard_name(i));
+        match check_shard(&path, &cfg, &opts_json, &cfg_json, size_of(i))? {
+            Existing::Complete => {}
+            Existing::Missing => todo.push(i),
+            Existing::Incomplete(why) => {
+                eprintln!("{}: {why}: writing it again", path.display());
+                todo.push(i);
+            }
+        }
+    }
+    let kept = shards - todo.len();
+    if todo.is_empty() {
+        eprintln!("all {shards} shards in {} are complete", a.out.display());
+        return Ok(());
+    }
+    let t0 = std::time::Instant::now();
+    let synth = SynthOptions {
+        views: a.synth_views,
+        width: w,
+        height: h,
+        ..SynthOptions::default()
+    };
+    let scenes = training_scenes(&a.data, a.synthetic, &synth, a.seed, cfg.levels)?;
+    eprintln!(
+        "{} scenes ({:.1} s); writing {} of {shards} shards ({kept} complete)",
+        scenes.len(),
+        t0.elapsed().as_secs_f64(),
+        todo.len()
+    );
+    todo.par_iter().try_for_each(|&i| -> anyhow::Result<()> {
+        let b = make_batch(&cfg, &sampling, &scenes, a.seed, i as u64, size_of(i))?;
+        let mut arrays: Vec<NamedArray> = b
+            .levels
+            .iter()
+            .zip(&b.level_shapes)
+            .enumerate()
+            .map(|(l, (d, s))| NamedArray::f32(&deepstereo_export::input_name(l), s, d))
+            .collect();
+        arrays.push(NamedArray::f32(TARGET_NAME, &b.target_shape, &b.target));
+        let meta = HashMap::from([
+            (CONFIG_KEY.to_string(), cfg_json.clone()),
+            (FORMAT_KEY.to_string(), SHARD_FORMAT.to_string()),
+            (OPTIONS_KEY.to_string(), opts_json.clone()),
+            (VIEWS_KEY.to_string(), b.views.to_string()),
+            (SHARD_KEY.to_string(), i.to_string()),
+            (SAMPLES_KEY.to_string(), size_of(i).to_string()),
+        ]);
+        write_safetensors(&a.out.join(shard_name(i)), &arrays, Some(meta))?;
+        Ok(())
+    })?;
+    let secs = t0.elapsed().as_secs_f64();
+    let n: usize = todo.iter().map(|&i| size_of(i)).sum();
+    eprintln!(
+        "wrote {} shards ({n} samples) to {} in {secs:.1} s ({:.0} samples/s); {kept} kept",
+        todo.len(),
+        a.out.display(),
+        n as f64 / secs.max(1e-9)
+    );
+    Ok(())
+}

@@ -1,0 +1,207 @@
+"""Checks of `train_ddp.py` against the candle trainer, for both model families.
+
+    python python/ddp_check.py --bin target/release/deepstereo
+
+For `tiny` (the paper's family) and `nviews` (any number of views, 2-5 per shard), from
+the same Rust-initialised weights (`deepstereo train --steps 0`) and the shards of
+`deepstereo samples` with the trainer's seed and a shard size equal to its batch:
+
+(a) the update: `examples/candle_step` (candle, optim.rs) takes STEPS steps and writes
+    its gradients; `optim_ref.py` applied to the same gradients gives the same weights
+    (Adam and Adagrad, every tensor within 1e-6 of its largest magnitude); the gradients
+    of PyTorch on the same batch agree with candle's (1e-4 over all tensors); and one step
+    of `deepstereo train` (the online sampler) equals one step of `train_ddp.py` on the
+    shards (every tensor within 1e-5 relative): the shards are the trainer's batches;
+(b) `torchrun --nproc-per-node 2` (gloo, CPU) with half the batch per process gives the
+    weights of one process with the whole batch;
+(c) a DDP run stopped at a checkpoint and resumed gives the weights of the uninterrupted
+    DDP run, and its log has one line per step;
+(d) `deepstereo forward --model OUT/model.safetensors` on a shard equals PyTorch's forward
+    of the same file (1e-4), and `deepstereo export --model` takes the file.
+
+Exit status 1 when any check fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import deepstereo_ref as ref  # noqa: E402
+import train_ddp  # noqa: E402
+from optim_ref import RefOptimizer  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+WEIGHT_TOL = 1e-5
+IMAGE_TOL = 1e-4
+SEED = 3
+BATCH = 4  # the global batch, and the shard size
+STEPS = 2  # steps of the update check (a); (b) and (c) run STEPS + 1
+# The update check feeds candle's gradients to optim_ref.py: the same float32 operations,
+# so the weights agree to rounding.
+UPDATE_LR = 1e-3
+UPDATE_TOL = 1e-6
+# The runs that compute their own gradients (candle against PyTorch, 2 processes against
+# 1) use a smaller rate: Adam's and Adagrad's first steps are about lr * sign(g), so a
+# weight whose gradient is at float32's noise floor (dead ReLUs, biases a softmax ignores:
+# two thirds of tiny's select.merge.0 gradients are under 1e-7 at init) can move by up to
+# lr differently in two correct implementations; that difference scales with lr.
+LR = 1e-4
+# Gradients of candle and PyTorch on the same batch, all tensors together: candle sums its
+# float32 reductions in order (the output bias sums ~7e4 terms), PyTorch pairwise, so they
+# differ by a few 1e-5 (measured 3.4e-5 for tiny, 2.0e-5 for nviews).
+GRAD_TOL = 1e-4
+# Scenes and sampling shared by `train` and `samples` (small, to keep the check short).
+SCENES = ["--synthetic", "2", "--synth-size", "64x48", "--synth-views", "6"]
+FAMILIES = {"tiny": [], "nviews": ["--views", "2-5"]}
+
+
+def run(cmd: list, what: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    p = subprocess.run([str(c) for c in cmd], capture_output=True, text=True, env=env)
+    if p.returncode != 0:
+        raise RuntimeError(f"{what} failed ({p.returncode}): {' '.join(map(str, cmd))}\n{p.stdout}\n{p.stderr}")
+    return p
+
+
+def worst(a: Path, b: Path) -> tuple[float, str]:
+    """The largest per-tensor difference of two weights files, relative to the tensor's
+    largest magnitude, and the tensor's name."""
+    x, y = load_file(str(a)), load_file(str(b))
+    if set(x) != set(y):
+        return float("inf"), f"different tensors: {sorted(set(x) ^ set(y))}"
+    out = (0.0, "")
+    for k in sorted(x):
+        d = float((x[k].double() - y[k].double()).abs().max()) / max(float(y[k].double().abs().max()), 1e-12)
+        out = max(out, (d, k))
+    return out
+
+
+class Check:
+    def __init__(self, binary: Path, work: Path):
+        self.bin, self.work = binary, work
+        self.example = binary.parent / "examples" / "candle_step"
+        if not self.example.is_file():
+            raise SystemExit(f"error: {self.example} not found: build it with `cargo build --release -p deepstereo-train --examples`")
+        self.failures: list[str] = []
+
+    def expect(self, ok: bool, msg: str) -> None:
+        print(("ok   " if ok else "FAIL ") + msg, flush=True)
+        if not ok:
+            self.failures.append(msg)
+
+    def same_weights(self, what: str, a: Path, b: Path, tol: float = WEIGHT_TOL) -> None:
+        d, name = worst(a, b)
+        self.expect(d <= tol, f"{what}: worst tensor {name} differs by {d:.2e} relative (tolerance {tol:.0e})")
+
+    def same_gradients(self, preset: str, net: ref.DeepStereo, x: dict, candle: dict) -> None:
+        net.zero_grad()
+        loss = (net([x[f"level{l}"] for l in range(net.cfg.levels)])[0] - x["target"]).abs().mean()
+        loss.backward()
+        diff = sum(float((p.grad.double() - candle[k].double()).square().sum()) for k, p in net.named_parameters())
+        norm = sum(float(candle[k].double().square().sum()) for k, _ in net.named_parameters())
+        rel = (diff / max(norm, 1e-30)) ** 0.5
+        per = max((float((p.grad - candle[k]).norm() / max(float(candle[k].norm()), 1e-30)), k) for k, p in net.named_parameters())
+        self.expect(rel <= GRAD_TOL, f"{preset}: gradients of candle and PyTorch on shard 0: {rel:.2e} relative over all tensors (tolerance {GRAD_TOL:.0e}; worst tensor {per[1]} {per[0]:.1e})")
+        net.zero_grad()
+
+    def ddp(self, args: list, procs: int = 1) -> None:
+        if procs == 1:
+            train_ddp.main([str(a) for a in args])
+            return
+        env = dict(os.environ, OMP_NUM_THREADS="1")
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={procs}", ROOT / "python" / "train_ddp.py"]
+        run(cmd + args, f"torchrun --nproc-per-node {procs}", env)
+
+    def family(self, preset: str, extra: list[str]) -> None:
+        w = self.work / preset
+        common = ["--config", preset, *SCENES, "--seed", SEED, *extra]
+        run([self.bin, "train", *common, "--steps", "0", "--batch", BATCH, "--val-scenes", "0", "--val-batches", "0", "--no-progress", "--out", w / "init"], "train --steps 0")
+        init = w / "init" / "model.safetensors"
+        shards = w / "shards"
+        run([self.bin, "samples", *common, "--count", BATCH * (STEPS + 2), "--shard-size", BATCH, "--out", shards], "samples")
+        views = sorted({train_ddp.metadata_of(p)["views"] for p in shards.glob("shard-*")})
+        print(f"== {preset}: shards of {BATCH} samples, views {', '.join(views)}", flush=True)
+        # (a) the update: optim_ref.py on candle's own gradients gives candle's weights.
+        x0 = load_file(str(shards / "shard-00000.safetensors"))
+        for opt in ("adam", "adagrad"):
+            ex = w / f"example-{opt}"
+            run([self.example, init, opt, UPDATE_LR, ex, *[shards / f"shard-{s:05}.safetensors" for s in range(STEPS)]], "example candle_step")
+            net = ref.load(str(init))
+            ro = RefOptimizer(opt, UPDATE_LR, list(net.named_parameters()))
+            for s in range(STEPS):
+                g = load_file(str(ex / f"grads-{s}.safetensors"))
+                if s == 0 and opt == "adam":
+                    self.same_gradients(preset, net, x0, g)
+                for k, p in net.named_parameters():
+                    p.grad = g[k].clone()
+                ro.step()
+            mine = ex / "torch.safetensors"
+            save_file({k: v.detach().contiguous() for k, v in net.state_dict().items()}, str(mine))
+            self.same_weights(f"{preset} {opt}: optim_ref.py on candle's gradients, {STEPS} steps at lr {UPDATE_LR:g}", mine, ex / "model.safetensors", UPDATE_TOL)
+        # (a) end to end: `deepstereo train` (online sampler) against train_ddp.py on the shards.
+        for opt in ("adam", "adagrad"):
+            hyper = ["--optimizer", opt, "--lr", LR, "--steps", 1]
+            run([self.bin, "train", *common, *hyper, "--batch", BATCH, "--val-scenes", "0", "--val-batches", "0", "--no-progress", "--out", w / f"candle-{opt}"], "train")
+            self.ddp(["--shards", shards, "--init", init, *hyper, "--batch", BATCH, "--out", w / f"torch-{opt}"])
+            self.same_weights(f"{preset} {opt}: one step of `deepstereo train` and of train_ddp.py", w / f"torch-{opt}" / "model.safetensors", w / f"candle-{opt}" / "model.safetensors")
+        # (b) two processes against one, the same global batch.
+        hyper = ["--shards", shards, "--init", init, "--optimizer", "adam", "--lr", LR, "--batch", BATCH // 2]
+        steps = STEPS + 1
+        self.ddp(["--shards", shards, "--init", init, "--optimizer", "adam", "--lr", LR, "--batch", BATCH, "--steps", steps, "--out", w / "one"])
+        self.ddp([*hyper, "--steps", steps, "--out", w / "two"], procs=2)
+        self.same_weights(f"{preset}: 2 processes x {BATCH // 2} and 1 x {BATCH}, {steps} steps", w / "two" / "model.safetensors", w / "one" / "model.safetensors")
+        # (c) resumed against uninterrupted, both in two processes.
+        self.ddp([*hyper, "--steps", 1, "--checkpoint-every", 1, "--log-every", 1, "--out", w / "resumed"], procs=2)
+        self.ddp([*hyper, "--steps", steps, "--log-every", 1, "--resume", "--out", w / "resumed"], procs=2)
+        self.same_weights(f"{preset}: resumed at step 1 and uninterrupted DDP runs", w / "resumed" / "model.safetensors", w / "two" / "model.safetensors", tol=1e-7)
+        log = [json.loads(l) for l in (w / "resumed" / "log.jsonl").read_text().splitlines()]
+        keys = ["step", "loss", "lr", "samples_per_s", "grad_norm", "val_psnr", "skipped", "seconds"]
+        self.expect(
+            [l["step"] for l in log] == list(range(1, steps + 1)) and all(list(l) == keys for l in log) and log[-1]["val_psnr"] is not None,
+            f"{preset}: resumed log has steps 1..{steps} with the trainer's keys and a final validation PSNR",
+        )
+        # (d) the Rust binary runs the DDP output.
+        model = w / "two" / "model.safetensors"
+        inputs = sorted(shards.glob("shard-*"))[-1]
+        run([self.bin, "forward", "--model", model, "--inputs", inputs, "--out", w / "forward.safetensors"], "forward")
+        rust = load_file(str(w / "forward.safetensors"))["image"]
+        x = load_file(str(inputs))
+        net = ref.load(str(model))
+        with torch.no_grad():
+            image = net([x[f"level{l}"] for l in range(net.cfg.levels)])[0]
+        d = float((image - rust).abs().max())
+        self.expect(d <= IMAGE_TOL, f"{preset}: `deepstereo forward` on the DDP model against PyTorch: max difference {d:.2e} (tolerance {IMAGE_TOL:.0e})")
+        run([self.bin, "export", "--model", model, "--out", w / "model.onnx"], "export")
+        self.expect((w / "model.onnx").stat().st_size > 0, f"{preset}: `deepstereo export --model` takes the DDP model")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--bin", type=Path, default=ROOT / "target" / "release" / "deepstereo")
+    ap.add_argument("--keep", type=Path, help="work in this directory and keep it")
+    a = ap.parse_args()
+    if not a.bin.is_file():
+        print(f"error: {a.bin} not found: build it with `cargo build --release -p deepstereo-train`", file=sys.stderr)
+        return 1
+    t0 = time.time()
+    with tempfile.TemporaryDirectory() as tmp:
+        work = a.keep or Path(tmp)
+        c = Check(a.bin.resolve(), work)
+        for preset, extra in FAMILIES.items():
+            c.family(preset, extra)
+    print(f"ddp checks: {len(c.failures)} failures in {time.time() - t0:.0f} s", flush=True)
+    return 1 if c.failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
