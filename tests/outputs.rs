@@ -56,6 +56,12 @@ fn fails(args: &[&str]) -> CmdOutput {
         res.stderr
     );
     assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
+    let err = res
+        .stderr
+        .lines()
+        .find(|l| l.starts_with("error"))
+        .unwrap_or("");
+    eprintln!("deepstereo {}: {err}", args[0]);
     res
 }
 

@@ -72,8 +72,11 @@ pub struct Series {
 const W: i32 = 900;
 const H: i32 = 480;
 const LEFT: i32 = 70;
-/// The legend sits right of the plot area, so that it never hides a point.
+/// The legend sits right of the plot area, so that it never hides a point (at least this
+/// wide; wider for long labels).
 const RIGHT: i32 = 220;
+/// Offset of the legend's text from the plot area's right edge.
+const LEGEND_TEXT: i32 = 32;
 const TOP: i32 = 30;
 const BOTTOM: i32 = 50;
 
@@ -124,6 +127,22 @@ pub const PALETTE: [[f32; 3]; 10] = [
     [0.74, 0.74, 0.13],
     [0.84, 0.15, 0.16],
 ];
+
+/// Colour number `k` beyond the palette: hues a golden angle apart, so none repeats.
+fn extra_colour(k: usize) -> [f32; 3] {
+    let h = (k as f32 * 0.618_034).fract() * 6.0;
+    let (v, s) = (0.75f32, 0.8f32);
+    let f = h - h.floor();
+    let (p, q, t) = (v * (1.0 - s), v * (1.0 - s * f), v * (1.0 - s * (1.0 - f)));
+    match h as u32 {
+        0 => [v, t, p],
+        1 => [q, v, p],
+        2 => [p, v, t],
+        3 => [p, q, v],
+        4 => [t, p, v],
+        _ => [v, p, q],
+    }
+}
 
 /// Marker shapes, one per series in turn (a series' shape is its index modulo these).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -238,14 +257,30 @@ fn tick_labels(ticks: &[f64]) -> Vec<String> {
         .filter(|t| *t > 0.0)
         .fold(f64::MAX, f64::min);
     let need = gap.min(min_abs);
+    // The tolerance keeps a gap of 0.0999999 (0.1 in floating point) at one decimal.
     let decimals = if need.is_finite() && need < 1.0 && need > 0.0 {
-        (-need.log10().floor()) as usize
+        (-need.log10() - 1e-6).ceil() as usize
     } else {
         0
     };
     ticks
         .iter()
         .map(|t| format!("{:.*}", decimals.min(6), t))
+        .collect()
+}
+
+/// Log-axis tick labels: each value with the decimals it needs (0.002, 0.01, 0.5, 2, 10).
+fn log_tick_labels(ticks: &[f64]) -> Vec<String> {
+    ticks
+        .iter()
+        .map(|&t| {
+            let decimals = if t > 0.0 && t < 1.0 {
+                ((-t.log10()).ceil() as usize).min(6)
+            } else {
+                0
+            };
+            format!("{t:.decimals$}")
+        })
         .collect()
 }
 
@@ -261,7 +296,11 @@ fn overlaps(a: Rect, b: Rect) -> bool {
 /// [`PALETTE`]); point labels are placed where they overlap no other label, or left out;
 /// ticks sit at round values, at integers when every x is an integer (step counts).
 pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x: bool) -> RgbImage {
-    let mut img = RgbImage::new(W as u32, H as u32);
+    // The plot area keeps its width; the legend's column grows to fit its longest label.
+    let plot_r = W - RIGHT;
+    let longest = series.iter().map(|s| s.label.len()).max().unwrap_or(0) as i32;
+    let width = W.max(plot_r + LEGEND_TEXT + GLYPH_W * longest + GLYPH_W);
+    let mut img = RgbImage::new(width as u32, H as u32);
     img.data.iter_mut().for_each(|v| *v = 1.0);
     let tx = |x: f64| if log_x { x.max(1e-12).log10() } else { x };
     let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
@@ -281,7 +320,7 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
     }
     let (px, py) = ((x1 - x0).max(1e-9) * 0.05, (y1 - y0).max(1e-9) * 0.08);
     let (x0, x1, y0, y1) = (x0 - px, x1 + px, y0 - py, y1 + py);
-    let sxt = |t: f64| LEFT + ((t - x0) / (x1 - x0) * (W - LEFT - RIGHT) as f64) as i32;
+    let sxt = |t: f64| LEFT + ((t - x0) / (x1 - x0) * (plot_r - LEFT) as f64) as i32;
     let sx = |x: f64| sxt(tx(x));
     let sy = |y: f64| H - BOTTOM - ((y - y0) / (y1 - y0) * (H - TOP - BOTTOM) as f64) as i32;
     let grey = [0.85, 0.85, 0.85];
@@ -291,7 +330,12 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
     } else {
         nice_ticks(x0, x1, integer_x).0
     };
-    for (v, l) in xticks.iter().zip(tick_labels(&xticks)) {
+    let xlabels = if log_x {
+        log_tick_labels(&xticks)
+    } else {
+        tick_labels(&xticks)
+    };
+    for (v, l) in xticks.iter().zip(xlabels) {
         let gx = sx(*v);
         line(&mut img, (gx, TOP), (gx, H - BOTTOM), grey);
         text(
@@ -305,7 +349,7 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
     let yticks = nice_ticks(y0, y1, false).0;
     for (v, l) in yticks.iter().zip(tick_labels(&yticks)) {
         let gy = sy(*v);
-        line(&mut img, (LEFT, gy), (W - RIGHT, gy), grey);
+        line(&mut img, (LEFT, gy), (plot_r, gy), grey);
         text(
             &mut img,
             LEFT - 6 - GLYPH_W * l.len() as i32,
@@ -314,12 +358,12 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
             black,
         );
     }
-    line(&mut img, (LEFT, H - BOTTOM), (W - RIGHT, H - BOTTOM), black);
+    line(&mut img, (LEFT, H - BOTTOM), (plot_r, H - BOTTOM), black);
     line(&mut img, (LEFT, TOP), (LEFT, H - BOTTOM), black);
     text(&mut img, LEFT, 10, title, black);
     text(
         &mut img,
-        (W - GLYPH_W * x_title.len() as i32) / 2,
+        (LEFT + plot_r - GLYPH_W * x_title.len() as i32) / 2,
         H - 18,
         x_title,
         black,
@@ -330,11 +374,8 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
         .iter()
         .map(|s| {
             let c = if used.contains(&s.colour) {
-                PALETTE
-                    .iter()
-                    .find(|p| !used.contains(p))
-                    .copied()
-                    .unwrap_or(s.colour)
+                let spare = PALETTE.iter().find(|p| !used.contains(p)).copied();
+                spare.unwrap_or_else(|| extra_colour(used.len()))
             } else {
                 s.colour
             };
@@ -384,8 +425,7 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
             ];
             let free = candidates.iter().copied().find(|&(lx, ly)| {
                 let rect = (lx - 1, ly - 1, lx + w, ly + h);
-                let inside =
-                    lx >= LEFT + 1 && lx + w < W - RIGHT && ly > TOP && ly + h < H - BOTTOM;
+                let inside = lx >= LEFT + 1 && lx + w < plot_r && ly > TOP && ly + h < H - BOTTOM;
                 inside && !taken.iter().any(|t| overlaps(*t, rect))
             });
             if let Some((lx, ly)) = free {
@@ -397,7 +437,7 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
     for (k, s) in series.iter().enumerate() {
         let c = colours[k];
         let ly = TOP + 6 + 14 * k as i32;
-        let (lx, mid) = (W - RIGHT + 10, ly + 3);
+        let (lx, mid) = (plot_r + 10, ly + 3);
         if s.line {
             line(&mut img, (lx, mid), (lx + 16, mid), c);
             line(&mut img, (lx, mid + 1), (lx + 16, mid + 1), c);
@@ -405,7 +445,7 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
         if s.marker > 0 {
             marker(&mut img, (lx + 8, mid), shape_of(k), s.marker.min(3), c);
         }
-        text(&mut img, W - RIGHT + 32, ly, &s.label, black);
+        text(&mut img, plot_r + LEGEND_TEXT, ly, &s.label, black);
     }
     img
 }
@@ -458,8 +498,15 @@ mod tests {
         let (t, _) = nice_ticks(27.1, 28.3, false);
         let l = tick_labels(&t);
         assert_eq!(l, vec!["27.2", "27.4", "27.6", "27.8", "28.0", "28.2"]);
-        let lt = tick_labels(&log_ticks(0.3f64.log10(), 5.0f64.log10()));
-        assert_eq!(lt, vec!["0.5", "1.0", "2.0", "5.0"]);
+        let lt = log_tick_labels(&log_ticks(0.3f64.log10(), 5.0f64.log10()));
+        assert_eq!(lt, vec!["0.5", "1", "2", "5"]);
+        let lt = log_tick_labels(&log_ticks(0.0015f64.log10(), 0.25f64.log10()));
+        assert_eq!(
+            lt,
+            vec!["0.002", "0.005", "0.01", "0.02", "0.05", "0.1", "0.2"]
+        );
+        let l = tick_labels(&nice_ticks(20.05, 20.55, false).0);
+        assert_eq!(l, vec!["20.1", "20.2", "20.3", "20.4", "20.5"]);
         let mut dedup = lt.clone();
         dedup.dedup();
         assert_eq!(dedup, lt);

@@ -29,6 +29,9 @@ pub struct ViewPictures {
     pub psnr: [f64; 3],
 }
 
+/// Pictures narrower than this are shown enlarged.
+const MIN_SHOWN_WIDTH: u32 = 240;
+
 /// The directory (inside the report's) that holds the best setting's pictures.
 pub const BEST_DIR: &str = "best";
 
@@ -126,13 +129,15 @@ pub fn page(
                 format!("nearest source, {:.2} dB", v.psnr[2]),
             ];
             let _ = writeln!(h, "<h3>View {} ({})</h3>\n<div>", v.target, escape(&v.name));
+            // Small renders are shown enlarged by a whole factor (pixelated, not blurred).
+            let zoom = MIN_SHOWN_WIDTH.div_ceil(v.truth.width.max(1)).max(1);
             for (n, c) in names.iter().zip(&captions) {
                 let _ = writeln!(
                     h,
                     "<figure><img src=\"{BEST_DIR}/{n}\" width=\"{}\" height=\"{}\" alt=\"{}\">\
                      <figcaption>{}</figcaption></figure>",
-                    v.truth.width,
-                    v.truth.height,
+                    v.truth.width * zoom,
+                    v.truth.height * zoom,
                     escape(c),
                     escape(c)
                 );
