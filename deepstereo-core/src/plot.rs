@@ -425,7 +425,7 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
             ];
             let free = candidates.iter().copied().find(|&(lx, ly)| {
                 let rect = (lx - 1, ly - 1, lx + w, ly + h);
-                let inside = lx >= LEFT + 1 && lx + w < plot_r && ly > TOP && ly + h < H - BOTTOM;
+                let inside = lx > LEFT && lx + w < plot_r && ly > TOP && ly + h < H - BOTTOM;
                 inside && !taken.iter().any(|t| overlaps(*t, rect))
             });
             if let Some((lx, ly)) = free {

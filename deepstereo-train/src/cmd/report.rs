@@ -362,6 +362,9 @@ fn grid<T: std::str::FromStr>(
         .collect()
 }
 
+/// A view's [network, plane sweep, nearest] x (PSNR, SSIM) and its pictures.
+type Scored = ([(f64, f64); 3], ViewPictures);
+
 /// One setting's mean scores: the network's and the plane sweep's (PSNR, SSIM, seconds)
 /// and the nearest source's (PSNR, SSIM).
 struct Point {
@@ -416,7 +419,7 @@ fn point(
         });
     };
     // [network, plane sweep, nearest] x (PSNR, SSIM) per view, scored at full resolution.
-    let mut scored: Vec<Result<([(f64, f64); 3], ViewPictures)>> = Vec::new();
+    let mut scored: Vec<Result<Scored>> = Vec::new();
     let r = evaluate(backend, model, small, targets, settings, |v, im| {
         scored.push(
             scene
