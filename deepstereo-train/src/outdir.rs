@@ -22,6 +22,16 @@ impl StagedDir {
         if target.exists() && !target.is_dir() {
             bail!("{}: exists and is not a directory", target.display());
         }
+        // `.`, `..` or `dir/..` have no name of their own: stage beside what they name.
+        let absolute;
+        let target = if target.is_dir() && target.file_name().is_none() {
+            absolute = target
+                .canonicalize()
+                .with_context(|| format!("cannot resolve {}", target.display()))?;
+            absolute.as_path()
+        } else {
+            target
+        };
         let name = target
             .file_name()
             .with_context(|| format!("{}: not a directory name", target.display()))?;
