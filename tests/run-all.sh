@@ -34,6 +34,31 @@ if ! command -v colmap >/dev/null 2>&1; then
 fi
 export DEEPSTEREO_REQUIRE_COLMAP=1
 
+echo "== ffmpeg and Chromium (for tests/outputs.rs: path videos checked with ffprobe, report pages in a headless browser)"
+MISSING=""
+command -v ffmpeg >/dev/null 2>&1 && command -v ffprobe >/dev/null 2>&1 || MISSING="$MISSING ffmpeg"
+command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 \
+  || command -v google-chrome >/dev/null 2>&1 || MISSING="$MISSING chromium"
+if [ -n "$MISSING" ]; then
+  SUDO=""
+  if [ "$(id -u)" != 0 ] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
+  echo "installing:$MISSING"
+  # shellcheck disable=SC2086
+  if ! { command -v apt-get >/dev/null 2>&1 && $SUDO apt-get update \
+      && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends $MISSING; }; then
+    echo "WARNING: could not install$MISSING (no apt-get, or it failed): the tests that need it" >&2
+    echo "         print SKIPPED (videos fall back to the GIF check); install it for the full run" >&2
+  fi
+fi
+# Whatever is present now must work: its tests fail instead of skipping.
+if command -v ffmpeg >/dev/null 2>&1 && command -v ffprobe >/dev/null 2>&1; then
+  export DEEPSTEREO_REQUIRE_FFMPEG=1
+fi
+if command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 \
+    || command -v google-chrome >/dev/null 2>&1; then
+  export DEEPSTEREO_REQUIRE_CHROMIUM=1
+fi
+
 echo "== Rust build and tests"
 cargo build --release --workspace --bins --examples
 cargo test --release --workspace

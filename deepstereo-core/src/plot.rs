@@ -72,8 +72,11 @@ pub struct Series {
 const W: i32 = 900;
 const H: i32 = 480;
 const LEFT: i32 = 70;
-/// The legend sits right of the plot area, so that it never hides a point.
+/// The legend sits right of the plot area, so that it never hides a point (at least this
+/// wide; wider for long labels).
 const RIGHT: i32 = 220;
+/// Offset of the legend's text from the plot area's right edge.
+const LEGEND_TEXT: i32 = 32;
 const TOP: i32 = 30;
 const BOTTOM: i32 = 50;
 
@@ -110,27 +113,206 @@ fn line(img: &mut RgbImage, (x0, y0): (i32, i32), (x1, y1): (i32, i32), c: [f32;
     }
 }
 
-fn label(v: f64) -> String {
-    if v.abs() >= 100.0 || v == 0.0 {
-        format!("{v:.0}")
-    } else if v.abs() >= 1.0 {
-        format!("{v:.1}")
-    } else {
-        format!("{v:.3}")
+/// Distinct colours (Okabe-Ito, then Tableau), for series that do not pick their own, and
+/// for a series whose colour an earlier series already took.
+pub const PALETTE: [[f32; 3]; 10] = [
+    [0.84, 0.37, 0.0],
+    [0.0, 0.45, 0.70],
+    [0.0, 0.62, 0.45],
+    [0.80, 0.47, 0.65],
+    [0.90, 0.62, 0.0],
+    [0.34, 0.71, 0.91],
+    [0.55, 0.34, 0.29],
+    [0.58, 0.40, 0.74],
+    [0.74, 0.74, 0.13],
+    [0.84, 0.15, 0.16],
+];
+
+/// Colour number `k` beyond the palette: hues a golden angle apart, so none repeats.
+fn extra_colour(k: usize) -> [f32; 3] {
+    let h = (k as f32 * 0.618_034).fract() * 6.0;
+    let (v, s) = (0.75f32, 0.8f32);
+    let f = h - h.floor();
+    let (p, q, t) = (v * (1.0 - s), v * (1.0 - s * f), v * (1.0 - s * (1.0 - f)));
+    match h as u32 {
+        0 => [v, t, p],
+        1 => [q, v, p],
+        2 => [p, v, t],
+        3 => [p, q, v],
+        4 => [t, p, v],
+        _ => [v, p, q],
     }
 }
 
-/// A plot of `series` with axis titles; `log_x` plots x on a log10 scale.
+/// Marker shapes, one per series in turn (a series' shape is its index modulo these).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Shape {
+    Square,
+    Circle,
+    Triangle,
+    Diamond,
+    Cross,
+    Plus,
+    HollowSquare,
+}
+
+const SHAPES: [Shape; 7] = [
+    Shape::Square,
+    Shape::Circle,
+    Shape::Triangle,
+    Shape::Diamond,
+    Shape::Cross,
+    Shape::Plus,
+    Shape::HollowSquare,
+];
+
+/// The marker shape of series `k`.
+pub fn shape_of(k: usize) -> Shape {
+    SHAPES[k % SHAPES.len()]
+}
+
+/// Ticks aimed for on an axis.
+const TICKS: f64 = 6.0;
+/// Glyph advance and height of the bitmap font, in pixels.
+const GLYPH_W: i32 = 6;
+const GLYPH_H: i32 = 7;
+
+/// Whether pixel `(dx, dy)` from a marker's centre belongs to a marker of half-size `r`.
+fn in_marker(shape: Shape, dx: i32, dy: i32, r: i32) -> bool {
+    let (ax, ay) = (dx.abs(), dy.abs());
+    match shape {
+        Shape::Square => ax <= r && ay <= r,
+        Shape::Circle => dx * dx + dy * dy <= r * r + r,
+        // Apex up, base at dy = r.
+        Shape::Triangle => dy <= r && 2 * ax <= dy + r,
+        Shape::Diamond => ax + ay <= r + 1,
+        Shape::Cross => (ax == ay || (ax - ay).abs() == 1) && ax <= r + 1,
+        Shape::Plus => (ax <= 1 && ay <= r + 1) || (ay <= 1 && ax <= r + 1),
+        Shape::HollowSquare => ax <= r && ay <= r && (ax >= r - 1 || ay >= r - 1),
+    }
+}
+
+fn marker(img: &mut RgbImage, (x, y): (i32, i32), shape: Shape, r: i32, c: [f32; 3]) {
+    for dy in -r - 1..=r + 1 {
+        for dx in -r - 1..=r + 1 {
+            if in_marker(shape, dx, dy, r) {
+                put(img, x + dx, y + dy, c);
+            }
+        }
+    }
+}
+
+/// Round tick values (1, 2 or 5 times a power of ten apart) inside `[lo, hi]`, at least
+/// 1 apart when `integer`.
+pub fn nice_ticks(lo: f64, hi: f64, integer: bool) -> (Vec<f64>, f64) {
+    let span = (hi - lo).max(1e-12);
+    let raw = span / TICKS;
+    let mag = 10f64.powf(raw.log10().floor());
+    let mut step = [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * mag)
+        .find(|s| *s >= raw)
+        .unwrap_or(10.0 * mag);
+    if integer {
+        step = step.max(1.0).round();
+    }
+    let first = (lo / step).ceil() as i64;
+    let last = (hi / step).floor() as i64;
+    let ticks = (first..=last).map(|i| i as f64 * step).collect();
+    (ticks, step)
+}
+
+/// Ticks of a log10 axis spanning `[lo, hi]` (in log10 units): 1, 2 and 5 times each
+/// power of ten, or only the powers when those are too many; linear round ticks of the
+/// values when the span is under one of them.
+fn log_ticks(lo: f64, hi: f64) -> Vec<f64> {
+    let (a, b) = (lo.floor() as i32, hi.ceil() as i32);
+    let within = |v: &f64| (lo..=hi).contains(&v.log10());
+    for mults in [&[1.0, 2.0, 5.0][..], &[1.0][..]] {
+        let t: Vec<f64> = (a..=b)
+            .flat_map(|e| mults.iter().map(move |m| m * 10f64.powi(e)))
+            .filter(within)
+            .collect();
+        if t.len() >= 2 && t.len() as f64 <= TICKS + 2.0 {
+            return t;
+        }
+        if t.len() > TICKS as usize + 2 {
+            continue;
+        }
+        break;
+    }
+    let (t, _) = nice_ticks(10f64.powf(lo), 10f64.powf(hi), false);
+    t.into_iter().filter(|v| *v > 0.0).collect()
+}
+
+/// Tick labels with as many decimals as the closest two ticks need to differ.
+fn tick_labels(ticks: &[f64]) -> Vec<String> {
+    let gap = ticks
+        .windows(2)
+        .map(|w| (w[1] - w[0]).abs())
+        .fold(f64::MAX, f64::min);
+    let min_abs = ticks
+        .iter()
+        .map(|t| t.abs())
+        .filter(|t| *t > 0.0)
+        .fold(f64::MAX, f64::min);
+    let need = gap.min(min_abs);
+    // The tolerance keeps a gap of 0.0999999 (0.1 in floating point) at one decimal.
+    let decimals = if need.is_finite() && need < 1.0 && need > 0.0 {
+        (-need.log10() - 1e-6).ceil() as usize
+    } else {
+        0
+    };
+    ticks
+        .iter()
+        .map(|t| format!("{:.*}", decimals.min(6), t))
+        .collect()
+}
+
+/// Log-axis tick labels: each value with the decimals it needs (0.002, 0.01, 0.5, 2, 10).
+fn log_tick_labels(ticks: &[f64]) -> Vec<String> {
+    ticks
+        .iter()
+        .map(|&t| {
+            let decimals = if t > 0.0 && t < 1.0 {
+                ((-t.log10()).ceil() as usize).min(6)
+            } else {
+                0
+            };
+            format!("{t:.decimals$}")
+        })
+        .collect()
+}
+
+/// A pixel rectangle `(x0, y0, x1, y1)`, inclusive.
+type Rect = (i32, i32, i32, i32);
+
+fn overlaps(a: Rect, b: Rect) -> bool {
+    a.0 <= b.2 && b.0 <= a.2 && a.1 <= b.3 && b.1 <= a.3
+}
+
+/// A plot of `series` with axis titles; `log_x` plots x on a log10 scale. Each series gets
+/// its own marker shape (by index) and colour (an already used colour is replaced from
+/// [`PALETTE`]); point labels are placed where they overlap no other label, or left out;
+/// ticks sit at round values, at integers when every x is an integer (step counts).
 pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x: bool) -> RgbImage {
-    let mut img = RgbImage::new(W as u32, H as u32);
+    // The plot area keeps its width; the legend's column grows to fit its longest label.
+    let plot_r = W - RIGHT;
+    let longest = series.iter().map(|s| s.label.len()).max().unwrap_or(0) as i32;
+    let width = W.max(plot_r + LEGEND_TEXT + GLYPH_W * longest + GLYPH_W);
+    let mut img = RgbImage::new(width as u32, H as u32);
     img.data.iter_mut().for_each(|v| *v = 1.0);
     let tx = |x: f64| if log_x { x.max(1e-12).log10() } else { x };
-    let pts = series
+    let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
+    let pts: Vec<(f64, f64)> = series
         .iter()
         .flat_map(|s| s.points.iter())
-        .filter(|p| p.0.is_finite() && p.1.is_finite());
+        .filter(finite)
+        .cloned()
+        .collect();
+    let integer_x = !log_x && !pts.is_empty() && pts.iter().all(|p| p.0.fract() == 0.0);
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for &(x, y) in pts {
+    for &(x, y) in &pts {
         (x0, x1, y0, y1) = (x0.min(tx(x)), x1.max(tx(x)), y0.min(y), y1.max(y));
     }
     if x0 > x1 {
@@ -138,73 +320,132 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
     }
     let (px, py) = ((x1 - x0).max(1e-9) * 0.05, (y1 - y0).max(1e-9) * 0.08);
     let (x0, x1, y0, y1) = (x0 - px, x1 + px, y0 - py, y1 + py);
-    let sx = |x: f64| LEFT + ((tx(x) - x0) / (x1 - x0) * (W - LEFT - RIGHT) as f64) as i32;
+    let sxt = |t: f64| LEFT + ((t - x0) / (x1 - x0) * (plot_r - LEFT) as f64) as i32;
+    let sx = |x: f64| sxt(tx(x));
     let sy = |y: f64| H - BOTTOM - ((y - y0) / (y1 - y0) * (H - TOP - BOTTOM) as f64) as i32;
     let grey = [0.85, 0.85, 0.85];
     let black = [0.0, 0.0, 0.0];
-    for i in 0..=5 {
-        let fx = x0 + (x1 - x0) * i as f64 / 5.0;
-        let fy = y0 + (y1 - y0) * i as f64 / 5.0;
-        let xv = if log_x { 10f64.powf(fx) } else { fx };
-        let (gx, gy) = (sx(xv), sy(fy));
+    let xticks = if log_x {
+        log_ticks(x0, x1)
+    } else {
+        nice_ticks(x0, x1, integer_x).0
+    };
+    let xlabels = if log_x {
+        log_tick_labels(&xticks)
+    } else {
+        tick_labels(&xticks)
+    };
+    for (v, l) in xticks.iter().zip(xlabels) {
+        let gx = sx(*v);
         line(&mut img, (gx, TOP), (gx, H - BOTTOM), grey);
-        line(&mut img, (LEFT, gy), (W - RIGHT, gy), grey);
-        let lx = label(xv);
         text(
             &mut img,
-            gx - 3 * lx.len() as i32,
+            gx - GLYPH_W / 2 * l.len() as i32,
             H - BOTTOM + 6,
-            &lx,
+            &l,
             black,
         );
-        let ly = label(fy);
-        text(&mut img, LEFT - 6 - 6 * ly.len() as i32, gy - 3, &ly, black);
     }
-    line(&mut img, (LEFT, H - BOTTOM), (W - RIGHT, H - BOTTOM), black);
+    let yticks = nice_ticks(y0, y1, false).0;
+    for (v, l) in yticks.iter().zip(tick_labels(&yticks)) {
+        let gy = sy(*v);
+        line(&mut img, (LEFT, gy), (plot_r, gy), grey);
+        text(
+            &mut img,
+            LEFT - 6 - GLYPH_W * l.len() as i32,
+            gy - 3,
+            &l,
+            black,
+        );
+    }
+    line(&mut img, (LEFT, H - BOTTOM), (plot_r, H - BOTTOM), black);
     line(&mut img, (LEFT, TOP), (LEFT, H - BOTTOM), black);
     text(&mut img, LEFT, 10, title, black);
     text(
         &mut img,
-        (W - 6 * x_title.len() as i32) / 2,
+        (LEFT + plot_r - GLYPH_W * x_title.len() as i32) / 2,
         H - 18,
         x_title,
         black,
     );
     text(&mut img, 4, TOP - 14, y_title, black);
+    let mut used: Vec<[f32; 3]> = Vec::new();
+    let colours: Vec<[f32; 3]> = series
+        .iter()
+        .map(|s| {
+            let c = if used.contains(&s.colour) {
+                let spare = PALETTE.iter().find(|p| !used.contains(p)).copied();
+                spare.unwrap_or_else(|| extra_colour(used.len()))
+            } else {
+                s.colour
+            };
+            used.push(c);
+            c
+        })
+        .collect();
+    // Every marker's box, so that labels avoid markers too.
+    let mut taken: Vec<Rect> = Vec::new();
+    let screen: Vec<Vec<(i32, i32)>> = series
+        .iter()
+        .map(|s| {
+            s.points
+                .iter()
+                .filter(finite)
+                .map(|&(x, y)| (sx(x), sy(y)))
+                .collect()
+        })
+        .collect();
     for (k, s) in series.iter().enumerate() {
-        let p: Vec<(i32, i32)> = s
-            .points
-            .iter()
-            .filter(|p| p.0.is_finite() && p.1.is_finite())
-            .map(|&(x, y)| (sx(x), sy(y)))
-            .collect();
+        let c = colours[k];
         if s.line {
-            for w in p.windows(2) {
-                line(&mut img, w[0], w[1], s.colour);
+            for w in screen[k].windows(2) {
+                line(&mut img, w[0], w[1], c);
             }
         }
-        for &(x, y) in &p {
-            for dy in -s.marker..=s.marker {
-                for dx in -s.marker..=s.marker {
-                    put(&mut img, x + dx, y + dy, s.colour);
-                }
+        if s.marker > 0 {
+            let r = s.marker;
+            for &p in &screen[k] {
+                marker(&mut img, p, shape_of(k), r, c);
+                taken.push((p.0 - r - 1, p.1 - r - 1, p.0 + r + 1, p.1 + r + 1));
             }
         }
-        let finite = s
-            .points
-            .iter()
-            .zip(&s.labels)
-            .filter(|(p, _)| p.0.is_finite() && p.1.is_finite());
-        for ((x, y), l) in finite {
-            text(&mut img, sx(*x) + s.marker + 2, sy(*y) - 10, l, s.colour);
-        }
-        let ly = TOP + 6 + 12 * k as i32;
-        for dx in 0..10 {
-            for dy in 0..3 {
-                put(&mut img, W - RIGHT + 10 + dx, ly + 2 + dy, s.colour);
+    }
+    for (k, s) in series.iter().enumerate() {
+        let labelled = s.points.iter().zip(&s.labels).filter(|(p, _)| finite(p));
+        for ((x, y), l) in labelled {
+            let (px, py, r) = (sx(*x), sy(*y), s.marker.max(1) + 2);
+            let (w, h) = (GLYPH_W * l.len() as i32, GLYPH_H);
+            let candidates = [
+                (px + r, py - h - 1),
+                (px + r, py + 2),
+                (px - r - w, py - h - 1),
+                (px - r - w, py + 2),
+                (px - w / 2, py - r - h),
+                (px - w / 2, py + r + 1),
+            ];
+            let free = candidates.iter().copied().find(|&(lx, ly)| {
+                let rect = (lx - 1, ly - 1, lx + w, ly + h);
+                let inside = lx > LEFT && lx + w < plot_r && ly > TOP && ly + h < H - BOTTOM;
+                inside && !taken.iter().any(|t| overlaps(*t, rect))
+            });
+            if let Some((lx, ly)) = free {
+                taken.push((lx - 1, ly - 1, lx + w, ly + h));
+                text(&mut img, lx, ly, l, colours[k]);
             }
         }
-        text(&mut img, W - RIGHT + 25, ly, &s.label, black);
+    }
+    for (k, s) in series.iter().enumerate() {
+        let c = colours[k];
+        let ly = TOP + 6 + 14 * k as i32;
+        let (lx, mid) = (plot_r + 10, ly + 3);
+        if s.line {
+            line(&mut img, (lx, mid), (lx + 16, mid), c);
+            line(&mut img, (lx, mid + 1), (lx + 16, mid + 1), c);
+        }
+        if s.marker > 0 {
+            marker(&mut img, (lx + 8, mid), shape_of(k), s.marker.min(3), c);
+        }
+        text(&mut img, plot_r + LEGEND_TEXT, ly, &s.label, black);
     }
     img
 }
@@ -245,6 +486,30 @@ mod tests {
             (0.5, 10.0),
         ];
         assert_eq!(pareto_front(&p), vec![4, 0, 1, 3]);
+    }
+
+    #[test]
+    fn ticks_are_round_unique_and_integer_for_steps() {
+        let (t, step) = nice_ticks(-3.2, 4103.0, true);
+        assert_eq!(step, 1000.0);
+        assert_eq!(t, vec![0.0, 1000.0, 2000.0, 3000.0, 4000.0]);
+        let (t, _) = nice_ticks(0.0, 5.4, true);
+        assert!(t.iter().all(|v| v.fract() == 0.0), "{t:?}");
+        let (t, _) = nice_ticks(27.1, 28.3, false);
+        let l = tick_labels(&t);
+        assert_eq!(l, vec!["27.2", "27.4", "27.6", "27.8", "28.0", "28.2"]);
+        let lt = log_tick_labels(&log_ticks(0.3f64.log10(), 5.0f64.log10()));
+        assert_eq!(lt, vec!["0.5", "1", "2", "5"]);
+        let lt = log_tick_labels(&log_ticks(0.0015f64.log10(), 0.25f64.log10()));
+        assert_eq!(
+            lt,
+            vec!["0.002", "0.005", "0.01", "0.02", "0.05", "0.1", "0.2"]
+        );
+        let l = tick_labels(&nice_ticks(20.05, 20.55, false).0);
+        assert_eq!(l, vec!["20.1", "20.2", "20.3", "20.4", "20.5"]);
+        let mut dedup = lt.clone();
+        dedup.dedup();
+        assert_eq!(dedup, lt);
     }
 
     #[test]

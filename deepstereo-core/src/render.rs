@@ -106,8 +106,7 @@ pub fn render_view_pruned(
     pruner: Option<&Pruner<'_>>,
     progress: &dyn Fn(usize, usize),
 ) -> Result<Rendered> {
-    let cfg = backend.config();
-    let a = cfg.tile_align();
+    let a = backend.config().tile_align();
     let tile = tile.max(1).div_ceil(a) * a;
     let (w, h) = (
         target.intrinsics.width as usize,
@@ -117,13 +116,7 @@ pub fn render_view_pruned(
     if d == 0 {
         return Err(Error::Invalid("at least one depth plane is needed".into()));
     }
-    let mut out = Rendered {
-        image: RgbImage::new(w as u32, h as u32),
-        depth: vec![0.0; w * h],
-        confidence: vec![0.0; w * h],
-        coverage: vec![0.0; w * h],
-        prune: None,
-    };
+    let mut out = Rendered::blank(w, h);
     let (ntx, nty) = (w.div_ceil(tile), h.div_ceil(tile));
     let total = ntx * nty;
     let mut stats = PruneStats {
@@ -134,28 +127,12 @@ pub fn render_view_pruned(
     let mut empty: Option<(Vec<f32>, Vec<f32>)> = None;
     for ty in 0..nty {
         for tx in 0..ntx {
-            let (x0, y0) = (tx * tile, ty * tile);
             let t0 = Instant::now();
-            let blocks = match pruner {
-                Some(p) => p.plan(x0, y0, tile),
-                None => vec![Block {
-                    x0,
-                    y0,
-                    size: tile,
-                    plan: TilePlan::Planes((0..d).collect()),
-                }],
-            };
+            let blocks = plan_tile(pruner, tx * tile, ty * tile, tile, d);
             stats.coarse_seconds += t0.elapsed().as_secs_f64();
-            for Block {
-                x0,
-                y0,
-                size: tile,
-                plan,
-            } in blocks
-            {
-                let rows = y0..(y0 + tile).min(h);
-                let cols = x0..(x0 + tile).min(w);
-                match plan {
+            for block in blocks {
+                let area = Area::of(&block, w, h);
+                match &block.plan {
                     TilePlan::Uncovered => {
                         stats.uncovered += 1;
                         if empty.is_none() {
@@ -165,79 +142,21 @@ pub fn render_view_pruned(
                             .as_ref()
                             .map(|(i, s)| (i.as_slice(), s.as_slice()))
                             .unwrap_or_default();
-                        for y in rows.clone() {
-                            for x in cols.clone() {
-                                let pix = y * w + x;
-                                out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(img);
-                                let (rho, best) =
-                                    expectation(inv_depths, 0..d, sel.iter().copied());
-                                write_depth(&mut out, pix, rho, best, 0.0);
-                            }
-                        }
+                        fill_uncovered(&mut out, &area, inv_depths, img, sel);
                     }
                     TilePlan::Flat { colour, coverage } => {
                         stats.flat += 1;
-                        let (z0, z1) = pruner.map_or((0, d - 1), |p| p.range());
-                        let p = 1.0 / (z1 + 1 - z0) as f32;
-                        for y in rows.clone() {
-                            for x in cols.clone() {
-                                let pix = y * w + x;
-                                out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(&colour);
-                                let (rho, best) =
-                                    expectation(inv_depths, z0..z1 + 1, (z0..=z1).map(|_| p));
-                                write_depth(&mut out, pix, rho, best, coverage);
-                            }
-                        }
+                        let range = pruner.map_or((0, d - 1), |p| p.range());
+                        fill_flat(&mut out, &area, inv_depths, range, colour, *coverage);
                     }
                     TilePlan::Planes(planes) => {
-                        let band: Vec<f64> = planes.iter().map(|&z| inv_depths[z]).collect();
-                        let nb = band.len();
-                        stats.planes_run += nb * tile * tile;
-                        stats.calls += 1;
-                        let t1 = Instant::now();
-                        let inputs = tile_inputs(
-                            cfg,
+                        let job = BlockJob {
+                            backend,
                             target,
                             sources,
-                            &band,
-                            (x0 as i64, y0 as i64),
-                            (tile, tile),
-                        )?;
-                        let t2 = Instant::now();
-                        let (img, sel) = backend.run(&inputs, nb)?;
-                        stats.warp_seconds += (t2 - t1).as_secs_f64();
-                        stats.network_seconds += t2.elapsed().as_secs_f64();
-                        if img.iter().chain(&sel).any(|x| !x.is_finite()) {
-                            return Err(Error::Invalid(format!(
-                                "the network produced non-finite values in the tile at ({x0}, {y0})"
-                            )));
-                        }
-                        let (ih, iw) = inputs.sizes[0];
-                        let v = inputs.views;
-                        let p = cfg.pad(0);
-                        let tt = tile * tile;
-                        for yy in 0..rows.len() {
-                            for xx in 0..cols.len() {
-                                let o = yy * tile + xx;
-                                let pix = (y0 + yy) * w + x0 + xx;
-                                for ch in 0..3 {
-                                    out.image.data[pix * 3 + ch] = img[ch * tt + o].clamp(0.0, 1.0);
-                                }
-                                let (mut rho, mut best, mut cov) = (0.0f64, 0.0f32, 0.0f32);
-                                for (z, r) in band.iter().enumerate() {
-                                    let s = sel[z * tt + o];
-                                    rho += s as f64 * r;
-                                    best = best.max(s);
-                                    let mut alpha = 0.0;
-                                    for k in 0..v {
-                                        let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
-                                        alpha += inputs.levels[0][base + (yy + p) * iw + xx + p];
-                                    }
-                                    cov += s * alpha / v as f32;
-                                }
-                                write_depth(&mut out, pix, rho, best, cov);
-                            }
-                        }
+                            inv_depths,
+                        };
+                        job.run(&mut out, &mut stats, &area, planes)?;
                     }
                 }
             }
@@ -250,6 +169,183 @@ pub fn render_view_pruned(
         out.prune = Some(stats);
     }
     Ok(out)
+}
+
+impl Rendered {
+    /// A `w` x `h` render with every value 0.
+    fn blank(w: usize, h: usize) -> Self {
+        Rendered {
+            image: RgbImage::new(w as u32, h as u32),
+            depth: vec![0.0; w * h],
+            confidence: vec![0.0; w * h],
+            coverage: vec![0.0; w * h],
+            prune: None,
+        }
+    }
+}
+
+/// The blocks of the tile at `(x0, y0)`: the pruner's plan, or the whole tile on every plane.
+fn plan_tile(
+    pruner: Option<&Pruner<'_>>,
+    x0: usize,
+    y0: usize,
+    tile: usize,
+    d: usize,
+) -> Vec<Block> {
+    match pruner {
+        Some(p) => p.plan(x0, y0, tile),
+        None => vec![Block {
+            x0,
+            y0,
+            size: tile,
+            plan: TilePlan::Planes((0..d).collect()),
+        }],
+    }
+}
+
+/// A block's place in the image: its origin and side, and the rows and columns of it
+/// inside the image (`w` pixels wide).
+struct Area {
+    x0: usize,
+    y0: usize,
+    size: usize,
+    w: usize,
+    rows: std::ops::Range<usize>,
+    cols: std::ops::Range<usize>,
+}
+
+impl Area {
+    fn of(b: &Block, w: usize, h: usize) -> Self {
+        Area {
+            x0: b.x0,
+            y0: b.y0,
+            size: b.size,
+            w,
+            rows: b.y0..(b.y0 + b.size).min(h),
+            cols: b.x0..(b.x0 + b.size).min(w),
+        }
+    }
+
+    /// Every pixel index of the area inside the image, row by row.
+    fn pixels(&self) -> impl Iterator<Item = usize> + '_ {
+        self.rows
+            .clone()
+            .flat_map(move |y| self.cols.clone().map(move |x| y * self.w + x))
+    }
+}
+
+/// A block no source covers: the network's response to empty inputs, `img` and `sel`.
+fn fill_uncovered(out: &mut Rendered, area: &Area, inv_depths: &[f64], img: &[f32], sel: &[f32]) {
+    let d = inv_depths.len();
+    for pix in area.pixels() {
+        out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(img);
+        let (rho, best) = expectation(inv_depths, 0..d, sel.iter().copied());
+        write_depth(out, pix, rho, best, 0.0);
+    }
+}
+
+/// A block whose sources are constant: their colour, a uniform selection over `range`.
+fn fill_flat(
+    out: &mut Rendered,
+    area: &Area,
+    inv_depths: &[f64],
+    (z0, z1): (usize, usize),
+    colour: &[f32; 3],
+    coverage: f32,
+) {
+    let p = 1.0 / (z1 + 1 - z0) as f32;
+    for pix in area.pixels() {
+        out.image.data[pix * 3..pix * 3 + 3].copy_from_slice(colour);
+        let (rho, best) = expectation(inv_depths, z0..z1 + 1, (z0..=z1).map(|_| p));
+        write_depth(out, pix, rho, best, coverage);
+    }
+}
+
+/// What running the network on a block needs.
+struct BlockJob<'a, 'b> {
+    backend: &'a dyn Backend,
+    target: &'a Camera,
+    sources: &'a [&'b PyramidSource],
+    inv_depths: &'a [f64],
+}
+
+impl BlockJob<'_, '_> {
+    /// Runs the network on the block's `planes` and writes its colour, expected depth,
+    /// confidence and coverage.
+    fn run(
+        &self,
+        out: &mut Rendered,
+        stats: &mut PruneStats,
+        area: &Area,
+        planes: &[usize],
+    ) -> Result<()> {
+        let cfg = self.backend.config();
+        let (x0, y0, tile) = (area.x0, area.y0, area.size);
+        let band: Vec<f64> = planes.iter().map(|&z| self.inv_depths[z]).collect();
+        let nb = band.len();
+        stats.planes_run += nb * tile * tile;
+        stats.calls += 1;
+        let t1 = Instant::now();
+        let inputs = tile_inputs(
+            cfg,
+            self.target,
+            self.sources,
+            &band,
+            (x0 as i64, y0 as i64),
+            (tile, tile),
+        )?;
+        let t2 = Instant::now();
+        let (img, sel) = self.backend.run(&inputs, nb)?;
+        stats.warp_seconds += (t2 - t1).as_secs_f64();
+        stats.network_seconds += t2.elapsed().as_secs_f64();
+        if img.iter().chain(&sel).any(|x| !x.is_finite()) {
+            return Err(Error::Invalid(format!(
+                "the network produced non-finite values in the tile at ({x0}, {y0})"
+            )));
+        }
+        write_block(out, area, &inputs, cfg.pad(0), &band, &img, &sel);
+        Ok(())
+    }
+}
+
+/// Writes a block's network output: colour (clamped), and from the selection over `band`
+/// the expected depth, the confidence and the selection-weighted coverage of the sources
+/// (their alpha in the level-0 inputs, `pad` pixels of border around the block).
+fn write_block(
+    out: &mut Rendered,
+    area: &Area,
+    inputs: &TileInputs,
+    pad: usize,
+    band: &[f64],
+    img: &[f32],
+    sel: &[f32],
+) {
+    let (tile, w) = (area.size, area.w);
+    let (ih, iw) = inputs.sizes[0];
+    let v = inputs.views;
+    let tt = tile * tile;
+    for yy in 0..area.rows.len() {
+        for xx in 0..area.cols.len() {
+            let o = yy * tile + xx;
+            let pix = (area.y0 + yy) * w + area.x0 + xx;
+            for ch in 0..3 {
+                out.image.data[pix * 3 + ch] = img[ch * tt + o].clamp(0.0, 1.0);
+            }
+            let (mut rho, mut best, mut cov) = (0.0f64, 0.0f32, 0.0f32);
+            for (z, r) in band.iter().enumerate() {
+                let s = sel[z * tt + o];
+                rho += s as f64 * r;
+                best = best.max(s);
+                let mut alpha = 0.0;
+                for k in 0..v {
+                    let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
+                    alpha += inputs.levels[0][base + (yy + pad) * iw + xx + pad];
+                }
+                cov += s * alpha / v as f32;
+            }
+            write_depth(out, pix, rho, best, cov);
+        }
+    }
 }
 
 /// Expected inverse depth and largest probability of a selection over `planes`.

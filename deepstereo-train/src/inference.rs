@@ -2,7 +2,6 @@
 //! the withheld photographs and the classical baselines.
 
 use anyhow::{bail, Context, Result};
-use candle_core::Device;
 use deepstereo_core::baseline::plane_sweep;
 use deepstereo_core::camera::Camera;
 use deepstereo_core::config::Config;
@@ -14,39 +13,15 @@ use deepstereo_core::prune::{
     max_plane_step, network_guide, plane_range_from_bounds, plane_range_from_points, rank_views,
     thin_planes, CoarsePass, PruneOptions, PruneStats, Pruner,
 };
-use deepstereo_core::render::{render_view, render_view_pruned, Backend, CandleBackend, Rendered};
+use deepstereo_core::render::{render_view, render_view_pruned, Backend, Rendered};
 use deepstereo_core::scene::{nearest_to_point, Scene};
 use deepstereo_core::sweep::Source;
-use deepstereo_core::weights;
 use serde::Serialize;
-use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-/// The default model, trained on procedural scenes only (see the README for the command).
-pub static EMBEDDED_MODEL: &[u8] = include_bytes!("../assets/tiny.safetensors");
-/// The name the embedded model goes by in reports.
-pub const EMBEDDED_NAME: &str = "embedded:tiny";
-
-/// Which runtime runs the network.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
-#[serde(rename_all = "lowercase")]
-pub enum BackendKind {
-    Candle,
-    Ort,
-}
-
-/// Loads the model (`None`: the embedded default) for the candle backend.
-pub fn candle_backend(model: Option<&Path>) -> Result<CandleBackend> {
-    let device = Device::Cpu;
-    let t = match model {
-        Some(p) => weights::load(p, &device)?,
-        None => weights::load_bytes(Path::new(EMBEDDED_NAME), EMBEDDED_MODEL, &device)?,
-    };
-    Ok(CandleBackend {
-        model: t.model,
-        device,
-    })
-}
+pub use crate::models::{
+    candle_backend, make_backend, model_name, BackendKind, EMBEDDED_MODEL, EMBEDDED_NAME,
+};
 
 /// How to render: shared by `render`, `eval`, `report` and `demo`.
 #[derive(Clone, Debug, Serialize)]
@@ -420,22 +395,5 @@ pub fn holdout_list(
         (None, Some(k)) => Ok((0..n).step_by(k).collect()),
         (None, None) => bail!("pass --holdout I,J,... or --llffhold N"),
         (Some(_), Some(_)) => bail!("pass either --holdout or --llffhold, not both"),
-    }
-}
-
-/// Model name for reports.
-pub fn model_name(model: Option<&PathBuf>) -> String {
-    model
-        .map(|p| p.display().to_string())
-        .unwrap_or_else(|| EMBEDDED_NAME.to_string())
-}
-
-/// The backend of `kind` for `model` (`None`: the embedded default).
-pub fn make_backend(kind: BackendKind, model: Option<&Path>) -> Result<Box<dyn Backend>> {
-    match kind {
-        BackendKind::Candle => Ok(Box::new(candle_backend(model)?)),
-        BackendKind::Ort => Ok(Box::new(deepstereo_export::OrtBackend::from_model(
-            &crate::cmd::export::load_model(model)?,
-        )?)),
     }
 }

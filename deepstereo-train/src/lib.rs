@@ -8,5 +8,8 @@ pub mod cmd;
 pub mod colmap_run;
 pub mod data;
 pub mod inference;
+pub mod models;
 pub mod optim;
+pub mod outdir;
 pub mod training;
+pub mod video;

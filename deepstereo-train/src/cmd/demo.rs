@@ -2,7 +2,9 @@
 //! view rendered with the embedded model, scored against both baselines.
 
 use super::model_args::ModelArgs;
-use crate::inference::{evaluate, EMBEDDED_NAME};
+use super::render::{path_cameras, render_path, PathKind};
+use crate::inference::{evaluate, Prepared};
+use crate::video::write_video;
 use anyhow::{Context, Result};
 use deepstereo_core::scene::{LoadOptions, Scene};
 use deepstereo_core::synth::{generate, scene_seed, write_scene, Rig, SynthOptions};
@@ -29,7 +31,16 @@ pub struct Args {
     /// Image size of the scene, WxH.
     #[arg(long, default_value = "240x180")]
     pub size: String,
+    /// Frames of the camera-path video of the scene (a circle through the views):
+    /// path/frame_NNNN.png and path.mp4 (path.gif without ffmpeg); 0: none.
+    #[arg(long, default_value_t = DEMO_PATH_FRAMES)]
+    pub path_frames: usize,
 }
+
+/// Frames of the demo's path video: short, so that the demo stays quick.
+pub const DEMO_PATH_FRAMES: usize = 12;
+/// Frames per second of the demo's path video.
+const DEMO_PATH_FPS: f64 = 8.0;
 
 pub fn run(a: Args) -> Result<()> {
     let settings = a.model.settings()?;
@@ -55,11 +66,7 @@ pub fn run(a: Args) -> Result<()> {
     let scene = Scene::load(&dir, &LoadOptions::default())?;
     let target = scene.views.len() / 2;
     let backend = a.model.backend()?;
-    let name = if a.model.model.is_some() {
-        a.model.name()
-    } else {
-        EMBEDDED_NAME.to_string()
-    };
+    let name = a.model.name();
     let mut saved: Result<()> = Ok(());
     let out = a.out.clone();
     let (near, far) = (scene.near, scene.far);
@@ -115,5 +122,29 @@ pub fn run(a: Args) -> Result<()> {
         "nearest source view", nn.psnr, nn.ssim, "-"
     );
     println!("wrote {0}/image.png, {0}/depth.png and {0}/comparison.png (truth | nearest | plane sweep | DeepStereo | depth)", a.out.display());
+    if a.path_frames > 0 {
+        let cams = path_cameras(&scene, PathKind::Circle, a.path_frames)?;
+        let frames_dir = a.out.join("path");
+        std::fs::create_dir_all(&frames_dir)
+            .with_context(|| format!("cannot create {}", frames_dir.display()))?;
+        let t1 = std::time::Instant::now();
+        let frames = render_path(
+            backend.as_ref(),
+            &scene,
+            &mut Prepared::new(&scene),
+            &cams,
+            report.views,
+            &settings,
+            &frames_dir,
+        )?;
+        let video = write_video(&frames, &a.out.join("path.mp4"), DEMO_PATH_FPS)?;
+        println!(
+            "wrote a {}-frame camera path in {:.1} s: {} (frames in {})",
+            a.path_frames,
+            t1.elapsed().as_secs_f64(),
+            video.path().display(),
+            frames_dir.display()
+        );
+    }
     Ok(())
 }

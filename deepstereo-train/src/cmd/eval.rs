@@ -35,6 +35,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         super::scene_dirs(&a.scene.scene)?
     };
     let backend = a.model.backend()?;
+    // Images go to a staged directory, moved into place only when everything succeeded.
+    let staged = match &a.images {
+        Some(d) => Some(crate::outdir::StagedDir::new(d)?),
+        None => None,
+    };
     let mut reports = Vec::new();
     for dir in &dirs {
         let sa = SceneArgs {
@@ -43,11 +48,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         };
         let scene = sa.load()?;
         let targets = holdout_list(a.holdout.as_deref(), a.llffhold, scene.views.len())?;
-        let images = a.images.as_ref().map(|d| {
+        let images = staged.as_ref().map(|st| {
+            let d = st.path();
             if dirs.len() > 1 {
                 d.join(dir.file_name().unwrap_or_default())
             } else {
-                d.clone()
+                d.to_path_buf()
             }
         });
         let mut err = None;
@@ -94,6 +100,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         Some("-") => println!("{text}"),
         Some(p) => write_atomic(std::path::Path::new(p), text.as_bytes())?,
         None => {}
+    }
+    if let Some(st) = staged {
+        st.commit()?;
     }
     Ok(())
 }

@@ -1,16 +1,15 @@
 //! `deepstereo export`: the network as an ONNX file (weights as initializers).
 
-use crate::inference::{model_name, EMBEDDED_MODEL, EMBEDDED_NAME};
+use crate::models::{load_model, model_name};
 use anyhow::Context;
-use candle_core::Device;
 use deepstereo_core::imageio::write_atomic;
-use deepstereo_core::weights::{self, Trainable};
 use deepstereo_export::{DEFAULT_OPSET, MAX_OPSET, MIN_OPSET};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Model weights (safetensors with its config); default: the embedded `tiny` model.
+    /// Model weights (safetensors with its config), or `embedded` (the default: the
+    /// embedded `tiny` model).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Output ONNX file. Inputs `level0..` [B, D, 4V, H_l, W_l] (batch, planes and size
@@ -20,15 +19,6 @@ pub struct Args {
     /// ONNX opset (17 or newer).
     #[arg(long, default_value_t = DEFAULT_OPSET)]
     pub opset: i64,
-}
-
-/// Loads a weights file strictly on the CPU (`None`: the embedded model).
-pub fn load_model(model: Option<&Path>) -> anyhow::Result<Trainable> {
-    let device = Device::Cpu;
-    Ok(match model {
-        Some(p) => weights::load(p, &device)?,
-        None => weights::load_bytes(Path::new(EMBEDDED_NAME), EMBEDDED_MODEL, &device)?,
-    })
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
@@ -43,7 +33,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     write_atomic(&a.out, &bytes).with_context(|| format!("cannot write {}", a.out.display()))?;
     eprintln!(
         "exported {} ('{}', opset {}) to {} ({} bytes)",
-        model_name(a.model.as_ref()),
+        model_name(a.model.as_deref()),
         t.model.config().name,
         a.opset,
         a.out.display(),

@@ -1,4 +1,5 @@
-//! `deepstereo inspect`: what a scene reader made of a directory.
+//! `deepstereo inspect`: what a scene reader made of a directory: its format, near/far
+//! and every view's size, intrinsics, centre and world-to-camera `R` (row-major), `t`.
 
 use super::SceneArgs;
 use serde_json::json;
@@ -63,6 +64,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!(
             "{i:4} {:<24} {}x{}  f=({:.2},{:.2}) c=({:.2},{:.2})  centre=({:.4},{:.4},{:.4})",
             v.name, k.width, k.height, k.fx, k.fy, k.cx, k.cy, c.x, c.y, c.z
+        );
+        let (r, t) = (v.camera.pose.rotation, v.camera.pose.translation);
+        let row = |i: usize| format!("{:.6} {:.6} {:.6}", r.x_axis[i], r.y_axis[i], r.z_axis[i]);
+        println!(
+            "     R=[{}; {}; {}]  t=({:.6},{:.6},{:.6})",
+            row(0),
+            row(1),
+            row(2),
+            t.x,
+            t.y,
+            t.z
         );
     }
     Ok(())

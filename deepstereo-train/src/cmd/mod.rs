@@ -9,6 +9,7 @@ pub mod model_args;
 pub mod poses;
 pub mod render;
 pub mod report;
+pub mod report_html;
 pub mod samples;
 pub mod sweep;
 pub mod synth;

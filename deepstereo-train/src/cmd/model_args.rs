@@ -11,7 +11,8 @@ use std::path::PathBuf;
 
 #[derive(Debug, Clone, clap::Args)]
 pub struct ModelArgs {
-    /// Model weights (safetensors with its config); default: the embedded `tiny` model.
+    /// Model weights (safetensors with its config), or `embedded` (the default: the
+    /// embedded `tiny` model; reports name it `embedded`).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Depth planes, uniform in inverse depth between near and far (default: the model's).
@@ -103,10 +104,10 @@ impl ModelArgs {
     }
 
     pub fn backend(&self) -> Result<Box<dyn Backend>> {
-        crate::inference::make_backend(self.backend, self.model.as_deref())
+        crate::models::make_backend(self.backend, self.model.as_deref())
     }
 
     pub fn name(&self) -> String {
-        crate::inference::model_name(self.model.as_ref())
+        crate::models::model_name(self.model.as_deref())
     }
 }

@@ -3,8 +3,10 @@
 use super::model_args::ModelArgs;
 use super::SceneArgs;
 use crate::inference::{pick_sources, render_camera, Prepared};
+use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::{Camera, Intrinsics, WorldToCamera};
+use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::render::Rendered;
 use deepstereo_core::scene::npy::write_npy_f32;
 use deepstereo_core::scene::Scene;
@@ -29,15 +31,26 @@ pub struct Args {
     #[arg(long, conflicts_with_all = ["pose", "path"])]
     pub target: Option<usize>,
     /// Render a camera given as JSON: {"width","height","fx","fy","cx","cy","R" (9 numbers,
-    /// row-major world-to-camera, OpenCV axes), "t"} (the same keys `inspect --json` prints).
+    /// row-major world-to-camera, OpenCV axes), "t"}: one view as `inspect --json` prints
+    /// it, or the whole of `inspect --json`'s output with --view I.
     #[arg(long, conflicts_with = "path")]
     pub pose: Option<PathBuf>,
+    /// With --pose FILE holding `inspect --json`'s output: which of its views to render.
+    #[arg(long, requires = "pose")]
+    pub view: Option<usize>,
     /// Render a camera path around the views (LLFF-style) as a numbered PNG sequence.
     #[arg(long, value_enum)]
     pub path: Option<PathKind>,
     /// Frames of --path.
     #[arg(long, default_value_t = 30)]
     pub frames: usize,
+    /// With --path, also write the frames as a video: H.264 MP4 through ffmpeg when it is
+    /// on the PATH, else (or for a `.gif` path) an animated GIF, written natively.
+    #[arg(long, requires = "path")]
+    pub video: Option<PathBuf>,
+    /// Frames per second of --video.
+    #[arg(long, default_value_t = crate::video::DEFAULT_FPS, requires = "video")]
+    pub fps: f64,
     /// Output directory: image.png (and image.npy, [H, W, 3] f32), depth.png (colour-mapped), depth.npy (raw, [H, W] f32),
     /// confidence.png, coverage.png; with --path, frame_XXXX.png.
     #[arg(long)]
@@ -46,34 +59,45 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let settings = a.model.settings()?;
+    if let Some(v) = &a.video {
+        crate::video::check(v, a.fps)?;
+    }
+    if a.path.is_some() && a.frames == 0 {
+        bail!("--frames must be at least 1");
+    }
     let scene = a.scene.load()?;
     let backend = a.model.backend()?;
     let v = settings.source_count(backend.config())?;
     let mut prepared = Prepared::new(&scene);
-    let bar = indicatif::ProgressBar::new(0);
-    let progress = |done: usize, total: usize| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
-    };
-    std::fs::create_dir_all(&a.out)
-        .with_context(|| format!("cannot create {}", a.out.display()))?;
     if let Some(kind) = a.path {
-        if a.frames == 0 {
-            bail!("--frames must be at least 1");
-        }
-        for (f, cam) in path_cameras(&scene, kind, a.frames)?.iter().enumerate() {
-            let srcs = pick_sources(&scene, cam, &[], v, &settings);
-            let (r, _) = render_camera(
-                backend.as_ref(),
-                &scene,
-                &mut prepared,
-                cam,
-                &srcs,
-                &settings,
-                &progress,
-            )?;
-            r.image.save_png(&a.out.join(format!("frame_{f:04}.png")))?;
-            eprintln!("frame {}/{}", f + 1, a.frames);
+        let cams = path_cameras(&scene, kind, a.frames)?;
+        let staged = StagedDir::new(&a.out)?;
+        let frames = render_path(
+            backend.as_ref(),
+            &scene,
+            &mut prepared,
+            &cams,
+            v,
+            &settings,
+            staged.path(),
+        )?;
+        let video = match &a.video {
+            Some(p) => Some(crate::video::write_video(&frames, p, a.fps)?),
+            None => None,
+        };
+        staged.commit()?;
+        eprintln!(
+            "wrote frame_0000.png .. frame_{:04}.png to {}",
+            a.frames - 1,
+            a.out.display()
+        );
+        if let Some(v) = video {
+            eprintln!(
+                "wrote {} ({} frames at {} fps)",
+                v.path().display(),
+                a.frames,
+                a.fps
+            );
         }
         return Ok(());
     }
@@ -89,10 +113,16 @@ pub fn run(a: Args) -> Result<()> {
             (cam, pick_sources(&scene, &cam, &[t], v, &settings))
         }
         (None, Some(p)) => {
-            let cam = read_pose(p)?;
+            let cam = read_pose(p, a.view)?;
             (cam, pick_sources(&scene, &cam, &[], v, &settings))
         }
         _ => bail!("pass one of --target I, --pose FILE or --path KIND"),
+    };
+    let staged = StagedDir::new(&a.out)?;
+    let bar = indicatif::ProgressBar::new(0);
+    let progress = |done: usize, total: usize| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
     };
     let t0 = std::time::Instant::now();
     let (r, _) = render_camera(
@@ -114,7 +144,56 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(p) = &r.prune {
         eprintln!("{}", p.summary());
     }
-    write_outputs(&a.out, &r, scene.near, scene.far)
+    write_outputs(staged.path(), &r, scene.near, scene.far)?;
+    staged.commit()?;
+    eprintln!(
+        "wrote image.png, image.npy, depth.png, depth.npy, confidence.png, coverage.png to {}",
+        a.out.display()
+    );
+    Ok(())
+}
+
+/// Steps of the path progress bar per frame (the bar advances tile by tile).
+const BAR_STEPS_PER_FRAME: u64 = 1000;
+
+/// Renders `cams` in order, saving each as `dir/frame_NNNN.png`, with a progress bar
+/// (frames done, time left); returns the frames.
+pub fn render_path(
+    backend: &dyn deepstereo_core::render::Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    cams: &[Camera],
+    views: usize,
+    settings: &crate::inference::RenderSettings,
+    dir: &Path,
+) -> Result<Vec<RgbImage>> {
+    let n = cams.len() as u64;
+    let bar = indicatif::ProgressBar::new(n * BAR_STEPS_PER_FRAME);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} [{elapsed_precise}] {wide_bar} {msg}, {eta} left",
+        )
+        .context("progress bar template")?,
+    );
+    let mut frames = Vec::with_capacity(cams.len());
+    for (f, cam) in cams.iter().enumerate() {
+        bar.set_message(format!("frame {}/{n}", f + 1));
+        let base = f as u64 * BAR_STEPS_PER_FRAME;
+        let progress = |done: usize, total: usize| {
+            let part = done as u64 * BAR_STEPS_PER_FRAME / total.max(1) as u64;
+            bar.set_position(base + part);
+        };
+        let srcs = pick_sources(scene, cam, &[], views, settings);
+        let (r, _) = render_camera(backend, scene, prepared, cam, &srcs, settings, &progress)?;
+        r.image.save_png(&dir.join(format!("frame_{f:04}.png")))?;
+        bar.set_position(base + BAR_STEPS_PER_FRAME);
+        if bar.is_hidden() {
+            eprintln!("frame {}/{n}", f + 1);
+        }
+        frames.push(r.image);
+    }
+    bar.finish_and_clear();
+    Ok(frames)
 }
 
 /// Writes image, depth (picture and raw), confidence and coverage.
@@ -130,19 +209,35 @@ pub fn write_outputs(dir: &Path, r: &Rendered, near: f64, far: f64) -> Result<()
     write_npy_f32(&dir.join("depth.npy"), &[h as usize, w as usize], &r.depth)?;
     grey_image(&r.confidence, w, h).save_png(&dir.join("confidence.png"))?;
     grey_image(&r.coverage, w, h).save_png(&dir.join("coverage.png"))?;
-    eprintln!(
-        "wrote image.png, image.npy, depth.png, depth.npy, confidence.png, coverage.png to {}",
-        dir.display()
-    );
     Ok(())
 }
 
-/// Reads a camera from a JSON file (world-to-camera, OpenCV axes).
-pub fn read_pose(path: &Path) -> Result<Camera> {
+/// Reads a camera from a JSON file (world-to-camera, OpenCV axes): one view, or with
+/// `view` the view of that index in `inspect --json`'s output.
+pub fn read_pose(path: &Path, view: Option<usize>) -> Result<Camera> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let j: serde_json::Value =
+    let all: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: invalid JSON", path.display()))?;
+    let j = match (all.get("views").and_then(|v| v.as_array()), view) {
+        (Some(views), Some(i)) => views.get(i).with_context(|| {
+            format!(
+                "{}: --view {i} is out of range: the file holds {} views",
+                path.display(),
+                views.len()
+            )
+        })?,
+        (Some(views), None) => bail!(
+            "{}: holds {} views (inspect --json's output); pick one with --view I",
+            path.display(),
+            views.len()
+        ),
+        (None, Some(_)) => bail!(
+            "{}: --view needs a file with a 'views' list (inspect --json's output)",
+            path.display()
+        ),
+        (None, None) => &all,
+    };
     let num = |k: &str| -> Result<f64> {
         j.get(k)
             .and_then(|v| v.as_f64())

@@ -1,13 +1,15 @@
 //! `deepstereo report`: error against run time over a grid of settings.
 
 use super::model_args::ModelArgs;
+use super::report_html::{page, picture_names, PageRow, ViewPictures, BEST_DIR};
 use super::SceneArgs;
 use crate::inference::{evaluate, holdout_list, make_backend, BackendKind, RenderSettings};
+use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
 use deepstereo_core::imageio::write_atomic;
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::metrics::{psnr, ssim};
-use deepstereo_core::plot::{pareto_front, plot, Series};
+use deepstereo_core::plot::{pareto_front, plot, Series, PALETTE};
 use deepstereo_core::prune::{PruneMode, PruneOptions};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
@@ -45,7 +47,9 @@ pub struct Args {
     /// --prune-* options).
     #[arg(long, default_value = "off,auto")]
     pub prune_grid: String,
-    /// Output directory: report.csv, report.md, report.png.
+    /// Output directory: report.csv, report.md, report.png and index.html (the plot, the
+    /// table, the Pareto front and the best setting's renders beside the photographs and
+    /// both baselines, in best/; a static page that opens from the file system).
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -121,10 +125,12 @@ pub fn run(a: Args) -> Result<()> {
                 .map_err(|e| anyhow::anyhow!("--prune-grid: {e}"))
         })
         .collect::<Result<_>>()?;
-    std::fs::create_dir_all(&a.out)
-        .with_context(|| format!("cannot create {}", a.out.display()))?;
+    let staged = StagedDir::new(&a.out)?;
+    let out = staged.path().to_path_buf();
     let mut rows: Vec<Row> = Vec::new();
     let mut nearest = None;
+    // The best network setting so far: its row and its pictures.
+    let mut best: Option<(usize, Vec<ViewPictures>)> = None;
     for (bi, &kind) in backends.iter().enumerate() {
         let backend = make_backend(kind, a.model.model.as_deref())?;
         for (si, (n, scaled_scene)) in scaled.iter().enumerate() {
@@ -171,6 +177,10 @@ pub fn run(a: Args) -> Result<()> {
                     "{method:>28} {p:3} planes: PSNR {:.2} SSIM {:.3} {:.2} s/view | plane sweep {:.2} dB {:.2} s",
                     pt.net.0, pt.net.1, pt.net.2, pt.plane_sweep.0, pt.plane_sweep.2
                 );
+                    let better = best.as_ref().is_none_or(|(b, _)| pt.net.0 > rows[*b].psnr);
+                    if better {
+                        best = Some((rows.len(), pt.pictures));
+                    }
                     rows.push(Row {
                         method,
                         planes: p,
@@ -227,13 +237,7 @@ pub fn run(a: Args) -> Result<()> {
             "| nearest source | - | 1 | - | - | {p:.2} | {s:.3} | - |"
         )?;
     }
-    let colours = [
-        [0.85, 0.2, 0.1],
-        [0.1, 0.6, 0.2],
-        [0.1, 0.4, 0.85],
-        [0.5, 0.2, 0.7],
-        [0.9, 0.6, 0.0],
-    ];
+    let colours = PALETTE;
     let mut series: Vec<Series> = Vec::new();
     let methods: Vec<String> =
         rows.iter()
@@ -292,12 +296,48 @@ pub fn run(a: Args) -> Result<()> {
         &series,
         true,
     );
-    img.save_png(&a.out.join("report.png"))?;
-    write_atomic(&a.out.join("report.csv"), csv.as_bytes())?;
-    write_atomic(&a.out.join("report.md"), md.as_bytes())?;
+    img.save_png(&out.join("report.png"))?;
+    write_atomic(&out.join("report.csv"), csv.as_bytes())?;
+    write_atomic(&out.join("report.md"), md.as_bytes())?;
+    let net_rows: Vec<usize> = (0..rows.len())
+        .filter(|&i| rows[i].method.starts_with("deepstereo"))
+        .collect();
+    let on_front: Vec<usize> = front.iter().map(|&i| net_rows[i]).collect();
+    let page_rows: Vec<PageRow> = rows
+        .iter()
+        .enumerate()
+        .map(|(i, r)| PageRow {
+            method: r.method.clone(),
+            planes: r.planes,
+            views: r.views,
+            scale: r.scale,
+            prune: r.prune.to_string(),
+            psnr: r.psnr,
+            ssim: r.ssim,
+            seconds: r.seconds,
+            pareto: on_front.contains(&i),
+        })
+        .collect();
+    let (best_row, pictures) = best.map_or((None, Vec::new()), |(b, p)| (Some(b), p));
+    let best_dir = out.join(BEST_DIR);
+    for v in &pictures {
+        let names = picture_names(v.target);
+        let images = [&v.truth, &v.rendered, &v.plane_sweep, &v.nearest];
+        for (n, im) in names.iter().zip(images) {
+            im.save_png(&best_dir.join(n))?;
+        }
+    }
+    let heading = format!(
+        "Scene {}, model {}, held-out views {targets:?}. Scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.",
+        scene.root.display(),
+        a.model.name()
+    );
+    let html = page(&heading, &page_rows, nearest, best_row, &pictures);
+    write_atomic(&out.join("index.html"), html.as_bytes())?;
+    staged.commit()?;
     print!("{md}");
     eprintln!(
-        "wrote report.csv, report.md, report.png to {}",
+        "wrote report.csv, report.md, report.png, index.html and {BEST_DIR}/ to {}",
         a.out.display()
     );
     Ok(())
@@ -322,6 +362,9 @@ fn grid<T: std::str::FromStr>(
         .collect()
 }
 
+/// A view's [network, plane sweep, nearest] x (PSNR, SSIM) and its pictures.
+type Scored = ([(f64, f64); 3], ViewPictures);
+
 /// One setting's mean scores: the network's and the plane sweep's (PSNR, SSIM, seconds)
 /// and the nearest source's (PSNR, SSIM).
 struct Point {
@@ -329,6 +372,8 @@ struct Point {
     net: (f64, f64, f64),
     plane_sweep: (f64, f64, f64),
     nearest: (f64, f64),
+    /// Each held-out view's pictures, at the scene's resolution.
+    pictures: Vec<ViewPictures>,
 }
 
 /// Evaluates one setting on `scene`, or, with `scaled` (the scene read at 1/`n`), renders
@@ -344,7 +389,22 @@ fn point(
     settings: &RenderSettings,
 ) -> Result<Point> {
     let Some(small) = scaled else {
-        let r = evaluate(backend, model, scene, targets, settings, |_, _| {})?;
+        let mut pictures = Vec::new();
+        let r = evaluate(backend, model, scene, targets, settings, |v, im| {
+            pictures.push(ViewPictures {
+                target: v.target,
+                name: v.name.clone(),
+                truth: im.truth.clone(),
+                rendered: im.rendered.image.clone(),
+                plane_sweep: im.plane_sweep.clone(),
+                nearest: im.nearest.clone(),
+                psnr: [
+                    v.psnr,
+                    v.baselines.plane_sweep.psnr,
+                    v.baselines.nearest.psnr,
+                ],
+            });
+        })?;
         let b = &r.mean.baselines;
         return Ok(Point {
             backend: r.backend.clone(),
@@ -355,29 +415,40 @@ fn point(
                 b.plane_sweep.seconds.unwrap_or(0.0),
             ),
             nearest: (b.nearest.psnr, b.nearest.ssim),
+            pictures,
         });
     };
     // [network, plane sweep, nearest] x (PSNR, SSIM) per view, scored at full resolution.
-    let mut scores: Vec<Result<[(f64, f64); 3]>> = Vec::new();
+    let mut scored: Vec<Result<Scored>> = Vec::new();
     let r = evaluate(backend, model, small, targets, settings, |v, im| {
-        scores.push(
+        scored.push(
             scene
                 .load_image(v.target)
                 .map_err(anyhow::Error::from)
                 .map(|truth| {
-                    let score = |img: &RgbImage| {
-                        let up = img.upsample(n, truth.width, truth.height);
-                        (psnr(&up, &truth), ssim(&up, &truth))
+                    let up = |img: &RgbImage| img.upsample(n, truth.width, truth.height);
+                    let ups = [up(&im.rendered.image), up(im.plane_sweep), up(im.nearest)];
+                    let score = |up: &RgbImage| (psnr(up, &truth), ssim(up, &truth));
+                    let s = [score(&ups[0]), score(&ups[1]), score(&ups[2])];
+                    let [rendered, plane_sweep, nearest] = ups;
+                    let pictures = ViewPictures {
+                        target: v.target,
+                        name: v.name.clone(),
+                        truth,
+                        rendered,
+                        plane_sweep,
+                        nearest,
+                        psnr: [s[0].0, s[1].0, s[2].0],
                     };
-                    [
-                        score(&im.rendered.image),
-                        score(im.plane_sweep),
-                        score(im.nearest),
-                    ]
+                    (s, pictures)
                 }),
         );
     })?;
-    let scores: Vec<[(f64, f64); 3]> = scores.into_iter().collect::<Result<_>>()?;
+    let (scores, pictures): (Vec<[(f64, f64); 3]>, Vec<ViewPictures>) = scored
+        .into_iter()
+        .collect::<Result<Vec<_>>>()?
+        .into_iter()
+        .unzip();
     let k = scores.len().max(1) as f64;
     let mean = |i: usize| {
         let (p, s) = scores
@@ -391,5 +462,6 @@ fn point(
         net: (np, ns, r.mean.seconds),
         plane_sweep: (pp, pss, r.mean.baselines.plane_sweep.seconds.unwrap_or(0.0)),
         nearest,
+        pictures,
     })
 }

@@ -1,7 +1,7 @@
 //! `deepstereo sweep`: one target view's plane-sweep volume, as safetensors (and PNGs).
 
 use super::SceneArgs;
-use anyhow::{bail, Context};
+use anyhow::bail;
 use deepstereo_core::geometry::{depths_of, inverse_depths};
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::{tile_inputs, PyramidSource};
@@ -34,6 +34,7 @@ pub struct Args {
     /// (the image size rounded up to the model's alignment, plus the border the network
     /// reads), `tile_origin` [2] i64 (y0, x0) = (0, 0) and `tile_size` [2] i64 (th, tw).
     /// The network's output is then [1, 3, th, tw]; crop it to the image size.
+    /// `embedded` names the embedded model.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Also write one PNG per plane (the alpha-weighted mean of the sources) here.
@@ -43,7 +44,7 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let model = match &args.model {
-        Some(p) => Some(super::export::load_model(Some(p))?),
+        Some(p) => Some(crate::models::load_model(Some(p))?),
         None => None,
     };
     let cfg = model.as_ref().map(|t| t.model.config().clone());
@@ -145,10 +146,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             t0.elapsed().as_secs_f64()
         );
     }
-    write_safetensors(&args.out, &arrays, None)?;
-    eprintln!("wrote {}", args.out.display());
-    if let Some(dir) = &args.png {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    // The PNGs go to a staged directory first, so that a failure leaves neither output.
+    let staged = match &args.png {
+        Some(dir) => Some(crate::outdir::StagedDir::new(dir)?),
+        None => None,
+    };
+    if let Some(st) = &staged {
+        let dir = st.path();
         for z in 0..d {
             let mut img = RgbImage::new(w as u32, h as u32);
             for p in 0..h * w {
@@ -168,6 +172,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             img.save_png(&dir.join(format!("plane_{z:03}.png")))?;
         }
+    }
+    write_safetensors(&args.out, &arrays, None)?;
+    eprintln!("wrote {}", args.out.display());
+    if let Some(st) = staged {
+        let dir = st.target().to_path_buf();
+        st.commit()?;
         eprintln!("wrote {d} plane images to {}", dir.display());
     }
     Ok(())

@@ -100,8 +100,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.validate()?;
     let bar = indicatif::ProgressBar::new(args.scenes as u64);
     let t0 = std::time::Instant::now();
-    write_scenes_progress(&args.out, args.scenes, args.seed, &opts, &|_| bar.inc(1))
-        .with_context(|| format!("cannot write scenes to {}", args.out.display()))?;
+    let staged = crate::outdir::StagedDir::new(&args.out)?;
+    write_scenes_progress(staged.path(), args.scenes, args.seed, &opts, &|_| {
+        bar.inc(1)
+    })
+    .with_context(|| format!("cannot write scenes to {}", args.out.display()))?;
     bar.finish_and_clear();
     let secs = t0.elapsed().as_secs_f64();
     println!(
@@ -120,6 +123,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         contact_sheet(&scenes, SHEET_VIEWS).save_png(path)?;
         println!("wrote contact sheet {}", path.display());
     }
+    // Only now, with the contact sheet written too, do the scenes appear.
+    staged.commit()?;
     Ok(())
 }
 

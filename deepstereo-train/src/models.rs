@@ -1,0 +1,62 @@
+//! Loading a model, the one place that does: a safetensors file (with its config), or the
+//! embedded default, which every command names `embedded` (`--model embedded`, and the
+//! name reports give it).
+
+use anyhow::Result;
+use candle_core::Device;
+use deepstereo_core::render::{Backend, CandleBackend};
+use deepstereo_core::weights::{self, Trainable};
+use std::path::Path;
+
+/// The default model, trained on procedural scenes only (see the README for the command).
+pub static EMBEDDED_MODEL: &[u8] = include_bytes!("../assets/tiny.safetensors");
+/// The name of the embedded model: accepted by `--model` and written in reports.
+pub const EMBEDDED_NAME: &str = "embedded";
+
+/// Which runtime runs the network.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendKind {
+    Candle,
+    Ort,
+}
+
+/// The weights file `--model` names, or `None` for the embedded model (no `--model`, or
+/// `--model embedded`).
+pub fn model_file(model: Option<&Path>) -> Option<&Path> {
+    model.filter(|p| p.as_os_str() != EMBEDDED_NAME)
+}
+
+/// Loads a model strictly on the CPU (`None` or `embedded`: the embedded model).
+pub fn load_model(model: Option<&Path>) -> Result<Trainable> {
+    let device = Device::Cpu;
+    Ok(match model_file(model) {
+        Some(p) => weights::load(p, &device)?,
+        None => weights::load_bytes(Path::new(EMBEDDED_NAME), EMBEDDED_MODEL, &device)?,
+    })
+}
+
+/// The model for the candle backend.
+pub fn candle_backend(model: Option<&Path>) -> Result<CandleBackend> {
+    Ok(CandleBackend {
+        model: load_model(model)?.model,
+        device: Device::Cpu,
+    })
+}
+
+/// The backend of `kind` for `model`.
+pub fn make_backend(kind: BackendKind, model: Option<&Path>) -> Result<Box<dyn Backend>> {
+    match kind {
+        BackendKind::Candle => Ok(Box::new(candle_backend(model)?)),
+        BackendKind::Ort => Ok(Box::new(deepstereo_export::OrtBackend::from_model(
+            &load_model(model)?,
+        )?)),
+    }
+}
+
+/// The model's name in reports: its file, or `embedded`.
+pub fn model_name(model: Option<&Path>) -> String {
+    model_file(model)
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|| EMBEDDED_NAME.to_string())
+}
