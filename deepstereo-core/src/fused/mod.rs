@@ -14,6 +14,7 @@
 //! Each op equals a composition of candle ops, which is also the fallback off the CPU or
 //! for dtypes other than f32 / f64 (tests compare the two, values and gradients).
 
+mod blend;
 mod head;
 mod pad;
 mod pool;
@@ -21,10 +22,11 @@ mod pool;
 mod tests;
 mod upsample;
 
+pub use blend::{add_views_relu, blend_colours};
 pub(crate) use head::softmax_columns;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;
-pub use pool::{add_views_relu, blend_colours, pool_front, view_stats};
+pub use pool::{pool_front, view_stats};
 pub use upsample::upsample_crop;
 
 use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};

@@ -1,0 +1,311 @@
+//! The any-number-of-views family's colour blend (`crate::pool` has the maths), one pass
+//! over the pixels each, with gradients:
+//!
+//! - [`blend_colours`]: the blend of the source colours from the raw logits `y`
+//!   `[N, V, P]` -> `[N, 3, P]`, with its gradient to `y`;
+//! - [`add_views_relu`]: the blend's first layer, `relu(a + b)` with `b` broadcast over
+//!   the views.
+//!
+//! Off the CPU, or for dtypes other than f32 and f64, `pool.rs` runs the same maths as
+//! candle ops; tests compare the two.
+
+use super::pool::cast;
+use super::{data, on_cpu, slice};
+use crate::pool::{BLEND_EPS, BLEND_LOGIT_BOUND};
+use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
+use num_traits::{Float, NumAssignOps};
+use rayon::prelude::*;
+
+/// The blended source colours from the raw logits `y` `[N, V, P]` and the sources' RGBA
+/// `x` `[N, V, 4, P]`: `sum_v w_v rgb_v` with `w_v = a_v exp(L(y_v)) / (sum_u a_u
+/// exp(L(y_u)) + eps)`, `L(y) = B tanh(y / B)`; `[N, 3, P]`. `None` off the CPU.
+pub fn blend_colours(y: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
+    let (n, v, p) = y.dims3()?;
+    if x.dims() != [n, v, 4, p] {
+        bail!(
+            "blend_colours: sources {:?} do not match logits {:?}",
+            x.dims(),
+            y.dims()
+        );
+    }
+    if !on_cpu(&[y, x]) {
+        return Ok(None);
+    }
+    y.contiguous()?
+        .apply_op2(&x.contiguous()?, BlendColours)
+        .map(Some)
+}
+
+struct BlendColours;
+
+impl BlendColours {
+    /// `exp(L(y_v)) a_v` of one pixel's views into `ex`, returning their sum plus eps.
+    fn weights<T: Float + NumAssignOps>(
+        y: &[T],
+        x: &[T],
+        (v, p, j): (usize, usize, usize),
+        ex: &mut [T],
+    ) -> T {
+        let b = cast::<T>(BLEND_LOGIT_BOUND);
+        let mut den = cast::<T>(BLEND_EPS);
+        for k in 0..v {
+            let l = b * (y[k * p + j] / b).tanh();
+            ex[k] = l.exp() * x[(k * 4 + 3) * p + j];
+            den += ex[k];
+        }
+        den
+    }
+
+    fn fwd<T: Float + NumAssignOps + Send + Sync>(
+        y: &[T],
+        x: &[T],
+        (n, v, p): (usize, usize, usize),
+    ) -> Vec<T> {
+        let mut out = vec![T::zero(); n * 3 * p];
+        out.par_chunks_mut(3 * p).enumerate().for_each(|(i, o)| {
+            let (yi, xi) = (&y[i * v * p..][..v * p], &x[i * v * 4 * p..][..v * 4 * p]);
+            let mut ex = vec![T::zero(); v];
+            for j in 0..p {
+                let den = Self::weights(yi, xi, (v, p, j), &mut ex);
+                for ch in 0..3 {
+                    let mut s = T::zero();
+                    for (k, &w) in ex.iter().enumerate() {
+                        s += w * xi[(k * 4 + ch) * p + j];
+                    }
+                    o[ch * p + j] = s / den;
+                }
+            }
+        });
+        out
+    }
+
+    /// `dy` from the output gradient `g` `[N, 3, P]`: `d out_c / d L_v = w_v (rgb_vc -
+    /// out_c)`, `d L / d y = 1 - tanh(y / B)^2`.
+    fn bwd<T: Float + NumAssignOps + Send + Sync>(
+        y: &[T],
+        x: &[T],
+        g: &[T],
+        (_, v, p): (usize, usize, usize),
+    ) -> Vec<T> {
+        let mut dy = vec![T::zero(); y.len()];
+        let b = cast::<T>(BLEND_LOGIT_BOUND);
+        dy.par_chunks_mut(v * p).enumerate().for_each(|(i, d)| {
+            let (yi, xi) = (&y[i * v * p..][..v * p], &x[i * v * 4 * p..][..v * 4 * p]);
+            let gi = &g[i * 3 * p..][..3 * p];
+            let mut ex = vec![T::zero(); v];
+            for j in 0..p {
+                let den = Self::weights(yi, xi, (v, p, j), &mut ex);
+                let mut out = [T::zero(); 3];
+                for (ch, o) in out.iter_mut().enumerate() {
+                    for (k, &w) in ex.iter().enumerate() {
+                        *o += w * xi[(k * 4 + ch) * p + j];
+                    }
+                    *o /= den;
+                }
+                for (k, &w) in ex.iter().enumerate() {
+                    let mut gl = T::zero();
+                    for ch in 0..3 {
+                        gl += gi[ch * p + j] * (xi[(k * 4 + ch) * p + j] - out[ch]);
+                    }
+                    let t = (yi[k * p + j] / b).tanh();
+                    d[k * p + j] = gl * w / den * (T::one() - t * t);
+                }
+            }
+        });
+        dy
+    }
+}
+
+impl CustomOp2 for BlendColours {
+    fn name(&self) -> &'static str {
+        "deepstereo-blend-colours"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (n, v, p) = l1.shape().dims3()?;
+        let y = match s1 {
+            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
+                slice::<f32>(s1, l1)?,
+                slice::<f32>(s2, l2)?,
+                (n, v, p),
+            )),
+            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
+                slice::<f64>(s1, l1)?,
+                slice::<f64>(s2, l2)?,
+                (n, v, p),
+            )),
+            _ => bail!("blend_colours: f32 or f64 only"),
+        };
+        Ok((y, Shape::from((n, 3, p))))
+    }
+
+    fn bwd(
+        &self,
+        y: &Tensor,
+        x: &Tensor,
+        _out: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let dims = y.dims3()?;
+        let g = g.contiguous()?;
+        fn run<T: WithDType + Float + NumAssignOps>(
+            y: &Tensor,
+            x: &Tensor,
+            g: &Tensor,
+            dims: (usize, usize, usize),
+        ) -> Result<Tensor> {
+            let dy = {
+                let (ys, yl) = y.storage_and_layout();
+                let (xs, xl) = x.storage_and_layout();
+                let (gs, gl) = g.storage_and_layout();
+                BlendColours::bwd(
+                    data::<T>(&ys, yl)?,
+                    data::<T>(&xs, xl)?,
+                    data::<T>(&gs, gl)?,
+                    dims,
+                )
+            };
+            Tensor::from_vec(dy, y.shape(), y.device())
+        }
+        let dy = match y.dtype() {
+            DType::F32 => run::<f32>(y, x, &g, dims)?,
+            DType::F64 => run::<f64>(y, x, &g, dims)?,
+            dt => bail!("blend_colours: f32 or f64 only, got {dt:?}"),
+        };
+        Ok((Some(dy), None))
+    }
+}
+
+/// `relu(a + b)` with `b` broadcast over the views: `a` `[N, V, C, P]`, `b` `[N, C, P]`
+/// -> `[N, V, C, P]` (the blend's first layer: its part for the colour tower's features
+/// is computed once per plane); `None` off the CPU.
+pub fn add_views_relu(a: &Tensor, b: &Tensor) -> Result<Option<Tensor>> {
+    let (n, _, c, p) = a.dims4()?;
+    if b.dims() != [n, c, p] {
+        bail!(
+            "add_views_relu: {:?} does not broadcast over {:?}",
+            b.dims(),
+            a.dims()
+        );
+    }
+    if !on_cpu(&[a, b]) {
+        return Ok(None);
+    }
+    a.contiguous()?
+        .apply_op2(&b.contiguous()?, AddViewsRelu)
+        .map(Some)
+}
+
+struct AddViewsRelu;
+
+impl AddViewsRelu {
+    fn fwd<T: Float + NumAssignOps + Send + Sync>(
+        a: &[T],
+        b: &[T],
+        (v, cp): (usize, usize),
+    ) -> Vec<T> {
+        let mut y = vec![T::zero(); a.len()];
+        y.par_chunks_mut(cp).enumerate().for_each(|(iv, yc)| {
+            let (ac, bc) = (&a[iv * cp..][..cp], &b[(iv / v) * cp..][..cp]);
+            for ((o, &x), &z) in yc.iter_mut().zip(ac).zip(bc) {
+                *o = (x + z).max(T::zero());
+            }
+        });
+        y
+    }
+
+    /// `(da, db)`: the output gradient where the output is positive, and its sum over
+    /// the views.
+    fn bwd<T: Float + NumAssignOps + Send + Sync>(
+        y: &[T],
+        g: &[T],
+        (v, cp): (usize, usize),
+    ) -> (Vec<T>, Vec<T>) {
+        let mut da = vec![T::zero(); y.len()];
+        da.par_chunks_mut(cp).enumerate().for_each(|(iv, d)| {
+            let (yc, gc) = (&y[iv * cp..][..cp], &g[iv * cp..][..cp]);
+            for ((o, &yv), &gv) in d.iter_mut().zip(yc).zip(gc) {
+                *o = if yv > T::zero() { gv } else { T::zero() };
+            }
+        });
+        let mut db = vec![T::zero(); y.len() / v];
+        db.par_chunks_mut(cp).enumerate().for_each(|(i, d)| {
+            for k in 0..v {
+                for (o, &x) in d.iter_mut().zip(&da[(i * v + k) * cp..][..cp]) {
+                    *o += x;
+                }
+            }
+        });
+        (da, db)
+    }
+}
+
+impl CustomOp2 for AddViewsRelu {
+    fn name(&self) -> &'static str {
+        "deepstereo-add-views-relu"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (n, v, c, p) = l1.shape().dims4()?;
+        let y = match s1 {
+            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
+                slice::<f32>(s1, l1)?,
+                slice::<f32>(s2, l2)?,
+                (v, c * p),
+            )),
+            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
+                slice::<f64>(s1, l1)?,
+                slice::<f64>(s2, l2)?,
+                (v, c * p),
+            )),
+            _ => bail!("add_views_relu: f32 or f64 only"),
+        };
+        Ok((y, Shape::from((n, v, c, p))))
+    }
+
+    fn bwd(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        y: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (_, v, c, p) = a.dims4()?;
+        let g = g.contiguous()?;
+        fn run<T: WithDType + Float + NumAssignOps>(
+            a: &Tensor,
+            b: &Tensor,
+            y: &Tensor,
+            g: &Tensor,
+            vcp: (usize, usize),
+        ) -> Result<(Tensor, Tensor)> {
+            let (da, db) = {
+                let (ys, yl) = y.storage_and_layout();
+                let (gs, gl) = g.storage_and_layout();
+                AddViewsRelu::bwd(data::<T>(&ys, yl)?, data::<T>(&gs, gl)?, vcp)
+            };
+            Ok((
+                Tensor::from_vec(da, a.shape(), a.device())?,
+                Tensor::from_vec(db, b.shape(), b.device())?,
+            ))
+        }
+        let (da, db) = match a.dtype() {
+            DType::F32 => run::<f32>(a, b, y, &g, (v, c * p))?,
+            DType::F64 => run::<f64>(a, b, y, &g, (v, c * p))?,
+            dt => bail!("add_views_relu: f32 or f64 only, got {dt:?}"),
+        };
+        Ok((Some(da), Some(db)))
+    }
+}
