@@ -4,12 +4,16 @@
 # reader drops), plus procedural scenes; NeRF-format scenes get automatic depth bounds.
 # Validated on scenes never trained on. Starts the run, or continues it from its committed checkpoint
 # (`--resume`) when deepstereo-train/runs/nviews-real/checkpoint.safetensors exists.
-# Run from the repository root: bash deepstereo-train/scripts/train_default.sh [STEPS]
+# Run from the repository root: bash deepstereo-train/scripts/train_default.sh [STEPS] [LR_SCHEDULE]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 DATA=../shared/data
 OUT=deepstereo-train/runs/nviews-real
-STEPS="${1:-20000}"
+STEPS="${1:-8600}"
+# Constant Adam 1e-3 to step 6000 (validation flat from ~1400), then a cosine decay to
+# 5e-5 at step 8600 (added on resume at step 6030 as cosine:6000-10000, shortened at
+# step 6501 to fit the session).
+SCHEDULE="${2:-cosine:6000-8600}"
 TRAIN=()
 for s in bird blowtorch can cityscape cup duckqueen figurine fruit maryrose milk mouse plant statue; do
   TRAIN+=("$DATA/train/$s")
@@ -22,5 +26,6 @@ exec nice -n 19 target/release/deepstereo train --config nviews --views 2-10 \
   --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12 \
   --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8 \
   --steps "$STEPS" --batch 8 --optimizer adam --lr 1e-3 --seed 1 \
+  --lr-schedule "$SCHEDULE" --lr-final 0.05 \
   --checkpoint-every 100 --validate-every 200 --log-every 20 --no-progress \
   --out "$OUT" "${RESUME[@]}"

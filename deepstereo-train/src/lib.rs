@@ -8,6 +8,7 @@ pub mod cmd;
 pub mod colmap_run;
 pub mod data;
 pub mod inference;
+pub mod lr;
 pub mod models;
 pub mod optim;
 pub mod outdir;

@@ -8,6 +8,7 @@
 use crate::data::{
     make_batch, spawn_loader, synth_scenes, Batch, Sampling, SceneData, VALIDATION_SALT,
 };
+use crate::lr::LrSchedule;
 use crate::optim::{Optimizer, OptimizerKind};
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
@@ -58,6 +59,9 @@ pub struct RunOptions {
     /// Photometric augmentation and flips.
     #[serde(default)]
     pub augment: bool,
+    /// The learning rate against the step (a resume may change it).
+    #[serde(default)]
+    pub lr_schedule: LrSchedule,
 }
 
 impl RunOptions {
@@ -275,6 +279,7 @@ pub fn train(
             }
         } else {
             bad = 0;
+            opt.lr = run.lr_schedule.lr_at(run.lr, opt.steps);
             opt.step(&grads)?;
         }
         let validate_now = step.is_multiple_of(sched.validate_every) || step == sched.steps;
@@ -283,7 +288,7 @@ pub fn train(
             let line = LogLine {
                 step,
                 loss: loss_v.is_finite().then_some(loss_v),
-                lr: run.lr,
+                lr: opt.lr,
                 samples_per_s: window_n as f64 / secs.max(1e-9),
                 grad_norm: gnorm.is_finite().then_some(gnorm),
                 val_psnr: if validate_now {
@@ -398,8 +403,20 @@ fn restore(ckpt: &Path, run: &RunOptions, t: &Trainable, opt: &mut Optimizer) ->
     let m = meta.metadata().clone().unwrap_or_default();
     let saved: RunOptions = serde_json::from_str(m.get(RUN_KEY).map(String::as_str).unwrap_or(""))
         .with_context(|| format!("{}: no run options in the checkpoint", ckpt.display()))?;
-    if &saved != run {
+    let same_but_lr = RunOptions {
+        lr_schedule: run.lr_schedule,
+        ..saved.clone()
+    };
+    if &same_but_lr != run {
         bail!("{}: the checkpoint was made with different options:\n  saved: {saved:?}\n  now:   {run:?}", ckpt.display());
+    }
+    if saved.lr_schedule != run.lr_schedule {
+        eprintln!(
+            "{}: learning-rate schedule changed from {:?} to {:?}",
+            ckpt.display(),
+            saved.lr_schedule,
+            run.lr_schedule
+        );
     }
     let step: u64 = m
         .get(STEP_KEY)

@@ -1,5 +1,6 @@
 //! `deepstereo train`: train a model on procedural and/or real scenes.
 
+use crate::lr::{LrSchedule, DEFAULT_LR_FINAL};
 use crate::optim::OptimizerKind;
 use crate::training::{train, RunOptions, Schedule};
 use anyhow::{bail, Context};
@@ -83,6 +84,14 @@ pub struct Args {
     /// sources and the target alike) and random horizontal flips.
     #[arg(long)]
     pub augment: bool,
+    /// Learning rate against the step: `constant`, or `cosine:START-END` (the initial
+    /// rate up to step START, a cosine down to `--lr-final` times it at step END). A
+    /// resumed run may add or change it.
+    #[arg(long, default_value = "constant")]
+    pub lr_schedule: String,
+    /// The final rate's share of --lr for a decaying --lr-schedule.
+    #[arg(long, default_value_t = DEFAULT_LR_FINAL)]
+    pub lr_final: f64,
 }
 
 /// Parses `K` or `MIN-MAX`.
@@ -165,6 +174,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         val_data: a.val_data,
         synthetic_percent: a.synthetic_percent,
         augment: a.augment,
+        lr_schedule: LrSchedule::parse(&a.lr_schedule, a.lr_final)?,
     };
     let sched = Schedule {
         steps: a.steps,
