@@ -127,3 +127,56 @@ fn resume_refuses_different_options() -> Result<()> {
     ensure!(String::from_utf8_lossy(&o.stderr).contains("different options"));
     Ok(())
 }
+
+#[test]
+fn a_resume_may_add_a_learning_rate_schedule_and_the_log_follows_it() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let out = dir.path().join("s");
+    let mut a = args(&out);
+    a[8] = "4".into(); // --steps 4, constant rate
+    ensure!(Command::new(BIN)
+        .args(&a)
+        .stderr(Stdio::null())
+        .status()?
+        .success());
+    let mut b = args(&out);
+    b.extend(
+        [
+            "--resume",
+            "--lr-schedule",
+            "cosine:4-6",
+            "--lr-final",
+            "0.1",
+        ]
+        .map(String::from),
+    );
+    let res = Command::new(BIN).args(&b).output()?;
+    ensure!(
+        res.status.success(),
+        "{}",
+        String::from_utf8_lossy(&res.stderr)
+    );
+    ensure!(String::from_utf8_lossy(&res.stderr).contains("learning-rate schedule changed"));
+    let text = std::fs::read_to_string(out.join("log.jsonl"))?;
+    let lrs: Vec<f64> = text
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l)
+                .map(|v| v["lr"].as_f64().unwrap_or(f64::NAN))
+        })
+        .collect::<Result<_, _>>()?;
+    // Steps 1-4 at 1e-3; the updates after 4 and 5 completed steps at 1e-3 and
+    // (0.1 + 0.9 * (1 + cos(pi / 2)) / 2) * 1e-3; then 1e-4 from 6 on.
+    let want = [1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 0.55e-3, 1e-4, 1e-4];
+    ensure!(lrs.len() == want.len(), "{lrs:?}");
+    for (got, w) in lrs.iter().zip(want) {
+        ensure!((got - w).abs() < 1e-12, "{lrs:?} against {want:?}");
+    }
+    // A bad schedule is refused by name.
+    let mut c = args(&dir.path().join("t"));
+    c.extend(["--lr-schedule", "cosine:9-3"].map(String::from));
+    let res = Command::new(BIN).args(&c).output()?;
+    ensure!(!res.status.success());
+    ensure!(String::from_utf8_lossy(&res.stderr).contains("--lr-schedule"));
+    Ok(())
+}
