@@ -470,7 +470,15 @@ fn measure_on_ethiopian_head() {
     let all = file_names(&src.join("images_4"));
     let npy = read_npy(&src.join("poses_bounds.npy")).expect("npy");
     let mut rows = Vec::new();
-    let picked: Vec<usize> = (0..ETHIOPIAN_VIEWS.0).step_by(ETHIOPIAN_VIEWS.1).collect();
+    // DEEPSTEREO_MEASURE_VIEWS="N,STEP": every STEP-th of the first N views instead.
+    let (first, step) = std::env::var("DEEPSTEREO_MEASURE_VIEWS")
+        .ok()
+        .and_then(|v| {
+            let (a, b) = v.split_once(',')?;
+            Some((a.trim().parse().ok()?, b.trim().parse().ok()?))
+        })
+        .unwrap_or(ETHIOPIAN_VIEWS);
+    let picked: Vec<usize> = (0..first.min(all.len())).step_by(step).collect();
     for &i in &picked {
         rows.extend_from_slice(npy.row(i).expect("row"));
         for d in [given.join("images_4"), imgs.clone()] {
