@@ -95,6 +95,7 @@ fn cameras() -> Vec<NamedCamera> {
                     intrinsics: k,
                     pose: deepstereo_core::camera::WorldToCamera::new_checked(r, -(r * c))
                         .expect("rotation"),
+                    rolling_shutter: None,
                 },
             }
         })

@@ -327,6 +327,7 @@ fn pose_errors_are_zero_for_a_similarity_and_see_a_rotation() {
                 Camera {
                     intrinsics: Intrinsics { ..c.intrinsics },
                     pose: WorldToCamera::new_checked(r, t).expect("pose"),
+                    rolling_shutter: None,
                 }
             })
             .collect()

@@ -327,6 +327,7 @@ fn load_small(v: &View) -> Result<Small> {
         camera: Camera {
             intrinsics,
             pose: v.camera.pose,
+            rolling_shutter: v.camera.rolling_shutter,
         },
         image,
     })

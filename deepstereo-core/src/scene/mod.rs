@@ -281,7 +281,7 @@ impl Scene {
                     ),
                 ));
             }
-            v.camera.intrinsics = i.downscaled(factor as f64, w, h);
+            v.camera = v.camera.downscaled(factor as f64, w, h);
         }
         self.downscale_levels = k;
         Ok(self)
@@ -431,7 +431,7 @@ pub(crate) fn make_view(
     Ok(View {
         name: name.to_string(),
         image_path,
-        camera: Camera { intrinsics, pose },
+        camera: Camera::global(intrinsics, pose),
         bounds,
     })
 }

@@ -24,6 +24,7 @@ pub(super) fn cam(r: DMat3, centre: DVec3, intr: Intrinsics) -> Camera {
     Camera {
         intrinsics: intr,
         pose: WorldToCamera::new_checked(r, -(r * centre)).unwrap(),
+        rolling_shutter: None,
     }
 }
 
@@ -173,10 +174,7 @@ fn target_swept_into_itself_is_identity() {
         }),
     ] {
         intr.distortion = distortion;
-        let camera = Camera {
-            intrinsics: intr,
-            pose,
-        };
+        let camera = Camera::global(intr, pose);
         let src = [Source {
             camera: &camera,
             image: &img,

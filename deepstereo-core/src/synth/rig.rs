@@ -131,7 +131,7 @@ pub(crate) fn build(
                 ))
             })?
             .inverse();
-        let cam = Camera { intrinsics, pose };
+        let cam = Camera::global(intrinsics, pose);
         check_rays(&cam).map_err(|m| Error::Invalid(format!("synth: {rig} rig, view {i}: {m}")))?;
         cameras.push(cam);
     }
