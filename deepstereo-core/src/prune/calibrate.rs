@@ -165,6 +165,7 @@ fn prune_calibrate_network() -> TestResult {
                 rig: Rig::Mixed,
                 supersample: 2,
                 textures: Vec::new(),
+                rolling_shutter: 0.0,
             },
         )?;
         let target = s.cameras.len() / 2;
@@ -296,6 +297,7 @@ fn prune_time_blocks() -> TestResult {
             rig: Rig::Forward,
             supersample: 1,
             textures: Vec::new(),
+            rolling_shutter: 0.0,
         },
     )?;
     let src = nearest(&s.cameras, 0, cfg.views);
