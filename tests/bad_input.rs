@@ -612,7 +612,11 @@ fn cases() -> Vec<Case> {
                     v["frames"][1]["transform_matrix_end"] = json!([[1, 0, 0, 0], [0, 1, 0]])
                 })
             },
-            &["transforms.json", "frame 1", "'transform_matrix_end' must be"],
+            &[
+                "transforms.json",
+                "frame 1",
+                "'transform_matrix_end' must be",
+            ],
         ),
         case(
             "nerf: transform_matrix_end not a rotation",
@@ -624,7 +628,11 @@ fn cases() -> Vec<Case> {
                     v["frames"][2]["transform_matrix_end"] = m;
                 })
             },
-            &["transforms.json", "'transform_matrix_end'", "not orthonormal"],
+            &[
+                "transforms.json",
+                "'transform_matrix_end'",
+                "not orthonormal",
+            ],
         ),
         case(
             "nerf: rolling_shutter non-finite",
@@ -634,13 +642,24 @@ fn cases() -> Vec<Case> {
                     v["frames"][0]["rolling_shutter"] = json!([0.0, "nan", 1.0, 0.0])
                 })
             },
-            &["transforms.json", "frame 0", "'rolling_shutter' must be an array of 3 or 4 finite numbers"],
+            &[
+                "transforms.json",
+                "frame 0",
+                "'rolling_shutter' must be an array of 3 or 4 finite numbers",
+            ],
         ),
         case(
             "nerf: rolling_shutter too short",
             Nerf,
-            |d| edit_json(d.join("transforms.json"), |v| v["rolling_shutter"] = json!([0.0, 1.0])),
-            &["transforms.json", "'rolling_shutter' must be an array of 3 or 4"],
+            |d| {
+                edit_json(d.join("transforms.json"), |v| {
+                    v["rolling_shutter"] = json!([0.0, 1.0])
+                })
+            },
+            &[
+                "transforms.json",
+                "'rolling_shutter' must be an array of 3 or 4",
+            ],
         ),
         case(
             "nerf: missing image",

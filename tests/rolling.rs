@@ -50,7 +50,11 @@ fn synth_inspect_and_render_carry_the_rolling_shutter() {
     )
     .expect("JSON");
     let f = &doc["frames"][0];
-    for key in ["transform_matrix", "transform_matrix_start", "transform_matrix_end"] {
+    for key in [
+        "transform_matrix",
+        "transform_matrix_start",
+        "transform_matrix_end",
+    ] {
         assert!(f[key].is_array(), "frame 0 lacks {key}");
     }
     let rs = f["rolling_shutter"].as_array().expect("rolling_shutter");
@@ -89,7 +93,10 @@ fn synth_inspect_and_render_carry_the_rolling_shutter() {
         },
     )
     .expect("load");
-    assert!(ignored.views.iter().all(|v| v.camera.rolling_shutter.is_none()));
+    assert!(ignored
+        .views
+        .iter()
+        .all(|v| v.camera.rolling_shutter.is_none()));
 
     // inspect prints it; render --pose reads it back, and it changes the rendering.
     let s = dir.to_string_lossy().into_owned();
@@ -98,8 +105,18 @@ fn synth_inspect_and_render_carry_the_rolling_shutter() {
     let json = ok(&["inspect", "--json", "--scene", &s]).stdout;
     let v: serde_json::Value = serde_json::from_str(&json).expect("JSON");
     let view = &v["views"][2];
-    for key in ["R_start", "t_start", "R_end", "t_end", "time_origin", "time_per_pixel"] {
-        assert!(!view["rolling_shutter"][key].is_null(), "inspect lacks {key}");
+    for key in [
+        "R_start",
+        "t_start",
+        "R_end",
+        "t_end",
+        "time_origin",
+        "time_per_pixel",
+    ] {
+        assert!(
+            !view["rolling_shutter"][key].is_null(),
+            "inspect lacks {key}"
+        );
     }
     let render = |name: &str, cam: &serde_json::Value| {
         let pose = tmp.path().join(format!("{name}.json"));
@@ -128,7 +145,10 @@ fn synth_inspect_and_render_carry_the_rolling_shutter() {
         .zip(without.pixels())
         .filter(|(a, b)| a != b)
         .count();
-    assert!(differ > (W * H / 10) as usize, "only {differ} pixels differ");
+    assert!(
+        differ > (W * H / 10) as usize,
+        "only {differ} pixels differ"
+    );
 
     // A malformed shutter in --pose is an error naming the file and the key.
     let mut bad = view.clone();
@@ -145,7 +165,11 @@ fn synth_inspect_and_render_carry_the_rolling_shutter() {
         &tmp.path().join("bad").to_string_lossy(),
     ]);
     assert_ne!(e.code, Some(0));
-    assert!(e.stderr.contains("bad.json") && e.stderr.contains("rolling_shutter.t_end"), "{}", e.stderr);
+    assert!(
+        e.stderr.contains("bad.json") && e.stderr.contains("rolling_shutter.t_end"),
+        "{}",
+        e.stderr
+    );
 }
 
 #[test]
@@ -154,6 +178,10 @@ fn synth_rejects_a_share_out_of_range() {
     for share in ["1.5", "-0.1", "nan"] {
         let r = synth(&tmp.path().join("x"), share);
         assert_ne!(r.code, Some(0), "--rolling-shutter {share} accepted");
-        assert!(r.stderr.contains("rolling-shutter"), "{share}: {}", r.stderr);
+        assert!(
+            r.stderr.contains("rolling-shutter"),
+            "{share}: {}",
+            r.stderr
+        );
     }
 }

@@ -171,10 +171,12 @@ impl RollingShutter {
             DVec2::new(-margin, h),
             DVec2::new(w, h),
         ];
-        corners.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &c| {
-            let t = self.time_at(c);
-            (lo.min(t), hi.max(t))
-        })
+        corners
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &c| {
+                let t = self.time_at(c);
+                (lo.min(t), hi.max(t))
+            })
     }
 }
 

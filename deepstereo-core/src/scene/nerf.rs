@@ -187,11 +187,17 @@ fn rolling_shutter(
     top: &Map<String, Value>,
     frame: &Map<String, Value>,
 ) -> std::result::Result<Option<[f64; 4]>, String> {
-    let Some(v) = frame.get("rolling_shutter").or_else(|| top.get("rolling_shutter")) else {
+    let Some(v) = frame
+        .get("rolling_shutter")
+        .or_else(|| top.get("rolling_shutter"))
+    else {
         return Ok(None);
     };
     const MSG: &str = "'rolling_shutter' must be an array of 3 or 4 finite numbers";
-    let a = v.as_array().filter(|a| a.len() == 3 || a.len() == 4).ok_or(MSG)?;
+    let a = v
+        .as_array()
+        .filter(|a| a.len() == 3 || a.len() == 4)
+        .ok_or(MSG)?;
     let mut out = [0.0; 4];
     for (slot, x) in out.iter_mut().zip(a) {
         *slot = x.as_f64().filter(|x| x.is_finite()).ok_or(MSG)?;

@@ -20,7 +20,10 @@ use rayon::prelude::*;
 /// `origin + z * direction`.
 pub fn target_world_rays(target: &Camera, region: Region) -> Vec<(DVec3, DVec3)> {
     let rays = target_rays(&target.intrinsics, region);
-    let fixed = target.moving_shutter().is_none().then(|| target.pose.inverse());
+    let fixed = target
+        .moving_shutter()
+        .is_none()
+        .then(|| target.pose.inverse());
     rays.iter()
         .enumerate()
         .map(|(i, n)| {

@@ -46,7 +46,11 @@ fn random_cameras(rng: &mut Rng, n: usize) -> Vec<Camera> {
                 rng.range(-0.2, 0.2),
                 rng.range(-0.1, 0.1),
             );
-            let c = DVec3::new(rng.range(-0.5, 0.5), rng.range(-0.5, 0.5), rng.range(-0.2, 0.2));
+            let c = DVec3::new(
+                rng.range(-0.5, 0.5),
+                rng.range(-0.5, 0.5),
+                rng.range(-0.2, 0.2),
+            );
             cam(r, c, k)
         })
         .collect()
@@ -92,7 +96,9 @@ fn global_shutter_rolling_cameras_sweep_bit_identically() {
         assert!(rolled.iter().all(|c| c.moving_shutter().is_none()));
         let got = sweep_of(&rolled);
         assert!(
-            got.iter().zip(&base).all(|(a, b)| a.to_bits() == b.to_bits()),
+            got.iter()
+                .zip(&base)
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
             "not bit-identical"
         );
     }
@@ -149,14 +155,21 @@ fn rolling_shutter_plane_is_reproduced_at_its_depth_only_with_the_model() {
         let r = DMat3::from_rotation_y(ry) * DMat3::from_rotation_z(0.03 * k as f64) * r_t;
         let gs = cam(r, centre + r_t.transpose() * DVec3::new(dx, dy, dz), si);
         let turn = DMat3::from_rotation_y(0.12 - 0.1 * k as f64) * DMat3::from_rotation_x(0.1);
-        sources.push(with_readout(&gs, turn, r_t.transpose() * DVec3::new(-0.5, 0.4, 0.1)));
+        sources.push(with_readout(
+            &gs,
+            turn,
+            r_t.transpose() * DVec3::new(-0.5, 0.4, 0.1),
+        ));
     }
     let images: Vec<RgbImage> = sources
         .iter()
         .map(|c| render_plane(c, &target0.pose, depth, 4))
         .collect();
     let reference = render_plane(&target, &target0.pose, depth, 4);
-    let ignored: Vec<Camera> = sources.iter().map(|c| c.without_rolling_shutter()).collect();
+    let ignored: Vec<Camera> = sources
+        .iter()
+        .map(|c| c.without_rolling_shutter())
+        .collect();
     let shift = mean_misalignment(&target, &sources, depth);
     println!("mid-readout poses misplace the plane by {shift:.2} px on average");
     assert!(shift > 3.0, "the motion is not strong: {shift} px");
@@ -179,7 +192,10 @@ fn rolling_shutter_plane_is_reproduced_at_its_depth_only_with_the_model() {
         // 51.0-56.7 dB with the model (the global-shutter test: 56-63 dB, held to 50;
         // the images are more sheared here), 14.9-17.5 dB without.
         assert!(psnr > 48.0, "source {k}: {psnr:.2} dB at the plane's depth");
-        assert!(bad < psnr - 20.0, "source {k}: ignoring the shutter gives {bad:.2} dB");
+        assert!(
+            bad < psnr - 20.0,
+            "source {k}: ignoring the shutter gives {bad:.2} dB"
+        );
     }
 }
 
@@ -189,8 +205,16 @@ fn rolling_sweep_matches_per_point_projection() {
     // `Camera::project_rolling`, for rolling and global sources, planes at infinity too.
     let mut rng = Rng(5);
     let cams = random_cameras(&mut rng, 3);
-    let target = with_readout(&cams[0], DMat3::from_rotation_x(0.05), DVec3::new(0.2, 0.0, 0.0));
-    let src_rs = with_readout(&cams[1], DMat3::from_rotation_y(-0.08), DVec3::new(0.0, 0.3, 0.1));
+    let target = with_readout(
+        &cams[0],
+        DMat3::from_rotation_x(0.05),
+        DVec3::new(0.2, 0.0, 0.0),
+    );
+    let src_rs = with_readout(
+        &cams[1],
+        DMat3::from_rotation_y(-0.08),
+        DVec3::new(0.0, 0.3, 0.1),
+    );
     let src_gs = cams[2];
     let images = [noise_image(61, 44, 1), noise_image(62, 44, 2)];
     let srcs = [
@@ -213,7 +237,10 @@ fn rolling_sweep_matches_per_point_projection() {
         for (k, s) in srcs.iter().enumerate() {
             let base = (d * srcs.len() + k) * CHANNELS * hw;
             for p in 0..hw {
-                let uv = DVec2::new((p % region.width) as f64 + 0.5, (p / region.width) as f64 + 0.5);
+                let uv = DVec2::new(
+                    (p % region.width) as f64 + 0.5,
+                    (p / region.width) as f64 + 0.5,
+                );
                 // A far point stands in for rho = 0.
                 let depth = if rho > 0.0 { 1.0 / rho } else { 1e7 };
                 let pt = target.unproject(uv, depth);
@@ -232,6 +259,13 @@ fn rolling_sweep_matches_per_point_projection() {
     assert!(seen > hw, "{seen}");
     assert!(worst < 2e-3, "{worst}");
     // The motion used is the one `Motion` interpolates.
-    let m = Motion::new(&src_rs.rolling_shutter.expect("rs").start, &src_rs.rolling_shutter.expect("rs").end);
-    assert!((m.pose(0.5).translation - src_rs.pose_at_pixel(DVec2::new(0.0, 22.0)).translation).length() < 1e-12);
+    let m = Motion::new(
+        &src_rs.rolling_shutter.expect("rs").start,
+        &src_rs.rolling_shutter.expect("rs").end,
+    );
+    assert!(
+        (m.pose(0.5).translation - src_rs.pose_at_pixel(DVec2::new(0.0, 22.0)).translation)
+            .length()
+            < 1e-12
+    );
 }

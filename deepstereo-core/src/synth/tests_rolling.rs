@@ -89,7 +89,10 @@ fn rolling_synth_reprojects_with_the_model_and_not_without() -> TestResult {
                     image: &s.images[i],
                 })
                 .collect();
-            psnr(&plane_sweep_render(&cams[t], &sources, s.near, s.far, 32), &s.images[t])
+            psnr(
+                &plane_sweep_render(&cams[t], &sources, s.near, s.far, 32),
+                &s.images[t],
+            )
         };
         let (sw_aware, sw_blind) = (sweep_psnr(&s.cameras), sweep_psnr(&ignored));
         println!(
@@ -98,7 +101,10 @@ fn rolling_synth_reprojects_with_the_model_and_not_without() -> TestResult {
         );
         assert!(aware > 27.0, "{rig}: {aware:.2} dB with the model");
         assert!(aware > blind + 6.0, "{rig}: {aware:.2} vs {blind:.2} dB");
-        assert!(sw_aware > sw_blind + 1.0, "{rig}: sweep {sw_aware:.2} vs {sw_blind:.2} dB");
+        assert!(
+            sw_aware > sw_blind + 1.0,
+            "{rig}: sweep {sw_aware:.2} vs {sw_blind:.2} dB"
+        );
     }
     Ok(())
 }

@@ -48,7 +48,12 @@ pub struct Args {
     /// neighbouring views that happens while one view's rows are read out (top to
     /// bottom); written in instant-ngp's convention (`transform_matrix_start`/`_end`,
     /// `rolling_shutter`). 0 (the default) is a global shutter.
-    #[arg(long, default_value_t = 0.0, value_name = "S", allow_negative_numbers = true)]
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        value_name = "S",
+        allow_negative_numbers = true
+    )]
     pub rolling_shutter: f64,
     /// Also write a contact sheet PNG here: a few views of the first scenes, each next to
     /// its colour-mapped inverse depth (bright = near).

@@ -83,8 +83,18 @@ fn row_solver_matches_brute_force_over_rows() {
     let (mut worst_rows, mut worst_px, mut solved, mut max_iters) = (0.0f64, 0.0f64, 0, 0);
     for case in 0..40 {
         let k = intrinsics(case % 2 == 1);
-        let r0 = DMat3::from_euler(glam::EulerRot::YXZ, rng.sym(0.2), rng.sym(0.2), rng.sym(0.1));
-        let r1 = DMat3::from_euler(glam::EulerRot::YXZ, rng.sym(0.1), rng.sym(0.1), rng.sym(0.05)) * r0;
+        let r0 = DMat3::from_euler(
+            glam::EulerRot::YXZ,
+            rng.sym(0.2),
+            rng.sym(0.2),
+            rng.sym(0.1),
+        );
+        let r1 = DMat3::from_euler(
+            glam::EulerRot::YXZ,
+            rng.sym(0.1),
+            rng.sym(0.1),
+            rng.sym(0.05),
+        ) * r0;
         let c0 = DVec3::new(rng.sym(0.5), rng.sym(0.5), rng.sym(0.2));
         let c1 = c0 + DVec3::new(rng.sym(0.6), rng.sym(0.6), rng.sym(0.3));
         // A vertical readout (rows), or one slanted across the columns too.
@@ -122,7 +132,10 @@ fn row_solver_matches_brute_force_over_rows() {
          at most {max_iters} projections"
     );
     assert!(solved > 800, "only {solved} points inside the image");
-    assert!(worst_rows < 1e-5 && worst_px < 1e-5, "{worst_rows} rows, {worst_px} px");
+    assert!(
+        worst_rows < 1e-5 && worst_px < 1e-5,
+        "{worst_rows} rows, {worst_px} px"
+    );
     assert!(max_iters <= 6, "{max_iters} projections");
 }
 
@@ -153,7 +166,10 @@ fn global_shutter_and_zero_readout_project_like_a_pinhole() {
     let rs = RollingShutter::new_checked(a, b, 0.0, DVec2::new(0.0, 0.01)).expect("rs");
     assert_eq!((rs.pose_at(0.0), rs.pose_at(1.0)), (a, b));
     let m = Motion::new(&a, &b).pose(1.0);
-    assert!((m.rotation - b.rotation).to_cols_array().iter().all(|v| v.abs() < 1e-12));
+    assert!((m.rotation - b.rotation)
+        .to_cols_array()
+        .iter()
+        .all(|v| v.abs() < 1e-12));
     assert!((m.centre() - b.centre()).length() < 1e-12);
 }
 
@@ -180,7 +196,10 @@ fn a_point_seen_by_two_rows_gets_one_of_them() {
         .iter()
         .map(|r| (hit.time - r).abs())
         .fold(f64::INFINITY, f64::min);
-    println!("roots {roots:?}, solver {:.9} ({} projections)", hit.time, hit.iterations);
+    println!(
+        "roots {roots:?}, solver {:.9} ({} projections)",
+        hit.time, hit.iterations
+    );
     assert!(nearest * 100.0 < 1e-5, "{} vs {roots:?}", hit.time);
     assert!(hit.uv.is_finite());
 }
@@ -268,8 +287,14 @@ fn camera_json_keeps_global_shutters_unchanged() {
     let back: Camera =
         serde_json::from_str(&serde_json::to_string(&rolling).expect("json")).expect("parse");
     // serde_json's float parsing may round the last bit.
-    let (rs, rs0) = (back.rolling_shutter.expect("kept"), rolling.rolling_shutter.expect("rs"));
+    let (rs, rs0) = (
+        back.rolling_shutter.expect("kept"),
+        rolling.rolling_shutter.expect("rs"),
+    );
     assert!((rs.end.translation - rs0.end.translation).length() < 1e-15);
     assert_eq!(rs.time_per_pixel, rs0.time_per_pixel);
-    assert!((back.pose.rotation - rolling.pose.rotation).to_cols_array().iter().all(|v| v.abs() < 1e-15));
+    assert!((back.pose.rotation - rolling.pose.rotation)
+        .to_cols_array()
+        .iter()
+        .all(|v| v.abs() < 1e-15));
 }
