@@ -332,7 +332,8 @@ impl<'a> RollingProjector<'a> {
             };
             let duv = DVec2::new(k.fx * dn_d.x, k.fy * dn_d.y);
             let slope = self.grad.dot(duv) - 1.0;
-            if !(slope.abs() > RS_MIN_SLOPE) {
+            // Also rejects a NaN slope.
+            if slope.abs().partial_cmp(&RS_MIN_SLOPE) != Some(std::cmp::Ordering::Greater) {
                 return None;
             }
             let next = (t - residual / slope).clamp(self.t_lo, self.t_hi);

@@ -38,8 +38,8 @@ fn reprojection_psnr(s: &SynthScene, cams: &[Camera], t: usize) -> (f64, usize) 
             if (zb - z).abs() > 0.02 * z {
                 continue;
             }
-            for c in 0..3 {
-                se += ((rgba[c] - s.images[t].data[3 * p + c]) as f64).powi(2);
+            for (a, b) in rgba.iter().zip(&s.images[t].data[3 * p..3 * p + 3]) {
+                se += ((a - b) as f64).powi(2);
             }
             n += 1;
         }
