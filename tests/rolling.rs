@@ -97,6 +97,21 @@ fn synth_inspect_and_render_carry_the_rolling_shutter() {
         .views
         .iter()
         .all(|v| v.camera.rolling_shutter.is_none()));
+    // At half resolution every point keeps its time.
+    let half = Scene::load(
+        &dir,
+        &LoadOptions {
+            downscale: Some(2),
+            ..Default::default()
+        },
+    )
+    .expect("load");
+    let (full, small) = (
+        scene.views[1].camera.rolling_shutter.expect("rs"),
+        half.views[1].camera.rolling_shutter.expect("rs"),
+    );
+    let uv = glam::DVec2::new(30.0, 20.0);
+    assert!((full.time_at(uv) - small.time_at(uv / 2.0)).abs() < 1e-12);
 
     // inspect prints it; render --pose reads it back, and it changes the rendering.
     let s = dir.to_string_lossy().into_owned();
