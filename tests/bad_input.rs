@@ -95,6 +95,7 @@ fn cameras() -> Vec<NamedCamera> {
                     intrinsics: k,
                     pose: deepstereo_core::camera::WorldToCamera::new_checked(r, -(r * c))
                         .expect("rotation"),
+                    rolling_shutter: None,
                 },
             }
         })
@@ -602,6 +603,63 @@ fn cases() -> Vec<Case> {
                 })
             },
             &["transforms.json", "not orthonormal"],
+        ),
+        case(
+            "nerf: transform_matrix_end malformed",
+            Nerf,
+            |d| {
+                edit_json(d.join("transforms.json"), |v| {
+                    v["frames"][1]["transform_matrix_end"] = json!([[1, 0, 0, 0], [0, 1, 0]])
+                })
+            },
+            &[
+                "transforms.json",
+                "frame 1",
+                "'transform_matrix_end' must be",
+            ],
+        ),
+        case(
+            "nerf: transform_matrix_end not a rotation",
+            Nerf,
+            |d| {
+                edit_json(d.join("transforms.json"), |v| {
+                    let mut m = v["frames"][2]["transform_matrix"].clone();
+                    m[1][1] = json!(4.0);
+                    v["frames"][2]["transform_matrix_end"] = m;
+                })
+            },
+            &[
+                "transforms.json",
+                "'transform_matrix_end'",
+                "not orthonormal",
+            ],
+        ),
+        case(
+            "nerf: rolling_shutter non-finite",
+            Nerf,
+            |d| {
+                edit_json(d.join("transforms.json"), |v| {
+                    v["frames"][0]["rolling_shutter"] = json!([0.0, "nan", 1.0, 0.0])
+                })
+            },
+            &[
+                "transforms.json",
+                "frame 0",
+                "'rolling_shutter' must be an array of 3 or 4 finite numbers",
+            ],
+        ),
+        case(
+            "nerf: rolling_shutter too short",
+            Nerf,
+            |d| {
+                edit_json(d.join("transforms.json"), |v| {
+                    v["rolling_shutter"] = json!([0.0, 1.0])
+                })
+            },
+            &[
+                "transforms.json",
+                "'rolling_shutter' must be an array of 3 or 4",
+            ],
         ),
         case(
             "nerf: missing image",

@@ -29,6 +29,7 @@ fn rig(n: usize, w: u32, h: u32) -> Vec<NamedCamera> {
                 camera: deepstereo_core::camera::Camera {
                     intrinsics: k,
                     pose: WorldToCamera::new_checked(r, -(r * c)).expect("rotation"),
+                    rolling_shutter: None,
                 },
             }
         })

@@ -175,6 +175,7 @@ pub fn random_cameras(rng: &mut Rng, n: usize, intrinsics: &[Intrinsics]) -> Vec
             camera: Camera {
                 intrinsics: intrinsics[i % intrinsics.len()],
                 pose: rng.pose(5.0),
+                rolling_shutter: None,
             },
         })
         .collect()

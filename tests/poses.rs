@@ -260,6 +260,7 @@ fn poses_recovers_the_cameras_of_a_procedural_scene() {
         rig: Rig::Ring,
         supersample: 2,
         textures: Vec::new(),
+        rolling_shutter: 0.0,
     };
     let synth = generate_one_camera(3, &opts).expect("synth");
     let truth_dir = tmp.path().join("truth");
@@ -389,6 +390,7 @@ fn pose_errors_are_zero_for_a_similarity_and_see_a_rotation() {
             rig: Rig::Forward,
             supersample: 1,
             textures: Vec::new(),
+            rolling_shutter: 0.0,
         },
     )
     .expect("synth");
@@ -407,6 +409,7 @@ fn pose_errors_are_zero_for_a_similarity_and_see_a_rotation() {
                 Camera {
                     intrinsics: Intrinsics { ..c.intrinsics },
                     pose: WorldToCamera::new_checked(r, t).expect("pose"),
+                    rolling_shutter: None,
                 }
             })
             .collect()

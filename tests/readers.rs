@@ -19,6 +19,7 @@ fn load(dir: &Path, format: Option<SceneFormat>, bounds: Option<(f64, f64)>) -> 
         near: bounds.map(|b| b.0),
         far: bounds.map(|b| b.1),
         downscale: None,
+        ignore_rolling_shutter: false,
     };
     Scene::load(dir, &opts).unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
 }

@@ -89,6 +89,7 @@ fn camera(k: Intrinsics, r: DMat3, centre: DVec3) -> Camera {
             rotation: r,
             translation: -(r * centre),
         },
+        rolling_shutter: None,
     }
 }
 

@@ -12,8 +12,12 @@
 //!   removed from the images: [`Intrinsics::project_normalized`] applies it and
 //!   [`Intrinsics::unproject_pixel`] inverts it iteratively.
 
+pub mod rolling;
+
+pub use rolling::{RollingShutter, RS_MAX_ITERS, RS_ROW_TOL};
+
 use crate::imageio::MAX_IMAGE_SIDE;
-use glam::{DMat3, DVec2, DVec3};
+use glam::{DMat2, DMat3, DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 /// Largest tolerated deviation of `R^T R` from identity before a pose is rejected.
@@ -40,6 +44,26 @@ impl Distortion {
         DVec2::new(
             x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
             y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y,
+        )
+    }
+
+    /// The Jacobian `d apply(p) / d p` (columns: derivatives by `x` and by `y`).
+    pub fn jacobian(&self, p: DVec2) -> DMat2 {
+        let (x, y) = (p.x, p.y);
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (self.k1 + r2 * self.k2);
+        // d radial / d r2, times 2 for d r2 / dx = 2x.
+        let dr = 2.0 * (self.k1 + 2.0 * self.k2 * r2);
+        let (drx, dry) = (dr * x, dr * y);
+        DMat2::from_cols(
+            DVec2::new(
+                radial + x * drx + 2.0 * self.p1 * y + 6.0 * self.p2 * x,
+                y * drx + 2.0 * self.p1 * x + 2.0 * self.p2 * y,
+            ),
+            DVec2::new(
+                x * dry + 2.0 * self.p1 * x + 2.0 * self.p2 * y,
+                radial + y * dry + 6.0 * self.p1 * y + 2.0 * self.p2 * x,
+            ),
         )
     }
 
@@ -295,15 +319,33 @@ fn check_rotation(r: DMat3) -> Result<DMat3, String> {
     Ok(DMat3::from_cols(x, y, z))
 }
 
-/// A posed camera: intrinsics plus world-to-camera pose.
+/// A posed camera: intrinsics plus world-to-camera pose, and optionally a rolling
+/// shutter ([`rolling`]).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Camera {
     pub intrinsics: Intrinsics,
+    /// The camera's pose; with a rolling shutter, the pose at the time of the image
+    /// centre (build such cameras with [`Camera::rolling`]), which is what
+    /// shutter-unaware code (view ranking, bounds, `inspect`'s `R`/`t`) uses.
     pub pose: WorldToCamera,
+    /// `None` (and absent in JSON) for a global shutter.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rolling_shutter: Option<RollingShutter>,
 }
 
 impl Camera {
-    /// Projects a world point to a pixel coordinate and its depth (camera z).
+    /// The same camera for an image resampled by `1 / factor` (intrinsics and the
+    /// shutter's time per pixel; see [`Intrinsics::downscaled`]).
+    pub fn downscaled(&self, factor: f64, width: u32, height: u32) -> Self {
+        Self {
+            intrinsics: self.intrinsics.downscaled(factor, width, height),
+            pose: self.pose,
+            rolling_shutter: self.rolling_shutter.map(|s| s.downscaled(factor)),
+        }
+    }
+
+    /// Projects a world point to a pixel coordinate and its depth (camera z) with `pose`:
+    /// a rolling shutter is ignored (see [`Camera::project_rolling`]).
     pub fn project(&self, p_world: DVec3) -> (DVec2, f64) {
         let pc = self.pose.transform_point(p_world);
         let uv = self
@@ -312,11 +354,12 @@ impl Camera {
         (uv, pc.z)
     }
 
-    /// World point at camera depth `depth` along the ray through pixel `uv`.
+    /// World point at camera depth `depth` along the ray through pixel `uv`, with the
+    /// pose of that pixel's time for a rolling shutter ([`Camera::pose_at_pixel`]).
     pub fn unproject(&self, uv: DVec2, depth: f64) -> DVec3 {
         let n = self.intrinsics.unproject_pixel(uv);
         let pc = DVec3::new(n.x * depth, n.y * depth, depth);
-        let c2w = self.pose.inverse();
+        let c2w = self.pose_at_pixel(uv).inverse();
         c2w.rotation * pc + c2w.translation
     }
 }
@@ -344,10 +387,10 @@ mod tests {
     fn project_unproject_round_trip() {
         let r = DMat3::from_rotation_y(0.3) * DMat3::from_rotation_x(-0.2);
         let pose = WorldToCamera::new_checked(r, DVec3::new(0.1, -0.2, 0.5)).unwrap();
-        let cam = Camera {
-            intrinsics: Intrinsics::pinhole(500.0, 510.0, 320.5, 240.25, 640, 480),
+        let cam = Camera::global(
+            Intrinsics::pinhole(500.0, 510.0, 320.5, 240.25, 640, 480),
             pose,
-        };
+        );
         let uv = DVec2::new(100.5, 300.5);
         let p = cam.unproject(uv, 3.7);
         let (uv2, z) = cam.project(p);

@@ -46,12 +46,7 @@ impl PyramidSource {
 
 /// The camera of level `l` (`1 / 2^l` resolution) with the given image size.
 pub fn level_camera(camera: &Camera, l: usize, width: u32, height: u32) -> Camera {
-    Camera {
-        intrinsics: camera
-            .intrinsics
-            .downscaled((1u64 << l) as f64, width, height),
-        pose: camera.pose,
-    }
+    camera.downscaled((1u64 << l) as f64, width, height)
 }
 
 /// The input tensors' data for one tile: `levels[l]` is `[D, V, 4, h_l, w_l]` f32 (the

@@ -79,7 +79,9 @@ pub fn target_rays(target: &Intrinsics, region: Region) -> Vec<DVec2> {
 /// Fills `out` (`[D, V, 4, h, w]`, length `D * V * 4 * h * w`) with the plane-sweep volume
 /// of `sources` seen from `target` over `region`, for planes at `inv_depths`.
 ///
-/// Parallel over (plane, view) slices; no allocation per pixel.
+/// Parallel over (plane, view) slices; no allocation per pixel. When the target or a
+/// source has a moving rolling shutter, [`rolling`] projects per pixel instead (only
+/// the slices that involve one; the others are unchanged).
 pub fn sweep_into(
     target: &Camera,
     region: Region,
@@ -92,6 +94,11 @@ pub fn sweep_into(
     debug_assert_eq!(out.len(), inv_depths.len() * v * CHANNELS * hw);
     if hw == 0 || v == 0 {
         return;
+    }
+    let rolling = target.moving_shutter().is_some()
+        || sources.iter().any(|s| s.camera.moving_shutter().is_some());
+    if rolling {
+        return rolling::sweep_rolling_into(target, region, sources, inv_depths, out);
     }
     let rays = target_rays(&target.intrinsics, region);
     let rels: Vec<WorldToCamera> = sources
@@ -249,7 +256,10 @@ pub fn sample_bilinear(img: &RgbImage, u: f64, v: f64) -> [f32; 4] {
     acc.map(|v| v as f32)
 }
 
+pub mod rolling;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]
 mod tests_extreme;
+#[cfg(test)]
+mod tests_rolling;

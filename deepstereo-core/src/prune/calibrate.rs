@@ -165,6 +165,7 @@ fn prune_calibrate_network() -> TestResult {
                 rig: Rig::Mixed,
                 supersample: 2,
                 textures: Vec::new(),
+                rolling_shutter: 0.0,
             },
         )?;
         let target = s.cameras.len() / 2;
@@ -296,6 +297,7 @@ fn prune_time_blocks() -> TestResult {
             rig: Rig::Forward,
             supersample: 1,
             textures: Vec::new(),
+            rolling_shutter: 0.0,
         },
     )?;
     let src = nearest(&s.cameras, 0, cfg.views);
@@ -354,6 +356,12 @@ fn prune_real_crop() -> TestResult {
     cam.intrinsics.cy -= y0 as f64;
     cam.intrinsics.width = size as u32;
     cam.intrinsics.height = size as u32;
+    if let Some(rs) = &mut cam.rolling_shutter {
+        // Pixel (x, y) of the crop is (x0 + x, y0 + y) of the view: same time.
+        rs.time_origin += rs
+            .time_per_pixel
+            .dot(glam::DVec2::new(x0 as f64, y0 as f64));
+    }
     let mut want = crate::imageio::RgbImage::new(size as u32, size as u32);
     for y in 0..size {
         for x in 0..size {

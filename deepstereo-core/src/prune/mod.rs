@@ -52,6 +52,12 @@
 //! edges, and for at most 0.5% of them in all.
 //!
 //! With [`PruneMode::Off`] nothing of this runs and the renderer is the unpruned one.
+//!
+//! Rolling-shutter cameras ([`crate::camera::rolling`]): the depth range, plane spacing,
+//! view ranking and the photo-consistency coarse pass use each camera's mid-readout
+//! `pose` (the readout's motion is an error of a few pixels there, well within the
+//! margins those estimates keep); the sweeps the network itself runs on project every
+//! pixel through the rolling shutters exactly.
 
 #[cfg(test)]
 mod calibrate;

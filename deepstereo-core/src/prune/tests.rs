@@ -217,6 +217,7 @@ pub(super) fn scene_sized(seed: u64, rig: Rig, width: u32, height: u32) -> Synth
             rig,
             supersample: 2,
             textures: Vec::new(),
+            rolling_shutter: 0.0,
         },
     )
     .expect("scene")
@@ -402,6 +403,7 @@ fn prune_off_is_bit_identical_to_the_unpruned_renderer() -> TestResult {
             rig: Rig::Forward,
             supersample: 1,
             textures: Vec::new(),
+            rolling_shutter: 0.0,
         },
     )?;
     let src = nearest(&s.cameras, 2, 3);
@@ -429,6 +431,7 @@ fn prune_skips_uncovered_tiles_with_the_networks_own_output() -> TestResult {
             rig: Rig::Forward,
             supersample: 1,
             textures: Vec::new(),
+            rolling_shutter: 0.0,
         },
     )?;
     let src = [1usize, 2];

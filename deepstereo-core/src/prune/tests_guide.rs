@@ -36,11 +36,13 @@ fn prune_plane_step_is_focal_times_baseline_times_inverse_depth_step() {
     let target = Camera {
         intrinsics: k,
         pose: WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::ZERO).expect("pose"),
+        rolling_shutter: None,
     };
     // p_cam = p_world - (b, 0, 0): the source sits b to the right of the target.
     let source = Camera {
         intrinsics: k,
         pose: WorldToCamera::new_checked(DMat3::IDENTITY, DVec3::new(-b, 0.0, 0.0)).expect("pose"),
+        rolling_shutter: None,
     };
     let inv = inverse_depths(near, far, d);
     let want = f * b * (1.0 / near - 1.0 / far) / (d - 1) as f64;

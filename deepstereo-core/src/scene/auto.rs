@@ -322,12 +322,8 @@ fn load_small(v: &View) -> Result<Small> {
         image = image.downsample2();
     }
     let f = (1u32 << levels) as f64;
-    let intrinsics = k.downscaled(f, image.width, image.height);
     Ok(Small {
-        camera: Camera {
-            intrinsics,
-            pose: v.camera.pose,
-        },
+        camera: v.camera.downscaled(f, image.width, image.height),
         image,
     })
 }

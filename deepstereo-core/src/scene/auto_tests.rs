@@ -21,6 +21,7 @@ fn opts(rig: Rig) -> SynthOptions {
         rig,
         supersample: 2,
         textures: Vec::new(),
+        rolling_shutter: 0.0,
     }
 }
 

@@ -118,6 +118,9 @@ pub struct LoadOptions {
     /// Read images at `1 / downscale` resolution (a power of two; box-filtered, odd
     /// trailing rows and columns dropped), intrinsics scaled to match.
     pub downscale: Option<u32>,
+    /// Treat rolling-shutter cameras as global shutters at their mid-readout pose
+    /// ([`Camera::without_rolling_shutter`]), as a reader unaware of the shutter would.
+    pub ignore_rolling_shutter: bool,
 }
 
 /// A posed image set with resolved depth bounds.
@@ -208,6 +211,11 @@ impl Scene {
             }
         };
         check_bounds(near, far).map_err(|m| Error::format(dir, m))?;
+        if opts.ignore_rolling_shutter {
+            for v in &mut raw.views {
+                v.camera = v.camera.without_rolling_shutter();
+            }
+        }
         Scene {
             root: dir.to_path_buf(),
             format,
@@ -281,7 +289,7 @@ impl Scene {
                     ),
                 ));
             }
-            v.camera.intrinsics = i.downscaled(factor as f64, w, h);
+            v.camera = v.camera.downscaled(factor as f64, w, h);
         }
         self.downscale_levels = k;
         Ok(self)
@@ -431,7 +439,7 @@ pub(crate) fn make_view(
     Ok(View {
         name: name.to_string(),
         image_path,
-        camera: Camera { intrinsics, pose },
+        camera: Camera::global(intrinsics, pose),
         bounds,
     })
 }

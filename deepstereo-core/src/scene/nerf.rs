@@ -14,6 +14,16 @@
 //! `R_cv = R_gl * diag(1, -1, -1)` (flip the y and z camera axes), the centre unchanged;
 //! that camera-to-world pose is inverted to the [`crate::camera::WorldToCamera`] pose.
 //!
+//! # Rolling shutter (instant-ngp)
+//! A frame may give `transform_matrix_start` and `transform_matrix_end` (the poses at the
+//! start and end of its motion, `t = 0` and `t = 1`; the start defaults to
+//! `transform_matrix`, the end to the start, as in instant-ngp, which then ignores
+//! `transform_matrix`), and `rolling_shutter = [A, B, C]` or `[A, B, C, D]` (top level or,
+//! overriding, per frame) gives each pixel its time `t = A + B u/W + C v/H + D/2`; see
+//! [`crate::camera::rolling`] for what instant-ngp's loader does with these and how they
+//! are converted. Such a frame's camera is a [`Camera::rolling`] camera; without any of
+//! these keys it is a global shutter at `transform_matrix`.
+//!
 //! # Other keys
 //! `file_path` is relative to the JSON file's folder; without an existing file at that
 //! path, `.png`, `.jpg` and `.jpeg` are appended in turn (NeRF synthetic omits them).
@@ -24,7 +34,7 @@
 //! Frames keep the file's order.
 
 use super::{make_view, RawScene};
-use crate::camera::{CameraToWorld, Distortion, Intrinsics};
+use crate::camera::{Camera, CameraToWorld, Distortion, Intrinsics, RollingShutter, WorldToCamera};
 use crate::error::{Error, Result};
 use crate::imageio::MAX_IMAGE_SIDE;
 use glam::{DMat3, DVec3};
@@ -102,12 +112,35 @@ pub fn parse_transforms(file: &Path, bytes: &[u8]) -> Result<RawScene> {
                 format!("{fname}: frame {i}: image not found (also tried .png/.jpg/.jpeg)"),
             )
         })?;
-        let c2w = matrix(frame).map_err(ferr)?;
         let intrinsics = intrinsics(top, frame, &image_path).map_err(ferr)?;
-        let r_gl = DMat3::from_cols(c2w[0], c2w[1], c2w[2]);
-        let r_cv = r_gl * DMat3::from_diagonal(DVec3::new(1.0, -1.0, -1.0));
-        let pose = CameraToWorld::new_checked(r_cv, c2w[3]).map(|p| p.inverse());
-        views.push(make_view(&file, rel, image_path, intrinsics, pose, None)?);
+        let shutter = rolling_shutter(top, frame).map_err(ferr)?;
+        let start_key = if frame.contains_key("transform_matrix_start") {
+            "transform_matrix_start"
+        } else {
+            "transform_matrix"
+        };
+        let start = matrix(frame, start_key).map_err(ferr)?;
+        let end = match frame.contains_key("transform_matrix_end") {
+            true => Some(matrix(frame, "transform_matrix_end").map_err(ferr)?),
+            false => None,
+        };
+        let pose = pose_of(start).map_err(|m| format!("'{start_key}': {m}"));
+        let mut view = make_view(&file, rel, image_path, intrinsics, pose, None)?;
+        if start_key != "transform_matrix" || end.is_some() || shutter.is_some() {
+            let cam_err = |m: String| super::camera_err(&file, rel, m);
+            let start = view.camera.pose;
+            let end = match end {
+                Some(m) => {
+                    pose_of(m).map_err(|m| cam_err(format!("'transform_matrix_end': {m}")))?
+                }
+                None => start,
+            };
+            let (w, h) = (intrinsics.width, intrinsics.height);
+            let abcd = shutter.unwrap_or([0.0; 4]);
+            let rs = RollingShutter::from_instant_ngp(start, end, abcd, w, h).map_err(cam_err)?;
+            view.camera = Camera::rolling(intrinsics, rs);
+        }
+        views.push(view);
     }
     Ok(RawScene {
         views,
@@ -141,21 +174,53 @@ fn either(
     }
 }
 
-/// The camera-to-world matrix's columns: x, y, z axes and the centre.
-fn matrix(frame: &Map<String, Value>) -> std::result::Result<[DVec3; 4], String> {
-    const MSG: &str = "'transform_matrix' must be a 4x4 array of finite numbers";
+/// The world-to-camera pose (OpenCV axes) of a camera-to-world matrix's columns.
+fn pose_of(c2w: [DVec3; 4]) -> std::result::Result<WorldToCamera, String> {
+    let r_gl = DMat3::from_cols(c2w[0], c2w[1], c2w[2]);
+    let r_cv = r_gl * DMat3::from_diagonal(DVec3::new(1.0, -1.0, -1.0));
+    CameraToWorld::new_checked(r_cv, c2w[3]).map(|p| p.inverse())
+}
+
+/// instant-ngp's `rolling_shutter` `[A, B, C(, D)]` of a frame (its own, else the top
+/// level's); `D` defaults to 0.
+fn rolling_shutter(
+    top: &Map<String, Value>,
+    frame: &Map<String, Value>,
+) -> std::result::Result<Option<[f64; 4]>, String> {
+    let Some(v) = frame
+        .get("rolling_shutter")
+        .or_else(|| top.get("rolling_shutter"))
+    else {
+        return Ok(None);
+    };
+    const MSG: &str = "'rolling_shutter' must be an array of 3 or 4 finite numbers";
+    let a = v
+        .as_array()
+        .filter(|a| a.len() == 3 || a.len() == 4)
+        .ok_or(MSG)?;
+    let mut out = [0.0; 4];
+    for (slot, x) in out.iter_mut().zip(a) {
+        *slot = x.as_f64().filter(|x| x.is_finite()).ok_or(MSG)?;
+    }
+    Ok(Some(out))
+}
+
+/// The camera-to-world matrix `key`'s columns: x, y, z axes and the centre.
+fn matrix(frame: &Map<String, Value>, key: &str) -> std::result::Result<[DVec3; 4], String> {
+    let msg = format!("'{key}' must be a 4x4 array of finite numbers");
+    let msg = msg.as_str();
     let rows = frame
-        .get("transform_matrix")
-        .ok_or_else(|| "missing 'transform_matrix'".to_string())?
+        .get(key)
+        .ok_or_else(|| format!("missing '{key}'"))?
         .as_array()
         .filter(|r| r.len() == 3 || r.len() == 4)
-        .ok_or(MSG)?;
+        .ok_or(msg)?;
     let mut m = [[0.0f64; 4]; 4];
     m[3][3] = 1.0;
     for (r, row) in rows.iter().enumerate() {
-        let vals = row.as_array().filter(|v| v.len() == 4).ok_or(MSG)?;
+        let vals = row.as_array().filter(|v| v.len() == 4).ok_or(msg)?;
         for (c, v) in vals.iter().enumerate() {
-            let x = v.as_f64().filter(|x| x.is_finite()).ok_or(MSG)?;
+            let x = v.as_f64().filter(|x| x.is_finite()).ok_or(msg)?;
             if let Some(slot) = m.get_mut(r).and_then(|row| row.get_mut(c)) {
                 *slot = x;
             }
@@ -164,7 +229,7 @@ fn matrix(frame: &Map<String, Value>) -> std::result::Result<[DVec3; 4], String>
     let last = [m[3][0], m[3][1], m[3][2], m[3][3] - 1.0];
     if last.iter().any(|v| v.abs() > LAST_ROW_TOLERANCE) {
         return Err(format!(
-            "'transform_matrix' last row must be [0, 0, 0, 1], got {:?}",
+            "'{key}' last row must be [0, 0, 0, 1], got {:?}",
             m[3]
         ));
     }

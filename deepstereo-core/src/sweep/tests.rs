@@ -6,7 +6,7 @@ use crate::geometry::inverse_depths;
 use glam::{DMat3, DVec3};
 
 /// Deterministic pseudo-random numbers in [0, 1) (SplitMix64).
-pub(super) struct Rng(u64);
+pub(super) struct Rng(pub(super) u64);
 impl Rng {
     pub(super) fn next(&mut self) -> f64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
@@ -24,6 +24,7 @@ pub(super) fn cam(r: DMat3, centre: DVec3, intr: Intrinsics) -> Camera {
     Camera {
         intrinsics: intr,
         pose: WorldToCamera::new_checked(r, -(r * centre)).unwrap(),
+        rolling_shutter: None,
     }
 }
 
@@ -45,11 +46,15 @@ fn texture(x: f64, y: f64) -> [f64; 3] {
 
 /// Renders the plane `z = depth` of `target`'s camera frame, textured with
 /// [`texture`], as seen by `cam` (ray-plane intersection, `ss x ss` supersampling).
-fn render_plane(cam: &Camera, target: &WorldToCamera, depth: f64, ss: usize) -> RgbImage {
+/// A rolling-shutter `cam` sees each sub-sample from the pose of its own time.
+pub(super) fn render_plane(
+    cam: &Camera,
+    target: &WorldToCamera,
+    depth: f64,
+    ss: usize,
+) -> RgbImage {
     let k = &cam.intrinsics;
     let mut img = RgbImage::new(k.width, k.height);
-    let c2w = cam.pose.inverse();
-    let origin = target.transform_point(c2w.translation);
     for j in 0..k.height {
         for i in 0..k.width {
             let mut acc = [0.0f64; 3];
@@ -58,6 +63,8 @@ fn render_plane(cam: &Camera, target: &WorldToCamera, depth: f64, ss: usize) -> 
                     i as f64 + (a as f64 + 0.5) / ss as f64,
                     j as f64 + (b as f64 + 0.5) / ss as f64,
                 );
+                let c2w = cam.pose_at_pixel(uv).inverse();
+                let origin = target.transform_point(c2w.translation);
                 let dir = target.rotation
                     * (c2w.rotation * cam.intrinsics.unproject_pixel(uv).extend(1.0));
                 let s = (depth - origin.z) / dir.z;
@@ -75,7 +82,7 @@ fn render_plane(cam: &Camera, target: &WorldToCamera, depth: f64, ss: usize) -> 
 
 /// PSNR of slice `[4, h, w]` against `reference` over the pixels with alpha = 1,
 /// and the fraction of such pixels.
-fn psnr_where_opaque(slice: &[f32], reference: &RgbImage) -> (f64, f64) {
+pub(super) fn psnr_where_opaque(slice: &[f32], reference: &RgbImage) -> (f64, f64) {
     let hw = slice.len() / CHANNELS;
     let (mut se, mut n) = (0.0f64, 0usize);
     for p in 0..hw {
@@ -173,10 +180,7 @@ fn target_swept_into_itself_is_identity() {
         }),
     ] {
         intr.distortion = distortion;
-        let camera = Camera {
-            intrinsics: intr,
-            pose,
-        };
+        let camera = Camera::global(intr, pose);
         let src = [Source {
             camera: &camera,
             image: &img,

@@ -26,8 +26,11 @@ mod noise;
 mod raytrace;
 mod rig;
 mod rng;
+mod shutter;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_rolling;
 #[cfg(test)]
 mod tests_sweep;
 mod texture;
@@ -53,6 +56,8 @@ pub const EXPOSURE_JITTER: f64 = 0.05;
 pub const NEAR_MARGIN: f64 = 0.95;
 /// `far` is the largest depth seen (the backdrop's) times this.
 pub const FAR_MARGIN: f64 = 1.05;
+/// Largest [`SynthOptions::rolling_shutter`] (a readout as long as the frame interval).
+pub const MAX_ROLLING_SHUTTER: f64 = 1.0;
 
 /// How the cameras of a scene are arranged.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -118,6 +123,11 @@ pub struct SynthOptions {
     pub supersample: u32,
     /// Photos whose random crops texture the surfaces; empty for procedural textures.
     pub textures: Vec<RgbImage>,
+    /// Rolling shutter: the share of the camera's motion between neighbouring views that
+    /// happens during one view's readout (0 = global shutter; see `shutter.rs`). The
+    /// scene content and the readout start poses are those of the global-shutter scene
+    /// of the same seed.
+    pub rolling_shutter: f64,
 }
 
 impl Default for SynthOptions {
@@ -129,6 +139,7 @@ impl Default for SynthOptions {
             rig: Rig::Mixed,
             supersample: 3,
             textures: Vec::new(),
+            rolling_shutter: 0.0,
         }
     }
 }
@@ -156,6 +167,12 @@ impl SynthOptions {
             return Err(Error::Invalid(format!(
                 "synth: supersample must be between 1 and {MAX_SUPERSAMPLE}, got {}",
                 self.supersample
+            )));
+        }
+        if !(0.0..=MAX_ROLLING_SHUTTER).contains(&self.rolling_shutter) {
+            return Err(Error::Invalid(format!(
+                "synth: the rolling-shutter share must be between 0 and {MAX_ROLLING_SHUTTER}, got {}",
+                self.rolling_shutter
             )));
         }
         if let Some(i) = self
@@ -226,6 +243,7 @@ fn generate_impl(seed: u64, opts: &SynthOptions, one_camera: bool) -> Result<Syn
         }
     }
     let surfaces = layout::build(&mut content_rng, &layout, &opts.textures);
+    shutter::apply(&mut layout.cameras, opts.rolling_shutter, rig::check_rays)?;
     let gains: Vec<f32> = (0..opts.views)
         .map(|_| (1.0 + exposure_rng.sym(EXPOSURE_JITTER)) as f32)
         .collect();

@@ -2,7 +2,10 @@
 //! box-filtered; depth is the camera-space z of the pixel-centre ray's hit.
 //!
 //! Rays are traced in camera space with direction `d = (x, y, 1)` (normalized image
-//! coordinates), so the ray parameter of a hit is its camera z.
+//! coordinates), so the ray parameter of a hit is its camera z. A camera with a moving
+//! rolling shutter traces each row from the pose at the time of the row's pixel centres
+//! (its depths are exact; the sub-pixel rays of a pixel share that pose, an error of
+//! 1/H of the readout's motion within a pixel).
 
 use super::layout::Surface;
 use crate::camera::Camera;
@@ -148,8 +151,13 @@ pub(crate) fn render(
 ) -> Result<(RgbImage, Vec<f32>)> {
     let k = &cam.intrinsics;
     let (w, h) = (k.width as usize, k.height as usize);
-    let mut locals: Vec<Local> = surfaces.iter().filter_map(|s| localize(cam, s)).collect();
-    locals.sort_by(|a, b| a.zmin.total_cmp(&b.zmin));
+    let localize_all = |c: &Camera| {
+        let mut l: Vec<Local> = surfaces.iter().filter_map(|s| localize(c, s)).collect();
+        l.sort_by(|a, b| a.zmin.total_cmp(&b.zmin));
+        l
+    };
+    let moving = cam.moving_shutter().is_some();
+    let mut locals = localize_all(cam);
     let ss = supersample.max(1) as usize;
     let ssf = ss as f64;
     // Angle of one pixel and of one sub-pixel ray.
@@ -173,6 +181,11 @@ pub(crate) fn render(
     };
     for py in 0..h {
         let (y0, y1) = (py as f64, py as f64 + 1.0);
+        if moving {
+            // A rolling shutter: the row is traced from the pose of its centre's time.
+            let centre = DVec2::new(0.5 * w as f64, py as f64 + 0.5);
+            locals = localize_all(&Camera::global(*k, cam.pose_at_pixel(centre)));
+        }
         row.clear();
         row.extend(
             (0..locals.len()).filter(|&i| locals[i].bbox[2] <= y1 && locals[i].bbox[3] >= y0),

@@ -131,7 +131,7 @@ pub(crate) fn build(
                 ))
             })?
             .inverse();
-        let cam = Camera { intrinsics, pose };
+        let cam = Camera::global(intrinsics, pose);
         check_rays(&cam).map_err(|m| Error::Invalid(format!("synth: {rig} rig, view {i}: {m}")))?;
         cameras.push(cam);
     }
@@ -139,7 +139,7 @@ pub(crate) fn build(
 }
 
 /// Checks that the rays through the image corners point into the +z half space.
-fn check_rays(cam: &Camera) -> std::result::Result<(), String> {
+pub(crate) fn check_rays(cam: &Camera) -> std::result::Result<(), String> {
     let k = &cam.intrinsics;
     let (w, h) = (k.width as f64, k.height as f64);
     let r_c2w = cam.pose.rotation.transpose();

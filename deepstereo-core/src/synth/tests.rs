@@ -18,6 +18,7 @@ pub(super) fn small(rig: Rig, views: usize, width: u32, height: u32) -> SynthOpt
         rig,
         supersample: 2,
         textures: Vec::new(),
+        rolling_shutter: 0.0,
     }
 }
 

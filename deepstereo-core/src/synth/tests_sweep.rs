@@ -14,7 +14,7 @@ const COST_WINDOW: usize = 2;
 /// averaged over a small window, among the planes where the most sources see the pixel),
 /// rendered as their mean there; pixels that fewer than two sources see at every plane
 /// take what one source sees at the farthest such plane.
-fn plane_sweep_render(
+pub(super) fn plane_sweep_render(
     target: &Camera,
     sources: &[Source<'_>],
     near: f64,
@@ -108,7 +108,7 @@ fn plane_sweep_render(
 }
 
 /// The view whose camera centre is nearest the centroid of all centres.
-fn central_view(cams: &[Camera]) -> usize {
+pub(super) fn central_view(cams: &[Camera]) -> usize {
     let mean = cams.iter().map(|c| c.pose.centre()).sum::<glam::DVec3>() / cams.len() as f64;
     (0..cams.len())
         .min_by(|&a, &b| {
@@ -121,7 +121,7 @@ fn central_view(cams: &[Camera]) -> usize {
         .unwrap_or(0)
 }
 
-fn psnr(a: &RgbImage, b: &RgbImage) -> f64 {
+pub(super) fn psnr(a: &RgbImage, b: &RgbImage) -> f64 {
     let mse = a
         .data
         .iter()

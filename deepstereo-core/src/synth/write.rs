@@ -34,8 +34,10 @@ pub fn scene_dir(out: &Path, index: usize) -> PathBuf {
 
 /// Writes a scene to `dir`: `images/view_NNN.png`, `depth/view_NNN.npy` (float32
 /// `[H, W]`) and, last, `transforms.json` (NeRF layout: OpenGL camera-to-world
-/// matrices, `fl_x fl_y cx cy w h` per frame, top-level `near far rig seed`). Every
-/// file is written atomically.
+/// matrices, `fl_x fl_y cx cy w h` per frame, top-level `near far rig seed`; a
+/// rolling-shutter camera adds instant-ngp's `transform_matrix_start`,
+/// `transform_matrix_end` and `rolling_shutter`, with `transform_matrix` its mid-readout
+/// pose). Every file is written atomically.
 pub fn write_scene(dir: &Path, scene: &SynthScene) -> Result<()> {
     let n = scene.cameras.len();
     if scene.images.len() != n || scene.depths.len() != n {
@@ -70,19 +72,33 @@ pub fn write_scene(dir: &Path, scene: &SynthScene) -> Result<()> {
         let depth_rel = format!("depth/view_{i:03}.npy");
         img.save_png(&dir.join(&image_rel))?;
         write_npy_f32(&dir.join(&depth_rel), &[h, w], depth)?;
-        let c2w = cam.pose.inverse();
-        let r_gl = c2w.rotation * gl_axes;
-        let t = c2w.translation;
-        let row = |r: usize| {
-            let v = r_gl.row(r);
-            json!([v.x, v.y, v.z, t[r]])
+        let matrix = |pose: &crate::camera::WorldToCamera| {
+            let c2w = pose.inverse();
+            let r_gl = c2w.rotation * gl_axes;
+            let t = c2w.translation;
+            let row = |r: usize| {
+                let v = r_gl.row(r);
+                json!([v.x, v.y, v.z, t[r]])
+            };
+            json!([row(0), row(1), row(2), [0.0, 0.0, 0.0, 1.0]])
         };
-        frames.push(json!({
+        let mut frame = json!({
             "file_path": image_rel,
             "depth_path": depth_rel,
-            "transform_matrix": [row(0), row(1), row(2), [0.0, 0.0, 0.0, 1.0]],
+            "transform_matrix": matrix(&cam.pose),
             "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": k.width, "h": k.height,
-        }));
+        });
+        if let (Some(rs), Some(obj)) = (&cam.rolling_shutter, frame.as_object_mut()) {
+            // instant-ngp's convention; `transform_matrix` is the mid-readout pose, the
+            // one a reader that ignores the shutter should use.
+            obj.insert("transform_matrix_start".into(), matrix(&rs.start));
+            obj.insert("transform_matrix_end".into(), matrix(&rs.end));
+            obj.insert(
+                "rolling_shutter".into(),
+                json!(rs.to_instant_ngp(k.width, k.height)),
+            );
+        }
+        frames.push(frame);
     }
     let doc = json!({
         "camera_model": "PINHOLE",

@@ -25,6 +25,7 @@ pub fn cam(r: DMat3, centre: DVec3, k: Intrinsics) -> Camera {
     Camera {
         intrinsics: k,
         pose: WorldToCamera::new_checked(r, -(r * centre)).expect("valid pose"),
+        rolling_shutter: None,
     }
 }
 

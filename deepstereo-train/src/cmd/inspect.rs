@@ -9,7 +9,11 @@ pub struct Args {
     #[command(flatten)]
     pub scene: SceneArgs,
     /// Print JSON (`format`, `near`, `far`, `views: [{name, width, height, fx, fy, cx, cy,
-    /// R (3x3 row-major, world-to-camera, OpenCV axes), t}]`) instead of text.
+    /// R (3x3 row-major, world-to-camera, OpenCV axes), t}]`) instead of text. A
+    /// rolling-shutter view adds `rolling_shutter: {R_start, t_start, R_end, t_end,
+    /// time_origin, time_per_pixel}` (the pixel `(u, v)` is exposed at time
+    /// `time_origin + time_per_pixel . (u, v)`, between the start pose at 0 and the end
+    /// pose at 1); its `R`, `t` are then the pose at the image centre's time.
     #[arg(long)]
     pub json: bool,
 }
@@ -27,12 +31,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 .flat_map(|i| [r.x_axis[i], r.y_axis[i], r.z_axis[i]])
                 .collect();
             let d = k.distortion;
-            json!({
+            let mut view = json!({
                 "name": v.name, "width": k.width, "height": k.height,
                 "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
                 "distortion": d.map(|d| [d.k1, d.k2, d.p1, d.p2]),
                 "R": rows, "t": [t.x, t.y, t.z],
-            })
+            });
+            if let (Some(rs), Some(obj)) = (&v.camera.rolling_shutter, view.as_object_mut()) {
+                obj.insert("rolling_shutter".into(), super::shutter_json::to_json(rs));
+            }
+            view
         })
         .collect();
     let far = if scene.far.is_finite() {
@@ -65,6 +73,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "{i:4} {:<24} {}x{}  f=({:.2},{:.2}) c=({:.2},{:.2})  centre=({:.4},{:.4},{:.4})",
             v.name, k.width, k.height, k.fx, k.fy, k.cx, k.cy, c.x, c.y, c.z
         );
+        if let Some(rs) = &v.camera.rolling_shutter {
+            let (c0, c1) = (rs.start.centre(), rs.end.centre());
+            println!(
+                "     rolling shutter: t(u,v) = {:.6} + {:.3e} u + {:.3e} v; centre at t=0 ({:.4},{:.4},{:.4}), t=1 ({:.4},{:.4},{:.4})",
+                rs.time_origin, rs.time_per_pixel.x, rs.time_per_pixel.y, c0.x, c0.y, c0.z, c1.x, c1.y, c1.z
+            );
+        }
         let (r, t) = (v.camera.pose.rotation, v.camera.pose.translation);
         let row = |i: usize| format!("{:.6} {:.6} {:.6}", r.x_axis[i], r.y_axis[i], r.z_axis[i]);
         println!(

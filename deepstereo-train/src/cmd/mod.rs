@@ -11,6 +11,7 @@ pub mod render;
 pub mod report;
 pub mod report_html;
 pub mod samples;
+pub mod shutter_json;
 pub mod sweep;
 pub mod synth;
 pub mod train;
@@ -94,6 +95,10 @@ pub struct SceneArgs {
     /// Read the images at 1/N resolution (N a power of two), intrinsics scaled to match.
     #[arg(long)]
     pub downscale: Option<u32>,
+    /// Ignore rolling shutters: every camera is a global shutter at its mid-readout pose
+    /// (the pose `inspect` prints), as a shutter-unaware reader would see the scene.
+    #[arg(long)]
+    pub ignore_rolling_shutter: bool,
 }
 
 impl SceneArgs {
@@ -105,6 +110,7 @@ impl SceneArgs {
             near: self.near,
             far: self.far,
             downscale: self.downscale,
+            ignore_rolling_shutter: self.ignore_rolling_shutter,
         };
         let scene = Scene::load(&self.scene, &opts)?;
         for n in &scene.notes {

@@ -31,8 +31,10 @@ pub struct Args {
     #[arg(long, conflicts_with_all = ["pose", "path"])]
     pub target: Option<usize>,
     /// Render a camera given as JSON: {"width","height","fx","fy","cx","cy","R" (9 numbers,
-    /// row-major world-to-camera, OpenCV axes), "t"}: one view as `inspect --json` prints
-    /// it, or the whole of `inspect --json`'s output with --view I.
+    /// row-major world-to-camera, OpenCV axes), "t"} and optionally "rolling_shutter"
+    /// ({"R_start","t_start","R_end","t_end","time_origin","time_per_pixel"}: each row is
+    /// then rendered at its own pose): one view as `inspect --json` prints it, or the
+    /// whole of `inspect --json`'s output with --view I.
     #[arg(long, conflicts_with = "path")]
     pub pose: Option<PathBuf>,
     /// With --pose FILE holding `inspect --json`'s output: which of its views to render.
@@ -277,9 +279,11 @@ pub fn read_pose(path: &Path, view: Option<usize>) -> Result<Camera> {
     );
     let pose = WorldToCamera::new_checked(rot, DVec3::new(t[0], t[1], t[2]))
         .map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
-    Ok(Camera {
-        intrinsics: intr,
-        pose,
+    // With a rolling shutter, each row is rendered at its own pose; `R`/`t` (the pose at
+    // the image centre's time, as `inspect` prints it) are then not used.
+    Ok(match super::shutter_json::from_json(j, path)? {
+        Some(rs) => Camera::rolling(intr, rs),
+        None => Camera::global(intr, pose),
     })
 }
 
@@ -329,10 +333,7 @@ pub fn path_cameras(scene: &Scene, kind: PathKind, frames: usize) -> Result<Vec<
             };
             let c = centre + off * radius;
             let pose = WorldToCamera::new_checked(rot, -(rot * c)).map_err(anyhow::Error::msg)?;
-            Ok(Camera {
-                intrinsics: intr,
-                pose,
-            })
+            Ok(Camera::global(intr, pose))
         })
         .collect()
 }

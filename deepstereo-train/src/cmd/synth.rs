@@ -44,6 +44,17 @@ pub struct Args {
     /// procedural textures.
     #[arg(long)]
     pub textures: Option<PathBuf>,
+    /// Rolling shutter: S in [0, 1] is the share of the camera's motion between
+    /// neighbouring views that happens while one view's rows are read out (top to
+    /// bottom); written in instant-ngp's convention (`transform_matrix_start`/`_end`,
+    /// `rolling_shutter`). 0 (the default) is a global shutter.
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        value_name = "S",
+        allow_negative_numbers = true
+    )]
+    pub rolling_shutter: f64,
     /// Also write a contact sheet PNG here: a few views of the first scenes, each next to
     /// its colour-mapped inverse depth (bright = near).
     #[arg(long)]
@@ -96,6 +107,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         rig: args.rig,
         supersample: args.supersample,
         textures,
+        rolling_shutter: args.rolling_shutter,
     };
     opts.validate()?;
     let bar = indicatif::ProgressBar::new(args.scenes as u64);

@@ -1,0 +1,105 @@
+//! The plane sweep with rolling-shutter cameras (see [`crate::camera::rolling`]).
+//!
+//! A slice whose target and source both have one pose per image keeps the homography
+//! path of [`super::sweep_into`] (bit for bit). Otherwise every target pixel is a world
+//! ray from the target's pose at that pixel's time (a rolling-shutter target renders each
+//! row at its own pose), the plane at inverse depth `rho` is `z = 1 / rho` in that pose's
+//! camera frame, and the plane point is projected into the source with
+//! [`RollingProjector::solve`] (or with the source's single pose). No projection gives
+//! RGBA = 0, as a point behind a camera does.
+
+use super::{sample_bilinear, target_rays, warp_slice, Region, Source, CHANNELS, IN_FRONT_EPS};
+use crate::camera::rolling::RollingProjector;
+use crate::camera::{Camera, WorldToCamera};
+use crate::geometry::plane_homography;
+use glam::{DVec2, DVec3};
+use rayon::prelude::*;
+
+/// World rays of the region's pixel centres: `(origin, direction)`, the direction being
+/// `R^T (x, y, 1)` in the pose of the pixel's time, so the point at camera depth `z` is
+/// `origin + z * direction`.
+pub fn target_world_rays(target: &Camera, region: Region) -> Vec<(DVec3, DVec3)> {
+    let rays = target_rays(&target.intrinsics, region);
+    let fixed = target
+        .moving_shutter()
+        .is_none()
+        .then(|| target.pose.inverse());
+    rays.iter()
+        .enumerate()
+        .map(|(i, n)| {
+            let c2w = match fixed {
+                Some(p) => p,
+                None => {
+                    let uv = DVec2::new(
+                        (region.x0 + (i % region.width) as i64) as f64 + 0.5,
+                        (region.y0 + (i / region.width) as i64) as f64 + 0.5,
+                    );
+                    target.pose_at_pixel(uv).inverse()
+                }
+            };
+            (c2w.translation, c2w.rotation * DVec3::new(n.x, n.y, 1.0))
+        })
+        .collect()
+}
+
+/// [`super::sweep_into`] when the target or some source has a moving rolling shutter.
+pub(super) fn sweep_rolling_into(
+    target: &Camera,
+    region: Region,
+    sources: &[Source<'_>],
+    inv_depths: &[f64],
+    out: &mut [f32],
+) {
+    let hw = region.len();
+    let v = sources.len();
+    let target_moves = target.moving_shutter().is_some();
+    let plain = |s: &Source<'_>| !target_moves && s.camera.moving_shutter().is_none();
+    let rays = target_rays(&target.intrinsics, region);
+    let world = target_world_rays(target, region);
+    let rels: Vec<WorldToCamera> = sources
+        .iter()
+        .map(|s| target.pose.relative_to(&s.camera.pose))
+        .collect();
+    out.par_chunks_mut(CHANNELS * hw)
+        .enumerate()
+        .for_each(|(slice, chunk)| {
+            let (d, k) = (slice / v, slice % v);
+            if plain(&sources[k]) {
+                let h = plane_homography(&rels[k], inv_depths[d]);
+                warp_slice(&h, &rays, &sources[k], chunk);
+            } else {
+                rolling_slice(&world, inv_depths[d], &sources[k], chunk);
+            }
+        });
+}
+
+/// Warps one source at one plane into `out` (`[4, h, w]`) through per-pixel projection.
+fn rolling_slice(world: &[(DVec3, DVec3)], rho: f64, src: &Source<'_>, out: &mut [f32]) {
+    let hw = world.len();
+    let cam = src.camera;
+    let intr = &cam.intrinsics;
+    let projector = RollingProjector::new(cam);
+    let (r, c) = (cam.pose.rotation, cam.pose.centre());
+    let max_r2 = intr.distortion.map_or(f64::INFINITY, |d| d.max_radius2());
+    let eps2 = IN_FRONT_EPS * IN_FRONT_EPS;
+    for (i, (origin, dir)) in world.iter().enumerate() {
+        // The plane point origin + dir / rho, homogeneous with weight rho.
+        let p = *dir + *origin * rho;
+        let uv = match &projector {
+            Some(proj) => proj.solve(p, rho).map(|h| h.uv),
+            None => {
+                let q = r * (p - c * rho);
+                if q.z > 0.0 && q.z * q.z > eps2 * q.length_squared() {
+                    let n = DVec2::new(q.x / q.z, q.y / q.z);
+                    (n.length_squared() < max_r2).then(|| intr.project_normalized(n))
+                } else {
+                    None
+                }
+            }
+        };
+        let rgba = uv.map_or([0.0; 4], |uv| sample_bilinear(src.image, uv.x, uv.y));
+        for (ch, val) in rgba.into_iter().enumerate() {
+            out[ch * hw + i] = val;
+        }
+    }
+}
