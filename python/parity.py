@@ -443,17 +443,21 @@ def main() -> int:
     try:
         models: list[Model] = []
         # The embedded model, and `deepstereo export` without --model exports exactly it.
-        asset = ROOT / "deepstereo-train" / "assets" / "tiny.safetensors"
+        asset = ROOT / "deepstereo-train" / "assets" / "nviews-real.safetensors"
         if asset.is_file():
             m = p.load_model("embedded", asset)
             run([binary, "export", "--out", work / "default.onnx"], "export of the embedded model")
             if (work / "default.onnx").read_bytes() != m.onnx.read_bytes():
-                p.fail("`deepstereo export` without --model differs from the export of deepstereo-train/assets/tiny.safetensors")
+                p.fail(f"`deepstereo export` without --model differs from the export of {asset.relative_to(ROOT)}")
             else:
                 print("  `deepstereo export` without --model writes the same file", flush=True)
             models.append(m)
         else:
             p.note(f"{asset} not found: no embedded model to check")
+        # The shipped weights of the paper-family `tiny` (the embedded model before).
+        tiny_asset = ROOT / "deepstereo-train" / "assets" / "tiny.safetensors"
+        if tiny_asset.is_file():
+            models.append(p.load_model("tiny", tiny_asset))
         # Rust-initialised tiny (the `init_weights` example, built by `cargo test --release`).
         example = binary.parent / "examples" / "init_weights"
         if example.is_file():

@@ -289,8 +289,15 @@ fn fewer_source_views_than_the_model_takes_work_and_more_are_refused() {
     let v = eval_json(&s, "2", &["--planes", "8", "--views", "2"]);
     assert_eq!(v["views"], 2);
     assert!(v["per_view"][0]["psnr"].as_f64().expect("psnr").is_finite());
-    // The embedded model takes 4 views: 5 (and 0) are refused by name.
-    for bad in ["5", "0"] {
+    // The embedded model takes any number of views: all 5 sources of the scene work, 6
+    // (more than the scene has beside the target) and 0 are refused by name; the paper
+    // family's `tiny` takes exactly 4, so 5 is refused there.
+    let v = eval_json(&s, "2", &["--planes", "8", "--views", "5"]);
+    assert_eq!(v["views"], 5);
+    let tiny = deepstereo_tests::tiny_asset()
+        .to_string_lossy()
+        .into_owned();
+    for (bad, model) in [("6", "embedded"), ("0", "embedded"), ("5", tiny.as_str())] {
         let res = run_deepstereo([
             "eval",
             "--scene",
@@ -301,8 +308,10 @@ fn fewer_source_views_than_the_model_takes_work_and_more_are_refused() {
             "8",
             "--views",
             bad,
+            "--model",
+            model,
         ]);
-        assert_ne!(res.code, Some(0), "--views {bad} accepted");
+        assert_ne!(res.code, Some(0), "--views {bad} accepted by {model}");
         assert!(res.stderr.contains("--views"), "{}", res.stderr);
         assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
     }
@@ -333,11 +342,16 @@ fn forward_refuses_inputs_without_planes() {
     use deepstereo_core::tensorio::{write_safetensors, NamedArray};
     let tmp = tempfile::tempdir().expect("tempdir");
     let inputs = tmp.path().join("empty.safetensors");
-    // The embedded tiny model: level sizes of an 8x8 tile, but no planes.
-    let arrays = [
-        NamedArray::f32("level0", &[1, 0, 16, 16, 16], &[]),
-        NamedArray::f32("level1", &[1, 0, 16, 12, 12], &[]),
-    ];
+    // The embedded model (`nviews`: 3 levels, any views): level sizes of a tile of its
+    // alignment for 4 views, but no planes.
+    let cfg = deepstereo_core::config::Config::nviews();
+    let t = cfg.tile_align();
+    let arrays: Vec<NamedArray> = (0..cfg.levels)
+        .map(|l| {
+            let n = cfg.input_size(l, t);
+            NamedArray::f32(&format!("level{l}"), &cfg.input_shape(1, 0, 4, n, n), &[])
+        })
+        .collect();
     write_safetensors(&inputs, &arrays, None).expect("write inputs");
     let out = tmp.path().join("out.safetensors");
     let res = run_deepstereo([
@@ -356,4 +370,39 @@ fn forward_refuses_inputs_without_planes() {
     );
     assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
     assert!(!out.exists(), "an output was written");
+}
+
+#[test]
+fn curve_plots_a_run_log_and_refuses_a_file_without_log_lines() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let log = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../deepstereo-train/assets/readme/training_log.jsonl");
+    let out = tmp.path().join("curve.png");
+    ok(&[
+        "curve",
+        "--log",
+        &log.to_string_lossy(),
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    let (w, h) = png_size(&out);
+    assert!(w > 100 && h > 100);
+    let bad = tmp.path().join("bad.jsonl");
+    std::fs::write(&bad, "not a log\n{\"step\": \"x\"}\n").expect("write");
+    let out2 = tmp.path().join("bad.png");
+    let res = run_deepstereo([
+        "curve",
+        "--log",
+        &bad.to_string_lossy(),
+        "--out",
+        &out2.to_string_lossy(),
+    ]);
+    assert_ne!(res.code, Some(0));
+    assert!(
+        res.stderr.contains("bad.jsonl") && res.stderr.contains("no training log lines"),
+        "{}",
+        res.stderr
+    );
+    assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
+    assert!(!out2.exists());
 }

@@ -37,6 +37,12 @@ pub fn deepstereo_bin() -> PathBuf {
 
 /// The shared real scenes (`../shared/data` from the workspace root), or `None` after
 /// printing why the calling test is skipped.
+/// The shipped weights of the paper-family preset `tiny` (no longer the embedded default,
+/// kept for the tests of that family).
+pub fn tiny_asset() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../deepstereo-train/assets/tiny.safetensors")
+}
+
 pub fn shared_data() -> Option<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
     if dir.is_dir() {

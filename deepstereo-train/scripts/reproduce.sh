@@ -9,6 +9,14 @@ DATA=../shared/data
 mkdir -p "$OUT" "$FIG"
 cargo build --release -p deepstereo-train
 DS=target/release/deepstereo
+# The tables and pictures of the README's sections on evaluation, pruning and run time
+# were measured with `tiny`, the embedded model before `nviews-real` (the demo uses the
+# embedded default); they pass it by file.
+TINY=(--model deepstereo-train/assets/tiny.safetensors)
+
+echo "== training curves (tiny's committed log, the default run's log)"
+$DS curve --log "$FIG/training_log.jsonl" --out "$FIG/training_curve.png"
+$DS curve --log deepstereo-train/runs/nviews-real --out "$FIG/nviews_curve.png"
 
 echo "== procedural scenes (contact sheet, speed)"
 $DS synth --out "$OUT/sheet" --scenes 4 --seed 99 --size 240x180 --sheet "$FIG/synth.png"
@@ -20,42 +28,42 @@ cp "$OUT/demo/comparison.png" "$FIG/demo.png"
 
 echo "== eval on held-out procedural scenes (seeds never used in training)"
 $DS synth --out "$OUT/eval_scenes" --scenes 8 --seed 777 --size 240x180
-$DS eval --scene "$OUT/eval_scenes" --holdout 2,5,8 --json "$OUT/eval_procedural.json"
+$DS eval "${TINY[@]}" --scene "$OUT/eval_scenes" --holdout 2,5,8 --json "$OUT/eval_procedural.json"
 
 if [ -d "$DATA" ]; then
   echo "== eval on the real scenes"
-  $DS eval --scene "$DATA/templeRing" --holdout 5,15,25,35,45 --json "$OUT/eval_temple.json" --images "$OUT/temple"
-  $DS eval --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --json "$OUT/eval_ethiopian.json" --images "$OUT/ethiopian"
-  $DS eval --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24,40,56 --json "$OUT/eval_fox.json" --images "$OUT/fox"
+  $DS eval "${TINY[@]}" --scene "$DATA/templeRing" --holdout 5,15,25,35,45 --json "$OUT/eval_temple.json" --images "$OUT/temple"
+  $DS eval "${TINY[@]}" --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --json "$OUT/eval_ethiopian.json" --images "$OUT/ethiopian"
+  $DS eval "${TINY[@]}" --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24,40,56 --json "$OUT/eval_fox.json" --images "$OUT/fox"
   echo "== the same with --prune off (the plain renderer)"
-  $DS eval --scene "$OUT/eval_scenes" --holdout 2,5,8 --prune off --json "$OUT/eval_procedural_off.json"
-  $DS eval --scene "$DATA/templeRing" --holdout 5,15,25,35,45 --prune off --json "$OUT/eval_temple_off.json"
-  $DS eval --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --prune off --json "$OUT/eval_ethiopian_off.json"
-  $DS eval --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24,40,56 --prune off --json "$OUT/eval_fox_off.json"
+  $DS eval "${TINY[@]}" --scene "$OUT/eval_scenes" --holdout 2,5,8 --prune off --json "$OUT/eval_procedural_off.json"
+  $DS eval "${TINY[@]}" --scene "$DATA/templeRing" --holdout 5,15,25,35,45 --prune off --json "$OUT/eval_temple_off.json"
+  $DS eval "${TINY[@]}" --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --prune off --json "$OUT/eval_ethiopian_off.json"
+  $DS eval "${TINY[@]}" --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24,40,56 --prune off --json "$OUT/eval_fox_off.json"
   echo "== error against run time, with and without pruning, on real scenes"
-  $DS report --scene "$DATA/templeRing" --downscale 2 --holdout 5,25 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_temple"
+  $DS report "${TINY[@]}" --scene "$DATA/templeRing" --downscale 2 --holdout 5,25 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_temple"
   cp "$OUT/report_temple/report.png" "$FIG/report_temple.png"
-  $DS report --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_fox"
+  $DS report "${TINY[@]}" --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_fox"
   cp "$OUT/report_fox/report.png" "$FIG/report_fox.png"
-  $DS report --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_ethiopian"
+  $DS report "${TINY[@]}" --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --planes-grid 16,32,64 --backends candle --prune-grid off,auto --out "$OUT/report_ethiopian"
   cp "$OUT/report_ethiopian/report.png" "$FIG/report_ethiopian.png"
   echo "== pruning off / auto / fast on every scene (32 planes; 96 on the procedural scenes too)"
   for prune in "--prune off" "--prune auto" "--prune auto --prune-keep 0.8 --prune-margin 0"; do
     tag=$(echo "$prune" | tr -cd 'a-z0-9.')
-    $DS eval --scene "$OUT/eval_scenes" --holdout 2,5 --planes 32 $prune --json "$OUT/prune_proc32_$tag.json"
-    $DS eval --scene "$OUT/eval_scenes" --holdout 2,5 --planes 96 $prune --json "$OUT/prune_proc96_$tag.json"
-    $DS eval --scene "$DATA/templeRing" --downscale 2 --holdout 5,25 --planes 32 $prune --json "$OUT/prune_temple_$tag.json"
-    $DS eval --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --planes 32 $prune --json "$OUT/prune_ethiopian_$tag.json"
-    $DS eval --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24 --planes 32 $prune --json "$OUT/prune_fox_$tag.json"
+    $DS eval "${TINY[@]}" --scene "$OUT/eval_scenes" --holdout 2,5 --planes 32 $prune --json "$OUT/prune_proc32_$tag.json"
+    $DS eval "${TINY[@]}" --scene "$OUT/eval_scenes" --holdout 2,5 --planes 96 $prune --json "$OUT/prune_proc96_$tag.json"
+    $DS eval "${TINY[@]}" --scene "$DATA/templeRing" --downscale 2 --holdout 5,25 --planes 32 $prune --json "$OUT/prune_temple_$tag.json"
+    $DS eval "${TINY[@]}" --scene "$DATA/ethiopianHead" --downscale 4 --llffhold 8 --planes 32 $prune --json "$OUT/prune_ethiopian_$tag.json"
+    $DS eval "${TINY[@]}" --scene "$DATA/fox" --downscale 4 --near 1 --far 20 --holdout 8,24 --planes 32 $prune --json "$OUT/prune_fox_$tag.json"
   done
 else
   echo "note: $DATA not found: real-scene results skipped"
 fi
 
 echo "== error against run time on a procedural scene"
-$DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 8,16,32,64,96 --backends candle,ort --prune-grid off,auto --out "$OUT/report_procedural"
-$DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --downscale-grid 1,2,4 --backends ort --prune-grid off --out "$OUT/report_scale"
-$DS report --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --views-grid 1,2,3,4 --backends ort --prune-grid off --out "$OUT/report_views"
+$DS report "${TINY[@]}" --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 8,16,32,64,96 --backends candle,ort --prune-grid off,auto --out "$OUT/report_procedural"
+$DS report "${TINY[@]}" --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --downscale-grid 1,2,4 --backends ort --prune-grid off --out "$OUT/report_scale"
+$DS report "${TINY[@]}" --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --views-grid 1,2,3,4 --backends ort --prune-grid off --out "$OUT/report_views"
 cp "$OUT/report_procedural/report.png" "$FIG/report_procedural.png"
 echo "== speed benchmarks (whole network against onnxruntime and PyTorch)"
 cargo bench -p deepstereo-train --bench network | tee "$OUT/bench_network.txt"

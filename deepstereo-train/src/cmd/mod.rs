@@ -1,5 +1,6 @@
 //! Subcommands of the `deepstereo` binary, one module each, and the options they share.
 
+pub mod curve;
 pub mod demo;
 pub mod eval;
 pub mod export;
@@ -54,6 +55,8 @@ pub enum Command {
     Poses(poses::Args),
     /// Write the trainer's samples as numbered safetensors shards (for train_ddp.py).
     Samples(samples::Args),
+    /// Plot a run's log.jsonl: training loss and validation PSNR against steps.
+    Curve(curve::Args),
 }
 
 /// Runs one parsed command line.
@@ -71,6 +74,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Synth(a) => synth::run(a),
         Command::Poses(a) => poses::run(a),
         Command::Samples(a) => samples::run(a),
+        Command::Curve(a) => curve::run(a),
     }
 }
 
