@@ -9,7 +9,7 @@
 //! Off the CPU, or for dtypes other than f32 and f64, `pool.rs` runs the same maths as
 //! candle ops; tests compare the two.
 
-use super::pool::cast;
+use super::pool::{cast, wide};
 use super::{data, on_cpu, slice};
 use crate::pool::{BLEND_EPS, BLEND_LOGIT_BOUND};
 use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
@@ -39,19 +39,20 @@ pub fn blend_colours(y: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
 struct BlendColours;
 
 impl BlendColours {
-    /// `exp(L(y_v)) a_v` of one pixel's views into `ex`, returning their sum plus eps.
+    /// `exp(L(y_v)) a_v` of one pixel's views into `ex`, returning their sum plus eps
+    /// (summed in f64, as every sum over views here: see [`wide`]).
     fn weights<T: Float + NumAssignOps>(
         y: &[T],
         x: &[T],
         (v, p, j): (usize, usize, usize),
         ex: &mut [T],
-    ) -> T {
+    ) -> f64 {
         let b = cast::<T>(BLEND_LOGIT_BOUND);
-        let mut den = cast::<T>(BLEND_EPS);
+        let mut den = BLEND_EPS;
         for k in 0..v {
             let l = b * (y[k * p + j] / b).tanh();
             ex[k] = l.exp() * x[(k * 4 + 3) * p + j];
-            den += ex[k];
+            den += wide(ex[k]);
         }
         den
     }
@@ -68,11 +69,11 @@ impl BlendColours {
             for j in 0..p {
                 let den = Self::weights(yi, xi, (v, p, j), &mut ex);
                 for ch in 0..3 {
-                    let mut s = T::zero();
+                    let mut s = 0f64;
                     for (k, &w) in ex.iter().enumerate() {
-                        s += w * xi[(k * 4 + ch) * p + j];
+                        s += wide(w) * wide(xi[(k * 4 + ch) * p + j]);
                     }
-                    o[ch * p + j] = s / den;
+                    o[ch * p + j] = cast(s / den);
                 }
             }
         });
@@ -95,20 +96,20 @@ impl BlendColours {
             let mut ex = vec![T::zero(); v];
             for j in 0..p {
                 let den = Self::weights(yi, xi, (v, p, j), &mut ex);
-                let mut out = [T::zero(); 3];
+                let mut out = [0f64; 3];
                 for (ch, o) in out.iter_mut().enumerate() {
                     for (k, &w) in ex.iter().enumerate() {
-                        *o += w * xi[(k * 4 + ch) * p + j];
+                        *o += wide(w) * wide(xi[(k * 4 + ch) * p + j]);
                     }
                     *o /= den;
                 }
                 for (k, &w) in ex.iter().enumerate() {
-                    let mut gl = T::zero();
+                    let mut gl = 0f64;
                     for ch in 0..3 {
-                        gl += gi[ch * p + j] * (xi[(k * 4 + ch) * p + j] - out[ch]);
+                        gl += wide(gi[ch * p + j]) * (wide(xi[(k * 4 + ch) * p + j]) - out[ch]);
                     }
-                    let t = (yi[k * p + j] / b).tanh();
-                    d[k * p + j] = gl * w / den * (T::one() - t * t);
+                    let t = wide((yi[k * p + j] / b).tanh());
+                    d[k * p + j] = cast(gl * wide(w) / den * (1.0 - t * t));
                 }
             }
         });

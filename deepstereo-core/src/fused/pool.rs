@@ -24,6 +24,14 @@ pub(super) fn cast<T: Float>(v: f64) -> T {
     T::from(v).unwrap_or_else(T::zero)
 }
 
+/// `v` as f64: sums over views accumulate in f64 whatever the dtype, so that their
+/// rounding does not depend on the order of the views (an f32 sum's does, by ~1e-7
+/// relative, which a trained network's sharp selection amplifies past 1e-6; the f64 sum
+/// rounds back to the same f32 except at ties).
+pub(super) fn wide<T: Float>(v: T) -> f64 {
+    v.to_f64().unwrap_or(f64::NAN)
+}
+
 /// `(encoder input [N*V, 7, P], front [N, 4, P])` from `x` `[N, V, 4, P]`; `None` off
 /// the CPU.
 pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
@@ -48,27 +56,28 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
             .enumerate()
             .for_each(|(i, (enc, front))| {
                 let xi = &xs[i * v * 4 * p..][..v * 4 * p];
-                let (m, rest) = front.split_at_mut(3 * p);
-                let cover = &mut rest[..p];
-                // sum_v a_v rgb_v and sum_v a_v, then the mean and the coverage.
+                // sum_v a_v rgb_v and sum_v a_v (in f64), then the mean and the coverage.
+                let (mut m64, mut cover64) = (vec![0f64; 3 * p], vec![0f64; p]);
                 for k in 0..v {
                     let a = &xi[(k * 4 + 3) * p..][..p];
-                    for (ch, mc) in m.chunks_exact_mut(p).enumerate() {
+                    for (ch, mc) in m64.chunks_exact_mut(p).enumerate() {
                         let rgb = &xi[(k * 4 + ch) * p..][..p];
                         for j in 0..p {
-                            mc[j] += a[j] * rgb[j];
+                            mc[j] += wide(a[j]) * wide(rgb[j]);
                         }
                     }
                     for j in 0..p {
-                        cover[j] += a[j];
+                        cover64[j] += wide(a[j]);
                     }
                 }
+                let (m, rest) = front.split_at_mut(3 * p);
+                let cover = &mut rest[..p];
                 for j in 0..p {
-                    let den = cover[j] + cast(POOL_EPS);
+                    let den = cover64[j] + POOL_EPS;
                     for ch in 0..3 {
-                        m[ch * p + j] /= den;
+                        m[ch * p + j] = cast(m64[ch * p + j] / den);
                     }
-                    cover[j] /= cover[j] + T::one();
+                    cover[j] = cast(cover64[j] / (cover64[j] + 1.0));
                 }
                 for k in 0..v {
                     let (xk, ek) = (&xi[k * 4 * p..][..4 * p], &mut enc[k * 7 * p..][..7 * p]);
@@ -118,15 +127,38 @@ fn alpha<T>(x: &[T], (i, k, v, p): (usize, usize, usize, usize)) -> &[T] {
     &x[((i * v + k) * 4 + 3) * p..][..p]
 }
 
-/// `sum_v a_v + eps` per pixel of item `i`.
-fn alpha_sum<T: Float + NumAssignOps>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<T> {
-    let mut den = vec![cast::<T>(POOL_EPS); p];
+/// `sum_v a_v + eps` per pixel of item `i`, in f64.
+fn alpha_sum<T: Float>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<f64> {
+    let mut den = vec![POOL_EPS; p];
     for k in 0..v {
         for (d, &a) in den.iter_mut().zip(alpha(x, (i, k, v, p))) {
-            *d += a;
+            *d += wide(a);
         }
     }
     den
+}
+
+/// The alpha-weighted mean over views of channel `ch` of item `i` (f64), given `den`.
+fn weighted_mean<T: Float>(
+    e: &[T],
+    x: &[T],
+    den: &[f64],
+    (i, ch, v, c, p): (usize, usize, usize, usize, usize),
+) -> Vec<f64> {
+    let mut mean = vec![0f64; p];
+    for k in 0..v {
+        let (ak, ek) = (
+            alpha(x, (i, k, v, p)),
+            &e[((i * v + k) * c + ch) * p..][..p],
+        );
+        for j in 0..p {
+            mean[j] += wide(ak[j]) * wide(ek[j]);
+        }
+    }
+    for (m, d) in mean.iter_mut().zip(den) {
+        *m /= d;
+    }
+    mean
 }
 
 struct ViewStats;
@@ -144,32 +176,23 @@ impl ViewStats {
                 let (means, vars) = o.split_at_mut(c * p);
                 let den = alpha_sum(x, (i, v, p));
                 for ch in 0..c {
+                    let mean64 = weighted_mean(e, x, &den, (i, ch, v, c, p));
+                    let mut var64 = vec![0f64; p];
+                    for k in 0..v {
+                        let (ak, ek) = (
+                            alpha(x, (i, k, v, p)),
+                            &e[((i * v + k) * c + ch) * p..][..p],
+                        );
+                        for j in 0..p {
+                            let dev = wide(ek[j]) - mean64[j];
+                            var64[j] += wide(ak[j]) * dev * dev;
+                        }
+                    }
                     let mean = &mut means[ch * p..][..p];
                     let var = &mut vars[ch * p..][..p];
-                    for k in 0..v {
-                        let (ak, ek) = (
-                            alpha(x, (i, k, v, p)),
-                            &e[((i * v + k) * c + ch) * p..][..p],
-                        );
-                        for j in 0..p {
-                            mean[j] += ak[j] * ek[j];
-                        }
-                    }
                     for j in 0..p {
-                        mean[j] /= den[j];
-                    }
-                    for k in 0..v {
-                        let (ak, ek) = (
-                            alpha(x, (i, k, v, p)),
-                            &e[((i * v + k) * c + ch) * p..][..p],
-                        );
-                        for j in 0..p {
-                            let dev = ek[j] - mean[j];
-                            var[j] += ak[j] * dev * dev;
-                        }
-                    }
-                    for j in 0..p {
-                        var[j] /= den[j];
+                        mean[j] = cast(mean64[j]);
+                        var[j] = cast(var64[j] / den[j]);
                     }
                 }
             });
@@ -187,37 +210,25 @@ impl ViewStats {
     ) -> Vec<T> {
         let mut de = vec![T::zero(); e.len()];
         debug_assert_eq!(e.len(), n * v * c * p);
-        let eps = cast::<T>(POOL_EPS);
-        let two = cast::<T>(2.0);
         de.par_chunks_mut(v * c * p)
             .enumerate()
             .for_each(|(i, dei)| {
                 let den = alpha_sum(x, (i, v, p));
-                let mut mean = vec![T::zero(); p];
                 for ch in 0..c {
-                    mean.iter_mut().for_each(|m| *m = T::zero());
-                    for k in 0..v {
-                        let (ak, ek) = (
-                            alpha(x, (i, k, v, p)),
-                            &e[((i * v + k) * c + ch) * p..][..p],
-                        );
-                        for j in 0..p {
-                            mean[j] += ak[j] * ek[j];
-                        }
-                    }
+                    let mean = weighted_mean(e, x, &den, (i, ch, v, c, p));
                     let gm = &g[(i * 2 * c + ch) * p..][..p];
                     let gv = &g[(i * 2 * c + c + ch) * p..][..p];
-                    for j in 0..p {
-                        mean[j] /= den[j];
-                    }
                     for k in 0..v {
                         let ak = alpha(x, (i, k, v, p));
                         let ek = &e[((i * v + k) * c + ch) * p..][..p];
                         let d = &mut dei[(k * c + ch) * p..][..p];
                         for j in 0..p {
-                            let through_mean = gm[j] - gv[j] * two * mean[j] * eps / den[j];
-                            d[j] =
-                                ak[j] / den[j] * (through_mean + gv[j] * two * (ek[j] - mean[j]));
+                            let (gm, gv) = (wide(gm[j]), wide(gv[j]));
+                            let through_mean = gm - gv * 2.0 * mean[j] * POOL_EPS / den[j];
+                            d[j] = cast(
+                                wide(ak[j]) / den[j]
+                                    * (through_mean + gv * 2.0 * (wide(ek[j]) - mean[j])),
+                            );
                         }
                     }
                 }
