@@ -280,7 +280,14 @@ impl DeepStereo {
                 let centre = |t: &Tensor| t.narrow(3, p, th)?.narrow(4, p, tw); // [B*D, V, C, th, tw]
                 let (n, v, h, w, _) = view_dims(&inputs[0])?;
                 let x0 = inputs[0].reshape((n, v, 4, h, w))?; // [B*D, V, 4, H_0, W_0]
-                let blended = blend.forward(&centre(&e)?, &centre(&x0)?, &f)?; // [B*D, 3, th, tw]
+                let fused = match fuse {
+                    true => blend.infer(&e, &x0, &f, p)?, // [B*D, 3, th*tw]
+                    false => None,
+                };
+                let blended = match fused {
+                    Some(c) => c.reshape((n, 3, th, tw))?, // [B*D, 3, th, tw]
+                    None => blend.forward(&centre(&e)?, &centre(&x0)?, &f)?, // [B*D, 3, th, tw]
+                };
                 (blended + self.colour_out.forward(&f)?)?
             }
             _ => {

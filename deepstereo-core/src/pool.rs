@@ -30,7 +30,7 @@
 use crate::config::{ViewPool, ENCODER_IN};
 use crate::conv::{pointwise_chain, Conv2d};
 use crate::fused;
-use candle_core::{Module, Result, Tensor};
+use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
 /// Added to the alpha sum before dividing (pixels no view sees get zero statistics).
@@ -197,6 +197,26 @@ impl Blend {
             Some(c) => c.reshape((n, 3, th, tw)), // [N, 3, th, tw]
             None => blend_reference(&y.reshape((n, v, 1, th, tw))?, x),
         }
+    }
+
+    /// [`Self::forward`] for rendering, as one fused pass ([`fused::blend_infer`]) that
+    /// reads the uncropped level-0 features `e` `[N, V, C_f, H, W]` and sources `x`
+    /// `[N, V, 4, H, W]` around the tile at `(pad, pad)`; `None` where it does not apply.
+    pub fn infer(&self, e: &Tensor, x: &Tensor, f: &Tensor, pad: usize) -> Result<Option<Tensor>> {
+        let mut dense = Vec::with_capacity(self.layers.len());
+        for l in &self.layers {
+            let (cout, cin, kh, kw) = l.weight().dims4()?;
+            if (kh, kw) != (1, 1) {
+                return Ok(None);
+            }
+            dense.push(fused::Dense {
+                weight: l.weight().to_dtype(DType::F32)?.flatten_all()?.to_vec1()?,
+                bias: l.bias().to_dtype(DType::F32)?.to_vec1()?,
+                cin,
+                cout,
+            });
+        }
+        fused::blend_infer(e, x, f, &dense, pad)
     }
 }
 

@@ -302,3 +302,27 @@ fn views_order_does_not_matter_for_the_shipped_weights() -> Result<()> {
     }
     Ok(())
 }
+
+/// The renderer's fused path (the blend in one pass, `fused::blend_infer`) against the
+/// training forward on the shipped weights, at 1, 4 and 10 views.
+#[test]
+fn fused_inference_equals_the_forward_for_the_shipped_weights() -> Result<()> {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../deepstereo-train/assets/nviews-real.safetensors");
+    let t = deepstereo_core::weights::load(&path, &Device::Cpu)?;
+    let cfg = t.model.config().clone();
+    for v in [1, 4, 10] {
+        let x = inputs(&cfg, 2, v, DType::F32, 30 + v as u64)?;
+        let (a, b) = (t.model.forward(&x)?, t.model.infer(&x)?);
+        let (di, ds) = (
+            max_diff(&a.image, &b.image)?,
+            max_diff(&a.selection, &b.selection)?,
+        );
+        println!("shipped weights, {v} views: infer vs forward: image {di:e}, selection {ds:e}");
+        assert!(
+            di < 1e-5 && ds < 1e-5,
+            "{v} views: image {di}, selection {ds}"
+        );
+    }
+    Ok(())
+}

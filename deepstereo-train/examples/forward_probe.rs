@@ -55,7 +55,12 @@ fn main() -> Result<()> {
         let xs: Vec<Tensor> = (0..cfg.levels)
             .map(|l| {
                 let s = cfg.input_size(l, tile);
-                let shape = cfg.input_shape(1, cfg.planes, cfg.views, s, s);
+                // PROBE_VIEWS=K: K source views (the any-number-of-views family).
+                let views = std::env::var("PROBE_VIEWS")
+                    .ok()
+                    .and_then(|v| v.parse().ok())
+                    .unwrap_or(cfg.views);
+                let shape = cfg.input_shape(1, cfg.planes, views, s, s);
                 Tensor::rand(0f32, 1., shape, &Device::Cpu)
             })
             .collect::<candle_core::Result<_>>()?;

@@ -13,7 +13,7 @@ use super::pool::{cast, wide};
 use super::{data, on_cpu, slice};
 use crate::pool::{BLEND_EPS, BLEND_LOGIT_BOUND};
 use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
-use num_traits::{Float, NumAssignOps};
+use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
 
 /// The blended source colours from the raw logits `y` `[N, V, P]` and the sources' RGBA
@@ -41,7 +41,7 @@ struct BlendColours;
 impl BlendColours {
     /// `exp(L(y_v)) a_v` of one pixel's views into `ex`, returning their sum plus eps
     /// (summed in f64, as every sum over views here: see [`wide`]).
-    fn weights<T: Float + NumAssignOps>(
+    fn weights<T: Float + NumAssignOps + AsPrimitive<f64>>(
         y: &[T],
         x: &[T],
         (v, p, j): (usize, usize, usize),
@@ -57,7 +57,7 @@ impl BlendColours {
         den
     }
 
-    fn fwd<T: Float + NumAssignOps + Send + Sync>(
+    fn fwd<T: Float + NumAssignOps + Send + Sync + AsPrimitive<f64>>(
         y: &[T],
         x: &[T],
         (n, v, p): (usize, usize, usize),
@@ -82,7 +82,7 @@ impl BlendColours {
 
     /// `dy` from the output gradient `g` `[N, 3, P]`: `d out_c / d L_v = w_v (rgb_vc -
     /// out_c)`, `d L / d y = 1 - tanh(y / B)^2`.
-    fn bwd<T: Float + NumAssignOps + Send + Sync>(
+    fn bwd<T: Float + NumAssignOps + Send + Sync + AsPrimitive<f64>>(
         y: &[T],
         x: &[T],
         g: &[T],
@@ -155,7 +155,7 @@ impl CustomOp2 for BlendColours {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let dims = y.dims3()?;
         let g = g.contiguous()?;
-        fn run<T: WithDType + Float + NumAssignOps>(
+        fn run<T: WithDType + Float + NumAssignOps + AsPrimitive<f64>>(
             y: &Tensor,
             x: &Tensor,
             g: &Tensor,

@@ -6,7 +6,8 @@
 //! - [`select_softmax`]: the selection tower's head, `softmax_D(tanh(x) exp(log_scale))`;
 //! - [`composite`]: the rendered colour `sum_z s_z c_z`;
 //! - [`pool_front`], [`view_stats`], [`blend_colours`]: the any-number-of-views family's
-//!   steps across views (`pool.rs` there);
+//!   steps across views (`pool.rs` there), and [`blend_infer`], its whole colour blend in
+//!   one pass when rendering;
 //! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding) and
 //!   optionally zero columns on the right, reading a transposed view directly (no
 //!   separate transpose copy).
@@ -15,6 +16,7 @@
 //! for dtypes other than f32 / f64 (tests compare the two, values and gradients).
 
 mod blend;
+mod blend_infer;
 mod head;
 mod pad;
 mod pool;
@@ -23,6 +25,7 @@ mod tests;
 mod upsample;
 
 pub use blend::{add_views_relu, blend_colours};
+pub use blend_infer::{blend_infer, Dense};
 pub(crate) use head::softmax_columns;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;

@@ -17,7 +17,7 @@
 use super::{data, on_cpu, slice};
 use crate::pool::POOL_EPS;
 use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
-use num_traits::{Float, NumAssignOps};
+use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
 
 pub(super) fn cast<T: Float>(v: f64) -> T {
@@ -28,8 +28,9 @@ pub(super) fn cast<T: Float>(v: f64) -> T {
 /// rounding does not depend on the order of the views (an f32 sum's does, by ~1e-7
 /// relative, which a trained network's sharp selection amplifies past 1e-6; the f64 sum
 /// rounds back to the same f32 except at ties).
-pub(super) fn wide<T: Float>(v: T) -> f64 {
-    v.to_f64().unwrap_or(f64::NAN)
+#[inline(always)]
+pub(super) fn wide<T: AsPrimitive<f64>>(v: T) -> f64 {
+    v.as_()
 }
 
 /// `(encoder input [N*V, 7, P], front [N, 4, P])` from `x` `[N, V, 4, P]`; `None` off
@@ -43,7 +44,7 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
         return Ok(None);
     }
     let x = x.contiguous()?;
-    fn run<T: WithDType + Float + NumAssignOps>(
+    fn run<T: WithDType + Float + NumAssignOps + AsPrimitive<f64>>(
         x: &Tensor,
         (n, v, p): (usize, usize, usize),
     ) -> Result<(Tensor, Tensor)> {
@@ -128,7 +129,7 @@ fn alpha<T>(x: &[T], (i, k, v, p): (usize, usize, usize, usize)) -> &[T] {
 }
 
 /// `sum_v a_v + eps` per pixel of item `i`, in f64.
-fn alpha_sum<T: Float>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<f64> {
+fn alpha_sum<T: Float + AsPrimitive<f64>>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<f64> {
     let mut den = vec![POOL_EPS; p];
     for k in 0..v {
         for (d, &a) in den.iter_mut().zip(alpha(x, (i, k, v, p))) {
@@ -139,7 +140,7 @@ fn alpha_sum<T: Float>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<f64> {
 }
 
 /// The alpha-weighted mean over views of channel `ch` of item `i` (f64), given `den`.
-fn weighted_mean<T: Float>(
+fn weighted_mean<T: Float + AsPrimitive<f64>>(
     e: &[T],
     x: &[T],
     den: &[f64],
@@ -164,7 +165,7 @@ fn weighted_mean<T: Float>(
 struct ViewStats;
 
 impl ViewStats {
-    fn fwd<T: Float + NumAssignOps + Send + Sync>(
+    fn fwd<T: Float + NumAssignOps + Send + Sync + AsPrimitive<f64>>(
         e: &[T],
         x: &[T],
         (n, v, c, p): (usize, usize, usize, usize),
@@ -202,7 +203,7 @@ impl ViewStats {
     /// `de` from the output gradient `g` `[N, 2C, P]`: with `den = sum a + eps`,
     /// `d mean / d e_v = a_v / den`, `d var / d e_v = 2 a_v (e_v - m) / den`, and through
     /// the mean `d var / d m = -2 m eps / den`.
-    fn bwd<T: Float + NumAssignOps + Send + Sync>(
+    fn bwd<T: Float + NumAssignOps + Send + Sync + AsPrimitive<f64>>(
         e: &[T],
         x: &[T],
         g: &[T],
@@ -275,7 +276,7 @@ impl CustomOp2 for ViewStats {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let dims = e.dims4()?;
         let g = g.contiguous()?;
-        fn run<T: WithDType + Float + NumAssignOps>(
+        fn run<T: WithDType + Float + NumAssignOps + AsPrimitive<f64>>(
             e: &Tensor,
             x: &Tensor,
             g: &Tensor,
