@@ -543,3 +543,108 @@ fn measure_on_ethiopian_head() {
         println!("{}", String::from_utf8_lossy(&res.stderr));
     }
 }
+
+/// Writes a constant mask (`value` 0 or 255) of `w x h` at `path`.
+fn write_mask(path: &Path, w: u32, h: u32, value: u8) {
+    let px = vec![value; (w * h * 3) as usize];
+    deepstereo_core::imageio::save_rgb8_png(path, w, h, &px).expect("write mask");
+}
+
+#[test]
+fn poses_takes_feature_masks_and_refuses_bad_ones() {
+    if !colmap_present() {
+        return;
+    }
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (w, h) = (480, 360);
+    let opts = SynthOptions {
+        views: 16,
+        width: w,
+        height: h,
+        rig: Rig::Ring,
+        supersample: 2,
+        textures: Vec::new(),
+        rolling_shutter: 0.0,
+    };
+    let synth = generate_one_camera(3, &opts).expect("synth");
+    let truth_dir = tmp.path().join("truth");
+    write_scene(&truth_dir, &synth).expect("write");
+    let images = truth_dir.join("images");
+    let names = file_names(&images);
+    // Open masks, in both namings: every view registers.
+    let open = tmp.path().join("open");
+    std::fs::create_dir(&open).expect("mkdir");
+    for (i, n) in names.iter().enumerate() {
+        let stem = n.rsplit_once('.').map_or(n.as_str(), |(s, _)| s);
+        let file = if i % 2 == 0 {
+            format!("{n}.png")
+        } else {
+            format!("{stem}.png")
+        };
+        write_mask(&open.join(file), w, h, 255);
+    }
+    let out = tmp.path().join("posed");
+    let res = poses(&images, &out, &["--masks", &open.to_string_lossy()]);
+    assert_eq!(res.code, Some(0), "{}", res.stderr);
+    assert_eq!(
+        file_names(&out.join("images")).len(),
+        opts.views,
+        "{}",
+        res.stderr
+    );
+    assert!(!out.join("masks").exists(), "the scene keeps no masks");
+    let log = std::fs::read_to_string(out.join("colmap.log")).expect("log");
+    assert!(log.contains("mask_path"), "COLMAP was not given the masks");
+    // Masks that hide everything: no features, a clear failure, nothing left behind.
+    let shut = tmp.path().join("shut");
+    std::fs::create_dir(&shut).expect("mkdir");
+    for n in &names {
+        write_mask(&shut.join(format!("{n}.png")), w, h, 0);
+    }
+    let out2 = tmp.path().join("posed2");
+    let res = poses(&images, &out2, &["--masks", &shut.to_string_lossy()]);
+    assert_ne!(res.code, Some(0), "posed with every pixel masked");
+    assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
+    assert!(!out2.exists(), "a failed run left {}", out2.display());
+    // A missing mask and a mask of the wrong size are named before COLMAP runs.
+    let bad = tmp.path().join("bad");
+    std::fs::create_dir(&bad).expect("mkdir");
+    for n in &names[1..] {
+        write_mask(&bad.join(format!("{n}.png")), w, h, 255);
+    }
+    let res = poses(
+        &images,
+        &tmp.path().join("p3"),
+        &["--masks", &bad.to_string_lossy()],
+    );
+    assert_ne!(res.code, Some(0));
+    assert!(
+        res.stderr.contains(&names[0]) && res.stderr.contains("no mask"),
+        "{}",
+        res.stderr
+    );
+    write_mask(&bad.join(format!("{}.png", names[0])), w / 2, h, 255);
+    let res = poses(
+        &images,
+        &tmp.path().join("p4"),
+        &["--masks", &bad.to_string_lossy()],
+    );
+    assert_ne!(res.code, Some(0));
+    assert!(
+        res.stderr.contains("240x360") && res.stderr.contains("480x360"),
+        "{}",
+        res.stderr
+    );
+    let res = poses(
+        &images,
+        &tmp.path().join("p5"),
+        &["--masks", "/nonexistent/masks"],
+    );
+    assert_ne!(res.code, Some(0));
+    assert!(res.stderr.contains("--masks"), "{}", res.stderr);
+    let left: Vec<String> = file_names(tmp.path())
+        .into_iter()
+        .filter(|n| n.starts_with('.') || n.starts_with('p') && n != "posed")
+        .collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}

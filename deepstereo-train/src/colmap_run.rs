@@ -101,7 +101,8 @@ impl Colmap {
     /// SIFT features of every image of `images` into `database`, one camera shared by all
     /// images, at most `max_size` pixels on the longer side.
     /// `camera_params` (COLMAP's comma-separated list for the model), when given, is the
-    /// camera's starting point instead of COLMAP's guess.
+    /// camera's starting point instead of COLMAP's guess; `masks`, when given, holds
+    /// `<image name>.png` feature masks (`ImageReader.mask_path`).
     pub fn extract(
         &self,
         database: &Path,
@@ -109,6 +110,7 @@ impl Colmap {
         camera_model: &str,
         camera_params: Option<&str>,
         max_size: u32,
+        masks: Option<&Path>,
     ) -> anyhow::Result<()> {
         let mut args = vec![
             "--database_path".into(),
@@ -128,6 +130,9 @@ impl Colmap {
         ];
         if let Some(p) = camera_params {
             args.extend(["--ImageReader.camera_params".into(), p.to_string()]);
+        }
+        if let Some(m) = masks {
+            args.extend(["--ImageReader.mask_path".into(), path_arg(m)]);
         }
         self.run("feature extraction", "feature_extractor", &args)
     }

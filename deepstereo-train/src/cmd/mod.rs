@@ -8,6 +8,7 @@ pub mod forward;
 pub mod inspect;
 pub mod model_args;
 pub mod poses;
+pub mod poses_masks;
 pub mod render;
 pub mod report;
 pub mod report_html;

@@ -13,8 +13,9 @@
 //! One camera (`--camera-model`, default SIMPLE_RADIAL) is shared by all images, at the
 //! images' resolution. When the mapper finds several disconnected models the largest is
 //! used and the images of the others are named in a warning; images that did not register
-//! are named in a warning and left out. Everything is built in a temporary directory beside
-//! `--out` and renamed into place at the end, so a failure leaves nothing behind.
+//! are named in a warning and left out. `--masks DIR` gives COLMAP feature masks
+//! (`poses_masks.rs`). Everything is built in a temporary directory beside `--out` and
+//! renamed into place at the end, so a failure leaves nothing behind.
 
 use crate::colmap_run::{log_tail, model_dirs, registered_names, Colmap, Matcher};
 use anyhow::{bail, Context};
@@ -63,6 +64,11 @@ pub struct Args {
     /// Threads COLMAP may use (default: the machine's cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Folder of feature masks, one PNG per photograph of its size (for `a.jpg`,
+    /// `a.jpg.png` as COLMAP names it, or `a.png`): no features where a mask is black.
+    /// Mask what moves: people, cars, or the room around a turntable's turning object.
+    #[arg(long)]
+    pub masks: Option<PathBuf>,
 }
 
 const CAMERA_MODELS: [&str; 5] = [
@@ -91,6 +97,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bail!("--max-size must be positive");
     }
     let images = list_images(&args.images)?;
+    let masks = match &args.masks {
+        Some(dir) => Some(super::poses_masks::find_masks(dir, &images)?),
+        None => None,
+    };
     if args.out.exists() {
         bail!(
             "{}: already exists (choose a new --out)",
@@ -98,7 +108,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     let tmp = temp_beside(&args.out)?;
-    let result = build(&args, &images, &tmp);
+    let result = build(&args, &images, masks.as_deref(), &tmp);
     match result {
         Ok(()) => std::fs::rename(&tmp, &args.out).with_context(|| {
             let _ = std::fs::remove_dir_all(&tmp);
@@ -210,7 +220,12 @@ fn stage<T>(n: usize, name: &str, f: impl FnOnce() -> anyhow::Result<T>) -> anyh
     r
 }
 
-fn build(args: &Args, images: &[PathBuf], tmp: &Path) -> anyhow::Result<()> {
+fn build(
+    args: &Args,
+    images: &[PathBuf],
+    masks: Option<&[PathBuf]>,
+    tmp: &Path,
+) -> anyhow::Result<()> {
     let binary = args
         .colmap
         .clone()
@@ -226,12 +241,16 @@ fn build(args: &Args, images: &[PathBuf], tmp: &Path) -> anyhow::Result<()> {
     colmap.check()?;
     let img_dir = tmp.join("images");
     let (db, work) = (tmp.join("database.db"), tmp.join("mapper"));
+    let mask_dir = tmp.join("masks");
     stage(1, "copying images", || {
         std::fs::create_dir(&img_dir).with_context(|| img_dir.display().to_string())?;
         for p in images {
             let name = p.file_name().context("image without a file name")?;
             std::fs::copy(p, img_dir.join(name))
                 .with_context(|| format!("cannot copy {}", p.display()))?;
+        }
+        if let Some(m) = masks {
+            super::poses_masks::copy_masks(m, images, &mask_dir)?;
         }
         Ok(())
     })?;
@@ -249,17 +268,26 @@ fn build(args: &Args, images: &[PathBuf], tmp: &Path) -> anyhow::Result<()> {
             &args.camera_model,
             params.as_deref(),
             args.max_size,
+            masks.is_some().then_some(mask_dir.as_path()),
         )
     })?;
     stage(3, "matching", || colmap.do_match(&db, args.matcher))?;
     stage(4, "mapping", || {
-        colmap.map(
+        let mapped = colmap.map(
             &db,
             &img_dir,
             &work,
             args.init_tri_angle,
             args.focal.is_none(),
-        )
+        );
+        match (mapped, &args.masks) {
+            (Err(e), Some(dir)) => Err(e.context(format!(
+                "with --masks {}: black mask pixels get no features; check that the masks \
+                 are white where the photographs should be used",
+                dir.display()
+            ))),
+            (r, _) => r,
+        }
     })?;
     let sparse = tmp.join("sparse").join("0");
     let names = stage(5, "writing the model", || {
@@ -285,7 +313,7 @@ fn build(args: &Args, images: &[PathBuf], tmp: &Path) -> anyhow::Result<()> {
             let _ = std::fs::remove_file(img_dir.join(n));
         }
     }
-    for p in [&db, &work] {
+    for p in [&db, &work, &mask_dir] {
         let _ = if p.is_dir() {
             std::fs::remove_dir_all(p)
         } else {
