@@ -106,44 +106,48 @@ fn umeyama(x: &[DVec3], y: &[DVec3]) -> (f64, DMat3, DVec3) {
     (s, r, my - r * mx * s)
 }
 
-/// Median rotation error (degrees) and median centre error (fraction of the bounding-box
-/// diagonal of the true centres) of `est` against `truth`, after aligning the centres.
-pub fn pose_errors(est: &[Camera], truth: &[Camera]) -> (f64, f64) {
-    let ce: Vec<DVec3> = est.iter().map(|c| c.pose.centre()).collect();
-    let ct: Vec<DVec3> = truth.iter().map(|c| c.pose.centre()).collect();
-    let (s, r, t) = umeyama(&ce, &ct);
-    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-    for c in &ct {
-        lo = lo.min(*c);
-        hi = hi.max(*c);
-    }
-    let spread = (hi - lo).length();
-    let mut rot: Vec<f64> = est
-        .iter()
-        .zip(truth)
-        .map(|(e, g)| {
-            // p_cam = R_e x_est + t_e with x_est = R^T (x_true - t) / s.
-            let d = e.pose.rotation * r.transpose() * g.pose.rotation.transpose();
-            let tr = d.x_axis.x + d.y_axis.y + d.z_axis.z;
-            ((tr - 1.0) * 0.5).clamp(-1.0, 1.0).acos().to_degrees()
-        })
-        .collect();
-    let mut cen: Vec<f64> = ce
-        .iter()
-        .zip(&ct)
-        .map(|(e, g)| (r * *e * s + t - *g).length() / spread)
-        .collect();
-    let med = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
-    (med(&mut rot), med(&mut cen))
+/// The median of `v` (NaN when it is empty, so that no threshold passes).
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 /// Angle in degrees of a rotation matrix.
 fn angle_deg(d: DMat3) -> f64 {
     let tr = d.x_axis.x + d.y_axis.y + d.z_axis.z;
     ((tr - 1.0) * 0.5).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Median rotation error (degrees) and median centre error (fraction of the bounding-box
+/// diagonal of the true centres) of `est` against `truth` after the similarity
+/// `x_true = s R x_est + t`.
+fn errors_after(est: &[Camera], truth: &[Camera], (s, r, t): (f64, DMat3, DVec3)) -> (f64, f64) {
+    let ct: Vec<DVec3> = truth.iter().map(|c| c.pose.centre()).collect();
+    let (lo, hi) = ct.iter().fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), c| (lo.min(*c), hi.max(*c)),
+    );
+    let spread = (hi - lo).length();
+    // p_cam = R_e x_est + t_e with x_est = R^T (x_true - t) / s.
+    let rot = est
+        .iter()
+        .zip(truth)
+        .map(|(e, g)| angle_deg(e.pose.rotation * r.transpose() * g.pose.rotation.transpose()))
+        .collect();
+    let cen = est
+        .iter()
+        .zip(&ct)
+        .map(|(e, g)| (r * e.pose.centre() * s + t - *g).length() / spread)
+        .collect();
+    (median(rot), median(cen))
+}
+
+/// Median rotation error (degrees) and median centre error (fraction of the bounding-box
+/// diagonal of the true centres) of `est` against `truth`, after aligning the centres.
+pub fn pose_errors(est: &[Camera], truth: &[Camera]) -> (f64, f64) {
+    let ce: Vec<DVec3> = est.iter().map(|c| c.pose.centre()).collect();
+    let ct: Vec<DVec3> = truth.iter().map(|c| c.pose.centre()).collect();
+    errors_after(est, truth, umeyama(&ce, &ct))
 }
 
 /// Errors after a similarity alignment that does not hinge on the centres' layout (Umeyama
@@ -174,21 +178,7 @@ pub fn orientation_aligned_errors(est: &[Camera], truth: &[Camera]) -> (f64, f64
         den += (*e - me).length_squared();
     }
     let s = num / den.max(f64::MIN_POSITIVE);
-    let spread = ct.iter().fold(
-        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
-        |(lo, hi), c| (lo.min(*c), hi.max(*c)),
-    );
-    let spread = (spread.1 - spread.0).length();
-    let mut cen: Vec<f64> = ce
-        .iter()
-        .zip(&ct)
-        .map(|(e, g)| ((*e - me) * s + mt - *g).length() / spread)
-        .collect();
-    let mut rot: Vec<f64> = est
-        .iter()
-        .zip(truth)
-        .map(|(e, g)| angle_deg(e.pose.rotation * r.transpose() * g.pose.rotation.transpose()))
-        .collect();
+    let (rot, cen) = errors_after(est, truth, (s, r, mt - me * s));
     let mut pairs = Vec::new();
     for i in 0..est.len() {
         for j in i + 1..est.len() {
@@ -197,11 +187,7 @@ pub fn orientation_aligned_errors(est: &[Camera], truth: &[Camera]) -> (f64, f64
             pairs.push(angle_deg(re * rg.transpose()));
         }
     }
-    let med = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(0.0)
-    };
-    (med(&mut rot), med(&mut cen), med(&mut pairs))
+    (rot, cen, median(pairs))
 }
 
 /// Cameras of `scene` keyed by image file name, in `names` order.
