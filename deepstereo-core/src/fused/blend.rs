@@ -38,6 +38,14 @@ pub fn blend_colours(y: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
 
 struct BlendColours;
 
+/// `exp(L(y))` with the bounded logit `L(y) = B tanh(y / B)` (`B` = [`BLEND_LOGIT_BOUND`]),
+/// the unnormalised weight of a view that sees the pixel.
+#[inline(always)]
+pub(super) fn bounded_exp<T: Float>(y: T) -> T {
+    let b = cast::<T>(BLEND_LOGIT_BOUND);
+    (b * (y / b).tanh()).exp()
+}
+
 impl BlendColours {
     /// `exp(L(y_v)) a_v` of one pixel's views into `ex`, returning their sum plus eps
     /// (summed in f64, as every sum over views here: see [`wide`]).
@@ -47,11 +55,9 @@ impl BlendColours {
         (v, p, j): (usize, usize, usize),
         ex: &mut [T],
     ) -> f64 {
-        let b = cast::<T>(BLEND_LOGIT_BOUND);
         let mut den = BLEND_EPS;
         for k in 0..v {
-            let l = b * (y[k * p + j] / b).tanh();
-            ex[k] = l.exp() * x[(k * 4 + 3) * p + j];
+            ex[k] = bounded_exp(y[k * p + j]) * x[(k * 4 + 3) * p + j];
             den += wide(ex[k]);
         }
         den

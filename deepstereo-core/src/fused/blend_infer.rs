@@ -6,9 +6,10 @@
 //! of the crops, reshapes and per-layer tensors of the composition are built. The same
 //! maths as `Blend::forward` (tests compare them); f32 on the CPU only, no gradient.
 
+use super::blend::bounded_exp;
 use super::data;
 use super::pool::wide;
-use crate::pool::{BLEND_EPS, BLEND_LOGIT_BOUND};
+use crate::pool::BLEND_EPS;
 use candle_core::{bail, DType, Result, Tensor};
 use rayon::prelude::*;
 
@@ -129,9 +130,8 @@ pub fn blend_infer(
                     &xd[(((i * v + k) * 4 + ch) * h + r + pad) * w + pad..][..tw]
                 };
                 let (rgb, alpha) = ([src(0), src(1), src(2)], src(3));
-                let bound = BLEND_LOGIT_BOUND as f32;
                 for c in 0..tw {
-                    let ex = wide((bound * (ha[c] / bound).tanh()).exp() * alpha[c]);
+                    let ex = wide(bounded_exp(ha[c]) * alpha[c]);
                     den[c] += ex;
                     for (ch, s) in rgb.iter().enumerate() {
                         num[ch * tw + c] += ex * wide(s[c]);
