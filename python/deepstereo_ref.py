@@ -94,16 +94,25 @@ class TowerConfig:
 class ViewPool:
     encoder: list[Conv]
     blend: list[Conv]
+    # `pool.falloff` ({"full", "power"}): the inputs' alpha already carries the per-view
+    # weights (deepstereo-core/src/view_weights.rs), so the network ignores it; kept so
+    # that a config round-trips.
+    falloff: dict[str, int] | None = None
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "ViewPool":
+        f = d.get("falloff")
         return ViewPool(
             encoder=[Conv(int(c["kernel"]), int(c["channels"])) for c in d["encoder"]],
             blend=[Conv(int(c["kernel"]), int(c["channels"])) for c in d["blend"]],
+            falloff=None if f is None else {"full": int(f["full"]), "power": int(f["power"])},
         )
 
     def to_json(self) -> dict[str, Any]:
-        return {"encoder": [c.__dict__ for c in self.encoder], "blend": [c.__dict__ for c in self.blend]}
+        d: dict[str, Any] = {"encoder": [c.__dict__ for c in self.encoder], "blend": [c.__dict__ for c in self.blend]}
+        if self.falloff is not None:
+            d["falloff"] = dict(self.falloff)
+        return d
 
     def features(self) -> int:
         return self.encoder[-1].channels if self.encoder else ENCODER_IN

@@ -95,7 +95,24 @@ pub struct ViewPool {
     pub encoder: Vec<Conv>,
     /// Hidden layers of the blend head (kernel 1); a 1-channel logit layer follows.
     pub blend: Vec<Conv>,
+    /// Down-weighting of the sources beyond the nearest few (`crate::view_weights`):
+    /// their alpha is scaled by a weight from their distance to the target. `None`:
+    /// every source counts alike (models trained before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub falloff: Option<ViewFalloff>,
 }
+
+/// The weight of a source view `v` at distance `d_v` from the target camera centre:
+/// `1` for the `full` nearest, `(d_ref / d_v)^power` for the others (`d_ref`: the
+/// `full`-th nearest distance). See [`crate::view_weights`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ViewFalloff {
+    pub full: usize,
+    pub power: u32,
+}
+
+/// Largest [`ViewFalloff::power`] (a view at 1.1 times `d_ref` then weighs 2e-3).
+pub const MAX_FALLOFF_POWER: u32 = 64;
 
 /// Channels of a view's encoder input: its RGBA and its colour minus the mean colour.
 pub const ENCODER_IN: usize = 7;
@@ -217,6 +234,7 @@ impl Config {
             pool: Some(ViewPool {
                 encoder: vec![c(1, 6), c(1, 6)],
                 blend: vec![c(1, 6)],
+                falloff: Some(ViewFalloff { full: 4, power: 8 }),
             }),
         }
     }
@@ -361,6 +379,14 @@ impl Config {
             }
             if pool.encoder.len() > MAX_CONVS || pool.blend.len() > MAX_CONVS {
                 return Err(format!("at most {MAX_CONVS} convolutions per list"));
+            }
+            if let Some(f) = pool.falloff {
+                if !(1..=MAX_VIEWS).contains(&f.full) || !(1..=MAX_FALLOFF_POWER).contains(&f.power)
+                {
+                    return Err(format!(
+                        "pool.falloff: full must be 1 to {MAX_VIEWS} and power 1 to {MAX_FALLOFF_POWER}, got {f:?}"
+                    ));
+                }
             }
             if self.colour_skip {
                 return Err(

@@ -3,13 +3,15 @@
 //! Level `l` is the plane sweep of the sources' level-`l` pyramid images into the target
 //! camera downsampled by `2^l`, over the region [`Config::input_origin`] /
 //! [`Config::input_size`] give (see `config.rs` for the tile geometry). Only the pixels a
-//! tile needs are warped.
+//! tile needs are warped. With a `pool.falloff` in the config, every view's alpha is then
+//! scaled by its weight ([`crate::view_weights`]).
 
 use crate::camera::Camera;
 use crate::config::{Config, MAX_VIEWS};
 use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
 use crate::sweep::{sweep_into, Region, Source, CHANNELS};
+use crate::view_weights::view_weights;
 
 /// A source view prepared for sampling: its camera at every pyramid level and the images.
 #[derive(Clone, Debug)]
@@ -100,6 +102,19 @@ pub fn tile_inputs(
             ),
         }));
     }
+    // Per-view alpha weights (crate::view_weights), when the config has a falloff.
+    let weights = cfg.pool.as_ref().and_then(|p| p.falloff).map(|f| {
+        let centres: Vec<_> = sources
+            .iter()
+            .map(|s| match (s.images.first(), s.cameras.first()) {
+                (Some(img), Some(cam)) if img.width > 0 && img.height > 0 => {
+                    Some(cam.pose.centre())
+                }
+                _ => None,
+            })
+            .collect();
+        view_weights(f, target.pose.centre(), &centres)
+    });
     let mut levels = Vec::with_capacity(cfg.levels);
     let mut sizes = Vec::with_capacity(cfg.levels);
     for l in 0..cfg.levels {
@@ -130,6 +145,9 @@ pub fn tile_inputs(
             .collect();
         let mut buf = vec![0.0f32; inv_depths.len() * sources.len() * CHANNELS * region.len()];
         sweep_into(&tcam, region, &srcs, inv_depths, &mut buf);
+        if let Some(w) = weights.as_deref().filter(|w| w.iter().any(|&g| g != 1.0)) {
+            scale_alpha(&mut buf, w, region.len());
+        }
         levels.push(buf);
         sizes.push((region.height, region.width));
     }
@@ -138,4 +156,15 @@ pub fn tile_inputs(
         sizes,
         views: sources.len(),
     })
+}
+
+/// Scales the alpha of view `v` by `weights[v]` in a volume `[D, V, 4, h, w]` of `hw`
+/// pixels per plane (colours stay as sampled).
+fn scale_alpha(volume: &mut [f32], weights: &[f64], hw: usize) {
+    for (i, slice) in volume.chunks_exact_mut(CHANNELS * hw).enumerate() {
+        let g = weights[i % weights.len()] as f32;
+        for a in &mut slice[3 * hw..] {
+            *a *= g;
+        }
+    }
 }

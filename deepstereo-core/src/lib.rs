@@ -24,5 +24,6 @@ pub mod render;
 pub mod sweep;
 pub mod synth;
 pub mod tensorio;
+pub mod view_weights;
 pub mod viz;
 pub mod weights;

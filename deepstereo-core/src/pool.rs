@@ -268,6 +268,7 @@ mod tests {
                 channels: 5,
             }],
             blend: vec![],
+            falloff: None,
         };
         let vm = candle_nn::VarMap::new();
         let enc = ViewEncoder::new(

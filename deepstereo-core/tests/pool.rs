@@ -38,6 +38,7 @@ fn small() -> Config {
         pool: Some(ViewPool {
             encoder: vec![c(1, 4), c(1, 3)],
             blend: vec![c(1, 4)],
+            falloff: None,
         }),
     }
 }
@@ -323,6 +324,65 @@ fn fused_inference_equals_the_forward_for_the_shipped_weights() -> Result<()> {
             di < 1e-5 && ds < 1e-5,
             "{v} views: image {di}, selection {ds}"
         );
+    }
+    Ok(())
+}
+
+/// `pool.falloff`: at `full` views or fewer the inputs equal the unweighted ones; beyond,
+/// the alpha of each view is scaled by its distance weight and nothing else changes.
+#[test]
+fn falloff_scales_only_the_alpha_of_views_beyond_the_nearest() -> Result<()> {
+    use deepstereo_core::inputs::tile_inputs;
+    use deepstereo_core::view_weights::view_weights;
+    let cfg = Config::nviews();
+    let f = cfg
+        .pool
+        .as_ref()
+        .and_then(|p| p.falloff)
+        .ok_or_else(|| anyhow::anyhow!("the nviews preset has a falloff"))?;
+    let mut plain = cfg.clone();
+    if let Some(p) = plain.pool.as_mut() {
+        p.falloff = None;
+    }
+    let opts = SynthOptions {
+        views: 10,
+        width: 48,
+        height: 36,
+        ..SynthOptions::default()
+    };
+    let s = generate(5, &opts)?;
+    let pyr: Vec<PyramidSource> = s
+        .cameras
+        .iter()
+        .zip(&s.images)
+        .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
+        .collect();
+    let inv = inverse_depths(s.near, s.far, 6);
+    let t = cfg.tile;
+    for v in [f.full, 9] {
+        let srcs: Vec<&PyramidSource> = pyr[1..=v].iter().collect();
+        let a = tile_inputs(&cfg, &s.cameras[0], &srcs, &inv, (0, 0), (t, t))?;
+        let b = tile_inputs(&plain, &s.cameras[0], &srcs, &inv, (0, 0), (t, t))?;
+        let centres: Vec<_> = srcs
+            .iter()
+            .map(|p| Some(p.cameras[0].pose.centre()))
+            .collect();
+        let g = view_weights(f, s.cameras[0].pose.centre(), &centres);
+        assert_eq!(g.iter().filter(|&&w| w < 1.0).count(), v - f.full.min(v));
+        for ((la, lb), &(h, w)) in a.levels.iter().zip(&b.levels).zip(&a.sizes) {
+            let hw = h * w;
+            for (i, (sa, sb)) in la.chunks(4 * hw).zip(lb.chunks(4 * hw)).enumerate() {
+                assert_eq!(sa[..3 * hw], sb[..3 * hw], "colours changed");
+                let gv = g[i % v] as f32;
+                for (x, y) in sa[3 * hw..].iter().zip(&sb[3 * hw..]) {
+                    assert!(
+                        (x - y * gv).abs() <= 1e-7,
+                        "view {}: alpha {x} vs {y} * {gv}",
+                        i % v
+                    );
+                }
+            }
+        }
     }
     Ok(())
 }

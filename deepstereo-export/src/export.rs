@@ -156,8 +156,17 @@ pub fn build_model(cfg: &Config, weights: &[Weight], opset: i64) -> Result<Model
                     "[B, D, 4V, H, W] (RGBA of each source per plane)",
                 ),
             };
+            // A falloff is applied by whoever builds the inputs: say so where they look.
+            let falloff = match cfg.pool.as_ref().and_then(|p| p.falloff) {
+                Some(f) => format!(
+                    "; alpha of each source times its weight (1 for the {} nearest to the \
+                     target centre, (d_ref / d)^{} beyond: deepstereo-core/src/view_weights.rs)",
+                    f.full, f.power
+                ),
+                None => String::new(),
+            };
             let doc = format!(
-                "plane sweep at 1/{} resolution: {layout}, H_{l} = (th >> {l}) + {}",
+                "plane sweep at 1/{} resolution: {layout}, H_{l} = (th >> {l}) + {}{falloff}",
                 1 << l,
                 2 * cfg.pad(l)
             );

@@ -62,6 +62,9 @@ pub struct RunOptions {
     /// The learning rate against the step (a resume may change it).
     #[serde(default)]
     pub lr_schedule: LrSchedule,
+    /// The model file the weights started from (`None`: a seeded random initialisation).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init: Option<PathBuf>,
 }
 
 impl RunOptions {
@@ -220,6 +223,15 @@ pub fn train(
             out.display()
         );
     } else {
+        if let Some(init) = &run.init {
+            let bytes = std::fs::read(init)
+                .with_context(|| format!("--init: cannot read {}", init.display()))?;
+            let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| {
+                anyhow::anyhow!("--init {}: not a safetensors file: {e}", init.display())
+            })?;
+            weights::assign(init, &st, &t.varmap, "")?;
+            eprintln!("starting from the weights of {}", init.display());
+        }
         write_atomic(&log_path, b"")?;
     }
     let t0 = Instant::now();

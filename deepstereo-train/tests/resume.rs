@@ -180,3 +180,80 @@ fn a_resume_may_add_a_learning_rate_schedule_and_the_log_follows_it() -> Result<
     ensure!(String::from_utf8_lossy(&res.stderr).contains("--lr-schedule"));
     Ok(())
 }
+
+/// The tensors of a safetensors file as f32 vectors, by name.
+fn tensors(path: &Path) -> Result<std::collections::BTreeMap<String, Vec<f32>>> {
+    let bytes = std::fs::read(path)?;
+    let st = safetensors::SafeTensors::deserialize(&bytes)?;
+    Ok(st
+        .tensors()
+        .into_iter()
+        .map(|(name, v)| {
+            let data = v
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            (name, data)
+        })
+        .collect())
+}
+
+fn max_diff(a: &Path, b: &Path) -> Result<f32> {
+    let (ta, tb) = (tensors(a)?, tensors(b)?);
+    ensure!(ta.keys().eq(tb.keys()), "different tensor names");
+    Ok(ta
+        .values()
+        .zip(tb.values())
+        .flat_map(|(x, y)| x.iter().zip(y).map(|(p, q)| (p - q).abs()))
+        .fold(0.0, f32::max))
+}
+
+/// `--init` starts from a model's weights: one step at a negligible rate leaves them as
+/// they were (a seeded start is far from them); a model of another shape is refused.
+#[test]
+fn init_starts_from_a_models_weights_and_refuses_a_mismatch() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let (a_out, b_out, c_out) = (
+        dir.path().join("a"),
+        dir.path().join("b"),
+        dir.path().join("c"),
+    );
+    let mut a = args(&a_out);
+    a[8] = "2".into(); // --steps 2
+    ensure!(Command::new(BIN)
+        .args(&a)
+        .stderr(Stdio::null())
+        .status()?
+        .success());
+    let model = a_out.join("model.safetensors");
+    for (out, init) in [(&b_out, true), (&c_out, false)] {
+        let mut b = args(out);
+        b[8] = "1".into(); // --steps 1
+        let i = b.iter().position(|x| x == "--lr").unwrap_or(0);
+        b[i + 1] = "1e-12".into();
+        let j = b.iter().position(|x| x == "--seed").unwrap_or(0);
+        b[j + 1] = "9".into();
+        if init {
+            b.extend(["--init".into(), model.display().to_string()]);
+        }
+        let o = Command::new(BIN).args(&b).output()?;
+        ensure!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let kept = max_diff(&model, &b_out.join("model.safetensors"))?;
+    ensure!(kept < 1e-9, "--init moved the weights by {kept}");
+    let seeded = max_diff(&model, &c_out.join("model.safetensors"))?;
+    ensure!(seeded > 1e-3, "a seeded start equals the model ({seeded})");
+    // The tiny model's weights do not fit the nviews config: refused, naming the file.
+    let mut d = args(&dir.path().join("d"));
+    d.extend(["--config", "nviews", "--init"].map(String::from));
+    d.push(model.display().to_string());
+    let o = Command::new(BIN).args(&d).output()?;
+    let err = String::from_utf8_lossy(&o.stderr);
+    ensure!(
+        !o.status.success() && err.contains("model.safetensors"),
+        "{err}"
+    );
+    ensure!(!dir.path().join("d/checkpoint.safetensors").exists());
+    Ok(())
+}

@@ -92,6 +92,11 @@ pub struct Args {
     /// The final rate's share of --lr for a decaying --lr-schedule.
     #[arg(long, default_value_t = DEFAULT_LR_FINAL)]
     pub lr_final: f64,
+    /// Start from the weights of this model file instead of a random initialisation
+    /// (fine-tuning; its tensors must have the names and shapes of --config). The
+    /// optimizer starts afresh; a resume passes it again and continues from the checkpoint.
+    #[arg(long)]
+    pub init: Option<std::path::PathBuf>,
 }
 
 /// Parses `K` or `MIN-MAX`.
@@ -175,6 +180,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         synthetic_percent: a.synthetic_percent,
         augment: a.augment,
         lr_schedule: LrSchedule::parse(&a.lr_schedule, a.lr_final)?,
+        init: a.init,
     };
     let sched = Schedule {
         steps: a.steps,
