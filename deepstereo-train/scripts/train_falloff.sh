@@ -4,14 +4,15 @@
 # started from the weights of the previous default (nviews-real at step 8600, copied into
 # the run as init.safetensors) and trained on the same scenes and options as that run
 # (train_default.sh), views 2-10 per batch, Adam 2e-4 held to step 200, then a cosine to
-# 2e-5 at step 3000. Continues from its committed checkpoint when there is one.
+# 2e-5 at step 2200 (started as cosine:200-3000, shortened at step 1582 to fit the session).
+# Continues from its committed checkpoint when there is one.
 # Run from the repository root: bash deepstereo-train/scripts/train_falloff.sh [STEPS] [LR_SCHEDULE]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 DATA=../shared/data
 OUT=deepstereo-train/runs/nviews-falloff
-STEPS="${1:-3000}"
-SCHEDULE="${2:-cosine:200-3000}"
+STEPS="${1:-2200}"
+SCHEDULE="${2:-cosine:200-2200}"
 TRAIN=()
 for s in bird blowtorch can cityscape cup duckqueen figurine fruit maryrose milk mouse plant statue; do
   TRAIN+=("$DATA/train/$s")
