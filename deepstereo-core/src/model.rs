@@ -16,7 +16,7 @@
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};
-use crate::fused::{composite, pad_rows, select_softmax, upsample_crop};
+use crate::fused::{composite, pad_rows, select_softmax, upsample_cat, upsample_crop};
 use crate::pool::{view_dims, Blend, ViewEncoder};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
@@ -75,28 +75,47 @@ impl Tower {
     }
 
     /// `inputs[l]`: `[N, C_in, H_l, W_l]` (N = B*D planes folded into the batch), each
-    /// already cropped to this tower's footprint. Returns `[N, C, th, tw]`.
-    fn forward(&self, inputs: &[Tensor], th: usize, tw: usize) -> Result<Tensor> {
+    /// already cropped to this tower's footprint. Returns `[N, C, th, tw]`. With `fuse`
+    /// (rendering: no gradients), the levels' crops are written straight into their
+    /// concatenation ([`upsample_cat`]).
+    fn forward(&self, inputs: &[Tensor], th: usize, tw: usize, fuse: bool) -> Result<Tensor> {
         let rf = self.cfg.merge_reduction();
-        let mut feats = Vec::with_capacity(self.levels.len());
+        let mut levels = Vec::with_capacity(self.levels.len());
         for (l, convs) in self.levels.iter().enumerate() {
             let mut x = inputs[l].clone();
             for conv in convs {
                 x = conv.forward_relu(&x)?;
             }
-            let off = self.cfg.upsample_crop(l);
-            x = if l > 0 {
-                upsample_crop(&x, 1 << l, off, th + rf, tw + rf)?
-            } else {
-                x.narrow(2, off, th + rf)?.narrow(3, off, tw + rf)?
-            }; // [N, C, th+rf, tw+rf]
-            feats.push(x);
+            levels.push(x); // [N, C, H_l, W_l]
         }
-        let mut x = Tensor::cat(&feats, 1)?; // [N, sum C, th+rf, tw+rf]
+        let crops: Vec<(&Tensor, usize, usize)> = (levels.iter().enumerate())
+            .map(|(l, x)| (x, 1 << l, self.cfg.upsample_crop(l)))
+            .collect();
+        let merged = match fuse && levels.len() > 1 {
+            true => upsample_cat(&crops, th + rf, tw + rf)?,
+            false => None,
+        };
+        let mut x = match merged {
+            Some(x) => x,
+            None => self.merge_input(&crops, th + rf, tw + rf)?,
+        }; // [N, sum C, th+rf, tw+rf]
         for conv in &self.merge {
             x = conv.forward_relu(&x)?;
         }
         Ok(x) // [N, C, th, tw]
+    }
+
+    /// The levels' features `(x_l [N, C, H_l, W_l], 2^l, offset)` upsampled, cropped to
+    /// `h x w` and concatenated, as differentiable ops: `[N, sum C, h, w]`.
+    fn merge_input(&self, crops: &[(&Tensor, usize, usize)], h: usize, w: usize) -> Result<Tensor> {
+        let feats = crops
+            .iter()
+            .map(|&(x, s, off)| match s {
+                1 => x.narrow(2, off, h)?.narrow(3, off, w),
+                _ => upsample_crop(x, s, off, h, w),
+            }) // [N, C, h, w]
+            .collect::<Result<Vec<_>>>()?;
+        Tensor::cat(&feats, 1) // [N, sum C, h, w]
     }
 }
 
@@ -259,7 +278,9 @@ impl DeepStereo {
                 .collect()
         };
         // Selection tower.
-        let s = self.select.forward(&folded(&cfg.select, 0)?, th, tw)?; // [B*D, C, th, tw]
+        let s = self
+            .select
+            .forward(&folded(&cfg.select, 0)?, th, tw, fuse)?; // [B*D, C, th, tw]
         let fused = if fuse {
             depth_head(&s, d, &self.depth, &self.log_scale)?
         } else {
@@ -276,7 +297,9 @@ impl DeepStereo {
         let p = cfg.pad(0);
         let out = match (&self.pool, features) {
             (Some((_, blend)), Some(e)) => {
-                let f = self.colour.forward(&folded(&cfg.colour, 0)?, th, tw)?; // [B*D, C_c, th, tw]
+                let f = self
+                    .colour
+                    .forward(&folded(&cfg.colour, 0)?, th, tw, fuse)?; // [B*D, C_c, th, tw]
                 let centre = |t: &Tensor| t.narrow(3, p, th)?.narrow(4, p, tw); // [B*D, V, C, th, tw]
                 let (n, v, h, w, _) = view_dims(&inputs[0])?;
                 let x0 = inputs[0].reshape((n, v, 4, h, w))?; // [B*D, V, 4, H_0, W_0]
@@ -371,7 +394,7 @@ impl DeepStereo {
         } else {
             folded(&cfg.colour, 0)?
         };
-        let f = self.colour.forward(&colour_in, th, tw)?; // [B*D, C, th, tw]
+        let f = self.colour.forward(&colour_in, th, tw, false)?; // [B*D, C, th, tw]
         if cfg.colour_skip {
             let skip = if shared {
                 colour_in[0].clone()

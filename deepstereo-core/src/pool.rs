@@ -83,7 +83,8 @@ impl ViewEncoder {
 
     /// Steps 1-3 of the module doc for one level `x` `[B, D, V, 4, H, W]`: fused passes
     /// on the CPU (`fused/pool.rs`), else candle ops ([`Self::forward_reference`]).
-    /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain.
+    /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain and the
+    /// pooled statistics are written in one buffer ([`fused::pooled_stats`]).
     pub fn forward(&self, x: &Tensor, fuse: bool) -> Result<Pooled> {
         let (n, v, h, w, b) = view_dims(x)?;
         let xp = x.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
@@ -101,11 +102,19 @@ impl ViewEncoder {
         }; // [N*V, C_f, H, W]
         let cf = e.dim(1)?;
         let e = e.reshape((n, v, cf, h * w))?; // [N, V, C_f, P]
-        let Some(moments) = fused::view_stats(&e, &xp)? else {
+                                               // Rendering: the moments written straight after `front` (no gradient, no copy);
+                                               // training: the differentiable moments, then the concatenation.
+        let stats = match fuse {
+            true => fused::pooled_stats(&front, &e, &xp)?,
+            false => match fused::view_stats(&e, &xp)? {
+                Some(moments) => Some(Tensor::cat(&[&front, &moments], 1)?), // [N, 2 C_f, P] after [N, 4, P]
+                None => None,
+            },
+        };
+        let Some(stats) = stats else {
             return self.forward_reference(x);
-        }; // [N, 2 C_f, P]
-        let stats = Tensor::cat(&[&front, &moments], 1)? // [N, 4 + 2 C_f, P]
-            .reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
+        }; // [N, 4 + 2 C_f, P]
+        let stats = stats.reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
         let features = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
         Ok(Pooled { stats, features })
     }

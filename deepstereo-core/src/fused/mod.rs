@@ -2,12 +2,13 @@
 //! ops would copy through strided index arithmetic or allocate one tensor per step.
 //!
 //! - [`upsample_crop`]: nearest upsampling by an integer factor and a crop, in one pass
-//!   (the towers' coarse levels), with its backward (sums over each source pixel's block);
+//!   (the towers' coarse levels), with its backward (sums over each source pixel's block),
+//!   and [`upsample_cat`], the levels' crops concatenated in one pass (rendering);
 //! - [`select_softmax`]: the selection tower's head, `softmax_D(tanh(x) exp(log_scale))`;
 //! - [`composite`]: the rendered colour `sum_z s_z c_z`;
-//! - [`pool_front`], [`view_stats`], [`blend_colours`]: the any-number-of-views family's
-//!   steps across views (`pool.rs` there), and [`blend_infer`], its whole colour blend in
-//!   one pass when rendering;
+//! - [`pool_front`], [`view_stats`], [`pooled_stats`], [`blend_colours`]: the
+//!   any-number-of-views family's steps across views (`pool.rs` there), and
+//!   [`blend_infer`], its whole colour blend in one pass when rendering;
 //! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding) and
 //!   optionally zero columns on the right, reading a transposed view directly (no
 //!   separate transpose copy).
@@ -29,8 +30,8 @@ pub use blend_infer::{blend_infer, Dense};
 pub(crate) use head::softmax_columns;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;
-pub use pool::{pool_front, view_stats};
-pub use upsample::upsample_crop;
+pub use pool::{pool_front, pooled_stats, view_stats};
+pub use upsample::{upsample_cat, upsample_crop};
 
 use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};
 use rayon::prelude::*;

@@ -8,6 +8,8 @@
 //!   The sweep is data: no gradient flows to it.
 //! - [`view_stats`]: alpha-weighted mean and variance over views of the features `e`
 //!   `[N, V, C, P]` -> `[N, 2C, P]`, with its gradient to `e` (alphas read from `x`).
+//! - [`pooled_stats`]: the same moments written after `front` into the whole pooled input
+//!   `[N, 4 + 2C, P]` (rendering: no gradient, and no concatenation copy).
 //!
 //! The colour blend's passes are in `blend.rs`.
 //!
@@ -58,27 +60,20 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
             .for_each(|(i, (enc, front))| {
                 let xi = &xs[i * v * 4 * p..][..v * 4 * p];
                 // sum_v a_v rgb_v and sum_v a_v (in f64), then the mean and the coverage.
-                let (mut m64, mut cover64) = (vec![0f64; 3 * p], vec![0f64; p]);
-                for k in 0..v {
-                    let a = &xi[(k * 4 + 3) * p..][..p];
-                    for (ch, mc) in m64.chunks_exact_mut(p).enumerate() {
-                        let rgb = &xi[(k * 4 + ch) * p..][..p];
-                        for j in 0..p {
-                            mc[j] += wide(a[j]) * wide(rgb[j]);
-                        }
-                    }
-                    for j in 0..p {
-                        cover64[j] += wide(a[j]);
+                let plane = |k: usize, ch: usize| &xi[(k * 4 + ch) * p..][..p];
+                let cover64 = sum_views(v, p, 0.0, |k| plane(k, 3).iter().map(|&a| wide(a)));
+                let (m, rest) = front.split_at_mut(3 * p);
+                for (ch, mc) in m.chunks_exact_mut(p).enumerate() {
+                    let m64 = sum_views(v, p, 0.0, |k| {
+                        let (a, rgb) = (plane(k, 3), plane(k, ch));
+                        a.iter().zip(rgb).map(|(&a, &c)| wide(a) * wide(c))
+                    });
+                    for ((m, s), c) in mc.iter_mut().zip(&m64).zip(&cover64) {
+                        *m = cast(s / (c + POOL_EPS));
                     }
                 }
-                let (m, rest) = front.split_at_mut(3 * p);
-                let cover = &mut rest[..p];
-                for j in 0..p {
-                    let den = cover64[j] + POOL_EPS;
-                    for ch in 0..3 {
-                        m[ch * p + j] = cast(m64[ch * p + j] / den);
-                    }
-                    cover[j] = cast(cover64[j] / (cover64[j] + 1.0));
+                for (cv, &c) in rest[..p].iter_mut().zip(&cover64) {
+                    *cv = cast(c / (c + 1.0));
                 }
                 for k in 0..v {
                     let (xk, ek) = (&xi[k * 4 * p..][..4 * p], &mut enc[k * 7 * p..][..7 * p]);
@@ -128,15 +123,37 @@ fn alpha<T>(x: &[T], (i, k, v, p): (usize, usize, usize, usize)) -> &[T] {
     &x[((i * v + k) * 4 + 3) * p..][..p]
 }
 
-/// `sum_v a_v + eps` per pixel of item `i`, in f64.
-fn alpha_sum<T: Float + AsPrimitive<f64>>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<f64> {
-    let mut den = vec![POOL_EPS; p];
-    for k in 0..v {
-        for (d, &a) in den.iter_mut().zip(alpha(x, (i, k, v, p))) {
-            *d += wide(a);
+/// `init + t_0 + t_1 + ... + t_{v-1}` per pixel, in f64 and in that order, with `t_k`
+/// the `p` terms of view `k` (`term(k)`): the sum starts from view 0's terms, so its
+/// buffer is written once, not zero-filled first (the rounding is that of the plain loop).
+fn sum_views<I: Iterator<Item = f64>>(
+    v: usize,
+    p: usize,
+    init: f64,
+    mut term: impl FnMut(usize) -> I,
+) -> Vec<f64> {
+    if v == 0 {
+        return vec![init; p];
+    }
+    let mut acc: Vec<f64> = term(0).map(|t| init + t).collect();
+    for k in 1..v {
+        for (s, t) in acc.iter_mut().zip(term(k)) {
+            *s += t;
         }
     }
-    den
+    acc
+}
+
+/// `sum_v a_v + eps` per pixel of item `i`, in f64.
+fn alpha_sum<T: Float + AsPrimitive<f64>>(x: &[T], (i, v, p): (usize, usize, usize)) -> Vec<f64> {
+    sum_views(v, p, POOL_EPS, |k| {
+        alpha(x, (i, k, v, p)).iter().map(|&a| wide(a))
+    })
+}
+
+/// Channel `ch` of view `k` of item `i` in `e` `[N, V, C, P]`.
+fn feature<T>(e: &[T], (i, k, ch, v, c, p): (usize, usize, usize, usize, usize, usize)) -> &[T] {
+    &e[((i * v + k) * c + ch) * p..][..p]
 }
 
 /// The alpha-weighted mean over views of channel `ch` of item `i` (f64), given `den`.
@@ -146,20 +163,98 @@ fn weighted_mean<T: Float + AsPrimitive<f64>>(
     den: &[f64],
     (i, ch, v, c, p): (usize, usize, usize, usize, usize),
 ) -> Vec<f64> {
-    let mut mean = vec![0f64; p];
-    for k in 0..v {
-        let (ak, ek) = (
-            alpha(x, (i, k, v, p)),
-            &e[((i * v + k) * c + ch) * p..][..p],
-        );
-        for j in 0..p {
-            mean[j] += wide(ak[j]) * wide(ek[j]);
-        }
-    }
+    let mut mean = sum_views(v, p, 0.0, |k| {
+        let (ak, ek) = (alpha(x, (i, k, v, p)), feature(e, (i, k, ch, v, c, p)));
+        ak.iter().zip(ek).map(|(&a, &e)| wide(a) * wide(e))
+    });
     for (m, d) in mean.iter_mut().zip(den) {
         *m /= d;
     }
     mean
+}
+
+/// Item `i`'s alpha-weighted means and variances over views of the features `e`
+/// `[N, V, C, P]`, written into `means` and `vars` (each `[C, P]`, every value).
+fn moments<T: Float + AsPrimitive<f64>>(
+    e: &[T],
+    x: &[T],
+    (i, v, c, p): (usize, usize, usize, usize),
+    means: &mut [T],
+    vars: &mut [T],
+) {
+    let den = alpha_sum(x, (i, v, p));
+    let planes = means.chunks_exact_mut(p).zip(vars.chunks_exact_mut(p));
+    for (ch, (mean, var)) in planes.enumerate() {
+        let mean64 = weighted_mean(e, x, &den, (i, ch, v, c, p));
+        let var64 = sum_views(v, p, 0.0, |k| {
+            let (ak, ek) = (alpha(x, (i, k, v, p)), feature(e, (i, k, ch, v, c, p)));
+            ak.iter().zip(ek).zip(&mean64).map(|((&a, &e), &m)| {
+                let dev = wide(e) - m;
+                wide(a) * dev * dev
+            })
+        });
+        for (((mo, vo), &m), (&s, &d)) in mean
+            .iter_mut()
+            .zip(var.iter_mut())
+            .zip(&mean64)
+            .zip(var64.iter().zip(&den))
+        {
+            *mo = cast(m);
+            *vo = cast(s / d);
+        }
+    }
+}
+
+/// [`view_stats`] written after `front` `[N, F, P]` (the mean colour and coverage from
+/// [`pool_front`]): `[N, F + 2C, P]`, the tower input without a concatenation copy. For
+/// rendering: no gradient flows through it. `None` off the CPU.
+pub fn pooled_stats(front: &Tensor, e: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
+    let (n, v, c, p) = e.dims4()?;
+    let nf = front.dims3()?.1;
+    if x.dims() != [n, v, 4, p] || front.dims() != [n, nf, p] {
+        bail!(
+            "pooled_stats: sources {:?} or front {:?} do not match features {:?}",
+            x.dims(),
+            front.dims(),
+            e.dims()
+        );
+    }
+    if !on_cpu(&[front, e, x]) {
+        return Ok(None);
+    }
+    let (front, e, x) = (front.contiguous()?, e.contiguous()?, x.contiguous()?);
+    fn run<T: WithDType + Float + AsPrimitive<f64>>(
+        front: &Tensor,
+        e: &Tensor,
+        x: &Tensor,
+        (n, nf, v, c, p): (usize, usize, usize, usize, usize),
+    ) -> Result<Tensor> {
+        let (fs, fl) = front.storage_and_layout();
+        let (es, el) = e.storage_and_layout();
+        let (xs, xl) = x.storage_and_layout();
+        let (fd, ed, xd) = (
+            data::<T>(&fs, fl)?,
+            data::<T>(&es, el)?,
+            data::<T>(&xs, xl)?,
+        );
+        let mut out = vec![T::zero(); n * (nf + 2 * c) * p];
+        out.par_chunks_mut((nf + 2 * c) * p)
+            .zip(fd.par_chunks(nf * p))
+            .enumerate()
+            .for_each(|(i, (o, f))| {
+                let (head, rest) = o.split_at_mut(nf * p);
+                head.copy_from_slice(f);
+                let (means, vars) = rest.split_at_mut(c * p);
+                moments(ed, xd, (i, v, c, p), means, vars);
+            });
+        Tensor::from_vec(out, (n, nf + 2 * c, p), e.device()) // [N, F + 2C, P]
+    }
+    let dims = (n, nf, v, c, p);
+    match e.dtype() {
+        DType::F32 => run::<f32>(&front, &e, &x, dims).map(Some),
+        DType::F64 => run::<f64>(&front, &e, &x, dims).map(Some),
+        _ => Ok(None),
+    }
 }
 
 struct ViewStats;
@@ -175,27 +270,7 @@ impl ViewStats {
             .enumerate()
             .for_each(|(i, o)| {
                 let (means, vars) = o.split_at_mut(c * p);
-                let den = alpha_sum(x, (i, v, p));
-                for ch in 0..c {
-                    let mean64 = weighted_mean(e, x, &den, (i, ch, v, c, p));
-                    let mut var64 = vec![0f64; p];
-                    for k in 0..v {
-                        let (ak, ek) = (
-                            alpha(x, (i, k, v, p)),
-                            &e[((i * v + k) * c + ch) * p..][..p],
-                        );
-                        for j in 0..p {
-                            let dev = wide(ek[j]) - mean64[j];
-                            var64[j] += wide(ak[j]) * dev * dev;
-                        }
-                    }
-                    let mean = &mut means[ch * p..][..p];
-                    let var = &mut vars[ch * p..][..p];
-                    for j in 0..p {
-                        mean[j] = cast(mean64[j]);
-                        var[j] = cast(var64[j] / den[j]);
-                    }
-                }
+                moments(e, x, (i, v, c, p), means, vars);
             });
         out
     }

@@ -114,3 +114,51 @@ fn pad_rows_matches_pad_with_zeros() -> Result<()> {
     }
     Ok(())
 }
+
+#[test]
+fn upsample_cat_equals_the_crops_concatenated() -> Result<()> {
+    let dev = &Device::Cpu;
+    for dt in [DType::F32, DType::F64] {
+        let x0 = Tensor::randn(0f64, 1., (2, 3, 12, 13), dev)?.to_dtype(dt)?;
+        let x1 = Tensor::randn(0f64, 1., (2, 2, 7, 7), dev)?.to_dtype(dt)?;
+        let x2 = Tensor::randn(0f64, 1., (2, 4, 4, 4), dev)?.to_dtype(dt)?;
+        let (h, w) = (10, 11);
+        let got = upsample_cat(&[(&x0, 1, 1), (&x1, 2, 3), (&x2, 4, 2)], h, w)?
+            .ok_or_else(|| candle_core::Error::msg("upsample_cat did not run"))?;
+        let want = Tensor::cat(
+            &[
+                x0.narrow(2, 1, h)?.narrow(3, 1, w)?,
+                upsample_crop(&x1, 2, 3, h, w)?,
+                upsample_crop(&x2, 4, 2, h, w)?,
+            ],
+            1,
+        )?; // [2, 9, h, w]
+        assert_eq!(got.dims(), want.dims());
+        assert_eq!(max_diff(&got, &want)?, 0.0);
+    }
+    let x = Tensor::zeros((1, 1, 2, 2), DType::F32, &Device::Cpu)?;
+    assert!(upsample_cat(&[(&x, 2, 1), (&x, 1, 0)], 4, 4).is_err());
+    Ok(())
+}
+
+#[test]
+fn pooled_stats_equals_front_then_view_stats() -> Result<()> {
+    let dev = &Device::Cpu;
+    for dt in [DType::F32, DType::F64] {
+        let (n, v, c, p) = (3, 4, 5, 37);
+        let x = Tensor::rand(0f64, 1., (n, v, 4, p), dev)?.to_dtype(dt)?;
+        let e = Tensor::randn(0f64, 1., (n, v, c, p), dev)?.to_dtype(dt)?;
+        let Some((_, front)) = pool_front(&x)? else {
+            candle_core::bail!("pool_front did not run");
+        };
+        let got = pooled_stats(&front, &e, &x)?
+            .ok_or_else(|| candle_core::Error::msg("pooled_stats did not run"))?;
+        let moments =
+            view_stats(&e, &x)?.ok_or_else(|| candle_core::Error::msg("view_stats did not run"))?;
+        let want = Tensor::cat(&[&front, &moments], 1)?; // [N, 4 + 2C, P]
+        assert_eq!(got.dims(), [n, 4 + 2 * c, p]);
+        assert_eq!(max_diff(&got, &want)?, 0.0);
+        assert!(pooled_stats(&front, &e, &x.narrow(1, 0, 3)?).is_err());
+    }
+    Ok(())
+}

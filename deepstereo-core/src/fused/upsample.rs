@@ -1,7 +1,9 @@
-//! [`upsample_crop`]: nearest upsampling by an integer factor and a crop in one pass.
+//! [`upsample_crop`]: nearest upsampling by an integer factor and a crop in one pass;
+//! [`upsample_cat`]: several of them concatenated along channels, written straight into
+//! the concatenated buffer (rendering: the towers' level merge without a `cat` copy).
 
-use super::{on_cpu, plane_grad, slice, PlaneBackward};
-use candle_core::{bail, CpuStorage, CustomOp1, Layout, Result, Shape, Tensor, WithDType};
+use super::{data, on_cpu, plane_grad, slice, PlaneBackward};
+use candle_core::{bail, CpuStorage, CustomOp1, DType, Layout, Result, Shape, Tensor, WithDType};
 use rayon::prelude::*;
 
 /// `upsample_nearest(x, s)` cropped to rows `off .. off + h` and columns `off .. off + w`:
@@ -19,6 +21,72 @@ pub fn upsample_crop(x: &Tensor, s: usize, off: usize, h: usize, w: usize) -> Re
     x.contiguous()?.apply_op1(UpsampleCrop { s, off, h, w })
 }
 
+/// [`upsample_crop`] of each part `(x_l [N, C_l, H_l, W_l], s_l, off_l)`, concatenated
+/// along channels: `[N, sum C_l, h, w]`, each output value written once (no separate
+/// crops and no `cat` copy). No gradient flows through it (rendering); `None` off the CPU.
+pub fn upsample_cat(
+    parts: &[(&Tensor, usize, usize)],
+    h: usize,
+    w: usize,
+) -> Result<Option<Tensor>> {
+    let mut n = None;
+    for &(x, s, off) in parts {
+        let (ni, _, hi, wi) = x.dims4()?;
+        if s == 0 || (off + h).div_ceil(s) > hi || (off + w).div_ceil(s) > wi {
+            bail!("upsample_cat: {h}x{w} at {off} does not fit {hi}x{wi} upsampled by {s}");
+        }
+        if n.is_some_and(|n| n != ni) {
+            bail!("upsample_cat: parts of different batch sizes");
+        }
+        n = Some(ni);
+    }
+    let xs: Vec<&Tensor> = parts.iter().map(|p| p.0).collect();
+    let Some(n) = n.filter(|_| on_cpu(&xs)) else {
+        return Ok(None);
+    };
+    let xs = xs
+        .iter()
+        .map(|x| x.contiguous())
+        .collect::<Result<Vec<_>>>()?;
+    fn run<T: WithDType>(
+        xs: &[Tensor],
+        parts: &[(&Tensor, usize, usize)],
+        (n, h, w): (usize, usize, usize),
+    ) -> Result<Tensor> {
+        let guards: Vec<_> = xs.iter().map(|x| x.storage_and_layout()).collect();
+        // Per part: its data, channels, source width and height, and the op on a plane.
+        let mut src = Vec::with_capacity(parts.len());
+        for ((st, l), &(x, s, off)) in guards.iter().zip(parts) {
+            let (_, c, hi, wi) = x.dims4()?;
+            src.push((
+                data::<T>(st, l)?,
+                c,
+                hi * wi,
+                wi,
+                UpsampleCrop { s, off, h, w },
+            ));
+        }
+        let ctot: usize = src.iter().map(|p| p.1).sum();
+        let mut y = vec![T::zero(); n * ctot * h * w];
+        y.par_chunks_mut(h * w).enumerate().for_each(|(q, dst)| {
+            let (ni, mut ch) = (q / ctot, q % ctot);
+            for &(x, c, plane, wi, op) in &src {
+                if ch < c {
+                    op.plane(&x[(ni * c + ch) * plane..][..plane], wi, dst);
+                    return;
+                }
+                ch -= c;
+            }
+        });
+        Tensor::from_vec(y, (n, ctot, h, w), xs[0].device()) // [N, sum C_l, h, w]
+    }
+    match xs[0].dtype() {
+        DType::F32 => run::<f32>(&xs, parts, (n, h, w)).map(Some),
+        DType::F64 => run::<f64>(&xs, parts, (n, h, w)).map(Some),
+        _ => Ok(None),
+    }
+}
+
 #[derive(Clone, Copy)]
 struct UpsampleCrop {
     s: usize,
@@ -28,12 +96,27 @@ struct UpsampleCrop {
 }
 
 impl UpsampleCrop {
-    /// Forward on one plane: `src` `[hi, wi]` -> `dst` `[h, w]`.
+    /// Forward on one plane: `src` `[hi, wi]` -> `dst` `[h, w]`. An output row whose
+    /// source row is the previous one's is a copy of it; `s = 1` rows are slice copies.
     fn plane<T: Copy>(&self, src: &[T], wi: usize, dst: &mut [T]) {
-        for (i, row) in dst.chunks_exact_mut(self.w).enumerate() {
-            let sr = &src[(i + self.off) / self.s * wi..];
-            for (j, v) in row.iter_mut().enumerate() {
-                *v = sr[(j + self.off) / self.s];
+        let (s, off, w) = (self.s, self.off, self.w);
+        // `j / s` as a shift where `s` is a power of two (the towers' levels).
+        let shift = s.is_power_of_two().then(|| s.trailing_zeros());
+        let div = |j: usize| shift.map_or(j / s, |sh| j >> sh);
+        for i in 0..self.h {
+            let (done, rest) = dst.split_at_mut(i * w);
+            let row = &mut rest[..w];
+            if i > 0 && div(i + off) == div(i - 1 + off) {
+                row.copy_from_slice(&done[(i - 1) * w..]);
+                continue;
+            }
+            let sr = &src[div(i + off) * wi..];
+            if s == 1 {
+                row.copy_from_slice(&sr[off..][..w]);
+            } else {
+                for (j, v) in row.iter_mut().enumerate() {
+                    *v = sr[div(j + off)];
+                }
             }
         }
     }
