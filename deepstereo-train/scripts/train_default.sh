@@ -22,7 +22,8 @@ VAL=("$DATA/val/juicebox" "$DATA/val/moldgoldcape" "$DATA/val/stitch" "$DATA/tem
 RESUME=()
 if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
 cargo build --release -p deepstereo-train
-exec nice -n 19 target/release/deepstereo train --config nviews --views 2-10 \
+# The run's own config (the nviews preset before it gained the view falloff).
+exec nice -n 19 target/release/deepstereo train --config "$OUT/config.json" --views 2-10 \
   --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12 \
   --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8 \
   --steps "$STEPS" --batch 8 --optimizer adam --lr 1e-3 --seed 1 \
