@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 17/20 measurements: a model (default: the default run's latest weights) against
+# Issue 17/20 measurements: a model (default: the shipped default, the embedded asset) against
 # `tiny` (the embedded model before nviews-real, deepstereo-train/assets/tiny.safetensors)
 # and the classical plane sweep (same sources and planes) on scenes
 # never trained on, with the field's protocol (every 8th view held out, sources among the
@@ -8,7 +8,7 @@
 # Usage: bash deepstereo-train/scripts/eval_default.sh [MODEL] [OUT] [VIEWS...]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-MODEL="${1:-deepstereo-train/runs/nviews-real/model.safetensors}"
+MODEL="${1:-deepstereo-train/assets/nviews-real.safetensors}"
 OUT="${2:-/tmp/deepstereo-eval}"
 shift $(( $# > 2 ? 2 : $# ))
 if [ $# -gt 0 ]; then VIEWS=("$@"); else VIEWS=(4 8); fi

@@ -7,18 +7,14 @@
 # Run from the repository root: bash deepstereo-train/scripts/train_default.sh [STEPS] [LR_SCHEDULE]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-DATA=../shared/data
 OUT=deepstereo-train/runs/nviews-real
 STEPS="${1:-8600}"
 # Constant Adam 1e-3 to step 6000 (validation flat from ~1400), then a cosine decay to
 # 5e-5 at step 8600 (added on resume at step 6030 as cosine:6000-10000, shortened at
 # step 6501 to fit the session).
 SCHEDULE="${2:-cosine:6000-8600}"
-TRAIN=()
-for s in bird blowtorch can cityscape cup duckqueen figurine fruit maryrose milk mouse plant statue; do
-  TRAIN+=("$DATA/train/$s")
-done
-VAL=("$DATA/val/juicebox" "$DATA/val/moldgoldcape" "$DATA/val/stitch" "$DATA/templeRing" "$DATA/ethiopianHead" "$DATA/fox")
+# shellcheck source=deepstereo-train/scripts/default_data.sh
+source deepstereo-train/scripts/default_data.sh
 RESUME=()
 if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
 cargo build --release -p deepstereo-train

@@ -9,15 +9,11 @@
 # Run from the repository root: bash deepstereo-train/scripts/train_falloff.sh [STEPS] [LR_SCHEDULE]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-DATA=../shared/data
 OUT=deepstereo-train/runs/nviews-falloff
 STEPS="${1:-2200}"
 SCHEDULE="${2:-cosine:200-2200}"
-TRAIN=()
-for s in bird blowtorch can cityscape cup duckqueen figurine fruit maryrose milk mouse plant statue; do
-  TRAIN+=("$DATA/train/$s")
-done
-VAL=("$DATA/val/juicebox" "$DATA/val/moldgoldcape" "$DATA/val/stitch" "$DATA/templeRing" "$DATA/ethiopianHead" "$DATA/fox")
+# shellcheck source=deepstereo-train/scripts/default_data.sh
+source deepstereo-train/scripts/default_data.sh
 RESUME=()
 if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
 cargo build --release -p deepstereo-train
