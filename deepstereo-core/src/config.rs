@@ -568,6 +568,29 @@ mod tests {
         assert!(t.macs_per_pixel() > 0.0);
     }
 
+    /// A falloff outside its ranges is refused; a config without one still parses.
+    #[test]
+    fn falloff_is_validated_and_optional() {
+        let mut c = Config::nviews();
+        c.validate().unwrap();
+        for (full, power) in [
+            (0, 8),
+            (4, 0),
+            (MAX_VIEWS + 1, 8),
+            (4, MAX_FALLOFF_POWER + 1),
+        ] {
+            if let Some(p) = c.pool.as_mut() {
+                p.falloff = Some(ViewFalloff { full, power });
+            }
+            let err = c.validate().unwrap_err();
+            assert!(err.contains("pool.falloff"), "{err}");
+        }
+        let mut json = serde_json::to_value(Config::nviews()).unwrap();
+        json["pool"].as_object_mut().unwrap().remove("falloff");
+        let old: Config = serde_json::from_value(json).unwrap();
+        assert_eq!(old.pool.and_then(|p| p.falloff), None);
+    }
+
     #[test]
     fn origins_are_consistent_with_sizes() {
         let p = Config::paper();

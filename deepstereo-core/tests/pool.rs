@@ -8,7 +8,7 @@ use deepstereo_core::config::{Config, Conv, TowerConfig, ViewPool};
 use deepstereo_core::geometry::inverse_depths;
 use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::render::{render_view, CandleBackend};
-use deepstereo_core::synth::{generate, SynthOptions};
+use deepstereo_core::synth::{generate, SynthOptions, SynthScene};
 use deepstereo_core::weights::{init_seeded, named_vars};
 
 /// A small pooled config: 2 levels, merge and depth convs, two encoder and blend layers.
@@ -233,27 +233,35 @@ fn gradients_through_the_pooling_match_finite_differences_f64() -> Result<()> {
     Ok(())
 }
 
+/// A procedural scene of `views` views at `(width, height)` and every view's pyramid.
+fn scene_pyramids(
+    seed: u64,
+    views: usize,
+    (width, height): (u32, u32),
+    levels: usize,
+) -> Result<(SynthScene, Vec<PyramidSource>)> {
+    let opts = SynthOptions {
+        views,
+        width,
+        height,
+        ..SynthOptions::default()
+    };
+    let s = generate(seed, &opts)?;
+    let pyr = (s.cameras.iter().zip(&s.images))
+        .map(|(c, i)| PyramidSource::new(c, i, levels))
+        .collect();
+    Ok((s, pyr))
+}
+
 #[test]
 fn tiled_render_equals_whole_image_render_any_views() -> Result<()> {
     let cfg = Config::nviews();
-    let opts = SynthOptions {
-        views: 9,
-        width: 70,
-        height: 52,
-        ..SynthOptions::default()
-    };
-    let s = generate(22, &opts)?;
+    let (s, pyr) = scene_pyramids(22, 9, (70, 52), cfg.levels)?;
     let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 8)?;
     let backend = CandleBackend {
         model: t.model,
         device: Device::Cpu,
     };
-    let pyr: Vec<PyramidSource> = s
-        .cameras
-        .iter()
-        .zip(&s.images)
-        .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
-        .collect();
     let inv = inverse_depths(s.near, s.far, 10);
     for v in [2, 8] {
         let srcs: Vec<&PyramidSource> = pyr[1..=v].iter().collect();
@@ -344,19 +352,7 @@ fn falloff_scales_only_the_alpha_of_views_beyond_the_nearest() -> Result<()> {
     if let Some(p) = plain.pool.as_mut() {
         p.falloff = None;
     }
-    let opts = SynthOptions {
-        views: 10,
-        width: 48,
-        height: 36,
-        ..SynthOptions::default()
-    };
-    let s = generate(5, &opts)?;
-    let pyr: Vec<PyramidSource> = s
-        .cameras
-        .iter()
-        .zip(&s.images)
-        .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
-        .collect();
+    let (s, pyr) = scene_pyramids(5, 10, (48, 36), cfg.levels)?;
     let inv = inverse_depths(s.near, s.far, 6);
     let t = cfg.tile;
     for v in [f.full, 9] {
