@@ -382,3 +382,23 @@ fn falloff_scales_only_the_alpha_of_views_beyond_the_nearest() -> Result<()> {
     }
     Ok(())
 }
+
+/// The shipped default carries the view falloff the README's 8-view column was measured
+/// with (`ship_default.sh` adds it), and the falloff leaves its 4-view inputs alone.
+#[test]
+fn the_shipped_default_has_the_view_falloff() -> Result<()> {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../deepstereo-train/assets/nviews-real.safetensors");
+    let t = deepstereo_core::weights::load(&path, &Device::Cpu)?;
+    let cfg = t.model.config();
+    let f = cfg.pool.as_ref().and_then(|p| p.falloff);
+    assert_eq!(
+        f,
+        Some(deepstereo_core::config::ViewFalloff { full: 4, power: 8 })
+    );
+    assert_eq!(
+        cfg.views, 4,
+        "the default number of views is the falloff's full"
+    );
+    Ok(())
+}
