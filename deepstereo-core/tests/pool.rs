@@ -279,14 +279,19 @@ fn tiled_render_equals_whole_image_render_any_views() -> Result<()> {
     Ok(())
 }
 
+/// The shipped default model (`deepstereo-train/assets/nviews-real.safetensors`).
+fn shipped() -> Result<deepstereo_core::weights::Trainable> {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../deepstereo-train/assets/nviews-real.safetensors");
+    Ok(deepstereo_core::weights::load(&path, &Device::Cpu)?)
+}
+
 /// The shipped default's trained weights (a sharp selection softmax amplifies rounding):
 /// shuffling 5 or 10 views changes neither the training forward nor the renderer's fused
 /// inference by more than 1e-6 (sums over views accumulate in f64 for this).
 #[test]
 fn views_order_does_not_matter_for_the_shipped_weights() -> Result<()> {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../deepstereo-train/assets/nviews-real.safetensors");
-    let t = deepstereo_core::weights::load(&path, &Device::Cpu)?;
+    let t = shipped()?;
     let cfg = t.model.config().clone();
     for (v, order) in [
         (5, vec![3, 0, 4, 2, 1]),
@@ -316,9 +321,7 @@ fn views_order_does_not_matter_for_the_shipped_weights() -> Result<()> {
 /// training forward on the shipped weights, at 1, 4 and 10 views.
 #[test]
 fn fused_inference_equals_the_forward_for_the_shipped_weights() -> Result<()> {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../deepstereo-train/assets/nviews-real.safetensors");
-    let t = deepstereo_core::weights::load(&path, &Device::Cpu)?;
+    let t = shipped()?;
     let cfg = t.model.config().clone();
     for v in [1, 4, 10] {
         let x = inputs(&cfg, 2, v, DType::F32, 30 + v as u64)?;
@@ -387,9 +390,7 @@ fn falloff_scales_only_the_alpha_of_views_beyond_the_nearest() -> Result<()> {
 /// with (`ship_default.sh` adds it), and the falloff leaves its 4-view inputs alone.
 #[test]
 fn the_shipped_default_has_the_view_falloff() -> Result<()> {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../deepstereo-train/assets/nviews-real.safetensors");
-    let t = deepstereo_core::weights::load(&path, &Device::Cpu)?;
+    let t = shipped()?;
     let cfg = t.model.config();
     let f = cfg.pool.as_ref().and_then(|p| p.falloff);
     assert_eq!(

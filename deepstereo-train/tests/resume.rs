@@ -43,6 +43,23 @@ fn args(out: &Path) -> Vec<String> {
     ]
 }
 
+/// Sets the value after `flag` (one of [`args`]' options) to `value`.
+fn set(args: &mut [String], flag: &str, value: &str) -> Result<()> {
+    let i = args.iter().position(|x| x == flag);
+    let Some(slot) = i.and_then(|i| args.get_mut(i + 1)) else {
+        anyhow::bail!("no option {flag} to set");
+    };
+    *slot = value.to_string();
+    Ok(())
+}
+
+/// Runs the binary with `args` and requires it to succeed (its stderr in the error).
+fn run_ok(args: &[String]) -> Result<()> {
+    let o = Command::new(BIN).args(args).output()?;
+    ensure!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    Ok(())
+}
+
 fn losses(out: &Path) -> Result<Vec<(u64, f64)>> {
     let text = std::fs::read_to_string(out.join("log.jsonl"))?;
     text.lines()
@@ -112,16 +129,11 @@ fn resume_refuses_different_options() -> Result<()> {
     let dir = tempfile::tempdir()?;
     let out = dir.path().join("r");
     let mut a = args(&out);
-    a[8] = "2".into(); // --steps 2
-    ensure!(Command::new(BIN)
-        .args(&a)
-        .stderr(Stdio::null())
-        .status()?
-        .success());
+    set(&mut a, "--steps", "2")?;
+    run_ok(&a)?;
     let mut b = args(&out);
     b.push("--resume".into());
-    let i = b.iter().position(|x| x == "--seed").unwrap_or(0);
-    b[i + 1] = "4".into();
+    set(&mut b, "--seed", "4")?;
     let o = Command::new(BIN).args(&b).output()?;
     ensure!(!o.status.success(), "resume with another seed must fail");
     ensure!(String::from_utf8_lossy(&o.stderr).contains("different options"));
@@ -133,12 +145,8 @@ fn a_resume_may_add_a_learning_rate_schedule_and_the_log_follows_it() -> Result<
     let dir = tempfile::tempdir()?;
     let out = dir.path().join("s");
     let mut a = args(&out);
-    a[8] = "4".into(); // --steps 4, constant rate
-    ensure!(Command::new(BIN)
-        .args(&a)
-        .stderr(Stdio::null())
-        .status()?
-        .success());
+    set(&mut a, "--steps", "4")?; // constant rate
+    run_ok(&a)?;
     let mut b = args(&out);
     b.extend(
         [
@@ -220,25 +228,18 @@ fn init_starts_from_a_models_weights_and_refuses_a_mismatch() -> Result<()> {
         dir.path().join("c"),
     );
     let mut a = args(&a_out);
-    a[8] = "2".into(); // --steps 2
-    ensure!(Command::new(BIN)
-        .args(&a)
-        .stderr(Stdio::null())
-        .status()?
-        .success());
+    set(&mut a, "--steps", "2")?;
+    run_ok(&a)?;
     let model = a_out.join("model.safetensors");
     for (out, init) in [(&b_out, true), (&c_out, false)] {
         let mut b = args(out);
-        b[8] = "1".into(); // --steps 1
-        let i = b.iter().position(|x| x == "--lr").unwrap_or(0);
-        b[i + 1] = "1e-12".into();
-        let j = b.iter().position(|x| x == "--seed").unwrap_or(0);
-        b[j + 1] = "9".into();
+        set(&mut b, "--steps", "1")?;
+        set(&mut b, "--lr", "1e-12")?;
+        set(&mut b, "--seed", "9")?;
         if init {
             b.extend(["--init".into(), model.display().to_string()]);
         }
-        let o = Command::new(BIN).args(&b).output()?;
-        ensure!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        run_ok(&b)?;
     }
     let kept = max_diff(&model, &b_out.join("model.safetensors"))?;
     ensure!(kept < 1e-9, "--init moved the weights by {kept}");
