@@ -15,6 +15,13 @@
 //! normalised by the alpha sum), and their say elsewhere falls quickly (power 8: 0.23 at
 //! 1.2 `d_ref`, 0.04 at 1.5 `d_ref`).
 //!
+//! With `full = 1` the weights are a soft proximity cue at any number of views: the
+//! nearest source keeps 1 and every other weighs `(d_1 / d_v)^power`, so a source that
+//! coincides with the target (`d_1 = 0`) takes over, and on a ring of cameras the views
+//! on the far side count less than the neighbours. A model must be trained with the
+//! weights it renders with (the shipped default's are `1:2`, run `runs/nviews-prox`):
+//! fed to a model trained without them they help on some scenes and hurt on others.
+//!
 //! The weights depend only on the set of distances, so they do not change when views are
 //! reordered, and empty views (no image: alpha 0 everywhere) are left out of the ranking,
 //! so adding one changes nothing. Geometry only: f64, no tensors.

@@ -386,8 +386,8 @@ fn falloff_scales_only_the_alpha_of_views_beyond_the_nearest() -> Result<()> {
     Ok(())
 }
 
-/// The shipped default carries the view falloff the README's 8-view column was measured
-/// with (`ship_default.sh` adds it), and the falloff leaves its 4-view inputs alone.
+/// The shipped default carries the proximity falloff it was fine-tuned with (`1:2`, run
+/// `runs/nviews-prox`), which is the `nviews` preset's, and renders from 4 views by default.
 #[test]
 fn the_shipped_default_has_the_view_falloff() -> Result<()> {
     let t = shipped()?;
@@ -395,11 +395,9 @@ fn the_shipped_default_has_the_view_falloff() -> Result<()> {
     let f = cfg.pool.as_ref().and_then(|p| p.falloff);
     assert_eq!(
         f,
-        Some(deepstereo_core::config::ViewFalloff { full: 4, power: 8 })
+        Some(deepstereo_core::config::ViewFalloff { full: 1, power: 2 })
     );
-    assert_eq!(
-        cfg.views, 4,
-        "the default number of views is the falloff's full"
-    );
+    assert_eq!(f, Config::nviews().pool.and_then(|p| p.falloff));
+    assert_eq!(cfg.views, 4, "the default number of views");
     Ok(())
 }

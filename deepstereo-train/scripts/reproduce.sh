@@ -14,9 +14,10 @@ DS=target/release/deepstereo
 # embedded default); they pass it by file.
 TINY=(--model deepstereo-train/assets/tiny.safetensors)
 
-echo "== training curves (tiny's committed log, the default run's log)"
+echo "== training curves (tiny's committed log, the default model's two runs)"
 $DS curve --log "$FIG/training_log.jsonl" --out "$FIG/training_curve.png"
 $DS curve --log deepstereo-train/runs/nviews-real --out "$FIG/nviews_curve.png"
+$DS curve --log deepstereo-train/runs/nviews-prox --out "$FIG/prox_curve.png"
 
 echo "== procedural scenes (contact sheet, speed)"
 $DS synth --out "$OUT/sheet" --scenes 4 --seed 99 --size 240x180 --sheet "$FIG/synth.png"

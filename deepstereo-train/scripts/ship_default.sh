@@ -5,15 +5,19 @@
 # only what commands use without --views) and, when the config has none, the view falloff
 # FALLOFF (`full:power`, config pool.falloff, deepstereo-core/src/view_weights.rs; it
 # changes nothing at `full` views or fewer). Needs the test command's venv (safetensors).
-# Usage: bash deepstereo-train/scripts/ship_default.sh [MODEL] [VIEWS] [FALLOFF]
+# OUT (default: the asset) lets the same conversion write elsewhere, e.g. the README's
+# "previous weights with the 1:2 falloff" column:
+#   ship_default.sh deepstereo-train/runs/nviews-falloff/init.safetensors 4 1:2 /tmp/f1_2.safetensors
+# Usage: bash deepstereo-train/scripts/ship_default.sh [MODEL] [VIEWS] [FALLOFF] [OUT]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-# Default: the weights of runs/nviews-real at step 8600 (commit 29f97d2), kept in the
-# fine-tuning run as its init.safetensors (that run did not beat them: README).
-MODEL="${1:-deepstereo-train/runs/nviews-falloff/init.safetensors}"
+# Default: the weights of the proximity fine-tuning run (runs/nviews-prox at step 2000,
+# its config with pool.falloff 1:2); the previous default was runs/nviews-real at step
+# 8600 (commit 29f97d2), kept as runs/nviews-falloff/init.safetensors.
+MODEL="${1:-deepstereo-train/runs/nviews-prox/model.safetensors}"
 VIEWS="${2:-4}"
 FALLOFF="${3:-4:8}"
-OUT=deepstereo-train/assets/nviews-real.safetensors
+OUT="${4:-deepstereo-train/assets/nviews-real.safetensors}"
 .venv/bin/python - "$MODEL" "$VIEWS" "$OUT" "$FALLOFF" <<'PY'
 import json, os, sys
 from safetensors import safe_open

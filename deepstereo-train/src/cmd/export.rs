@@ -9,7 +9,7 @@ use std::path::PathBuf;
 #[derive(Debug, clap::Args)]
 pub struct Args {
     /// Model weights (safetensors with its config), or `embedded` (the default: the
-    /// embedded `tiny` model).
+    /// embedded default model).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Output ONNX file. Inputs `level0..` [B, D, 4V, H_l, W_l] (batch, planes and size

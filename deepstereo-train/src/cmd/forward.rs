@@ -12,7 +12,7 @@ use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// Model weights (safetensors with its config); default: the embedded `tiny` model.
+    /// Model weights (safetensors with its config); default: the embedded default model.
     /// With `--backend ort --onnx FILE` it may be left out (the ONNX file holds the config).
     #[arg(long)]
     pub model: Option<PathBuf>,

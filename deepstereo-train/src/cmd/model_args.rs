@@ -12,14 +12,15 @@ use std::path::PathBuf;
 #[derive(Debug, Clone, clap::Args)]
 pub struct ModelArgs {
     /// Model weights (safetensors with its config), or `embedded` (the default: the
-    /// embedded `tiny` model; reports name it `embedded`).
+    /// embedded default model, `nviews-real`; reports name it `embedded`).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Depth planes, uniform in inverse depth between near and far (default: the model's).
     #[arg(long)]
     pub planes: Option<usize>,
-    /// Source views, the nearest to the target: at most the model's (its default); with
-    /// fewer, the model's other inputs are empty views (alpha 0).
+    /// Source views, the nearest to the target (default: the model's). The
+    /// any-number-of-views family takes any number; the paper's family at most its
+    /// config's, the others being empty views (alpha 0).
     #[arg(long)]
     pub views: Option<usize>,
     /// Output tile side in pixels when rendering (bounds memory; rounded up to the model's
