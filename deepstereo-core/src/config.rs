@@ -211,10 +211,10 @@ impl Config {
     /// The any-number-of-views family ([`ViewPool`]), sized to train on 2 CPU cores and
     /// to render within about twice `tiny`'s time: 6 views by default (any number works),
     /// 32 planes, 3 levels, 24x24 output tiles; widths multiples of 6 (the convolution
-    /// kernels' tile); the proximity falloff `1:2` (`crate::view_weights`: every source
-    /// but the nearest weighs `(d_1 / d_v)^2`), which the shipped default was fine-tuned
-    /// with (above the earlier default on 5 of the 8 held-out scenes of the README's
-    /// table, equal on one, below on two).
+    /// kernels' tile); the view falloff `4:8` (`crate::view_weights`). The shipped default
+    /// was fine-tuned from such a model (trained without a falloff) with the proximity
+    /// weights `1:2` in its own config (`runs/nviews-prox/config.json`); training from
+    /// scratch with them has not been measured.
     pub fn nviews() -> Self {
         Self {
             name: "nviews".into(),
@@ -237,7 +237,7 @@ impl Config {
             pool: Some(ViewPool {
                 encoder: vec![c(1, 6), c(1, 6)],
                 blend: vec![c(1, 6)],
-                falloff: Some(ViewFalloff { full: 1, power: 2 }),
+                falloff: Some(ViewFalloff { full: 4, power: 8 }),
             }),
         }
     }
