@@ -7,21 +7,7 @@
 # 2e-5 at step 2200 (started as cosine:200-3000, shortened at step 1582 to fit the session).
 # Continues from its committed checkpoint when there is one.
 # Run from the repository root: bash deepstereo-train/scripts/train_falloff.sh [STEPS] [LR_SCHEDULE]
+# (the options: finetune.sh).
 set -euo pipefail
-cd "$(dirname "$0")/../.."
-OUT=deepstereo-train/runs/nviews-falloff
-STEPS="${1:-2200}"
-SCHEDULE="${2:-cosine:200-2200}"
-# shellcheck source=deepstereo-train/scripts/default_data.sh
-source deepstereo-train/scripts/default_data.sh
-RESUME=()
-if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
-cargo build --release -p deepstereo-train
-exec nice -n 19 target/release/deepstereo train --config nviews --views 2-10 \
-  --init "$OUT/init.safetensors" \
-  --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12 \
-  --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8 \
-  --steps "$STEPS" --batch 8 --optimizer adam --lr 2e-4 --seed 2 \
-  --lr-schedule "$SCHEDULE" --lr-final 0.1 \
-  --checkpoint-every 100 --validate-every 250 --log-every 20 --no-progress \
-  --out "$OUT" "${RESUME[@]}"
+OUT=deepstereo-train/runs/nviews-falloff INIT=deepstereo-train/runs/nviews-falloff/init.safetensors \
+  CONFIG=nviews exec bash "$(dirname "$0")/finetune.sh" "${1:-2200}" "${2:-cosine:200-2200}"

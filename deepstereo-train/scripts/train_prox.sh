@@ -11,22 +11,9 @@
 # OUT=deepstereo-train/runs/nviews-prox2 INIT=deepstereo-train/runs/nviews-prox/model.safetensors
 # (that run's config.json is a copy of this one's).
 # Run from the repository root: bash deepstereo-train/scripts/train_prox.sh [STEPS] [LR_SCHEDULE]
+# (the options: finetune.sh).
 set -euo pipefail
-cd "$(dirname "$0")/../.."
 OUT="${OUT:-deepstereo-train/runs/nviews-prox}"
 INIT="${INIT:-deepstereo-train/runs/nviews-falloff/init.safetensors}"
-STEPS="${1:-2000}"
-SCHEDULE="${2:-cosine:200-2000}"
-# shellcheck source=deepstereo-train/scripts/default_data.sh
-source deepstereo-train/scripts/default_data.sh
-RESUME=()
-if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
-cargo build --release -p deepstereo-train
-exec nice -n 19 target/release/deepstereo train --config "$OUT/config.json" --views 2-10 \
-  --init "$INIT" \
-  --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12 \
-  --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8 \
-  --steps "$STEPS" --batch 8 --optimizer adam --lr 2e-4 --seed 2 \
-  --lr-schedule "$SCHEDULE" --lr-final 0.1 \
-  --checkpoint-every 100 --validate-every 250 --log-every 20 --no-progress \
-  --out "$OUT" "${RESUME[@]}"
+OUT="$OUT" INIT="$INIT" CONFIG="$OUT/config.json" \
+  exec bash "$(dirname "$0")/finetune.sh" "${1:-2000}" "${2:-cosine:200-2000}"

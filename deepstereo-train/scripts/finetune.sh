@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# The default model's fine-tuning runs (train_falloff.sh, train_prox.sh): `train --init`
+# from a model's weights with the `nviews` architecture and config CONFIG (a preset or a
+# JSON file), on the default run's scenes (default_data.sh), views 2-10 per batch,
+# photometric augmentation and flips, Adam 2e-4 and the schedule SCHEDULE down to a tenth
+# of it, seed 2. Continues from OUT's committed checkpoint when there is one.
+# Run from the repository root: OUT=DIR INIT=MODEL CONFIG=CFG bash deepstereo-train/scripts/finetune.sh STEPS SCHEDULE
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+: "${OUT:?OUT (the run directory) is required}" "${INIT:?INIT (the starting weights) is required}"
+: "${CONFIG:?CONFIG (a preset or a config JSON) is required}"
+STEPS="${1:?STEPS is required}"
+SCHEDULE="${2:?LR_SCHEDULE is required}"
+# shellcheck source=deepstereo-train/scripts/default_data.sh
+source deepstereo-train/scripts/default_data.sh
+RESUME=()
+if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
+cargo build --release -p deepstereo-train
+exec nice -n 19 target/release/deepstereo train --config "$CONFIG" --views 2-10 \
+  --init "$INIT" \
+  --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12 \
+  --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8 \
+  --steps "$STEPS" --batch 8 --optimizer adam --lr 2e-4 --seed 2 \
+  --lr-schedule "$SCHEDULE" --lr-final 0.1 \
+  --checkpoint-every 100 --validate-every 250 --log-every 20 --no-progress \
+  --out "$OUT" "${RESUME[@]}"
