@@ -13,13 +13,8 @@ STEPS="${1:?STEPS is required}"
 SCHEDULE="${2:?LR_SCHEDULE is required}"
 # shellcheck source=deepstereo-train/scripts/default_data.sh
 source deepstereo-train/scripts/default_data.sh
-RESUME=()
-if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
 cargo build --release -p deepstereo-train
-exec nice -n 19 target/release/deepstereo train --config "$CONFIG" --views 2-10 \
-  --init "$INIT" \
-  --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12 \
-  --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8 \
+exec nice -n 19 target/release/deepstereo train --config "$CONFIG" --init "$INIT" "${SAMPLING[@]}" \
   --steps "$STEPS" --batch 8 --optimizer adam --lr 2e-4 --seed 2 \
   --lr-schedule "$SCHEDULE" --lr-final 0.1 \
   --checkpoint-every 100 --validate-every 250 --log-every 20 --no-progress \

@@ -15,13 +15,9 @@ STEPS="${1:-8600}"
 SCHEDULE="${2:-cosine:6000-8600}"
 # shellcheck source=deepstereo-train/scripts/default_data.sh
 source deepstereo-train/scripts/default_data.sh
-RESUME=()
-if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
 cargo build --release -p deepstereo-train
 # The run's own config (the nviews preset before it gained the view falloff).
-exec nice -n 19 target/release/deepstereo train --config "$OUT/config.json" --views 2-10 \
-  --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12 \
-  --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8 \
+exec nice -n 19 target/release/deepstereo train --config "$OUT/config.json" "${SAMPLING[@]}" \
   --steps "$STEPS" --batch 8 --optimizer adam --lr 1e-3 --seed 1 \
   --lr-schedule "$SCHEDULE" --lr-final 0.05 \
   --checkpoint-every 100 --validate-every 200 --log-every 20 --no-progress \

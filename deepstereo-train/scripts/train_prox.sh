@@ -3,7 +3,7 @@
 # its config (runs/nviews-prox/config.json: pool.falloff 1:2, every source but the
 # nearest weighs (d_1 / d_v)^2 in alpha, deepstereo-core/src/view_weights.rs), so the model
 # learns from which sources are closest to the target (a coinciding source takes over;
-# the far side of a ring counts less). Started from the shipped default's weights
+# the far side of a ring counts less). Started from the previous default's weights
 # (nviews-real at step 8600, runs/nviews-falloff/init.safetensors), same scenes and
 # options as train_falloff.sh: views 2-10 per batch, Adam 2e-4 held to step 200, then a
 # cosine to 2e-5 at step 2000. Continues from its committed checkpoint when there is one.
