@@ -243,10 +243,21 @@ impl DeepStereo {
                     if view_dims(x)?.1 != v {
                         candle_core::bail!("input level {l} has a different number of views");
                     }
-                    let pooled = encoder.forward(x, fuse)?;
-                    stats.push(pooled.stats);
+                    // Rendering: one fused pass where it runs (view features at level 0 only).
+                    let fused = match fuse {
+                        true => encoder.infer(x, l == 0)?,
+                        false => None,
+                    };
+                    let (s, e) = match fused {
+                        Some((s, e)) => (s, e),
+                        None => {
+                            let pooled = encoder.forward(x, fuse)?;
+                            (pooled.stats, Some(pooled.features))
+                        }
+                    };
+                    stats.push(s);
                     if l == 0 {
-                        features = Some(pooled.features);
+                        features = e;
                     }
                 }
                 (stats, features)

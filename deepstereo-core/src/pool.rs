@@ -119,6 +119,29 @@ impl ViewEncoder {
         Ok(Pooled { stats, features })
     }
 
+    /// Rendering: steps 1-3 for one level `x` `[B, D, V, 4, H, W]` as one fused pass
+    /// ([`fused::encode_pool`], the same values as [`Self::forward`]'s passes, bit for
+    /// bit): the stats `[B, D, 4 + 2 C_f, H, W]` and, with `features` (level 0, where the
+    /// blend reads them), the view features `[B * D, V, C_f, H, W]`. `None` where the
+    /// fused pass does not run (the caller then runs [`Self::forward`]).
+    pub fn infer(&self, x: &Tensor, features: bool) -> Result<Option<(Tensor, Option<Tensor>)>> {
+        let (n, v, h, w, b) = view_dims(x)?;
+        let Some(layers) = dense_layers(&self.convs)? else {
+            return Ok(None);
+        };
+        let xp = x.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
+        let Some((stats, e)) = fused::encode_pool(&xp, &layers, features)? else {
+            return Ok(None);
+        };
+        let c = stats.dim(1)?;
+        let stats = stats.reshape((b, n / b.max(1), c, h, w))?; // [B, D, 4 + 2 C_f, H, W]
+        let e = match e {
+            Some(e) => Some(e.reshape((n, v, (c - 4) / 2, h, w))?), // [N, V, C_f, H, W]
+            None => None,
+        };
+        Ok(Some((stats, e)))
+    }
+
     fn encode(&self, mut e: Tensor) -> Result<Tensor> {
         for conv in &self.convs {
             e = conv.forward_relu(&e)?;
@@ -212,21 +235,30 @@ impl Blend {
     /// reads the uncropped level-0 features `e` `[N, V, C_f, H, W]` and sources `x`
     /// `[N, V, 4, H, W]` around the tile at `(pad, pad)`; `None` where it does not apply.
     pub fn infer(&self, e: &Tensor, x: &Tensor, f: &Tensor, pad: usize) -> Result<Option<Tensor>> {
-        let mut dense = Vec::with_capacity(self.layers.len());
-        for l in &self.layers {
-            let (cout, cin, kh, kw) = l.weight().dims4()?;
-            if (kh, kw) != (1, 1) {
-                return Ok(None);
-            }
-            dense.push(fused::Dense {
-                weight: l.weight().to_dtype(DType::F32)?.flatten_all()?.to_vec1()?,
-                bias: l.bias().to_dtype(DType::F32)?.to_vec1()?,
-                cin,
-                cout,
-            });
+        match dense_layers(&self.layers)? {
+            Some(dense) => fused::blend_infer(e, x, f, &dense, pad),
+            None => Ok(None),
         }
-        fused::blend_infer(e, x, f, &dense, pad)
     }
+}
+
+/// 1x1 convolutions as plain f32 arrays (the fused rendering passes'); `None` if one is not
+/// 1x1.
+fn dense_layers(convs: &[Conv2d]) -> Result<Option<Vec<fused::Dense>>> {
+    let mut dense = Vec::with_capacity(convs.len());
+    for l in convs {
+        let (cout, cin, kh, kw) = l.weight().dims4()?;
+        if (kh, kw) != (1, 1) {
+            return Ok(None);
+        }
+        dense.push(fused::Dense {
+            weight: l.weight().to_dtype(DType::F32)?.flatten_all()?.to_vec1()?,
+            bias: l.bias().to_dtype(DType::F32)?.to_vec1()?,
+            cin,
+            cout,
+        });
+    }
+    Ok(Some(dense))
 }
 
 /// The blend of the source colours from the raw logits `y` `[N, V, 1, th, tw]` and the

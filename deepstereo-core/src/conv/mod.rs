@@ -97,6 +97,7 @@ mod direct_grad;
 mod im2col;
 mod kernels;
 pub use chain::{depth_head, pointwise_chain, pointwise_colours};
+pub(crate) use direct::available as avx2_fma_available;
 pub(crate) use im2col::SharedMut;
 mod op;
 #[cfg(test)]

@@ -4,10 +4,14 @@
 //! logit, the alpha-masked softmax over the views and the weighted source colours. It reads
 //! the view features and the sources straight from level 0's uncropped tensors, so none
 //! of the crops, reshapes and per-layer tensors of the composition are built. The same
-//! maths as `Blend::forward` (tests compare them); f32 on the CPU only, no gradient.
+//! maths as `Blend::forward` (tests compare them), but the bounded weight
+//! `exp(B tanh(y / B))` comes from `fastmath.rs`'s vectorisable `exp` and `tanh` (within
+//! 4e-6 of libm's), and the loops over a row's pixels are compiled for AVX2 where the CPU
+//! has it (the arithmetic and its order are the same either way); f32 on the CPU only, no
+//! gradient.
 
-use super::blend::bounded_exp;
 use super::data;
+use super::fastmath::bounded_exp_slice;
 use super::pool::wide;
 use crate::pool::BLEND_EPS;
 use candle_core::{bail, DType, Result, Tensor};
@@ -63,34 +67,92 @@ pub fn blend_infer(
     );
     let p = th * tw;
     let mut out = vec![0f32; n * 3 * p];
-    let c0 = layers[0].cout;
-    let widest = layers.iter().map(|l| l.cout).max().unwrap_or(1);
+    let ctx = Ctx {
+        ed,
+        xd,
+        fd,
+        layers,
+        dims: (v, cf, cc, h, w),
+        tile: (th, tw, pad),
+    };
+    let avx2 = crate::conv::avx2_fma_available();
     out.par_chunks_mut(3 * p).enumerate().for_each(|(i, o)| {
-        // Scratch per item: the colour part of layer 0 per pixel of a row, two layer
-        // buffers, and the f64 sums over views of one row.
-        let mut yf = vec![0f32; c0 * tw];
-        let (mut ha, mut hb) = (vec![0f32; widest * tw], vec![0f32; widest * tw]);
-        let mut den = vec![0f64; tw];
-        let mut num = vec![0f64; 3 * tw];
-        let l0 = &layers[0];
-        for r in 0..th {
-            yf.iter_mut().for_each(|y| *y = 0.0);
-            for oc in 0..c0 {
-                let yo = &mut yf[oc * tw..][..tw];
-                for ic in 0..cc {
-                    let wgt = l0.weight[oc * l0.cin + cf + ic];
-                    let fr = &fd[((i * cc + ic) * th + r) * tw..][..tw];
-                    for (y, &fv) in yo.iter_mut().zip(fr) {
-                        *y += wgt * fv;
-                    }
+        if avx2 {
+            // SAFETY: the CPU has AVX2 and FMA (checked above).
+            #[cfg(target_arch = "x86_64")]
+            unsafe {
+                item_avx2(&ctx, i, o)
+            }
+        } else {
+            item(&ctx, i, o)
+        }
+    });
+    Ok(Some(Tensor::from_vec(out, (n, 3, p), e.device())?))
+}
+
+/// The tensors' data and sizes [`item`] reads.
+struct Ctx<'a> {
+    ed: &'a [f32],
+    xd: &'a [f32],
+    fd: &'a [f32],
+    layers: &'a [Dense],
+    /// `(V, C_f, C_c, H, W)`.
+    dims: (usize, usize, usize, usize, usize),
+    /// `(th, tw, pad)`.
+    tile: (usize, usize, usize),
+}
+
+/// [`item`] compiled for AVX2 + FMA (its loops over a row's pixels vectorise 8 wide; the
+/// arithmetic and its order are those of [`item`], products and sums are not fused).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn item_avx2(ctx: &Ctx, i: usize, o: &mut [f32]) {
+    item(ctx, i, o)
+}
+
+/// Item `i`'s blended colours `o` `[3, th * tw]`, row by row.
+#[inline(always)]
+fn item(ctx: &Ctx, i: usize, o: &mut [f32]) {
+    let (ed, xd, fd, layers) = (ctx.ed, ctx.xd, ctx.fd, ctx.layers);
+    let ((v, cf, cc, h, w), (th, tw, pad)) = (ctx.dims, ctx.tile);
+    let (p, last, c0) = (th * tw, layers.len() - 1, layers[0].cout);
+    let widest = layers.iter().map(|l| l.cout).max().unwrap_or(1);
+    // Scratch: the colour part of layer 0 per pixel of a row, two layer buffers, and the
+    // f64 sums over views of one row.
+    let mut yf = vec![0f32; c0 * tw];
+    let (mut ha, mut hb) = (vec![0f32; widest * tw], vec![0f32; widest * tw]);
+    let mut den = vec![0f64; tw];
+    let mut num = vec![0f64; 3 * tw];
+    let l0 = &layers[0];
+    let two_layers = layers.len() == 2 && c0 <= MAX_HIDDEN && layers[1].cout == 1;
+    for r in 0..th {
+        yf.iter_mut().for_each(|y| *y = 0.0);
+        for oc in 0..c0 {
+            let yo = &mut yf[oc * tw..][..tw];
+            for ic in 0..cc {
+                let wgt = l0.weight[oc * l0.cin + cf + ic];
+                let fr = &fd[((i * cc + ic) * th + r) * tw..][..tw];
+                for (y, &fv) in yo.iter_mut().zip(fr) {
+                    *y += wgt * fv;
                 }
             }
-            den.iter_mut().for_each(|d| *d = BLEND_EPS);
-            num.iter_mut().for_each(|s| *s = 0.0);
-            for k in 0..v {
-                let row = |c: usize| -> &[f32] {
-                    &ed[(((i * v + k) * cf + c) * h + r + pad) * w + pad..][..tw]
-                };
+        }
+        den.iter_mut().for_each(|d| *d = BLEND_EPS);
+        num.iter_mut().for_each(|s| *s = 0.0);
+        for k in 0..v {
+            let row = |c: usize| -> &[f32] {
+                &ed[(((i * v + k) * cf + c) * h + r + pad) * w + pad..][..tw]
+            };
+            if two_layers {
+                // The common blend (one hidden layer): pixels in register blocks.
+                let (l1, full) = (&layers[1], tw / LANES * LANES);
+                for b0 in (0..full).step_by(LANES) {
+                    logits_block::<LANES>((l0, l1, cf), (&yf, tw), &row, b0, &mut ha);
+                }
+                for b0 in full..tw {
+                    logits_block::<1>((l0, l1, cf), (&yf, tw), &row, b0, &mut ha);
+                }
+            } else {
                 // Layer 0: the features' part, the bias and the colour part.
                 for oc in 0..c0 {
                     let ho = &mut ha[oc * tw..][..tw];
@@ -125,25 +187,70 @@ pub fn blend_infer(
                     }
                     std::mem::swap(&mut ha, &mut hb);
                 }
-                // `ha[..tw]` holds the logits; the weights and the sums over views.
-                let src = |ch: usize| -> &[f32] {
-                    &xd[(((i * v + k) * 4 + ch) * h + r + pad) * w + pad..][..tw]
-                };
-                let (rgb, alpha) = ([src(0), src(1), src(2)], src(3));
-                for c in 0..tw {
-                    let ex = wide(bounded_exp(ha[c]) * alpha[c]);
-                    den[c] += ex;
-                    for (ch, s) in rgb.iter().enumerate() {
-                        num[ch * tw + c] += ex * wide(s[c]);
-                    }
-                }
             }
-            for ch in 0..3 {
-                for c in 0..tw {
-                    o[ch * p + r * tw + c] = (num[ch * tw + c] / den[c]) as f32;
+            // `ha[..tw]` holds the logits: their bounded weights, then the sums over views.
+            let weights = &mut ha[..tw];
+            bounded_exp_slice(weights);
+            let src = |ch: usize| -> &[f32] {
+                &xd[(((i * v + k) * 4 + ch) * h + r + pad) * w + pad..][..tw]
+            };
+            let (rgb, alpha) = ([src(0), src(1), src(2)], src(3));
+            for c in 0..tw {
+                let ex = wide(weights[c] * alpha[c]);
+                den[c] += ex;
+                for (ch, s) in rgb.iter().enumerate() {
+                    num[ch * tw + c] += ex * wide(s[c]);
                 }
             }
         }
-    });
-    Ok(Some(Tensor::from_vec(out, (n, 3, p), e.device())?))
+        for ch in 0..3 {
+            for c in 0..tw {
+                o[ch * p + r * tw + c] = (num[ch * tw + c] / den[c]) as f32;
+            }
+        }
+    }
+}
+
+/// Pixels per register block of [`logits_block`].
+const LANES: usize = 8;
+/// Most hidden channels [`logits_block`] keeps in registers.
+const MAX_HIDDEN: usize = 8;
+
+/// One view's logits at pixels `b0..b0 + N` of a row into `logits` for a blend of one
+/// hidden layer `l0` (at most [`MAX_HIDDEN`] channels, ReLU) and the logit layer `l1`:
+/// `yf` holds the colour features' part of `l0` (`[C_0, tw]`), `row(c)` the row of the
+/// view's feature `c < cf`. The same operations in the same order as the row-by-row
+/// layers in [`item`] (so the same bits), with the `N` pixels' sums side by side in
+/// registers.
+#[inline(always)]
+fn logits_block<'a, const N: usize>(
+    (l0, l1, cf): (&Dense, &Dense, usize),
+    (yf, tw): (&[f32], usize),
+    row: &impl Fn(usize) -> &'a [f32],
+    b0: usize,
+    logits: &mut [f32],
+) {
+    let mut hidden = [[0f32; N]; MAX_HIDDEN];
+    for (oc, hv) in hidden.iter_mut().enumerate().take(l0.cout) {
+        hv.copy_from_slice(&yf[oc * tw + b0..][..N]);
+        for ic in 0..cf {
+            let wgt = l0.weight[oc * l0.cin + ic];
+            for (y, &ev) in hv.iter_mut().zip(&row(ic)[b0..][..N]) {
+                *y += wgt * ev;
+            }
+        }
+        let b = l0.bias[oc];
+        for y in hv.iter_mut() {
+            *y += b;
+            *y = y.max(0.0);
+        }
+    }
+    let mut y = [l1.bias[0]; N];
+    for (ic, hv) in hidden.iter().enumerate().take(l1.cin) {
+        let wgt = l1.weight[ic];
+        for (yv, &h) in y.iter_mut().zip(hv) {
+            *yv += wgt * h;
+        }
+    }
+    logits[b0..][..N].copy_from_slice(&y);
 }

@@ -8,7 +8,8 @@
 //! - [`composite`]: the rendered colour `sum_z s_z c_z`;
 //! - [`pool_front`], [`view_stats`], [`pooled_stats`], [`blend_colours`]: the
 //!   any-number-of-views family's steps across views (`pool.rs` there), and
-//!   [`blend_infer`], its whole colour blend in one pass when rendering;
+//!   [`encode_pool`] and [`blend_infer`], its per-view encoder with the pooling, and its
+//!   whole colour blend, each in one pass when rendering;
 //! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding) and
 //!   optionally zero columns on the right, reading a transposed view directly (no
 //!   separate transpose copy).
@@ -18,6 +19,8 @@
 
 mod blend;
 mod blend_infer;
+mod encode;
+mod fastmath;
 mod head;
 mod pad;
 mod pool;
@@ -27,6 +30,7 @@ mod upsample;
 
 pub use blend::{add_views_relu, blend_colours};
 pub use blend_infer::{blend_infer, Dense};
+pub use encode::encode_pool;
 pub(crate) use head::softmax_columns;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;

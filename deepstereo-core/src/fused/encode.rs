@@ -1,0 +1,264 @@
+//! Rendering only: the any-number-of-views family's per-view encoder and the pooling over
+//! views of one input level (`pool::ViewEncoder::forward`'s steps 1-3) as one pass over
+//! each plane's pixels, a chunk of [`CHUNK`] pixels at a time, instead of three passes
+//! over whole tensors ([`super::pool_front`], the encoder's 1x1 chain, [`super::pooled_stats`]):
+//! the encoder's input (RGBA and colour minus the mean) and its layers' activations live
+//! in a per-thread scratch that stays in L1, and the view features are written out only
+//! where the blend reads them (level 0).
+//!
+//! The arithmetic and its order are those of the three passes, bit for bit: the mean
+//! colour and the moments summed over views in f64 in view order, the colour difference
+//! in f32, and every 1x1 layer as the AVX2 kernels compute it (`acc = bias`, then one
+//! fused multiply-add per input channel in channel order, then ReLU). It runs only where
+//! those kernels run (f32 on a CPU with AVX2 and FMA); the tests compare it with the
+//! three passes.
+
+use super::blend_infer::Dense;
+use super::data;
+use super::pool::{cast, wide};
+use crate::pool::POOL_EPS;
+use candle_core::{bail, DType, Result, Tensor};
+use rayon::prelude::*;
+
+/// Pixels per chunk: the scratch of a few views' activations stays in L1.
+const CHUNK: usize = 64;
+/// Pixels summed at once in [`dense_relu`] (one AVX register); divides [`CHUNK`].
+const LANES: usize = 8;
+/// The encoder's input channels: RGBA, then RGB minus the alpha-weighted mean.
+const ENCODER_IN: usize = 7;
+
+/// `(stats [N, 4 + 2 C, P], features [N, V, C, P] when `features`)` from the sources `x`
+/// `[N, V, 4, P]` and the encoder's 1x1 layers (each followed by ReLU; the first takes
+/// 7 channels). `None` where it does not apply (not f32, not on the CPU, no AVX2 + FMA,
+/// layers that do not chain): the caller runs the three passes.
+pub fn encode_pool(
+    x: &Tensor,
+    layers: &[Dense],
+    features: bool,
+) -> Result<Option<(Tensor, Option<Tensor>)>> {
+    let (n, v, c4, p) = x.dims4()?;
+    if c4 != 4 {
+        bail!("encode_pool: expected [N, V, 4, P], got {:?}", x.dims());
+    }
+    let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
+    let usable = x.dtype() == DType::F32
+        && x.device().is_cpu()
+        && crate::conv::avx2_fma_available()
+        && layers.first().is_some_and(|l| l.cin == ENCODER_IN)
+        && chained
+        && v > 0;
+    if !usable || n * p == 0 {
+        return Ok(None);
+    }
+    let c = layers[layers.len() - 1].cout;
+    let widest = layers.iter().map(|l| l.cout).max().unwrap_or(c);
+    let x = x.contiguous()?;
+    let (xs, xl) = x.storage_and_layout();
+    let xd = data::<f32>(&xs, xl)?;
+    let mut stats = vec![0f32; n * (4 + 2 * c) * p];
+    let mut feats = vec![0f32; if features { n * v * c * p } else { 0 }];
+    let per_item = if features { v * c * p } else { 0 };
+    let mut feat_items: Vec<&mut [f32]> = match features {
+        true => feats.chunks_mut(per_item.max(1)).collect(),
+        false => (0..n).map(|_| <&mut [f32]>::default()).collect(),
+    };
+    stats
+        .par_chunks_mut((4 + 2 * c) * p)
+        .zip(feat_items.par_iter_mut())
+        .enumerate()
+        .for_each(|(i, (st, fe))| {
+            let xi = &xd[i * v * 4 * p..][..v * 4 * p];
+            let dims = Dims { v, c, p, widest };
+            // SAFETY: `usable` checked AVX2 and FMA.
+            #[cfg(target_arch = "x86_64")]
+            unsafe {
+                item_avx2(xi, layers, dims, st, fe)
+            }
+        });
+    drop(feat_items);
+    let dev = x.device();
+    let stats = Tensor::from_vec(stats, (n, 4 + 2 * c, p), dev)?;
+    let feats = match features {
+        true => Some(Tensor::from_vec(feats, (n, v, c, p), dev)?),
+        false => None,
+    };
+    Ok(Some((stats, feats)))
+}
+
+#[derive(Clone, Copy)]
+struct Dims {
+    v: usize,
+    c: usize,
+    p: usize,
+    widest: usize,
+}
+
+/// One plane: `xi` `[V, 4, P]` -> `st` `[4 + 2C, P]` and (when not empty) `fe` `[V, C, P]`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn item_avx2(xi: &[f32], layers: &[Dense], d: Dims, st: &mut [f32], fe: &mut [f32]) {
+    let Dims { v, c, p, widest } = d;
+    // Scratch: the encoder's input, two layer buffers, every view's features, f64 sums.
+    let mut input = vec![0f32; ENCODER_IN * CHUNK];
+    let (mut ha, mut hb) = (vec![0f32; widest * CHUNK], vec![0f32; widest * CHUNK]);
+    let mut e = vec![0f32; v * c * CHUNK];
+    let mut cover = [0f64; CHUNK];
+    let mut den = [0f64; CHUNK];
+    let mut s64 = [0f64; CHUNK];
+    let mut mean = [0f32; 3 * CHUNK];
+    let mut j0 = 0;
+    while j0 < p {
+        let len = CHUNK.min(p - j0);
+        let plane = |k: usize, ch: usize| &xi[(k * 4 + ch) * p + j0..][..len];
+        // The coverage and the mean colour (pool_front's sums: view 0's term first).
+        for k in 0..v {
+            for (s, &a) in cover[..len].iter_mut().zip(plane(k, 3)) {
+                *s = if k == 0 { wide(a) } else { *s + wide(a) };
+            }
+        }
+        for ch in 0..3 {
+            for k in 0..v {
+                let (a, col) = (plane(k, 3), plane(k, ch));
+                for j in 0..len {
+                    let t = wide(a[j]) * wide(col[j]);
+                    s64[j] = if k == 0 { t } else { s64[j] + t };
+                }
+            }
+            let (m, out) = (
+                &mut mean[ch * CHUNK..][..len],
+                &mut st[ch * p + j0..][..len],
+            );
+            for j in 0..len {
+                m[j] = cast(s64[j] / (cover[j] + POOL_EPS));
+                out[j] = m[j];
+            }
+        }
+        for (o, &cv) in st[3 * p + j0..][..len].iter_mut().zip(&cover[..len]) {
+            *o = cast(cv / (cv + 1.0));
+        }
+        // The encoder, view by view, into `e`.
+        for k in 0..v {
+            for ch in 0..4 {
+                input[ch * CHUNK..][..len].copy_from_slice(plane(k, ch));
+            }
+            for ch in 0..3 {
+                let (src, m) = (plane(k, ch), &mean[ch * CHUNK..][..len]);
+                let dst = &mut input[(4 + ch) * CHUNK..][..len];
+                for j in 0..len {
+                    dst[j] = src[j] - m[j];
+                }
+            }
+            // Layer 0 from the input, the hidden layers between `ha` and `hb`, the last
+            // into the view's features.
+            let ek = &mut e[k * c * CHUNK..][..c * CHUNK];
+            let nl = layers.len();
+            if nl == 1 {
+                dense_relu(&layers[0], &input, ek, len);
+            } else {
+                dense_relu(&layers[0], &input, &mut ha, len);
+                for (li, l) in layers.iter().enumerate().skip(1) {
+                    match (li + 1 == nl, li % 2) {
+                        (true, 1) => dense_relu(l, &ha, ek, len),
+                        (true, _) => dense_relu(l, &hb, ek, len),
+                        (false, 1) => dense_relu(l, &ha, &mut hb, len),
+                        (false, _) => dense_relu(l, &hb, &mut ha, len),
+                    }
+                }
+            }
+            if !fe.is_empty() {
+                for ch in 0..c {
+                    fe[(k * c + ch) * p + j0..][..len]
+                        .copy_from_slice(&e[(k * c + ch) * CHUNK..][..len]);
+                }
+            }
+        }
+        // Alpha-weighted moments of the features over views (pooled_stats' sums).
+        for (s, &a) in den[..len].iter_mut().zip(plane(0, 3)) {
+            *s = POOL_EPS + wide(a);
+        }
+        for k in 1..v {
+            for (s, &a) in den[..len].iter_mut().zip(plane(k, 3)) {
+                *s += wide(a);
+            }
+        }
+        for ch in 0..c {
+            for k in 0..v {
+                let (a, ek) = (plane(k, 3), &e[(k * c + ch) * CHUNK..][..len]);
+                for j in 0..len {
+                    let t = wide(a[j]) * wide(ek[j]);
+                    s64[j] = if k == 0 { t } else { s64[j] + t };
+                }
+            }
+            for j in 0..len {
+                s64[j] /= den[j];
+            }
+            let mut var = [0f64; CHUNK];
+            for k in 0..v {
+                let (a, ek) = (plane(k, 3), &e[(k * c + ch) * CHUNK..][..len]);
+                for j in 0..len {
+                    let dev = wide(ek[j]) - s64[j];
+                    let t = wide(a[j]) * dev * dev;
+                    var[j] = if k == 0 { t } else { var[j] + t };
+                }
+            }
+            let mo = &mut st[(4 + ch) * p + j0..][..len];
+            for j in 0..len {
+                mo[j] = cast(s64[j]);
+            }
+            let vo = &mut st[(4 + c + ch) * p + j0..][..len];
+            for j in 0..len {
+                vo[j] = cast(var[j] / den[j]);
+            }
+        }
+        j0 += len;
+    }
+}
+
+/// `to[o] = relu(bias[o] + sum_i w[o, i] from[i])` over the first `len` pixels rounded up
+/// to [`LANES`] (rows [`CHUNK`] apart; pixels past `len` are scratch), the sum as the AVX2
+/// kernels form it: from the bias, one fused multiply-add per input channel in order.
+#[inline(always)]
+fn dense_relu(l: &Dense, from: &[f32], to: &mut [f32], len: usize) {
+    match l.cout {
+        1 => dense_block::<1>(l, from, to, len, 0),
+        2 => dense_block::<2>(l, from, to, len, 0),
+        3 => dense_block::<3>(l, from, to, len, 0),
+        4 => dense_block::<4>(l, from, to, len, 0),
+        5 => dense_block::<5>(l, from, to, len, 0),
+        6 => dense_block::<6>(l, from, to, len, 0),
+        7 => dense_block::<7>(l, from, to, len, 0),
+        8 => dense_block::<8>(l, from, to, len, 0),
+        _ => {
+            for o in (0..l.cout).step_by(8) {
+                dense_block::<8>(l, from, to, len, o)
+            }
+        }
+    }
+}
+
+/// Outputs `o0..o0 + O` (those that exist) of [`dense_relu`]: `O` sums of [`LANES`]
+/// pixels side by side in registers, so that consecutive multiply-adds are independent.
+#[inline(always)]
+fn dense_block<const O: usize>(l: &Dense, from: &[f32], to: &mut [f32], len: usize, o0: usize) {
+    let outs = O.min(l.cout - o0);
+    for b in (0..len.div_ceil(LANES)).map(|b| b * LANES) {
+        let mut acc = [[0f32; LANES]; O];
+        for (o, a) in acc.iter_mut().enumerate().take(outs) {
+            *a = [l.bias[o0 + o]; LANES];
+        }
+        for i in 0..l.cin {
+            let xs = &from[i * CHUNK + b..][..LANES];
+            for (o, a) in acc.iter_mut().enumerate().take(outs) {
+                let w = l.weight[(o0 + o) * l.cin + i];
+                for (av, &xv) in a.iter_mut().zip(xs) {
+                    *av = w.mul_add(xv, *av);
+                }
+            }
+        }
+        for (o, a) in acc.iter().enumerate().take(outs) {
+            for (y, &av) in to[(o0 + o) * CHUNK + b..][..LANES].iter_mut().zip(a) {
+                *y = av.max(0.0);
+            }
+        }
+    }
+}
