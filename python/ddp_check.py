@@ -17,7 +17,9 @@ the same Rust-initialised weights (`deepstereo train --steps 0`) and the shards 
 (c) a DDP run stopped at a checkpoint and resumed gives the weights of the uninterrupted
     DDP run, and its log has one line per step;
 (d) `deepstereo forward --model OUT/model.safetensors` on a shard equals PyTorch's forward
-    of the same file (1e-4), and `deepstereo export --model` takes the file.
+    of the same file (1e-4), and `deepstereo export --model` takes the file;
+(e) the same `--lr-schedule cosine:...` and `--lr-final` give the same rate at every step
+    in the logs of `deepstereo train` and of `train_ddp.py` (tiny only).
 
 Exit status 1 when any check fails.
 """
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -183,6 +186,20 @@ class Check:
         self.expect(d <= IMAGE_TOL, f"{preset}: `deepstereo forward` on the DDP model against PyTorch: max difference {d:.2e} (tolerance {IMAGE_TOL:.0e})")
         run([self.bin, "export", "--model", model, "--out", w / "model.onnx"], "export")
         self.expect((w / "model.onnx").stat().st_size > 0, f"{preset}: `deepstereo export --model` takes the DDP model")
+        if preset == "tiny":
+            self.schedule(w, common, init, shards)
+
+    def schedule(self, w: Path, common: list, init: Path, shards: Path) -> None:
+        """(e) the rate per step of a cosine schedule, candle's log against train_ddp.py's."""
+        steps, spec, final = 3, "cosine:1-3", 0.25
+        hyper = ["--optimizer", "adam", "--lr", LR, "--steps", steps, "--lr-schedule", spec, "--lr-final", final, "--log-every", 1]
+        run([self.bin, "train", *common, *hyper, "--batch", BATCH, "--val-scenes", "0", "--val-batches", "0", "--no-progress", "--out", w / "candle-cosine"], "train --lr-schedule")
+        self.ddp(["--shards", shards, "--init", init, *hyper, "--batch", BATCH, "--out", w / "torch-cosine"])
+        rates = [[json.loads(l)["lr"] for l in (w / d / "log.jsonl").read_text().splitlines()] for d in ("candle-cosine", "torch-cosine")]
+        # After 0 and 1 steps the full rate, after 2 (halfway from 1 to 3) f + (1 - f) / 2.
+        want = [LR, LR, LR * (final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * 0.5)))]
+        ok = len(rates[0]) == steps and all(abs(a - b) <= 1e-12 * LR and abs(a - c) <= 1e-12 * LR for a, b, c in zip(rates[0], rates[1], want))
+        self.expect(ok, f"tiny: {spec} --lr-final {final}: rates per step, candle {rates[0]}, train_ddp.py {rates[1]}")
 
 
 def main() -> int:

@@ -17,6 +17,8 @@ accumulator, Adam's first moment) and `optim.second.<param>` (Adam's second mome
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 # optim.rs constants.
@@ -99,3 +101,43 @@ class RefOptimizer:
                     raise ValueError(f"'{k}' has shape {tuple(v.shape)}, expected {tuple(p.shape)}")
                 store[i] = v.to(device=p.device, dtype=p.dtype).clone()
         self.steps = steps
+
+
+# lr.rs: the learning rate against the step.
+DEFAULT_LR_FINAL = 0.05
+
+
+class LrSchedule:
+    """`constant`, or `cosine:START-END`: the rate `lr` up to step START, then
+    `lr * (f + (1 - f) * (1 + cos(pi * x)) / 2)` with `x = (done - START) / (END - START)`,
+    then `lr * f` from END on (`f` = `final`), as `deepstereo train --lr-schedule`."""
+
+    def __init__(self, spec: str, final: float = DEFAULT_LR_FINAL):
+        if not (math.isfinite(final) and 0.0 < final <= 1.0):
+            raise ValueError(f"--lr-final must be in (0, 1], got {final}")
+        self.final = final
+        self.span: tuple[int, int] | None = None
+        if spec == "constant":
+            return
+        if not spec.startswith("cosine:") or "-" not in spec[7:]:
+            raise ValueError(f"--lr-schedule '{spec}': expected 'constant' or 'cosine:START-END'")
+        a, b = spec[7:].split("-", 1)
+        try:
+            start, end = int(a.strip()), int(b.strip())
+        except ValueError:
+            raise ValueError(f"--lr-schedule '{spec}': START and END must be step counts") from None
+        if start < 0 or end <= start:
+            raise ValueError(f"--lr-schedule '{spec}': END must be after START")
+        self.span = (start, end)
+
+    def lr_at(self, lr: float, done: int) -> float:
+        """The rate of the update that follows `done` completed steps."""
+        if self.span is None:
+            return lr
+        start, end = self.span
+        if done <= start:
+            return lr
+        if done >= end:
+            return lr * self.final
+        x = (done - start) / (end - start)
+        return lr * (self.final + (1.0 - self.final) * 0.5 * (1.0 + math.cos(math.pi * x)))

@@ -5,6 +5,10 @@ samples `deepstereo samples` writes, with DistributedDataParallel.
     torchrun --nproc-per-node 2 python/train_ddp.py --shards shards --init runs/tiny/model.safetensors \\
         --optimizer adam --lr 1e-3 --steps 1000 --batch 8 --out runs/ddp
 
+`--lr-schedule cosine:START-END --lr-final F` decays the rate as `deepstereo train` does
+(`optim_ref.LrSchedule`, lr.rs), so the fine-tuning runs of the default model
+(`deepstereo-train/scripts/finetune.sh`) have a DDP equivalent.
+
 One process without torchrun works too. The backend is `nccl` when CUDA is available
 (one GPU per process, `LOCAL_RANK`), else `gloo` on the CPU.
 
@@ -40,7 +44,7 @@ from safetensors.torch import load_file, save_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import deepstereo_ref as ref  # noqa: E402
-from optim_ref import KINDS, RefOptimizer  # noqa: E402
+from optim_ref import DEFAULT_LR_FINAL, KINDS, LrSchedule, RefOptimizer  # noqa: E402
 
 SHARD_FORMAT = "deepstereo-samples-v1"
 SHARD_GLOB = "shard-*.safetensors"
@@ -158,6 +162,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--seed", type=int, default=0, help="seed of the PyTorch initialisation (without --init)")
     ap.add_argument("--optimizer", choices=KINDS, default="adagrad")
     ap.add_argument("--lr", type=float, default=5e-4)
+    ap.add_argument("--lr-schedule", default="constant", help="`constant`, or `cosine:START-END` (the rate --lr up to step START, a cosine down to --lr-final times it at END), as `deepstereo train`; a resumed run may change it")
+    ap.add_argument("--lr-final", type=float, default=DEFAULT_LR_FINAL, help="the final rate's share of --lr for a cosine --lr-schedule")
     ap.add_argument("--steps", type=int, default=1000, help="total optimizer steps (a resumed run continues up to this count)")
     ap.add_argument("--batch", type=int, default=8, help="samples per process and step")
     ap.add_argument("--checkpoint-every", type=int, default=100)
@@ -174,6 +180,10 @@ def parse_args(argv=None) -> argparse.Namespace:
             ap.error(f"--{name.replace('_', '-')} must be at least 1")
     if a.init is not None and a.config is not None:
         ap.error("pass --init or --config, not both")
+    try:
+        a.schedule = LrSchedule(a.lr_schedule, a.lr_final)
+    except ValueError as e:
+        ap.error(str(e))
     return a
 
 
@@ -276,6 +286,7 @@ def main(argv=None) -> int:
                 raise SystemExit(f"error: {bad} consecutive non-finite steps: training stopped; the last good checkpoint is {ckpt}")
         else:
             bad = 0
+            opt.lr = a.schedule.lr_at(a.lr, opt.steps)
             opt.step()
         validate_now = step % a.validate_every == 0 or step == a.steps
         if rank == 0 and (step % a.log_every == 0 or validate_now or skipped):
@@ -283,7 +294,7 @@ def main(argv=None) -> int:
             line = {
                 "step": step,
                 "loss": loss_v if math.isfinite(loss_v) else None,
-                "lr": a.lr,
+                "lr": opt.lr,
                 "samples_per_s": window_n / max(secs, 1e-9),
                 "grad_norm": gnorm if math.isfinite(gnorm) else None,
                 "val_psnr": psnr(model, shards, val_shards, a.batch, device) if validate_now else None,
