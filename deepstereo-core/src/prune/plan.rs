@@ -243,8 +243,6 @@ impl<'a> Pruner<'a> {
         // of the block around it: its depth is most likely that of the surfaces nearby.
         let planes = match (self.needed(s, idx), parent) {
             (Some(p), _) => p,
-            (None, Some(p)) if std::env::var("NOINHERIT").is_err() => p.to_vec(),
-            (None, _) if std::env::var("NOINHERIT").is_ok() => self.fallback(s, idx),
             (None, Some(p)) => p.to_vec(),
             (None, None) => self.fallback(s, idx),
         };
