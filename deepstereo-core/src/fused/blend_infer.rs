@@ -232,18 +232,21 @@ fn logits_block<'a, const N: usize>(
 ) {
     let mut hidden = [[0f32; N]; MAX_HIDDEN];
     for (oc, hv) in hidden.iter_mut().enumerate().take(l0.cout) {
-        hv.copy_from_slice(&yf[oc * tw + b0..][..N]);
+        // A local sum (registers), stored once: `hidden` is indexed at run time.
+        let mut acc = [0f32; N];
+        acc.copy_from_slice(&yf[oc * tw + b0..][..N]);
         for ic in 0..cf {
             let wgt = l0.weight[oc * l0.cin + ic];
-            for (y, &ev) in hv.iter_mut().zip(&row(ic)[b0..][..N]) {
+            for (y, &ev) in acc.iter_mut().zip(&row(ic)[b0..][..N]) {
                 *y += wgt * ev;
             }
         }
         let b = l0.bias[oc];
-        for y in hv.iter_mut() {
+        for y in acc.iter_mut() {
             *y += b;
             *y = y.max(0.0);
         }
+        *hv = acc;
     }
     let mut y = [l1.bias[0]; N];
     for (ic, hv) in hidden.iter().enumerate().take(l1.cin) {
