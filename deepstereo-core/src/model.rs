@@ -249,7 +249,7 @@ impl DeepStereo {
                         false => None,
                     };
                     let (s, e) = match fused {
-                        Some((s, e)) => (s, e),
+                        Some(pooled) => pooled,
                         None => {
                             let pooled = encoder.forward(x, fuse)?;
                             (pooled.stats, Some(pooled.features))

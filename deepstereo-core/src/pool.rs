@@ -122,9 +122,10 @@ impl ViewEncoder {
     /// Rendering: steps 1-3 for one level `x` `[B, D, V, 4, H, W]` as one fused pass
     /// ([`fused::encode_pool`]: the same values as [`Self::forward`]'s passes, bit for bit
     /// for encoders of two or more layers; a one-layer encoder runs there as a candle
-    /// convolution, which sums in another order, and agrees to rounding): the stats `[B, D, 4 + 2 C_f, H, W]` and, with `features` (level 0, where the
-    /// blend reads them), the view features `[B * D, V, C_f, H, W]`. `None` where the
-    /// fused pass does not run (the caller then runs [`Self::forward`]).
+    /// convolution, which sums in another order, and agrees to rounding): the stats
+    /// `[B, D, 4 + 2 C_f, H, W]` and, with `features` (level 0, where the blend reads
+    /// them), the view features `[B * D, V, C_f, H, W]`. `None` where the fused pass does
+    /// not run (the caller then runs [`Self::forward`]).
     pub fn infer(&self, x: &Tensor, features: bool) -> Result<Option<(Tensor, Option<Tensor>)>> {
         let (n, v, h, w, b) = view_dims(x)?;
         let Some(layers) = dense_layers(&self.convs)? else {

@@ -85,6 +85,7 @@ pub fn encode_pool(
     Ok(Some((stats, feats)))
 }
 
+/// Views, feature channels, pixels per plane, and the widest layer (scratch rows).
 #[derive(Clone, Copy)]
 struct Dims {
     v: usize,
