@@ -2,7 +2,8 @@
 # the training scenes of ../shared/data/train (all but `lego`, a render whose transparent
 # background the reader drops) and the scenes validated on, never trained on. Sets DATA,
 # TRAIN and VAL, SAMPLING (the data and sampling options every run of the default model
-# passes to `train`; VIEW_RANGE, default 2-10, sets the source views per batch) and, for
+# passes to `train`; VIEW_RANGE, default 2-10, sets the source views per batch, SYNTH_SIZE,
+# default 240x180, the procedural scenes' image size) and, for
 # run directory OUT, RESUME (`--resume` when OUT holds a checkpoint); run from the
 # repository root.
 DATA=../shared/data
@@ -11,7 +12,7 @@ for s in bird blowtorch can cityscape cup duckqueen figurine fruit maryrose milk
   TRAIN+=("$DATA/train/$s")
 done
 VAL=("$DATA/val/juicebox" "$DATA/val/moldgoldcape" "$DATA/val/stitch" "$DATA/templeRing" "$DATA/ethiopianHead" "$DATA/fox")
-SAMPLING=(--views "${VIEW_RANGE:-2-10}" --data "${TRAIN[@]}" --synthetic 200 --synth-size 240x180 --synth-views 12
+SAMPLING=(--views "${VIEW_RANGE:-2-10}" --data "${TRAIN[@]}" --synthetic 200 --synth-size "${SYNTH_SIZE:-240x180}" --synth-views 12
   --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8)
 RESUME=()
 if [ -f "$OUT/checkpoint.safetensors" ]; then RESUME=(--resume); fi
