@@ -19,7 +19,9 @@ the same Rust-initialised weights (`deepstereo train --steps 0`) and the shards 
 (d) `deepstereo forward --model OUT/model.safetensors` on a shard equals PyTorch's forward
     of the same file (1e-4), and `deepstereo export --model` takes the file;
 (e) the same `--lr-schedule cosine:...` and `--lr-final` give the same rate at every step
-    in the logs of `deepstereo train` and of `train_ddp.py` (tiny only).
+    in the logs of `deepstereo train` and of `train_ddp.py` (tiny only);
+(f) `--loss l2`: one step of each trainer logs the same loss (1e-5 relative; not the L1
+    run's) and gives the same weights (tiny only).
 
 Exit status 1 when any check fails.
 """
@@ -188,6 +190,18 @@ class Check:
         self.expect((w / "model.onnx").stat().st_size > 0, f"{preset}: `deepstereo export --model` takes the DDP model")
         if preset == "tiny":
             self.schedule(w, common, init, shards)
+            self.l2(w, common, init, shards)
+
+    def l2(self, w: Path, common: list, init: Path, shards: Path) -> None:
+        """(f) `--loss l2`: both trainers log the same loss and reach the same weights."""
+        hyper = ["--optimizer", "adam", "--lr", LR, "--steps", 1, "--loss", "l2", "--log-every", 1]
+        run([self.bin, "train", *common, *hyper, "--batch", BATCH, "--val-scenes", "0", "--val-batches", "0", "--no-progress", "--out", w / "candle-l2"], "train --loss l2")
+        self.ddp(["--shards", shards, "--init", init, *hyper, "--batch", BATCH, "--out", w / "torch-l2"])
+        self.same_weights("tiny adam --loss l2: one step of `deepstereo train` and of train_ddp.py", w / "torch-l2" / "model.safetensors", w / "candle-l2" / "model.safetensors")
+        losses = {d: [json.loads(l)["loss"] for l in (w / d / "log.jsonl").read_text().splitlines()] for d in ("candle-l2", "torch-l2", "candle-adam")}
+        c, t, l1 = losses["candle-l2"], losses["torch-l2"], losses["candle-adam"][0]
+        ok = len(c) == 1 == len(t) and all(abs(a - b) <= 1e-5 * abs(b) for a, b in zip(c, t)) and abs(c[0] - l1) > 1e-3 * l1
+        self.expect(ok, f"tiny --loss l2: the loss of step 1, candle {c}, train_ddp.py {t} (the L1 run's first: {l1})")
 
     def schedule(self, w: Path, common: list, init: Path, shards: Path) -> None:
         """(e) the rate per step of a cosine schedule, candle's log against train_ddp.py's."""

@@ -18,7 +18,7 @@ rank `r` takes samples `[r*batch, (r+1)*batch)` of it. The data of a step theref
 depends only on the global batch, not on the number of processes; with `--shard-size`
 equal to the global batch, step `s` sees exactly the batch `s` of `deepstereo train` with
 the same seed and options. Gradients are averaged over processes (the mean L1 loss of the
-global batch); the optimizer (`optim_ref.py`) is optim.rs's update, op for op.
+global batch, or its mean squared error with `--loss l2`, as `deepstereo train --loss`); the optimizer (`optim_ref.py`) is optim.rs's update, op for op.
 
 Files in --out (written by rank 0, atomically): `model.safetensors` (float32, metadata
 `deepstereo.config` and `format`: what `deepstereo render/eval/export --model` load),
@@ -68,6 +68,7 @@ class RunOptions:
     val_shards: int
     init: str | None
     seed: int
+    loss: str = "l1"
 
 
 # --- files ----------------------------------------------------------------------------
@@ -164,6 +165,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--lr", type=float, default=5e-4)
     ap.add_argument("--lr-schedule", default="constant", help="`constant`, or `cosine:START-END` (the rate --lr up to step START, a cosine down to --lr-final times it at END), as `deepstereo train`; a resumed run may change it")
     ap.add_argument("--lr-final", type=float, default=DEFAULT_LR_FINAL, help="the final rate's share of --lr for a cosine --lr-schedule")
+    ap.add_argument("--loss", choices=("l1", "l2"), default="l1", help="training loss: l1 (mean absolute error, the paper's) or l2 (mean squared error), as `deepstereo train --loss`")
     ap.add_argument("--steps", type=int, default=1000, help="total optimizer steps (a resumed run continues up to this count)")
     ap.add_argument("--batch", type=int, default=8, help="samples per process and step")
     ap.add_argument("--checkpoint-every", type=int, default=100)
@@ -234,7 +236,7 @@ def main(argv=None) -> int:
     chunks = [(s, c * gbatch) for s in train_shards for c in range(s.samples // gbatch)]
     if not chunks:
         raise SystemExit(f"error: no training shard holds a global batch of {gbatch} samples (--batch {a.batch} x {world} processes)")
-    run = RunOptions(str(a.shards.resolve()), cfg_json, a.optimizer, a.lr, gbatch, a.val_shards, str(a.init) if a.init else None, a.seed)
+    run = RunOptions(str(a.shards.resolve()), cfg_json, a.optimizer, a.lr, gbatch, a.val_shards, str(a.init) if a.init else None, a.seed, a.loss)
 
     torch.manual_seed(a.seed)
     model = ref.DeepStereo(cfg).to(device)
@@ -268,7 +270,8 @@ def main(argv=None) -> int:
         shard, base = chunks[step % len(chunks)]
         xs, y = shards.batch(shard, base + rank * a.batch, a.batch, device)
         opt.zero_grad()
-        loss = (net(xs)[0] - y).abs().mean()
+        diff = net(xs)[0] - y
+        loss = diff.abs().mean() if a.loss == "l1" else diff.square().mean()
         loss.backward()
         loss_v = loss.detach().double()
         if world > 1:

@@ -426,6 +426,11 @@ pub fn l1_loss(pred: &Tensor, target: &Tensor) -> Result<Tensor> {
     pred.sub(target)?.abs()?.mean_all()
 }
 
+/// Mean squared error between two tensors of the same shape (`train --loss l2`).
+pub fn l2_loss(pred: &Tensor, target: &Tensor) -> Result<Tensor> {
+    pred.sub(target)?.sqr()?.mean_all()
+}
+
 /// Expected depth per pixel from selection probabilities `[B, D, H, W]` and plane depths.
 /// Uses inverse depth for the expectation (planes are uniform in it), returns depth.
 pub fn expected_depth(selection: &Tensor, inv_depths: &[f64]) -> Result<Tensor> {

@@ -3,7 +3,8 @@
 # from a model's weights with the `nviews` architecture and config CONFIG (a preset or a
 # JSON file), on the default run's scenes (default_data.sh), views 2-10 per batch,
 # photometric augmentation and flips, Adam 2e-4 and the schedule SCHEDULE down to a tenth
-# of it, seed 2. Continues from OUT's committed checkpoint when there is one.
+# of it, seed 2, the loss LOSS when set (default L1). Continues from OUT's committed
+# checkpoint when there is one.
 # Run from the repository root: OUT=DIR INIT=MODEL CONFIG=CFG bash deepstereo-train/scripts/finetune.sh STEPS SCHEDULE
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -18,4 +19,4 @@ exec nice -n 19 target/release/deepstereo train --config "$CONFIG" --init "$INIT
   --steps "$STEPS" --batch 8 --optimizer adam --lr 2e-4 --seed 2 \
   --lr-schedule "$SCHEDULE" --lr-final 0.1 \
   --checkpoint-every 100 --validate-every 250 --log-every 20 --no-progress \
-  --out "$OUT" "${RESUME[@]}"
+  ${LOSS:+--loss "$LOSS"} --out "$OUT" "${RESUME[@]}"

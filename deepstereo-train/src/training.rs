@@ -1,4 +1,4 @@
-//! The training loop: L1 loss, Adagrad or Adam, a JSONL log, validation PSNR, atomic
+//! The training loop: L1 loss (or L2, `--loss l2`), Adagrad or Adam, a JSONL log, validation PSNR, atomic
 //! checkpoints (periodic and on Ctrl-C), exact resume, and a guard against non-finite
 //! losses and gradients.
 //!
@@ -14,7 +14,7 @@ use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use deepstereo_core::config::Config;
 use deepstereo_core::imageio::write_atomic;
-use deepstereo_core::model::l1_loss;
+use deepstereo_core::model::{l1_loss, l2_loss};
 use deepstereo_core::synth::SynthOptions;
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use deepstereo_core::weights::{self, metadata, named_vars, tensor_f32, Trainable};
@@ -31,6 +31,27 @@ pub const MAX_CONSECUTIVE_BAD_STEPS: u32 = 5;
 pub const RUN_KEY: &str = "deepstereo.run";
 /// Metadata key of the step count in a checkpoint.
 pub const STEP_KEY: &str = "deepstereo.step";
+
+/// The training loss on the rendered tile.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Loss {
+    /// Mean absolute error (the paper's).
+    #[default]
+    L1,
+    /// Mean squared error.
+    L2,
+}
+
+impl Loss {
+    /// The loss of `pred` against `target` (same shapes), a scalar.
+    pub fn of(self, pred: &Tensor, target: &Tensor) -> candle_core::Result<Tensor> {
+        match self {
+            Loss::L1 => l1_loss(pred, target),
+            Loss::L2 => l2_loss(pred, target),
+        }
+    }
+}
 
 /// Everything that defines a training run (saved in checkpoints; a resume must match).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -65,6 +86,9 @@ pub struct RunOptions {
     /// The model file the weights started from (`None`: a seeded random initialisation).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub init: Option<PathBuf>,
+    /// The loss (runs before it was an option trained with L1).
+    #[serde(default)]
+    pub loss: Loss,
 }
 
 impl RunOptions {
@@ -274,7 +298,7 @@ pub fn train(
         let batch = rx.recv().context("the sample loader stopped")??;
         let (x, y) = batch_tensors(&batch, &device)?;
         let pred = t.model.forward(&x)?;
-        let loss = l1_loss(&pred.image, &y)?;
+        let loss = run.loss.of(&pred.image, &y)?;
         let loss_v = loss.to_scalar::<f32>()? as f64;
         let grads = loss.backward()?;
         let gnorm = opt.grad_norm(&grads)?;
@@ -500,9 +524,9 @@ pub fn plot_log(log: &Path, png: &Path) -> Result<()> {
         .filter_map(|l| l.val_psnr.map(|v| (l.step as f64, v)))
         .collect();
     let a = plot(
-        "training L1 loss",
+        "training loss",
         "step",
-        "L1",
+        "loss",
         &[Series {
             label: "train loss".into(),
             colour: [0.85, 0.2, 0.1],
@@ -529,4 +553,58 @@ pub fn plot_log(log: &Path, png: &Path) -> Result<()> {
     );
     deepstereo_core::viz::side_by_side(&[&a, &b], 0).save_png(png)?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn losses_match_hand_computed_values() -> Result<()> {
+        let dev = Device::Cpu;
+        let p = Tensor::new(&[0.5f32, 0.25, 1.0, 0.0], &dev)?;
+        let y = Tensor::new(&[0.0f32, 0.5, 1.0, 0.5], &dev)?;
+        // |d| = 0.5, 0.25, 0, 0.5; d^2 = 0.25, 0.0625, 0, 0.25.
+        assert_eq!(Loss::L1.of(&p, &y)?.to_scalar::<f32>()?, 1.25 / 4.0);
+        assert_eq!(Loss::L2.of(&p, &y)?.to_scalar::<f32>()?, 0.5625 / 4.0);
+        Ok(())
+    }
+
+    #[test]
+    fn run_options_saved_before_the_loss_option_read_as_l1() -> Result<()> {
+        let run = RunOptions {
+            config: Config::tiny(),
+            data: Vec::new(),
+            synthetic: 1,
+            synth_width: 64,
+            synth_height: 48,
+            synth_views: 4,
+            batch: 2,
+            lr: 1e-3,
+            optimizer: OptimizerKind::Adam,
+            seed: 0,
+            val_scenes: 1,
+            val_batches: 1,
+            views: None,
+            val_data: Vec::new(),
+            synthetic_percent: None,
+            augment: false,
+            lr_schedule: LrSchedule::default(),
+            init: None,
+            loss: Loss::L2,
+        };
+        let mut v = serde_json::to_value(&run)?;
+        assert_eq!(v["loss"], "l2");
+        v.as_object_mut().context("an object")?.remove("loss");
+        let old: RunOptions = serde_json::from_value(v)?;
+        assert_eq!(old.loss, Loss::L1);
+        assert_eq!(
+            RunOptions {
+                loss: Loss::L2,
+                ..old
+            },
+            run
+        );
+        Ok(())
+    }
 }

@@ -141,6 +141,43 @@ fn resume_refuses_different_options() -> Result<()> {
 }
 
 #[test]
+fn the_loss_is_a_run_option_and_a_resume_must_keep_it() -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let out = dir.path().join("l2");
+    let mut a = args(&out);
+    set(&mut a, "--steps", "2")?;
+    a.extend(["--loss".into(), "l2".into()]);
+    run_ok(&a)?;
+    let l = losses(&out)?;
+    ensure!(l.len() == 2 && l.iter().all(|(_, v)| v.is_finite() && *v >= 0.0));
+    // The same run with L1 logs other losses from the same batches.
+    let out1 = dir.path().join("l1");
+    let mut b = args(&out1);
+    set(&mut b, "--steps", "2")?;
+    run_ok(&b)?;
+    ensure!(
+        losses(&out1)?[0].1 != l[0].1,
+        "L1 and L2 logged the same first loss"
+    );
+    // Resuming the L2 run without --loss (L1) is a change of options.
+    let mut c = args(&out);
+    set(&mut c, "--steps", "3")?;
+    c.push("--resume".into());
+    let o = Command::new(BIN).args(&c).output()?;
+    ensure!(!o.status.success(), "resume with another loss must fail");
+    ensure!(String::from_utf8_lossy(&o.stderr).contains("different options"));
+    c.extend(["--loss".into(), "l2".into()]);
+    run_ok(&c)?;
+    ensure!(losses(&out)?.len() == 3);
+    // An unknown loss is refused by name.
+    let mut d = args(&dir.path().join("bad"));
+    d.extend(["--loss".into(), "huber".into()]);
+    let o = Command::new(BIN).args(&d).output()?;
+    ensure!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("huber"));
+    Ok(())
+}
+
+#[test]
 fn a_resume_may_add_a_learning_rate_schedule_and_the_log_follows_it() -> Result<()> {
     let dir = tempfile::tempdir()?;
     let out = dir.path().join("s");

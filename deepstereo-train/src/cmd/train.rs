@@ -2,7 +2,7 @@
 
 use crate::lr::{LrSchedule, DEFAULT_LR_FINAL};
 use crate::optim::OptimizerKind;
-use crate::training::{train, RunOptions, Schedule};
+use crate::training::{train, Loss, RunOptions, Schedule};
 use anyhow::{bail, Context};
 use deepstereo_core::config::Config;
 use std::path::{Path, PathBuf};
@@ -97,6 +97,9 @@ pub struct Args {
     /// optimizer starts afresh; a resume passes it again and continues from the checkpoint.
     #[arg(long)]
     pub init: Option<std::path::PathBuf>,
+    /// Training loss: l1 (the paper's mean absolute error) or l2 (mean squared error).
+    #[arg(long, value_enum, default_value_t = Loss::L1)]
+    pub loss: Loss,
 }
 
 /// Parses `K` or `MIN-MAX`.
@@ -181,6 +184,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         augment: a.augment,
         lr_schedule: LrSchedule::parse(&a.lr_schedule, a.lr_final)?,
         init: a.init,
+        loss: a.loss,
     };
     let sched = Schedule {
         steps: a.steps,
