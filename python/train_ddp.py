@@ -18,7 +18,8 @@ rank `r` takes samples `[r*batch, (r+1)*batch)` of it. The data of a step theref
 depends only on the global batch, not on the number of processes; with `--shard-size`
 equal to the global batch, step `s` sees exactly the batch `s` of `deepstereo train` with
 the same seed and options. Gradients are averaged over processes (the mean L1 loss of the
-global batch, or its mean squared error with `--loss l2`, as `deepstereo train --loss`); the optimizer (`optim_ref.py`) is optim.rs's update, op for op.
+global batch, or its mean squared error with `--loss l2`, as `deepstereo train --loss`);
+the optimizer (`optim_ref.py`) is optim.rs's update, op for op.
 
 Files in --out (written by rank 0, atomically): `model.safetensors` (float32, metadata
 `deepstereo.config` and `format`: what `deepstereo render/eval/export --model` load),

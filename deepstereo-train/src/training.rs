@@ -1,6 +1,6 @@
-//! The training loop: L1 loss (or L2, `--loss l2`), Adagrad or Adam, a JSONL log, validation PSNR, atomic
-//! checkpoints (periodic and on Ctrl-C), exact resume, and a guard against non-finite
-//! losses and gradients.
+//! The training loop: L1 loss (or L2, `--loss l2`), Adagrad or Adam, a JSONL log,
+//! validation PSNR, atomic checkpoints (periodic and on Ctrl-C), exact resume, and a guard
+//! against non-finite losses and gradients.
 //!
 //! Files in the run directory: `model.safetensors` (weights + config, what `render` loads),
 //! `checkpoint.safetensors` (weights, optimizer state, step, run options), `log.jsonl`.
