@@ -8,17 +8,12 @@
 # when there is one. Run from the repository root:
 # bash deepstereo-train/scripts/train_scratch.sh [STEPS] [LR_SCHEDULE]
 set -euo pipefail
-cd "$(dirname "$0")/../.."
+HERE="$(cd "$(dirname "$0")" && pwd)"
+cd "$HERE/../.."
 OUT="${OUT:-deepstereo-train/runs/nviews-scratch}"
-STEPS="${1:-5500}"
-SCHEDULE="${2:-cosine:3000-5500}"
 mkdir -p "$OUT"
 [ -f "$OUT/config.json" ] || cp deepstereo-train/runs/nviews-prox/config.json "$OUT/config.json"
-# shellcheck source=deepstereo-train/scripts/default_data.sh
-source deepstereo-train/scripts/default_data.sh
-cargo build --release -p deepstereo-train
-exec nice -n 19 target/release/deepstereo train --config "$OUT/config.json" "${SAMPLING[@]}" \
-  --steps "$STEPS" --batch 8 --optimizer adam --lr 1e-3 --seed 1 \
-  --lr-schedule "$SCHEDULE" --lr-final 0.05 \
-  --checkpoint-every 100 --validate-every 250 --log-every 20 --no-progress \
-  --out "$OUT" "${RESUME[@]}"
+# train_default.sh's command with this run's directory (and config), schedule and
+# validation interval.
+OUT="$OUT" VALIDATE_EVERY=250 \
+  exec bash "$HERE/train_default.sh" "${1:-5500}" "${2:-cosine:3000-5500}"

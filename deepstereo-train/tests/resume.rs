@@ -60,6 +60,14 @@ fn run_ok(args: &[String]) -> Result<()> {
     Ok(())
 }
 
+/// Runs the resume `args` and requires it to fail as a change of options (`what` changed).
+fn refused_as_other_options(args: &[String], what: &str) -> Result<()> {
+    let o = Command::new(BIN).args(args).output()?;
+    ensure!(!o.status.success(), "resume with another {what} must fail");
+    ensure!(String::from_utf8_lossy(&o.stderr).contains("different options"));
+    Ok(())
+}
+
 fn losses(out: &Path) -> Result<Vec<(u64, f64)>> {
     let text = std::fs::read_to_string(out.join("log.jsonl"))?;
     text.lines()
@@ -134,10 +142,7 @@ fn resume_refuses_different_options() -> Result<()> {
     let mut b = args(&out);
     b.push("--resume".into());
     set(&mut b, "--seed", "4")?;
-    let o = Command::new(BIN).args(&b).output()?;
-    ensure!(!o.status.success(), "resume with another seed must fail");
-    ensure!(String::from_utf8_lossy(&o.stderr).contains("different options"));
-    Ok(())
+    refused_as_other_options(&b, "seed")
 }
 
 #[test]
@@ -163,9 +168,7 @@ fn the_loss_is_a_run_option_and_a_resume_must_keep_it() -> Result<()> {
     let mut c = args(&out);
     set(&mut c, "--steps", "3")?;
     c.push("--resume".into());
-    let o = Command::new(BIN).args(&c).output()?;
-    ensure!(!o.status.success(), "resume with another loss must fail");
-    ensure!(String::from_utf8_lossy(&o.stderr).contains("different options"));
+    refused_as_other_options(&c, "loss")?;
     c.extend(["--loss".into(), "l2".into()]);
     run_ok(&c)?;
     ensure!(losses(&out)?.len() == 3);
