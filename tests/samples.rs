@@ -147,3 +147,50 @@ fn other_options_into_the_same_directory_are_refused() {
     assert_eq!(res.code, Some(1), "{}", res.stderr);
     assert!(res.stderr.contains("other options"), "{}", res.stderr);
 }
+
+/// `--view-stride` is part of what a shard is made with (a rerun with another stride into
+/// the same directory is refused), and impossible strides are refused by name.
+#[test]
+fn view_stride_is_an_option_of_the_shards() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let a = tmp.path().join("a");
+    samples(&a);
+    let with_stride = |stride: &str, out: &Path| {
+        run_deepstereo([
+            "samples",
+            "--synthetic",
+            "2",
+            "--synth-size",
+            "64x48",
+            "--synth-views",
+            "6",
+            "--config",
+            "tiny",
+            "--count",
+            "5",
+            "--shard-size",
+            "2",
+            "--seed",
+            "3",
+            "--view-stride",
+            stride,
+            "--out",
+            &out.to_string_lossy(),
+        ])
+    };
+    let res = with_stride("2", &a);
+    assert_eq!(res.code, Some(1), "{}", res.stderr);
+    assert!(res.stderr.contains("other options"), "{}", res.stderr);
+    let b = tmp.path().join("b");
+    assert_eq!(with_stride("1", &b).code, Some(0));
+    assert_same_shards(&a, &b);
+    for bad in ["0", "3-2", "x", "1-99"] {
+        let res = with_stride(bad, &tmp.path().join("c"));
+        assert_eq!(res.code, Some(1), "{bad}: {}", res.stderr);
+        assert!(
+            res.stderr.contains("view stride") || res.stderr.contains("--view-stride"),
+            "{bad}: {}",
+            res.stderr
+        );
+    }
+}

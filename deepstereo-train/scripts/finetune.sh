@@ -2,8 +2,9 @@
 # The default model's fine-tuning runs (train_falloff.sh, train_prox.sh): `train --init`
 # from a model's weights with the `nviews` architecture and config CONFIG (a preset or a
 # JSON file), on the default run's scenes (default_data.sh), views 2-10 per batch,
-# photometric augmentation and flips, Adam 2e-4 and the schedule SCHEDULE down to a tenth
-# of it, seed 2, the loss LOSS when set (default L1). Continues from OUT's committed
+# photometric augmentation and flips, Adam at LR (default 2e-4) and the schedule SCHEDULE
+# down to a tenth of it, seed 2, the loss LOSS when set (default L1), the source stride
+# VIEW_STRIDE when set (`train --view-stride`; default: the nearest views). Continues from OUT's committed
 # checkpoint when there is one.
 # Run from the repository root: OUT=DIR INIT=MODEL CONFIG=CFG bash deepstereo-train/scripts/finetune.sh STEPS SCHEDULE
 set -euo pipefail
@@ -16,7 +17,7 @@ SCHEDULE="${2:?LR_SCHEDULE is required}"
 source deepstereo-train/scripts/default_data.sh
 cargo build --release -p deepstereo-train
 exec nice -n 19 target/release/deepstereo train --config "$CONFIG" --init "$INIT" "${SAMPLING[@]}" \
-  --steps "$STEPS" --batch 8 --optimizer adam --lr 2e-4 --seed 2 \
+  --steps "$STEPS" --batch 8 --optimizer adam --lr "${LR:-2e-4}" --seed 2 \
   --lr-schedule "$SCHEDULE" --lr-final 0.1 \
   --checkpoint-every 100 --validate-every 250 --log-every 20 --no-progress \
-  ${LOSS:+--loss "$LOSS"} --out "$OUT" "${RESUME[@]}"
+  ${LOSS:+--loss "$LOSS"} ${VIEW_STRIDE:+--view-stride "$VIEW_STRIDE"} --out "$OUT" "${RESUME[@]}"

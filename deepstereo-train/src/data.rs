@@ -87,6 +87,17 @@ impl SceneData {
             .collect();
         nearest_to_point(&views, self.cameras[target].pose.centre(), k, Some(target))
     }
+
+    /// `k` sources of view `target` at stride `s` (at least 1): its `s`-th, `2s`-th, ...
+    /// nearest views, nearest first (fewer where the scene has fewer).
+    pub fn strided_sources(&self, target: usize, k: usize, s: usize) -> Vec<usize> {
+        let s = s.max(1);
+        (self.sources(target, k * s).into_iter())
+            .skip(s - 1)
+            .step_by(s)
+            .take(k)
+            .collect()
+    }
 }
 
 /// Generates `count` procedural scenes in parallel (scene `i` from `scene_seed(seed, i)`).
@@ -135,7 +146,14 @@ pub struct Sampling {
     /// Photometric augmentation (an exposure and white-balance gain per sample, on the
     /// sources and the target alike) and horizontal flips.
     pub augment: bool,
+    /// Sparser sources: per sample a stride `s` drawn uniformly from this range, and the
+    /// sources are the `s`-th, `2s`-th, ... nearest views (`s = 1`: the nearest), as if
+    /// the scene had been captured with one view in `s` (wider baselines).
+    pub view_stride: (usize, usize),
 }
+
+/// Largest source stride of [`Sampling::view_stride`].
+pub const MAX_VIEW_STRIDE: usize = 16;
 
 /// Largest exposure change of the augmentation, as a log factor (`exp(+-0.25)`).
 pub const AUGMENT_EXPOSURE: f64 = 0.25;
@@ -149,6 +167,7 @@ impl Sampling {
             views: (cfg.views, cfg.views),
             synthetic_percent: None,
             augment: false,
+            view_stride: (1, 1),
         }
     }
 
@@ -157,6 +176,10 @@ impl Sampling {
         let (lo, hi) = self.views;
         if lo == 0 || lo > hi {
             bail!("the views range {lo}-{hi} must be 1 or more and increasing");
+        }
+        let (s_lo, s_hi) = self.view_stride;
+        if s_lo == 0 || s_lo > s_hi || s_hi > MAX_VIEW_STRIDE {
+            bail!("the view stride range {s_lo}-{s_hi} must be increasing, from 1 to {MAX_VIEW_STRIDE}");
         }
         if self.synthetic_percent.is_some_and(|p| p > 100) {
             bail!("the share of procedural samples is a percentage (0 to 100)");
@@ -219,7 +242,12 @@ fn sample(
         );
     }
     let target = (next() % n as u64) as usize;
-    let src = s.sources(target, views);
+    // A stride range of one value draws nothing (the samples of runs before it).
+    let stride = match sampling.view_stride {
+        (lo, hi) if lo < hi => lo + (next() % (hi - lo + 1) as u64) as usize,
+        (lo, _) => lo,
+    };
+    let src = s.strided_sources(target, views, stride);
     let t = cfg.tile;
     let a = cfg.tile_align() as u64;
     let cam = &s.cameras[target];
@@ -475,6 +503,40 @@ mod tests {
         };
         assert!(range(0, 3).check(&cfg).is_err());
         assert!(range(2, 8).check(&Config::tiny()).is_err());
+        Ok(())
+    }
+
+    /// A stride `s` takes every `s`-th nearest view; a stride range of one value leaves
+    /// the batches exactly as they were (no extra random draw); a wider range changes
+    /// them; impossible ranges are refused.
+    #[test]
+    fn view_stride_takes_every_sth_nearest() -> anyhow::Result<()> {
+        let cfg = Config::nviews();
+        let sc = scenes(&cfg); // 6 views each
+        let s = &sc[0];
+        let nearest = s.sources(0, 5);
+        assert_eq!(s.strided_sources(0, 2, 1), nearest[..2]);
+        assert_eq!(s.strided_sources(0, 2, 2), [nearest[1], nearest[3]]);
+        assert_eq!(s.strided_sources(0, 3, 2), [nearest[1], nearest[3]]); // only 5 others
+        let fixed = Sampling::fixed(&cfg);
+        let one = Sampling {
+            view_stride: (1, 1),
+            ..fixed.clone()
+        };
+        let wide = Sampling {
+            view_stride: (2, 3),
+            ..fixed.clone()
+        };
+        let a = make_batch(&cfg, &fixed, &sc, 5, 0, 2)?;
+        assert_eq!(a.levels, make_batch(&cfg, &one, &sc, 5, 0, 2)?.levels);
+        assert_ne!(a.levels, make_batch(&cfg, &wide, &sc, 5, 0, 2)?.levels);
+        for bad in [(0, 1), (3, 2), (1, MAX_VIEW_STRIDE + 1)] {
+            let s = Sampling {
+                view_stride: bad,
+                ..fixed.clone()
+            };
+            assert!(s.check(&cfg).is_err(), "{bad:?}");
+        }
         Ok(())
     }
 

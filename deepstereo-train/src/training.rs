@@ -89,6 +89,9 @@ pub struct RunOptions {
     /// The loss (runs before it was an option trained with L1).
     #[serde(default)]
     pub loss: Loss,
+    /// Source stride range (`None`: the nearest views, as runs before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub view_stride: Option<(usize, usize)>,
 }
 
 impl RunOptions {
@@ -98,6 +101,7 @@ impl RunOptions {
             views: self.views.unwrap_or((self.config.views, self.config.views)),
             synthetic_percent: self.synthetic_percent,
             augment: self.augment,
+            view_stride: self.view_stride.unwrap_or((1, 1)),
         }
     }
 }
@@ -571,7 +575,7 @@ mod tests {
     }
 
     #[test]
-    fn run_options_saved_before_the_loss_option_read_as_l1() -> Result<()> {
+    fn run_options_saved_before_the_loss_and_stride_options_read_as_before() -> Result<()> {
         let run = RunOptions {
             config: Config::tiny(),
             data: Vec::new(),
@@ -592,15 +596,21 @@ mod tests {
             lr_schedule: LrSchedule::default(),
             init: None,
             loss: Loss::L2,
+            view_stride: Some((1, 3)),
         };
         let mut v = serde_json::to_value(&run)?;
         assert_eq!(v["loss"], "l2");
-        v.as_object_mut().context("an object")?.remove("loss");
+        assert_eq!(v["view_stride"], serde_json::json!([1, 3]));
+        let obj = v.as_object_mut().context("an object")?;
+        obj.remove("loss");
+        obj.remove("view_stride");
         let old: RunOptions = serde_json::from_value(v)?;
-        assert_eq!(old.loss, Loss::L1);
+        assert_eq!((old.loss, old.view_stride), (Loss::L1, None));
+        assert_eq!(old.sampling().view_stride, (1, 1));
         assert_eq!(
             RunOptions {
                 loss: Loss::L2,
+                view_stride: Some((1, 3)),
                 ..old
             },
             run

@@ -2,12 +2,13 @@
 //! shards, for other trainers (`python/train_ddp.py`, PyTorch DistributedDataParallel).
 //!
 //! Shard `b` is exactly batch `b` of `deepstereo train` with the same scenes, `--seed`,
-//! `--views`, `--augment` and `--synthetic-percent` and `--batch` equal to `--shard-size`
-//! (it calls the same sampler, `data::make_batch`, with batch index `b`). Every shard is
-//! written atomically; a rerun keeps the shards that are complete (they parse, hold the
-//! expected tensors and were made with the same options) and writes the rest.
+//! `--views`, `--augment`, `--synthetic-percent` and `--view-stride`, and `--batch` equal
+//! to `--shard-size` (it calls the same sampler, `data::make_batch`, with batch index
+//! `b`). Every shard is written atomically; a rerun keeps the shards that are complete
+//! (they parse, hold the expected tensors and were made with the same options) and writes
+//! the rest.
 
-use super::train::{load_config, parse_range, parse_size};
+use super::train::{load_config, parse_range, parse_range_of, parse_size};
 use crate::data::{make_batch, Sampling};
 use crate::training::training_scenes;
 use anyhow::{bail, Context};
@@ -38,7 +39,7 @@ pub const TARGET_NAME: &str = "target";
 #[derive(Debug, clap::Args)]
 #[command(
     after_help = "Shard b holds batch b of `deepstereo train` with the same scenes, \
---seed, --views, --augment, --synthetic-percent and --batch = --shard-size: tensors \
+--seed, --views, --augment, --synthetic-percent, --view-stride and --batch = --shard-size: tensors \
 `level0..level{L-1}` ([K, D, 4V, H_l, W_l], or [K, D, V, 4, H_l, W_l] for the \
 any-number-of-views family) and `target` ([K, 3, t, t]), f32; metadata `deepstereo.config` \
 (the model config JSON), `views` (V, the same for every sample of a shard), `shard`, \
@@ -71,6 +72,9 @@ pub struct Args {
     /// Photometric augmentation and random horizontal flips, as `train --augment`.
     #[arg(long)]
     pub augment: bool,
+    /// Sparser sources, `S` or `MIN-MAX`, as `train --view-stride` (default: 1).
+    #[arg(long)]
+    pub view_stride: Option<String>,
     /// Percent of samples drawn from the procedural scenes when real ones are there too.
     #[arg(long)]
     pub synthetic_percent: Option<u32>,
@@ -99,8 +103,15 @@ pub struct SampleOptions {
     pub views: (usize, usize),
     pub augment: bool,
     pub synthetic_percent: Option<u32>,
+    /// Source stride range (shards before it: the nearest views).
+    #[serde(default = "nearest_views")]
+    pub view_stride: (usize, usize),
     pub seed: u64,
     pub shard_size: usize,
+}
+
+fn nearest_views() -> (usize, usize) {
+    (1, 1)
 }
 
 /// The file name of shard `i`.
@@ -179,6 +190,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         },
         synthetic_percent: a.synthetic_percent,
         augment: a.augment,
+        view_stride: match a.view_stride.as_deref() {
+            Some(s) => parse_range_of("--view-stride", s)?,
+            None => (1, 1),
+        },
     };
     sampling.check(&cfg)?;
     let opts = SampleOptions {
@@ -190,6 +205,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         views: sampling.views,
         augment: a.augment,
         synthetic_percent: a.synthetic_percent,
+        view_stride: sampling.view_stride,
         seed: a.seed,
         shard_size: a.shard_size,
     };

@@ -100,21 +100,31 @@ pub struct Args {
     /// Training loss: l1 (the paper's mean absolute error) or l2 (mean squared error).
     #[arg(long, value_enum, default_value_t = Loss::L1)]
     pub loss: Loss,
+    /// Sparser sources, `S` or a range `MIN-MAX` drawn per sample: the sources are the
+    /// S-th, 2S-th, ... nearest views, as if the scene had one view in S (wider
+    /// baselines). Default: 1, the nearest views.
+    #[arg(long)]
+    pub view_stride: Option<String>,
 }
 
 /// Parses `K` or `MIN-MAX`.
 pub fn parse_range(s: &str) -> anyhow::Result<(usize, usize)> {
+    parse_range_of("--views", s)
+}
+
+/// Parses `K` or `MIN-MAX` for option `name`.
+pub fn parse_range_of(name: &str, s: &str) -> anyhow::Result<(usize, usize)> {
     let parse = |t: &str| -> anyhow::Result<usize> {
         t.trim()
             .parse()
-            .with_context(|| format!("--views '{s}': '{t}' is not a whole number"))
+            .with_context(|| format!("{name} '{s}': '{t}' is not a whole number"))
     };
     let (lo, hi) = match s.split_once('-') {
         Some((a, b)) => (parse(a)?, parse(b)?),
         None => (parse(s)?, parse(s)?),
     };
     if lo == 0 || lo > hi {
-        bail!("--views '{s}': expected K or MIN-MAX with 1 <= MIN <= MAX");
+        bail!("{name} '{s}': expected K or MIN-MAX with 1 <= MIN <= MAX");
     }
     Ok((lo, hi))
 }
@@ -185,6 +195,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         lr_schedule: LrSchedule::parse(&a.lr_schedule, a.lr_final)?,
         init: a.init,
         loss: a.loss,
+        view_stride: (a.view_stride.as_deref())
+            .map(|s| parse_range_of("--view-stride", s))
+            .transpose()?,
     };
     let sched = Schedule {
         steps: a.steps,
