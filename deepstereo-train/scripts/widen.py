@@ -1,6 +1,8 @@
 """Widens an any-number-of-views (`nviews`) model without changing what it computes
-(Net2Net-style): every layer gets extra output channels with fresh He-initialised
-weights, and every weight from a new channel into an old one is zero, so the widened
+(Net2Net-style): the encoder, the selection tower's level convolutions and first merge
+convolution, the colour convolution and the blend's hidden layer get extra output
+channels with fresh He-initialised weights (the depth layers and the outputs keep their
+widths), and every weight from a new channel into an old one is zero, so the widened
 network renders exactly what the original did until training moves it. Used by
 train_wide.sh (issue 20: does capacity help?).
 
