@@ -149,7 +149,8 @@ fn other_options_into_the_same_directory_are_refused() {
 }
 
 /// `--view-stride` is part of what a shard is made with (a rerun with another stride into
-/// the same directory is refused), and impossible strides are refused by name.
+/// the same directory is refused), and impossible strides and flat-tile thresholds are
+/// refused by name.
 #[test]
 fn view_stride_is_an_option_of_the_shards() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -184,6 +185,20 @@ fn view_stride_is_an_option_of_the_shards() {
     let b = tmp.path().join("b");
     assert_eq!(with_stride("1", &b).code, Some(0));
     assert_same_shards(&a, &b);
+    for bad in ["-1", "0.9", "nan"] {
+        let res = run_deepstereo([
+            "samples",
+            "--synthetic",
+            "1",
+            "--count",
+            "1",
+            &format!("--skip-flat={bad}"),
+            "--out",
+            &tmp.path().join("d").to_string_lossy(),
+        ]);
+        assert_eq!(res.code, Some(1), "{bad}: {}", res.stderr);
+        assert!(res.stderr.contains("flat"), "{bad}: {}", res.stderr);
+    }
     for bad in ["0", "3-2", "x", "1-99"] {
         let res = with_stride(bad, &tmp.path().join("c"));
         assert_eq!(res.code, Some(1), "{bad}: {}", res.stderr);

@@ -11,6 +11,7 @@ use anyhow::{bail, Context};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::config::Config;
 use deepstereo_core::geometry::inverse_depths;
+use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::{tile_inputs, PyramidSource};
 use deepstereo_core::scene::{nearest_to_point, LoadOptions, Scene, View};
 use deepstereo_core::synth::{generate, scene_seed, SynthOptions, SynthScene};
@@ -135,7 +136,7 @@ pub struct Batch {
 }
 
 /// How samples are drawn beyond what the model's config fixes.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct Sampling {
     /// Source views per batch, drawn uniformly from this range for every batch (the
     /// any-number-of-views family); the paper's family takes exactly `Config::views`.
@@ -150,7 +151,13 @@ pub struct Sampling {
     /// sources are the `s`-th, `2s`-th, ... nearest views (`s = 1`: the nearest), as if
     /// the scene had been captured with one view in `s` (wider baselines).
     pub view_stride: (usize, usize),
+    /// Skip flat tiles: a tile whose target luminance has a standard deviation under this
+    /// (colours in [0, 1]) is redrawn, up to [`MAX_FLAT_REDRAWS`] times.
+    pub skip_flat: Option<f32>,
 }
+
+/// Most redraws of a flat tile ([`Sampling::skip_flat`]).
+pub const MAX_FLAT_REDRAWS: usize = 8;
 
 /// Largest source stride of [`Sampling::view_stride`].
 pub const MAX_VIEW_STRIDE: usize = 16;
@@ -168,6 +175,7 @@ impl Sampling {
             synthetic_percent: None,
             augment: false,
             view_stride: (1, 1),
+            skip_flat: None,
         }
     }
 
@@ -180,6 +188,11 @@ impl Sampling {
         let (s_lo, s_hi) = self.view_stride;
         if s_lo == 0 || s_lo > s_hi || s_hi > MAX_VIEW_STRIDE {
             bail!("the view stride range {s_lo}-{s_hi} must be increasing, from 1 to {MAX_VIEW_STRIDE}");
+        }
+        if self.skip_flat.is_some_and(|s| !(0.0..=0.5).contains(&s)) {
+            bail!(
+                "the flat-tile threshold is a standard deviation of colours in [0, 1] (0 to 0.5)"
+            );
         }
         if self.synthetic_percent.is_some_and(|p| p > 100) {
             bail!("the share of procedural samples is a percentage (0 to 100)");
@@ -258,8 +271,21 @@ fn sample(
             s.name
         );
     }
-    let x0 = (next() % ((w - t as u64) / a + 1)) * a;
-    let y0 = (next() % ((h - t as u64) / a + 1)) * a;
+    let mut draw = || {
+        let x0 = (next() % ((w - t as u64) / a + 1)) * a;
+        (x0, (next() % ((h - t as u64) / a + 1)) * a)
+    };
+    let (mut x0, mut y0) = draw();
+    if let Some(min_std) = sampling.skip_flat {
+        // Redraw flat tiles (a few times at most: a flat image keeps its last draw).
+        let img = &s.pyramids[target].images[0];
+        for _ in 0..MAX_FLAT_REDRAWS {
+            if luminance_std(img, (x0 as u32, y0 as u32), t as u32) >= min_std {
+                break;
+            }
+            (x0, y0) = draw();
+        }
+    }
     let inv = inverse_depths(s.near, s.far, cfg.planes);
     let empty = PyramidSource::empty(cam, cfg.levels);
     let mut srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
@@ -288,6 +314,23 @@ fn sample(
         augment_planes(&mut patch, t * t, t, &gains, flip);
     }
     Ok((inputs.levels, patch))
+}
+
+/// The standard deviation of the luminance (Rec. 601 weights) over the `t x t` tile at
+/// `(x0, y0)` of `img`.
+fn luminance_std(img: &RgbImage, (x0, y0): (u32, u32), t: u32) -> f32 {
+    let (mut sum, mut sq) = (0f64, 0f64);
+    for y in y0..y0 + t {
+        for x in x0..x0 + t {
+            let [r, g, b] = img.pixel(x, y);
+            let l = (0.299 * r + 0.587 * g + 0.114 * b) as f64;
+            sum += l;
+            sq += l * l;
+        }
+    }
+    let n = (t * t).max(1) as f64;
+    let mean = sum / n;
+    ((sq / n - mean * mean).max(0.0)).sqrt() as f32
 }
 
 /// Scales the colour channels of `data` (planes of `plane` values, channels cycling
@@ -536,6 +579,33 @@ mod tests {
                 ..fixed.clone()
             };
             assert!(s.check(&cfg).is_err(), "{bad:?}");
+        }
+        Ok(())
+    }
+
+    /// The flat-tile test measures the luminance's spread; a threshold of 0 redraws
+    /// nothing (the batches of runs without it), one no tile reaches redraws (other
+    /// batches), and thresholds outside 0..=0.5 (or NaN) are refused.
+    #[test]
+    fn skip_flat_redraws_flat_tiles() -> anyhow::Result<()> {
+        let mut img = RgbImage::new(4, 4);
+        assert_eq!(luminance_std(&img, (0, 0), 4), 0.0);
+        for (i, v) in img.data.iter_mut().enumerate() {
+            *v = ((i / 3) % 2) as f32; // alternate black and white pixels
+        }
+        assert!((luminance_std(&img, (0, 0), 4) - 0.5).abs() < 1e-6);
+        let cfg = Config::nviews();
+        let sc = scenes(&cfg);
+        let fixed = Sampling::fixed(&cfg);
+        let with = |s: f32| Sampling {
+            skip_flat: Some(s),
+            ..fixed.clone()
+        };
+        let a = make_batch(&cfg, &fixed, &sc, 5, 0, 2)?;
+        assert_eq!(a.levels, make_batch(&cfg, &with(0.0), &sc, 5, 0, 2)?.levels);
+        assert_ne!(a.levels, make_batch(&cfg, &with(0.5), &sc, 5, 0, 2)?.levels);
+        for bad in [-0.1, 0.6, f32::NAN] {
+            assert!(with(bad).check(&cfg).is_err(), "{bad}");
         }
         Ok(())
     }

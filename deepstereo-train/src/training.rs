@@ -92,6 +92,9 @@ pub struct RunOptions {
     /// Source stride range (`None`: the nearest views, as runs before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub view_stride: Option<(usize, usize)>,
+    /// Flat-tile threshold (`None`: every tile, as runs before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skip_flat: Option<f32>,
 }
 
 impl RunOptions {
@@ -102,6 +105,7 @@ impl RunOptions {
             synthetic_percent: self.synthetic_percent,
             augment: self.augment,
             view_stride: self.view_stride.unwrap_or((1, 1)),
+            skip_flat: self.skip_flat,
         }
     }
 }
@@ -621,6 +625,7 @@ mod tests {
             init: None,
             loss: Loss::L2,
             view_stride: Some((1, 3)),
+            skip_flat: Some(0.02),
         };
         let mut v = serde_json::to_value(&run)?;
         assert_eq!(v["loss"], "l2");
@@ -628,13 +633,18 @@ mod tests {
         let obj = v.as_object_mut().context("an object")?;
         obj.remove("loss");
         obj.remove("view_stride");
+        obj.remove("skip_flat");
         let old: RunOptions = serde_json::from_value(v)?;
-        assert_eq!((old.loss, old.view_stride), (Loss::L1, None));
+        assert_eq!(
+            (old.loss, old.view_stride, old.skip_flat),
+            (Loss::L1, None, None)
+        );
         assert_eq!(old.sampling().view_stride, (1, 1));
         assert_eq!(
             RunOptions {
                 loss: Loss::L2,
                 view_stride: Some((1, 3)),
+                skip_flat: Some(0.02),
                 ..old
             },
             run

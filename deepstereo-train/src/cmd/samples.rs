@@ -2,11 +2,11 @@
 //! shards, for other trainers (`python/train_ddp.py`, PyTorch DistributedDataParallel).
 //!
 //! Shard `b` is exactly batch `b` of `deepstereo train` with the same scenes, `--seed`,
-//! `--views`, `--augment`, `--synthetic-percent` and `--view-stride`, and `--batch` equal
-//! to `--shard-size` (it calls the same sampler, `data::make_batch`, with batch index
-//! `b`). Every shard is written atomically; a rerun keeps the shards that are complete
-//! (they parse, hold the expected tensors and were made with the same options) and writes
-//! the rest.
+//! `--views`, `--augment`, `--synthetic-percent`, `--view-stride` and `--skip-flat`, and
+//! `--batch` equal to `--shard-size` (it calls the same sampler, `data::make_batch`, with
+//! batch index `b`). Every shard is written atomically; a rerun keeps the shards that are
+//! complete (they parse, hold the expected tensors and were made with the same options)
+//! and writes the rest.
 
 use super::train::{load_config, parse_range, parse_range_of, parse_size};
 use crate::data::{make_batch, Sampling};
@@ -39,8 +39,8 @@ pub const TARGET_NAME: &str = "target";
 #[derive(Debug, clap::Args)]
 #[command(
     after_help = "Shard b holds batch b of `deepstereo train` with the same scenes, \
---seed, --views, --augment, --synthetic-percent, --view-stride and --batch = --shard-size: tensors \
-`level0..level{L-1}` ([K, D, 4V, H_l, W_l], or [K, D, V, 4, H_l, W_l] for the \
+--seed, --views, --augment, --synthetic-percent, --view-stride, --skip-flat and --batch = \
+--shard-size: tensors `level0..level{L-1}` ([K, D, 4V, H_l, W_l], or [K, D, V, 4, H_l, W_l] for the \
 any-number-of-views family) and `target` ([K, 3, t, t]), f32; metadata `deepstereo.config` \
 (the model config JSON), `views` (V, the same for every sample of a shard), `shard`, \
 `samples`, `format` = deepstereo-samples-v1 and `deepstereo.samples` (the options). A shard \
@@ -75,6 +75,9 @@ pub struct Args {
     /// Sparser sources, `S` or `MIN-MAX`, as `train --view-stride` (default: 1).
     #[arg(long)]
     pub view_stride: Option<String>,
+    /// Skip flat tiles, as `train --skip-flat` (default: every tile).
+    #[arg(long)]
+    pub skip_flat: Option<f32>,
     /// Percent of samples drawn from the procedural scenes when real ones are there too.
     #[arg(long)]
     pub synthetic_percent: Option<u32>,
@@ -106,6 +109,9 @@ pub struct SampleOptions {
     /// Source stride range (shards before it: the nearest views).
     #[serde(default = "nearest_views")]
     pub view_stride: (usize, usize),
+    /// Flat-tile threshold (shards before it: every tile).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub skip_flat: Option<f32>,
     pub seed: u64,
     pub shard_size: usize,
 }
@@ -194,6 +200,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             Some(s) => parse_range_of("--view-stride", s)?,
             None => (1, 1),
         },
+        skip_flat: a.skip_flat,
     };
     sampling.check(&cfg)?;
     let opts = SampleOptions {
@@ -206,6 +213,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         augment: a.augment,
         synthetic_percent: a.synthetic_percent,
         view_stride: sampling.view_stride,
+        skip_flat: a.skip_flat,
         seed: a.seed,
         shard_size: a.shard_size,
     };

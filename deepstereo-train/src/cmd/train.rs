@@ -105,6 +105,10 @@ pub struct Args {
     /// baselines). Default: 1, the nearest views.
     #[arg(long)]
     pub view_stride: Option<String>,
+    /// Skip flat tiles: redraw (up to 8 times) a training tile whose target luminance has
+    /// a standard deviation under this (colours in [0, 1], e.g. 0.02). Default: every tile.
+    #[arg(long)]
+    pub skip_flat: Option<f32>,
 }
 
 /// Parses `K` or `MIN-MAX`.
@@ -198,6 +202,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         view_stride: (a.view_stride.as_deref())
             .map(|s| parse_range_of("--view-stride", s))
             .transpose()?,
+        skip_flat: a.skip_flat,
     };
     let sched = Schedule {
         steps: a.steps,
