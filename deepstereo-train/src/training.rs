@@ -241,6 +241,10 @@ fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<Batch>, usize)> 
             .map(|b| make_batch(&run.config, &val_sampling, src, val_seed, b, run.batch))
             .collect()
     };
+    // A wrong --data directory is reported before the validation scenes load (slowly).
+    for dir in &run.data {
+        crate::cmd::scene_dirs(dir)?;
+    }
     let levels = run.config.levels;
     let synth = synth_options(run);
     let val_scenes = validation_scenes(run)?;
