@@ -8,8 +8,11 @@ use std::path::Path;
 /// 5 samples in shards of 2: three shards (2, 2, 1).
 const SHARDS: usize = 3;
 
-fn samples(out: &Path) -> CmdOutput {
-    let res = run_deepstereo([
+/// `deepstereo samples` with this file's options (5 tiny samples in shards of 2, seed 3)
+/// and `extra` ones, into `out`.
+fn run_samples(out: &Path, extra: &[&str]) -> CmdOutput {
+    let out = out.to_string_lossy();
+    let mut args = vec![
         "samples",
         "--synthetic",
         "2",
@@ -26,8 +29,14 @@ fn samples(out: &Path) -> CmdOutput {
         "--seed",
         "3",
         "--out",
-        &out.to_string_lossy(),
-    ]);
+        &out,
+    ];
+    args.extend_from_slice(extra);
+    run_deepstereo(args)
+}
+
+fn samples(out: &Path) -> CmdOutput {
+    let res = run_samples(out, &[]);
     assert_eq!(res.code, Some(0), "samples failed: {}", res.stderr);
     res
 }
@@ -156,29 +165,7 @@ fn view_stride_is_an_option_of_the_shards() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let a = tmp.path().join("a");
     samples(&a);
-    let with_stride = |stride: &str, out: &Path| {
-        run_deepstereo([
-            "samples",
-            "--synthetic",
-            "2",
-            "--synth-size",
-            "64x48",
-            "--synth-views",
-            "6",
-            "--config",
-            "tiny",
-            "--count",
-            "5",
-            "--shard-size",
-            "2",
-            "--seed",
-            "3",
-            "--view-stride",
-            stride,
-            "--out",
-            &out.to_string_lossy(),
-        ])
-    };
+    let with_stride = |stride: &str, out: &Path| run_samples(out, &["--view-stride", stride]);
     let res = with_stride("2", &a);
     assert_eq!(res.code, Some(1), "{}", res.stderr);
     assert!(res.stderr.contains("other options"), "{}", res.stderr);

@@ -6,22 +6,17 @@ train_encoder3.sh (issue 20: does spatial context per view help?).
 Usage: python spatial_encoder.py IN.safetensors OUT.safetensors CONFIG_OUT.json [K]
 Needs numpy and safetensors (the test command's venv has both).
 """
-import json
-import os
 import sys
 
 import numpy as np
-from safetensors import safe_open
-from safetensors.numpy import save_file
+
+import model_file
 
 
 def main():
     src, dst, cfg_out = sys.argv[1:4]
     k = int(sys.argv[4]) if len(sys.argv) > 4 else 3
-    with safe_open(src, "np") as f:
-        meta = dict(f.metadata())
-        t = {name: f.get_tensor(name) for name in f.keys()}
-    cfg = json.loads(meta["deepstereo.config"])
+    meta, t, cfg = model_file.load(src)
     w = t["views.encode.0.weight"]
     assert w.shape[2:] == (1, 1), f"{src}: the first encoder layer is not 1x1"
     out = np.zeros(w.shape[:2] + (k, k), np.float32)
@@ -29,12 +24,7 @@ def main():
     t["views.encode.0.weight"] = out
     cfg["pool"]["encoder"][0]["kernel"] = k
     cfg["name"] = cfg["name"] + f"-enc{k}"
-    meta["deepstereo.config"] = json.dumps(cfg, separators=(",", ":"))
-    save_file(t, dst + ".tmp", metadata=meta)
-    os.replace(dst + ".tmp", dst)
-    with open(cfg_out + ".tmp", "w") as f:
-        json.dump(cfg, f, indent=1)
-    os.replace(cfg_out + ".tmp", cfg_out)
+    model_file.save(dst, cfg_out, meta, t, cfg)
     print(f"{dst}: first encoder layer {out.shape}")
 
 

@@ -11,13 +11,11 @@ Usage: python widen.py IN.safetensors OUT.safetensors CONFIG_OUT.json
        first select merge conv, colour level conv, blend hidden layer)
 Needs numpy and safetensors (the test command's venv has both).
 """
-import json
-import os
 import sys
 
 import numpy as np
-from safetensors import safe_open
-from safetensors.numpy import save_file
+
+import model_file
 
 
 def widened(w, b, rows, cols_map, cin, rng):
@@ -36,10 +34,7 @@ def main():
     src, dst, cfg_out = sys.argv[1:4]
     enc, sel, merge, colour, blend = (int(a) for a in sys.argv[4:9])
     rng = np.random.default_rng(7)
-    with safe_open(src, "np") as f:
-        meta = dict(f.metadata())
-        t = {k: f.get_tensor(k) for k in f.keys()}
-    cfg = json.loads(meta["deepstereo.config"])
+    meta, t, cfg = model_file.load(src)
     pool = cfg["pool"]
     cf_old = pool["encoder"][-1]["channels"]
     sel_old = cfg["select"]["level_convs"][-1]["channels"]
@@ -86,12 +81,7 @@ def main():
     cfg["colour"]["level_convs"][0]["channels"] = colour
     pool["blend"][0]["channels"] = blend
     cfg["name"] = cfg["name"] + "-wide"
-    meta["deepstereo.config"] = json.dumps(cfg, separators=(",", ":"))
-    save_file(t, dst + ".tmp", metadata=meta)
-    os.replace(dst + ".tmp", dst)
-    with open(cfg_out + ".tmp", "w") as f:
-        json.dump(cfg, f, indent=1)
-    os.replace(cfg_out + ".tmp", cfg_out)
+    model_file.save(dst, cfg_out, meta, t, cfg)
     print(f"{dst}: {sum(v.size for v in t.values())} parameters")
 
 
