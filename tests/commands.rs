@@ -406,3 +406,56 @@ fn curve_plots_a_run_log_and_refuses_a_file_without_log_lines() {
     assert!(!res.stderr.contains("panicked"), "{}", res.stderr);
     assert!(!out2.exists());
 }
+
+/// `train` refuses a missing --data directory and a --scene-weights name that is not one
+/// of its scenes, by name, before it writes anything into --out.
+#[test]
+fn train_refuses_bad_data_before_writing_anything() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let data = tmp.path().join("data");
+    ok(&[
+        "synth",
+        "--out",
+        &data.to_string_lossy(),
+        "--scenes",
+        "1",
+        "--size",
+        "64x48",
+        "--views",
+        "6",
+    ]);
+    let out = tmp.path().join("run");
+    let missing = tmp.path().join("missing");
+    for (data_dir, extra, says) in [
+        (&missing, &[][..], vec!["missing", "not a directory"]),
+        (
+            &data,
+            &["--scene-weights", "scene_9=2"][..],
+            vec!["no training scene is named scene_9", "scene_0000"],
+        ),
+        (
+            &data,
+            &["--scene-weights", "scene_0000=-2"][..],
+            vec!["must be above 0"],
+        ),
+    ] {
+        let mut args = vec![
+            "train".to_string(),
+            "--config".into(),
+            "tiny".into(),
+            "--data".into(),
+            data_dir.to_string_lossy().into(),
+            "--steps".into(),
+            "1".into(),
+            "--out".into(),
+            out.to_string_lossy().into(),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let res = run_deepstereo(&args);
+        assert_eq!(res.code, Some(1), "{extra:?}: {}", res.stderr);
+        for s in says {
+            assert!(res.stderr.contains(s), "{extra:?}: {}", res.stderr);
+        }
+        assert!(!out.exists(), "{extra:?}: --out was created");
+    }
+}

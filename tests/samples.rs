@@ -196,3 +196,64 @@ fn view_stride_is_an_option_of_the_shards() {
         );
     }
 }
+
+/// `--scene-weights` is part of what a shard is made with; names that are not scenes of
+/// `--data`, and impossible weights, are refused by name before anything is written.
+#[test]
+fn scene_weights_are_an_option_of_the_shards() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let data = tmp.path().join("data");
+    let res = run_deepstereo([
+        "synth",
+        "--out",
+        &data.to_string_lossy(),
+        "--scenes",
+        "2",
+        "--size",
+        "64x48",
+        "--views",
+        "6",
+    ]);
+    assert_eq!(res.code, Some(0), "synth failed: {}", res.stderr);
+    let data_arg = data.to_string_lossy().to_string();
+    let with = |weights: &str, out: &Path| {
+        run_samples(
+            out,
+            &[
+                "--data",
+                &data_arg,
+                "--scene-weights",
+                weights,
+                "--synthetic-percent",
+                "50",
+            ],
+        )
+    };
+    let a = tmp.path().join("a");
+    let res = with("scene_0001=4", &a);
+    assert_eq!(res.code, Some(0), "{}", res.stderr);
+    let opts: Value = serde_json::from_str(
+        metadata(&shard(&a, 0))["deepstereo.samples"]
+            .as_str()
+            .expect("sample options in the metadata"),
+    )
+    .expect("options JSON");
+    assert_eq!(
+        opts["scene_weights"],
+        serde_json::json!([["scene_0001", 4.0]])
+    );
+    let res = with("scene_0001=2", &a);
+    assert_eq!(res.code, Some(1), "{}", res.stderr);
+    assert!(res.stderr.contains("other options"), "{}", res.stderr);
+    for (bad, says) in [
+        ("nope=2", "no training scene is named nope"),
+        ("scene_0001=0", "must be above 0"),
+        ("scene_0001", "NAME=WEIGHT"),
+    ] {
+        let out = tmp.path().join("bad");
+        let res = with(bad, &out);
+        assert_eq!(res.code, Some(1), "{bad}: {}", res.stderr);
+        assert!(res.stderr.contains(says), "{bad}: {}", res.stderr);
+        assert!(!shard(&out, 0).exists(), "{bad}: a shard was written");
+    }
+}

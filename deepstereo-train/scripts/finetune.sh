@@ -5,7 +5,8 @@
 # photometric augmentation and flips, Adam at LR (default 2e-4) and the schedule SCHEDULE
 # down to a tenth of it, seed 2, the loss LOSS when set (default L1), the source stride
 # VIEW_STRIDE when set (`train --view-stride`; default: the nearest views), the flat-tile
-# threshold SKIP_FLAT when set (`train --skip-flat`; default: every tile). Continues from
+# threshold SKIP_FLAT when set (`train --skip-flat`; default: every tile), the scene
+# weights SCENE_WEIGHTS when set (`train --scene-weights`; default: all alike). Continues from
 # OUT's committed checkpoint when there is one.
 # Run from the repository root: OUT=DIR INIT=MODEL CONFIG=CFG bash deepstereo-train/scripts/finetune.sh STEPS SCHEDULE
 set -euo pipefail
@@ -22,4 +23,4 @@ exec nice -n 19 target/release/deepstereo train --config "$CONFIG" --init "$INIT
   --lr-schedule "$SCHEDULE" --lr-final 0.1 \
   --checkpoint-every 100 --validate-every 250 --log-every 20 --no-progress \
   ${LOSS:+--loss "$LOSS"} ${VIEW_STRIDE:+--view-stride "$VIEW_STRIDE"} \
-  ${SKIP_FLAT:+--skip-flat "$SKIP_FLAT"} --out "$OUT" "${RESUME[@]}"
+  ${SKIP_FLAT:+--skip-flat "$SKIP_FLAT"} ${SCENE_WEIGHTS:+--scene-weights "$SCENE_WEIGHTS"} --out "$OUT" "${RESUME[@]}"

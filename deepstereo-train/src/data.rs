@@ -7,6 +7,7 @@
 //! [`Config`]. Sample `k` of batch `b` depends only on `(seed, b, k)`, so batches are
 //! identical whatever the number of threads and after a resume.
 
+use crate::scene_weights::SceneWeights;
 use anyhow::{bail, Context};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::config::Config;
@@ -154,6 +155,8 @@ pub struct Sampling {
     /// Skip flat tiles: a tile whose target luminance has a standard deviation under this
     /// (colours in [0, 1]) is redrawn, up to [`MAX_FLAT_REDRAWS`] times.
     pub skip_flat: Option<f32>,
+    /// Relative weights of named real scenes ([`SceneWeights`]; empty: all equally likely).
+    pub scene_weights: SceneWeights,
 }
 
 /// Most redraws of a flat tile ([`Sampling::skip_flat`]).
@@ -176,6 +179,7 @@ impl Sampling {
             augment: false,
             view_stride: (1, 1),
             skip_flat: None,
+            scene_weights: SceneWeights::default(),
         }
     }
 
@@ -194,6 +198,7 @@ impl Sampling {
                 "the flat-tile threshold is a standard deviation of colours in [0, 1] (0 to 0.5)"
             );
         }
+        self.scene_weights.check()?;
         if self.synthetic_percent.is_some_and(|p| p > 100) {
             bail!("the share of procedural samples is a percentage (0 to 100)");
         }
@@ -245,7 +250,7 @@ fn sample(
         state = mix(state);
         state
     };
-    let s = pick_scene(scenes, sampling.synthetic_percent, next(), next());
+    let s = pick_scene(scenes, sampling, next(), next());
     let n = s.cameras.len();
     let pad = cfg.pool.is_some();
     if n < 2 || (n <= views && !pad) {
@@ -350,21 +355,31 @@ fn augment_planes(data: &mut [f32], plane: usize, w: usize, gains: &[f32], flip:
 
 /// A scene for one sample: with `synthetic_percent`, first procedural or real with that
 /// chance (when both kinds are there), then uniformly among that kind.
-fn pick_scene(
-    scenes: &[SceneData],
-    synthetic_percent: Option<u32>,
-    r1: u64,
-    r2: u64,
-) -> &SceneData {
+fn pick_scene<'a>(scenes: &'a [SceneData], sampling: &Sampling, r1: u64, r2: u64) -> &'a SceneData {
     let synth = scenes.iter().filter(|s| s.synthetic).count();
-    match synthetic_percent {
+    let pool: Vec<&SceneData> = match sampling.synthetic_percent {
         Some(p) if synth > 0 && synth < scenes.len() => {
             let want = r1 % 100 < p as u64;
-            let pool: Vec<&SceneData> = scenes.iter().filter(|s| s.synthetic == want).collect();
-            pool[(r2 % pool.len() as u64) as usize]
+            scenes.iter().filter(|s| s.synthetic == want).collect()
         }
-        _ => &scenes[(r1 % scenes.len() as u64) as usize],
+        _ => {
+            if sampling.scene_weights.is_empty() {
+                return &scenes[(r1 % scenes.len() as u64) as usize];
+            }
+            scenes.iter().collect()
+        }
+    };
+    // Without weights, the draws of the runs before them.
+    if sampling.scene_weights.is_empty() {
+        return pool[(r2 % pool.len() as u64) as usize];
     }
+    let w: Vec<f64> = (pool.iter())
+        .map(|s| match s.synthetic {
+            true => 1.0,
+            false => sampling.scene_weights.weight(&s.name),
+        })
+        .collect();
+    pool[SceneWeights::draw(&w, r2)]
 }
 
 /// Builds batch `b` of `batch` samples, samples in parallel.
@@ -608,6 +623,56 @@ mod tests {
             assert!(with(bad).check(&cfg).is_err(), "{bad}");
         }
         Ok(())
+    }
+
+    /// Scene weights draw a named real scene that many times as often as the others,
+    /// leave the procedural share alone, and are checked like the other options.
+    #[test]
+    fn scene_weights_draw_named_scenes_more_often() {
+        let stub = |name: &str, synthetic| SceneData {
+            name: name.into(),
+            synthetic,
+            cameras: Vec::new(),
+            pyramids: Vec::new(),
+            near: 1.0,
+            far: 2.0,
+        };
+        let sc = [stub("/d/a", false), stub("/d/b", false), stub("p0", true)];
+        let cfg = Config::nviews();
+        let count = |s: &Sampling| {
+            let mut c = [0usize; 3];
+            for k in 0..40_000u64 {
+                let p = pick_scene(&sc, s, mix(k), mix(k ^ 0xabcd));
+                c[sc.iter().position(|x| std::ptr::eq(x, p)).unwrap_or(0)] += 1;
+            }
+            c
+        };
+        let weights = SceneWeights(vec![("b".into(), 3.0)]);
+        for percent in [Some(50), None] {
+            let base = Sampling {
+                synthetic_percent: percent,
+                ..Sampling::fixed(&cfg)
+            };
+            let weighted = Sampling {
+                scene_weights: weights.clone(),
+                ..base.clone()
+            };
+            let (u, w) = (count(&base), count(&weighted));
+            let ratio = |c: [usize; 3], i: usize| c[i] as f64 / c[0] as f64;
+            assert!((ratio(u, 1) - 1.0).abs() < 0.1, "{percent:?} {u:?}");
+            assert!((ratio(w, 1) - 3.0).abs() < 0.25, "{percent:?} {w:?}");
+            match percent {
+                // The share of procedural samples is drawn first, and weights keep it.
+                Some(_) => assert_eq!(u[2], w[2]),
+                // Without a share, a procedural scene weighs 1 like an unnamed real one.
+                None => assert!((ratio(w, 2) - 1.0).abs() < 0.1, "{w:?}"),
+            }
+            let bad = Sampling {
+                scene_weights: SceneWeights(vec![("b".into(), -1.0)]),
+                ..base
+            };
+            assert!(bad.check(&cfg).is_err());
+        }
     }
 
     /// Augmentation scales colours (not alpha) by one gain per channel for the sources

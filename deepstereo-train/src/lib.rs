@@ -12,5 +12,6 @@ pub mod lr;
 pub mod models;
 pub mod optim;
 pub mod outdir;
+pub mod scene_weights;
 pub mod training;
 pub mod video;

@@ -10,6 +10,7 @@ use crate::data::{
 };
 use crate::lr::LrSchedule;
 use crate::optim::{Optimizer, OptimizerKind};
+use crate::scene_weights::SceneWeights;
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use deepstereo_core::config::Config;
@@ -95,6 +96,9 @@ pub struct RunOptions {
     /// Flat-tile threshold (`None`: every tile, as runs before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub skip_flat: Option<f32>,
+    /// Weights of named real scenes (`None`: every scene equally likely, as runs before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene_weights: Option<SceneWeights>,
 }
 
 impl RunOptions {
@@ -106,6 +110,7 @@ impl RunOptions {
             augment: self.augment,
             view_stride: self.view_stride.unwrap_or((1, 1)),
             skip_flat: self.skip_flat,
+            scene_weights: self.scene_weights.clone().unwrap_or_default(),
         }
     }
 }
@@ -233,6 +238,19 @@ fn validation_scenes(run: &RunOptions) -> Result<Vec<SceneData>> {
 /// scenes). The batches are made once, and the validation scenes are dropped before the
 /// training scenes are loaded: they are not needed again, and holding both (all the
 /// images' pyramids in f32) raised the default model's run from 7.4 to 11.6 GB (README).
+/// Every --data directory holds scenes, and every name --scene-weights gives is one of
+/// them: checked before anything is written or loaded (the scenes load slowly).
+fn check_data(run: &RunOptions) -> Result<()> {
+    let mut dirs = Vec::new();
+    for dir in &run.data {
+        dirs.extend(crate::cmd::scene_dirs(dir)?);
+    }
+    if let Some(w) = &run.scene_weights {
+        w.check_names(&dirs)?;
+    }
+    Ok(())
+}
+
 fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<Batch>, usize)> {
     let val_seed = run.seed ^ VALIDATION_SALT;
     let val_sampling = Sampling::fixed(&run.config);
@@ -241,10 +259,6 @@ fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<Batch>, usize)> 
             .map(|b| make_batch(&run.config, &val_sampling, src, val_seed, b, run.batch))
             .collect()
     };
-    // A wrong --data directory is reported before the validation scenes load (slowly).
-    for dir in &run.data {
-        crate::cmd::scene_dirs(dir)?;
-    }
     let levels = run.config.levels;
     let synth = synth_options(run);
     let val_scenes = validation_scenes(run)?;
@@ -276,6 +290,7 @@ pub fn train(
     }
     let sampling = run.sampling();
     sampling.check(&run.config)?;
+    check_data(run)?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let device = Device::Cpu;
     let t = weights::init_seeded(&run.config, candle_core::DType::F32, &device, run.seed)?;
@@ -607,7 +622,7 @@ mod tests {
     }
 
     #[test]
-    fn run_options_saved_before_the_loss_and_stride_options_read_as_before() -> Result<()> {
+    fn run_options_saved_before_the_sampling_options_read_as_before() -> Result<()> {
         let run = RunOptions {
             config: Config::tiny(),
             data: Vec::new(),
@@ -630,6 +645,7 @@ mod tests {
             loss: Loss::L2,
             view_stride: Some((1, 3)),
             skip_flat: Some(0.02),
+            scene_weights: Some(SceneWeights(vec![("maryrose".into(), 3.0)])),
         };
         let mut v = serde_json::to_value(&run)?;
         assert_eq!(v["loss"], "l2");
@@ -638,17 +654,20 @@ mod tests {
         obj.remove("loss");
         obj.remove("view_stride");
         obj.remove("skip_flat");
+        obj.remove("scene_weights");
         let old: RunOptions = serde_json::from_value(v)?;
         assert_eq!(
-            (old.loss, old.view_stride, old.skip_flat),
-            (Loss::L1, None, None)
+            (old.loss, old.view_stride, old.skip_flat, &old.scene_weights),
+            (Loss::L1, None, None, &None)
         );
         assert_eq!(old.sampling().view_stride, (1, 1));
+        assert!(old.sampling().scene_weights.is_empty());
         assert_eq!(
             RunOptions {
                 loss: Loss::L2,
                 view_stride: Some((1, 3)),
                 skip_flat: Some(0.02),
+                scene_weights: Some(SceneWeights(vec![("maryrose".into(), 3.0)])),
                 ..old
             },
             run

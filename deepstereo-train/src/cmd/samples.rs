@@ -10,6 +10,7 @@
 
 use super::train::{load_config, parse_range, parse_range_of, parse_size};
 use crate::data::{make_batch, Sampling};
+use crate::scene_weights::SceneWeights;
 use crate::training::training_scenes;
 use anyhow::{bail, Context};
 use deepstereo_core::config::Config;
@@ -78,6 +79,9 @@ pub struct Args {
     /// Skip flat tiles, as `train --skip-flat` (default: every tile).
     #[arg(long)]
     pub skip_flat: Option<f32>,
+    /// Weights of named real scenes, as `train --scene-weights` (default: all alike).
+    #[arg(long)]
+    pub scene_weights: Option<String>,
     /// Percent of samples drawn from the procedural scenes when real ones are there too.
     #[arg(long)]
     pub synthetic_percent: Option<u32>,
@@ -112,6 +116,9 @@ pub struct SampleOptions {
     /// Flat-tile threshold (shards before it: every tile).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub skip_flat: Option<f32>,
+    /// Weights of named real scenes (shards before it: every scene alike).
+    #[serde(default, skip_serializing_if = "SceneWeights::is_empty")]
+    pub scene_weights: SceneWeights,
     pub seed: u64,
     pub shard_size: usize,
 }
@@ -201,8 +208,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             None => (1, 1),
         },
         skip_flat: a.skip_flat,
+        scene_weights: (a.scene_weights.as_deref())
+            .map(SceneWeights::parse)
+            .transpose()?
+            .unwrap_or_default(),
     };
     sampling.check(&cfg)?;
+    if !sampling.scene_weights.is_empty() {
+        let mut dirs = Vec::new();
+        for d in &a.data {
+            dirs.extend(super::scene_dirs(d)?);
+        }
+        sampling.scene_weights.check_names(&dirs)?;
+    }
     let opts = SampleOptions {
         data: a.data.clone(),
         synthetic: a.synthetic,
@@ -214,6 +232,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         synthetic_percent: a.synthetic_percent,
         view_stride: sampling.view_stride,
         skip_flat: a.skip_flat,
+        scene_weights: sampling.scene_weights.clone(),
         seed: a.seed,
         shard_size: a.shard_size,
     };

@@ -2,6 +2,7 @@
 
 use crate::lr::{LrSchedule, DEFAULT_LR_FINAL};
 use crate::optim::OptimizerKind;
+use crate::scene_weights::SceneWeights;
 use crate::training::{train, Loss, RunOptions, Schedule};
 use anyhow::{bail, Context};
 use deepstereo_core::config::Config;
@@ -109,6 +110,11 @@ pub struct Args {
     /// a standard deviation under this (colours in [0, 1], e.g. 0.02). Default: every tile.
     #[arg(long)]
     pub skip_flat: Option<f32>,
+    /// Draw some real scenes more or less often: `NAME=W[,NAME=W...]`, a scene named by
+    /// its directory's last component drawn W times as often as an unnamed one (weight 1)
+    /// among the real scenes. Default: every scene equally likely.
+    #[arg(long)]
+    pub scene_weights: Option<String>,
 }
 
 /// Parses `K` or `MIN-MAX`.
@@ -203,6 +209,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             .map(|s| parse_range_of("--view-stride", s))
             .transpose()?,
         skip_flat: a.skip_flat,
+        scene_weights: (a.scene_weights.as_deref())
+            .map(SceneWeights::parse)
+            .transpose()?,
     };
     let sched = Schedule {
         steps: a.steps,
