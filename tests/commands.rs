@@ -407,8 +407,9 @@ fn curve_plots_a_run_log_and_refuses_a_file_without_log_lines() {
     assert!(!out2.exists());
 }
 
-/// `train` refuses a missing --data directory and a --scene-weights name that is not one
-/// of its scenes, by name, before it writes anything into --out.
+/// `train` refuses a missing --data directory, a --scene-weights name that is not one of
+/// its scenes, an unreadable --init and a --resume without a checkpoint, by name, before
+/// it creates --out.
 #[test]
 fn train_refuses_bad_data_before_writing_anything() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -426,6 +427,14 @@ fn train_refuses_bad_data_before_writing_anything() {
     ]);
     let out = tmp.path().join("run");
     let missing = tmp.path().join("missing");
+    let init_missing = tmp
+        .path()
+        .join("absent.safetensors")
+        .to_string_lossy()
+        .to_string();
+    let init_bad = tmp.path().join("bad.safetensors");
+    std::fs::write(&init_bad, "not safetensors").expect("write");
+    let init_bad = init_bad.to_string_lossy().to_string();
     for (data_dir, extra, says) in [
         (&missing, &[][..], vec!["missing", "not a directory"]),
         (
@@ -438,6 +447,17 @@ fn train_refuses_bad_data_before_writing_anything() {
             &["--scene-weights", "scene_0000=-2"][..],
             vec!["must be above 0"],
         ),
+        (
+            &data,
+            &["--init", &init_missing][..],
+            vec!["--init", "cannot read"],
+        ),
+        (
+            &data,
+            &["--init", &init_bad][..],
+            vec!["--init", "not a safetensors file"],
+        ),
+        (&data, &["--resume"][..], vec!["--resume", "cannot read"]),
     ] {
         let mut args = vec![
             "train".to_string(),

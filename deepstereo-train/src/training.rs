@@ -291,7 +291,6 @@ pub fn train(
     let sampling = run.sampling();
     sampling.check(&run.config)?;
     check_data(run)?;
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let device = Device::Cpu;
     let t = weights::init_seeded(&run.config, candle_core::DType::F32, &device, run.seed)?;
     let vars = named_vars(&t.varmap);
@@ -318,6 +317,8 @@ pub fn train(
             weights::assign(init, &st, &t.varmap, "")?;
             eprintln!("starting from the weights of {}", init.display());
         }
+        // Created only now: options and --init that are refused leave nothing behind.
+        std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
         write_atomic(&log_path, b"")?;
     }
     let t0 = Instant::now();
