@@ -354,23 +354,21 @@ fn augment_planes(data: &mut [f32], plane: usize, w: usize, gains: &[f32], flip:
 }
 
 /// A scene for one sample: with `synthetic_percent`, first procedural or real with that
-/// chance (when both kinds are there), then uniformly among that kind.
+/// chance (when both kinds are there), then among that kind: uniformly, or in proportion
+/// to `scene_weights` (a procedural scene, or a real one not named, weighs 1).
 fn pick_scene<'a>(scenes: &'a [SceneData], sampling: &Sampling, r1: u64, r2: u64) -> &'a SceneData {
     let synth = scenes.iter().filter(|s| s.synthetic).count();
+    let weighted = !sampling.scene_weights.is_empty();
     let pool: Vec<&SceneData> = match sampling.synthetic_percent {
         Some(p) if synth > 0 && synth < scenes.len() => {
             let want = r1 % 100 < p as u64;
             scenes.iter().filter(|s| s.synthetic == want).collect()
         }
-        _ => {
-            if sampling.scene_weights.is_empty() {
-                return &scenes[(r1 % scenes.len() as u64) as usize];
-            }
-            scenes.iter().collect()
-        }
+        // Unweighted, the draws of the runs before weights: `r1` alone picks the scene.
+        _ if !weighted => return &scenes[(r1 % scenes.len() as u64) as usize],
+        _ => scenes.iter().collect(),
     };
-    // Without weights, the draws of the runs before them.
-    if sampling.scene_weights.is_empty() {
+    if !weighted {
         return pool[(r2 % pool.len() as u64) as usize];
     }
     let w: Vec<f64> = (pool.iter())

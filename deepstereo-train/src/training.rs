@@ -233,11 +233,6 @@ fn validation_scenes(run: &RunOptions) -> Result<Vec<SceneData>> {
     Ok(val)
 }
 
-/// The training scenes and the validation batches (the config's views, no augmentation,
-/// every validation scene alike; the training scenes' when there are no validation
-/// scenes). The batches are made once, and the validation scenes are dropped before the
-/// training scenes are loaded: they are not needed again, and holding both (all the
-/// images' pyramids in f32) raised the default model's run from 7.4 to 11.6 GB (README).
 /// Every --data directory holds scenes, and every name --scene-weights gives is one of
 /// them: checked before anything is written or loaded (the scenes load slowly).
 fn check_data(run: &RunOptions) -> Result<()> {
@@ -251,6 +246,11 @@ fn check_data(run: &RunOptions) -> Result<()> {
     Ok(())
 }
 
+/// The training scenes and the validation batches (the config's views, no augmentation,
+/// every validation scene alike; the training scenes' when there are no validation
+/// scenes). The batches are made once, and the validation scenes are dropped before the
+/// training scenes are loaded: they are not needed again, and holding both (all the
+/// images' pyramids in f32) raised the default model's run from 7.4 to 11.6 GB (README).
 fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<Batch>, usize)> {
     let val_seed = run.seed ^ VALIDATION_SALT;
     let val_sampling = Sampling::fixed(&run.config);
