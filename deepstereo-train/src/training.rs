@@ -235,12 +235,12 @@ fn validation_scenes(run: &RunOptions) -> Result<Vec<SceneData>> {
 
 /// Every --data directory holds scenes, and every name --scene-weights gives is one of
 /// them: checked before anything is written or loaded (the scenes load slowly).
-fn check_data(run: &RunOptions) -> Result<()> {
+pub fn check_data(data: &[PathBuf], weights: Option<&SceneWeights>) -> Result<()> {
     let mut dirs = Vec::new();
-    for dir in &run.data {
+    for dir in data {
         dirs.extend(crate::cmd::scene_dirs(dir)?);
     }
-    if let Some(w) = &run.scene_weights {
+    if let Some(w) = weights {
         w.check_names(&dirs)?;
     }
     Ok(())
@@ -290,7 +290,7 @@ pub fn train(
     }
     let sampling = run.sampling();
     sampling.check(&run.config)?;
-    check_data(run)?;
+    check_data(&run.data, run.scene_weights.as_ref())?;
     let device = Device::Cpu;
     let t = weights::init_seeded(&run.config, candle_core::DType::F32, &device, run.seed)?;
     let vars = named_vars(&t.varmap);

@@ -13,6 +13,7 @@ pub mod render;
 pub mod report;
 pub mod report_html;
 pub mod samples;
+pub mod sampling_args;
 pub mod shutter_json;
 pub mod sweep;
 pub mod synth;

@@ -8,10 +8,11 @@
 //! complete (they parse, hold the expected tensors and were made with the same options)
 //! and writes the rest.
 
-use super::train::{load_config, parse_range, parse_range_of, parse_size};
+use super::sampling_args::SamplingArgs;
+use super::train::{load_config, parse_size};
 use crate::data::{make_batch, Sampling};
 use crate::scene_weights::SceneWeights;
-use crate::training::training_scenes;
+use crate::training::{check_data, training_scenes};
 use anyhow::{bail, Context};
 use deepstereo_core::config::Config;
 use deepstereo_core::synth::SynthOptions;
@@ -66,25 +67,6 @@ pub struct Args {
     /// Model config: a preset (`tiny`, `paper`, `nviews`) or a JSON file of a Config.
     #[arg(long, default_value = "tiny")]
     pub config: String,
-    /// Source views per sample, `K` or a range `MIN-MAX` drawn afresh for every shard
-    /// (the any-number-of-views family). Default: the config's views.
-    #[arg(long)]
-    pub views: Option<String>,
-    /// Photometric augmentation and random horizontal flips, as `train --augment`.
-    #[arg(long)]
-    pub augment: bool,
-    /// Sparser sources, `S` or `MIN-MAX`, as `train --view-stride` (default: 1).
-    #[arg(long)]
-    pub view_stride: Option<String>,
-    /// Skip flat tiles, as `train --skip-flat` (default: every tile).
-    #[arg(long)]
-    pub skip_flat: Option<f32>,
-    /// Weights of named real scenes, as `train --scene-weights` (default: all alike).
-    #[arg(long)]
-    pub scene_weights: Option<String>,
-    /// Percent of samples drawn from the procedural scenes when real ones are there too.
-    #[arg(long)]
-    pub synthetic_percent: Option<u32>,
     /// Total number of samples (the last shard holds the remainder).
     #[arg(long)]
     pub count: usize,
@@ -97,6 +79,9 @@ pub struct Args {
     /// Output directory: `shard-00000.safetensors`, `shard-00001.safetensors`, ...
     #[arg(long)]
     pub out: PathBuf,
+    /// How samples are drawn.
+    #[command(flatten)]
+    pub sampling: SamplingArgs,
 }
 
 /// What decides a shard's content (stored in every shard; a rerun must match).
@@ -196,30 +181,18 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         bail!("--count and --shard-size must be at least 1");
     }
     let (w, h) = parse_size(&a.synth_size)?;
+    let sa = &a.sampling;
     let sampling = Sampling {
-        views: match a.views.as_deref() {
-            Some(s) => parse_range(s)?,
-            None => (cfg.views, cfg.views),
-        },
-        synthetic_percent: a.synthetic_percent,
-        augment: a.augment,
-        view_stride: match a.view_stride.as_deref() {
-            Some(s) => parse_range_of("--view-stride", s)?,
-            None => (1, 1),
-        },
-        skip_flat: a.skip_flat,
-        scene_weights: (a.scene_weights.as_deref())
-            .map(SceneWeights::parse)
-            .transpose()?
-            .unwrap_or_default(),
+        views: sa.views_range()?.unwrap_or((cfg.views, cfg.views)),
+        synthetic_percent: sa.synthetic_percent,
+        augment: sa.augment,
+        view_stride: sa.view_stride_range()?.unwrap_or((1, 1)),
+        skip_flat: sa.skip_flat,
+        scene_weights: sa.weights()?.unwrap_or_default(),
     };
     sampling.check(&cfg)?;
     if !sampling.scene_weights.is_empty() {
-        let mut dirs = Vec::new();
-        for d in &a.data {
-            dirs.extend(super::scene_dirs(d)?);
-        }
-        sampling.scene_weights.check_names(&dirs)?;
+        check_data(&a.data, Some(&sampling.scene_weights))?;
     }
     let opts = SampleOptions {
         data: a.data.clone(),
@@ -228,10 +201,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         synth_height: h,
         synth_views: a.synth_views,
         views: sampling.views,
-        augment: a.augment,
-        synthetic_percent: a.synthetic_percent,
+        augment: sa.augment,
+        synthetic_percent: sa.synthetic_percent,
         view_stride: sampling.view_stride,
-        skip_flat: a.skip_flat,
+        skip_flat: sa.skip_flat,
         scene_weights: sampling.scene_weights.clone(),
         seed: a.seed,
         shard_size: a.shard_size,

@@ -1,8 +1,8 @@
 //! `deepstereo train`: train a model on procedural and/or real scenes.
 
+use super::sampling_args::SamplingArgs;
 use crate::lr::{LrSchedule, DEFAULT_LR_FINAL};
 use crate::optim::OptimizerKind;
-use crate::scene_weights::SceneWeights;
 use crate::training::{train, Loss, RunOptions, Schedule};
 use anyhow::{bail, Context};
 use deepstereo_core::config::Config;
@@ -68,23 +68,10 @@ pub struct Args {
     /// not a terminal).
     #[arg(long)]
     pub no_progress: bool,
-    /// Source views per sample, `K` or a range `MIN-MAX` drawn afresh for every batch
-    /// (the any-number-of-views family, e.g. `2-8`; the paper's family takes exactly
-    /// its config's). Default: the config's views.
-    #[arg(long)]
-    pub views: Option<String>,
     /// Scene directories to validate on (never trained on), beside the procedural
     /// validation scenes.
     #[arg(long, num_args = 1..)]
     pub val_data: Vec<PathBuf>,
-    /// Percent of samples drawn from the procedural scenes when real ones (--data) are
-    /// there too (default: every scene equally likely).
-    #[arg(long)]
-    pub synthetic_percent: Option<u32>,
-    /// Photometric augmentation (a random exposure and white balance per sample, on the
-    /// sources and the target alike) and random horizontal flips.
-    #[arg(long)]
-    pub augment: bool,
     /// Learning rate against the step: `constant`, or `cosine:START-END` (the initial
     /// rate up to step START, a cosine down to `--lr-final` times it at step END). A
     /// resumed run may add or change it.
@@ -101,20 +88,9 @@ pub struct Args {
     /// Training loss: l1 (the paper's mean absolute error) or l2 (mean squared error).
     #[arg(long, value_enum, default_value_t = Loss::L1)]
     pub loss: Loss,
-    /// Sparser sources, `S` or a range `MIN-MAX` drawn per sample: the sources are the
-    /// S-th, 2S-th, ... nearest views, as if the scene had one view in S (wider
-    /// baselines). Default: 1, the nearest views.
-    #[arg(long)]
-    pub view_stride: Option<String>,
-    /// Skip flat tiles: redraw (up to 8 times) a training tile whose target luminance has
-    /// a standard deviation under this (colours in [0, 1], e.g. 0.02). Default: every tile.
-    #[arg(long)]
-    pub skip_flat: Option<f32>,
-    /// Draw some real scenes more or less often: `NAME=W[,NAME=W...]`, a scene named by
-    /// its directory's last component drawn W times as often as an unnamed one (weight 1)
-    /// among the real scenes. Default: every scene equally likely.
-    #[arg(long)]
-    pub scene_weights: Option<String>,
+    /// How samples are drawn.
+    #[command(flatten)]
+    pub sampling: SamplingArgs,
 }
 
 /// Parses `K` or `MIN-MAX`.
@@ -198,20 +174,16 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         seed: a.seed,
         val_scenes: a.val_scenes,
         val_batches: a.val_batches,
-        views: a.views.as_deref().map(parse_range).transpose()?,
+        views: a.sampling.views_range()?,
         val_data: a.val_data,
-        synthetic_percent: a.synthetic_percent,
-        augment: a.augment,
+        synthetic_percent: a.sampling.synthetic_percent,
+        augment: a.sampling.augment,
         lr_schedule: LrSchedule::parse(&a.lr_schedule, a.lr_final)?,
         init: a.init,
         loss: a.loss,
-        view_stride: (a.view_stride.as_deref())
-            .map(|s| parse_range_of("--view-stride", s))
-            .transpose()?,
-        skip_flat: a.skip_flat,
-        scene_weights: (a.scene_weights.as_deref())
-            .map(SceneWeights::parse)
-            .transpose()?,
+        view_stride: a.sampling.view_stride_range()?,
+        skip_flat: a.sampling.skip_flat,
+        scene_weights: a.sampling.weights()?,
     };
     let sched = Schedule {
         steps: a.steps,
