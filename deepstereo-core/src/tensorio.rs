@@ -47,7 +47,33 @@ pub fn write_safetensors(
                 .map_err(|e| Error::format(path, format!("tensor '{}': {e}", a.name)))
         })
         .collect::<Result<_>>()?;
-    let bytes = safetensors::serialize(views, metadata)
+    let mut bytes = safetensors::serialize(views, metadata)
         .map_err(|e| Error::format(path, format!("cannot serialize safetensors: {e}")))?;
+    sort_header(&mut bytes);
     write_atomic(path, &bytes)
+}
+
+/// Rewrites a serialized file's JSON header with its keys sorted (the metadata comes as a
+/// `HashMap`, whose order changes from one process to the next), so the same tensors
+/// and metadata always give the same bytes. The header keeps its length: the same keys
+/// and values, compact, in another order.
+fn sort_header(bytes: &mut [u8]) {
+    let Some(len) = bytes
+        .get(..8)
+        .map(|b| u64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]) as usize)
+    else {
+        return;
+    };
+    let Some(header) = bytes.get(8..8 + len) else {
+        return;
+    };
+    let text = String::from_utf8_lossy(header);
+    let trimmed = text.trim_end();
+    // serde_json's map is a BTreeMap here: serializing sorts every object's keys.
+    let sorted = serde_json::from_str::<serde_json::Value>(trimmed)
+        .ok()
+        .and_then(|v| serde_json::to_string(&v).ok());
+    if let Some(sorted) = sorted.filter(|s| s.len() == trimmed.len()) {
+        bytes[8..8 + sorted.len()].copy_from_slice(sorted.as_bytes());
+    }
 }

@@ -32,6 +32,9 @@ pub struct SceneData {
     pub pyramids: Vec<PyramidSource>,
     pub near: f64,
     pub far: f64,
+    /// The views a sample may take as its target (`None`: every view). The others are
+    /// still sources: `tune` sets views aside for validation this way.
+    pub targets: Option<Vec<usize>>,
 }
 
 impl SceneData {
@@ -50,12 +53,20 @@ impl SceneData {
             pyramids,
             near: s.near,
             far: s.far,
+            targets: None,
         }
     }
 
     /// From a scene directory in any format the readers accept.
     pub fn load(dir: &Path, levels: usize) -> anyhow::Result<Self> {
         let scene = Scene::load(dir, &LoadOptions::default())?;
+        let mut data = Self::from_scene(&scene, levels)?;
+        data.name = dir.display().to_string();
+        Ok(data)
+    }
+
+    /// From a scene already read (every view's image is loaded now).
+    pub fn from_scene(scene: &Scene, levels: usize) -> anyhow::Result<Self> {
         let pyramids = (0..scene.views.len())
             .map(|i| {
                 Ok(PyramidSource::new(
@@ -66,12 +77,13 @@ impl SceneData {
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
         Ok(Self {
-            name: dir.display().to_string(),
+            name: scene.root.display().to_string(),
             synthetic: false,
             cameras: scene.views.iter().map(|v| v.camera).collect(),
             pyramids,
             near: scene.near,
             far: scene.far,
+            targets: None,
         })
     }
 
@@ -259,7 +271,10 @@ fn sample(
             s.name,
         );
     }
-    let target = (next() % n as u64) as usize;
+    let target = match &s.targets {
+        Some(t) if !t.is_empty() => t[(next() % t.len() as u64) as usize],
+        _ => (next() % n as u64) as usize,
+    };
     // A stride range of one value draws nothing (the samples of runs before it).
     let stride = match sampling.view_stride {
         (lo, hi) if lo < hi => lo + (next() % (hi - lo + 1) as u64) as usize,

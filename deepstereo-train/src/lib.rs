@@ -14,4 +14,5 @@ pub mod optim;
 pub mod outdir;
 pub mod scene_weights;
 pub mod training;
+pub mod tune;
 pub mod video;

@@ -142,6 +142,19 @@ pub struct Scene {
 impl Scene {
     /// Reads a scene directory, detecting its format unless `opts.format` forces one.
     pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Scene> {
+        Self::load_views(dir, opts, |n| Ok((0..n).collect()))
+    }
+
+    /// Reads a scene directory keeping only some of its views: `keep(n)` gets the number
+    /// of views the files list and returns the indices to keep, ascending (an error
+    /// message refuses the scene). Nothing of the other views is read but their cameras:
+    /// their images are neither opened nor used to estimate depth bounds, so a held-out
+    /// photograph cannot change the scene a tuner sees.
+    pub fn load_views(
+        dir: &Path,
+        opts: &LoadOptions,
+        keep: impl FnOnce(usize) -> std::result::Result<Vec<usize>, String>,
+    ) -> Result<Scene> {
         if !dir.is_dir() {
             return Err(Error::format(
                 dir,
@@ -165,6 +178,20 @@ impl Scene {
                 raw.notes
                     .push("depth bounds from the bounding box in README.txt".to_string());
             }
+        }
+        let kept = keep(raw.views.len()).map_err(|m| Error::format(dir, m))?;
+        if kept.windows(2).any(|w| w[0] >= w[1]) || kept.iter().any(|&i| i >= raw.views.len()) {
+            return Err(Error::format(
+                dir,
+                "the views kept must be ascending view indices",
+            ));
+        }
+        if kept.len() < raw.views.len() {
+            let mut views = std::mem::take(&mut raw.views)
+                .into_iter()
+                .map(Some)
+                .collect::<Vec<_>>();
+            raw.views = kept.iter().filter_map(|&i| views[i].take()).collect();
         }
         check_image_headers(&raw.views)?;
         Self::from_raw(dir, format, raw, opts)

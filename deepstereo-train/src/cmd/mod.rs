@@ -18,6 +18,7 @@ pub mod shutter_json;
 pub mod sweep;
 pub mod synth;
 pub mod train;
+pub mod tune;
 
 use clap::{Args, Parser, Subcommand};
 use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat};
@@ -59,6 +60,8 @@ pub enum Command {
     Samples(samples::Args),
     /// Plot a run's log.jsonl: training loss and validation PSNR against steps.
     Curve(curve::Args),
+    /// Fine-tune a model on one scene by leaving one view out; writes a model for --model.
+    Tune(tune::Args),
 }
 
 /// Runs one parsed command line.
@@ -77,6 +80,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Poses(a) => poses::run(a),
         Command::Samples(a) => samples::run(a),
         Command::Curve(a) => curve::run(a),
+        Command::Tune(a) => tune::run(a),
     }
 }
 

@@ -182,6 +182,7 @@ fn scene_weights_draw_named_scenes_more_often() {
         pyramids: Vec::new(),
         near: 1.0,
         far: 2.0,
+        targets: None,
     };
     let sc = [stub("/d/a", false), stub("/d/b", false), stub("p0", true)];
     let cfg = Config::nviews();

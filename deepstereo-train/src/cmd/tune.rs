@@ -1,0 +1,389 @@
+//! `deepstereo tune`: fine-tunes a model on the user's own scene by leaving one view out
+//! (the paper's training, on the capture itself), and writes a model every command takes
+//! with `--model`.
+
+use super::model_args::ModelArgs;
+use super::SceneArgs;
+use crate::data::SceneData;
+use crate::inference::{evaluate, holdout_list, RenderSettings};
+use crate::tune::{tune, validation_views, Budget, Progress, TuneOptions, TuneResult};
+use anyhow::{bail, Context, Result};
+use candle_core::Tensor;
+use deepstereo_core::config::Config;
+use deepstereo_core::imageio::write_atomic;
+use deepstereo_core::render::CandleBackend;
+use deepstereo_core::scene::{LoadOptions, Scene};
+use deepstereo_core::tensorio::write_safetensors;
+use deepstereo_core::weights::{self, metadata, named_vars};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+/// Adam's initial rate of the recipe.
+pub const DEFAULT_LR: f64 = 5e-4;
+/// The rate's final share (cosine decay over the budget).
+pub const DEFAULT_LR_FINAL: f64 = 0.1;
+/// Metadata key of the tune's options in the model it writes.
+pub const TUNE_KEY: &str = "deepstereo.tune";
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    /// The model to start from (`--model`, default the embedded one), the views per
+    /// tile (`--views`, default the model's) and, for `--curve`, how held-out views are
+    /// rendered.
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Held-out view indices, comma-separated: never a target, never a source, their
+    /// images never read while tuning.
+    #[arg(long)]
+    pub holdout: Option<String>,
+    /// Hold out every Nth view (LLFF's convention: 0, N, 2N, ...).
+    #[arg(long)]
+    pub llffhold: Option<usize>,
+    /// Tune for this many minutes (of tuning; the output then depends on the machine's
+    /// speed).
+    #[arg(long, conflicts_with = "steps", required_unless_present = "steps")]
+    pub minutes: Option<f64>,
+    /// Tune for exactly this many steps (same seed and steps: the same output, bit for bit).
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Seed of the tiles drawn.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Adam's initial learning rate (a cosine decay to --lr-final times it over the budget).
+    #[arg(long, default_value_t = DEFAULT_LR)]
+    pub lr: f64,
+    /// The final rate's share of --lr.
+    #[arg(long, default_value_t = DEFAULT_LR_FINAL)]
+    pub lr_final: f64,
+    /// Tiles per step.
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    /// Photometric augmentation and flips of the tiles.
+    #[arg(long)]
+    pub augment: bool,
+    /// Validate (on views set aside from the tuning views) every this many steps.
+    #[arg(long, default_value_t = 25)]
+    pub validate_every: u64,
+    /// Validation batches of --batch tiles each.
+    #[arg(long, default_value_t = 8)]
+    pub val_batches: usize,
+    /// The tuned model: a safetensors file with its config (written atomically at the
+    /// end, or on Ctrl-C with the best weights so far).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Error against tuning time: after tuning, render the held-out views with the best
+    /// weights of each --curve-minutes time and write curve.csv, curve.json and curve.png
+    /// into this directory.
+    #[arg(long)]
+    pub curve: Option<PathBuf>,
+    /// Times of the curve, in minutes (those within the budget are drawn).
+    #[arg(long, default_value = "0,1,2,5,10,20")]
+    pub curve_minutes: String,
+    /// Print a line per validation instead of a progress bar (the default when standard
+    /// error is not a terminal).
+    #[arg(long)]
+    pub no_progress: bool,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let settings = a.model.settings()?;
+    let budget = match (a.minutes, a.steps) {
+        (Some(m), None) if m.is_finite() && m > 0.0 => Budget::Seconds(m * 60.0),
+        (Some(m), None) => bail!("--minutes must be a positive number, got {m}"),
+        (None, Some(0)) => bail!("--steps must be at least 1"),
+        (None, Some(s)) => Budget::Steps(s),
+        _ => bail!("pass --minutes M or --steps S"),
+    };
+    let curve_minutes = match &a.curve {
+        Some(_) => parse_minutes(&a.curve_minutes)?,
+        None => Vec::new(),
+    };
+    check_out(&a.out)?;
+    let start = crate::models::load_model(a.model.model.as_deref())?;
+    let cfg = start.model.config().clone();
+    if cfg.pool.is_none() {
+        bail!(
+            "{}: tune takes the any-number-of-views family (like the embedded model); '{}' is the paper's family, which takes a fixed number of views",
+            a.model.name(),
+            cfg.name
+        );
+    }
+    let (scene, holdout) = load_tuning_scene(&a.scene, a.holdout.as_deref(), a.llffhold)?;
+    if a.curve.is_some() && holdout.is_empty() {
+        bail!("--curve scores held-out views: pass --llffhold N or --holdout I,J,...");
+    }
+    let data = SceneData::from_scene(&scene, cfg.levels)?;
+    let validation = validation_views(data.cameras.len());
+    let opts = TuneOptions {
+        budget,
+        seed: a.seed,
+        lr: a.lr,
+        lr_final: a.lr_final,
+        batch: a.batch,
+        views: a.model.views.unwrap_or(cfg.views),
+        augment: a.augment,
+        validate_every: a.validate_every,
+        val_batches: a.val_batches,
+        snapshots: curve_minutes.iter().map(|m| m * 60.0).collect(),
+    };
+    crate::tune::check(&opts, &data)?;
+    eprintln!(
+        "tuning {} on {} views ({} held out, {} set aside for validation), {} per tile",
+        a.model.name(),
+        data.cameras.len(),
+        holdout.len(),
+        validation.len(),
+        opts.views
+    );
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    let bar = progress_bar(!a.no_progress);
+    let result = tune(&start, data, &validation, &opts, stop, |p| report(&bar, p))?;
+    bar.finish_and_clear();
+    let first = result.validation.first().map_or(f64::NAN, |v| v.psnr);
+    eprintln!(
+        "{}{} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (the weights of step {})",
+        if result.interrupted {
+            "interrupted: "
+        } else {
+            ""
+        },
+        result.steps,
+        result.seconds,
+        result.best_psnr(),
+        result.best_step
+    );
+    let provenance = serde_json::json!({
+        "scene": scene.root,
+        "holdout": holdout,
+        "seed": a.seed,
+        "steps": result.steps,
+        "best_step": result.best_step,
+        "lr": a.lr,
+        "lr_final": a.lr_final,
+        "batch": a.batch,
+        "views": opts.views,
+        "augment": a.augment,
+        "start": a.model.name(),
+    });
+    save_model(&a.out, &cfg, &start.varmap, &provenance.to_string())?;
+    eprintln!("model: {}", a.out.display());
+    if let Some(dir) = &a.curve {
+        write_curve(dir, &a, &cfg, &result, &holdout, &settings)?;
+    }
+    Ok(())
+}
+
+/// The scene without its held-out views, and their indices in the full scene.
+fn load_tuning_scene(
+    args: &SceneArgs,
+    holdout: Option<&str>,
+    llffhold: Option<usize>,
+) -> Result<(Scene, Vec<usize>)> {
+    let mut held = Vec::new();
+    let opts = scene_options(args);
+    let scene = Scene::load_views(&args.scene, &opts, |n| {
+        held = match (holdout, llffhold) {
+            (None, None) => Vec::new(),
+            _ => holdout_list(holdout, llffhold, n).map_err(|e| e.to_string())?,
+        };
+        if let Some(&bad) = held.iter().find(|&&i| i >= n) {
+            return Err(format!(
+                "held-out view {bad} is out of range: the scene has {n} views"
+            ));
+        }
+        Ok((0..n).filter(|i| !held.contains(i)).collect())
+    })?;
+    for n in &scene.notes {
+        eprintln!("note: {n}");
+    }
+    Ok((scene, held))
+}
+
+fn scene_options(a: &SceneArgs) -> LoadOptions {
+    LoadOptions {
+        format: a.format,
+        factor: a.factor,
+        near: a.near,
+        far: a.far,
+        downscale: a.downscale,
+        ignore_rolling_shutter: a.ignore_rolling_shutter,
+    }
+}
+
+/// Refuses an --out that cannot be written, before anything runs.
+fn check_out(out: &Path) -> Result<()> {
+    if out.is_dir() {
+        bail!(
+            "--out {}: is a directory; name a .safetensors file",
+            out.display()
+        );
+    }
+    let dir = match out.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    if !dir.is_dir() {
+        bail!(
+            "--out {}: the directory {} does not exist",
+            out.display(),
+            dir.display()
+        );
+    }
+    let probe = dir.join(format!(".deepstereo-tune-probe.{}", std::process::id()));
+    std::fs::write(&probe, b"")
+        .with_context(|| format!("--out {}: cannot write in {}", out.display(), dir.display()))?;
+    let _ = std::fs::remove_file(&probe);
+    Ok(())
+}
+
+/// Writes the weights with the config and the tune's options, atomically.
+fn save_model(
+    out: &Path,
+    cfg: &Config,
+    varmap: &candle_nn::VarMap,
+    provenance: &str,
+) -> Result<()> {
+    let arrays = weights::weight_arrays(varmap)?;
+    weights::check_finite(out, &arrays)?;
+    let meta = metadata(cfg, &[(TUNE_KEY, provenance.to_string())])?;
+    write_safetensors(out, &arrays, Some(meta))?;
+    Ok(())
+}
+
+/// Parses `0,1,2.5,...` (minutes, each finite and not negative).
+fn parse_minutes(s: &str) -> Result<Vec<f64>> {
+    let mut out = Vec::new();
+    for t in s.split(',') {
+        let m: f64 = t
+            .trim()
+            .parse()
+            .with_context(|| format!("--curve-minutes: '{t}' is not a number of minutes"))?;
+        if !(m.is_finite() && m >= 0.0) {
+            bail!("--curve-minutes: '{t}' must be 0 or more");
+        }
+        out.push(m);
+    }
+    Ok(out)
+}
+
+fn progress_bar(wanted: bool) -> indicatif::ProgressBar {
+    if !wanted || !std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(1000);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{bar:30} {percent:>3}%  {msg}  {elapsed} done, {eta} left",
+    ) {
+        bar.set_style(style);
+    }
+    bar
+}
+
+fn report(bar: &indicatif::ProgressBar, p: &Progress) {
+    bar.set_position((p.share * 1000.0).round().clamp(0.0, 1000.0) as u64);
+    let val = p
+        .val_psnr
+        .map(|v| format!("  validation {v:.2} dB"))
+        .unwrap_or_default();
+    bar.set_message(format!(
+        "step {}  loss {:.4}{val}  best {:.2} dB",
+        p.step, p.loss, p.best_psnr
+    ));
+    if bar.is_hidden() {
+        if let Some(v) = p.val_psnr {
+            eprintln!(
+                "step {}: loss {:.5}, validation {v:.2} dB (best {:.2}), {:.0}% of the budget",
+                p.step,
+                p.loss,
+                p.best_psnr,
+                p.share * 100.0
+            );
+        }
+    }
+}
+
+/// One point of the error-against-time curve.
+#[derive(serde::Serialize)]
+struct CurvePoint {
+    minutes: f64,
+    psnr: f64,
+    ssim: f64,
+    seconds_per_view: f64,
+}
+
+/// Renders the held-out views with each snapshot and writes the curve.
+fn write_curve(
+    dir: &Path,
+    a: &Args,
+    cfg: &Config,
+    result: &TuneResult,
+    holdout: &[usize],
+    settings: &RenderSettings,
+) -> Result<()> {
+    let scene = a.scene.load()?;
+    let mut points = Vec::new();
+    for (secs, weights) in &result.snapshots {
+        let backend = backend_with(cfg, weights)?;
+        let name = format!("tuned {:.1} min", secs / 60.0);
+        let r = evaluate(&backend, &name, &scene, holdout, settings, |_, _| {})?;
+        eprintln!(
+            "{:5.1} min: held-out PSNR {:.2} SSIM {:.3}",
+            secs / 60.0,
+            r.mean.psnr,
+            r.mean.ssim
+        );
+        points.push(CurvePoint {
+            minutes: secs / 60.0,
+            psnr: r.mean.psnr,
+            ssim: r.mean.ssim,
+            seconds_per_view: r.mean.seconds,
+        });
+    }
+    let mut csv = String::from("minutes,psnr,ssim,seconds_per_view\n");
+    for p in &points {
+        csv += &format!(
+            "{},{:.4},{:.5},{:.3}\n",
+            p.minutes, p.psnr, p.ssim, p.seconds_per_view
+        );
+    }
+    let json = serde_json::json!({ "scene": scene.root, "holdout": holdout, "points": points });
+    let plot = deepstereo_core::plot::plot(
+        &format!("tuning {}", scene.root.display()),
+        "minutes of tuning",
+        "held-out PSNR dB",
+        &[deepstereo_core::plot::Series {
+            label: "tuned".into(),
+            colour: [0.1, 0.4, 0.85],
+            points: points.iter().map(|p| (p.minutes, p.psnr)).collect(),
+            line: true,
+            marker: 3,
+            labels: Vec::new(),
+        }],
+        false,
+    );
+    write_atomic(&dir.join("curve.csv"), csv.as_bytes())?;
+    write_atomic(
+        &dir.join("curve.json"),
+        serde_json::to_string_pretty(&json)?.as_bytes(),
+    )?;
+    plot.save_png(&dir.join("curve.png"))?;
+    eprintln!("curve: {}", dir.display());
+    Ok(())
+}
+
+/// A candle backend running `cfg` with these weights (in `named_vars` order).
+fn backend_with(cfg: &Config, values: &[Tensor]) -> Result<CandleBackend> {
+    let t = weights::init(cfg, &candle_core::Device::Cpu)?;
+    for ((_, var), v) in named_vars(&t.varmap).iter().zip(values) {
+        var.set(v)?;
+    }
+    Ok(CandleBackend {
+        model: t.model,
+        device: candle_core::Device::Cpu,
+    })
+}

@@ -1,0 +1,203 @@
+//! `deepstereo tune` end to end on a small generated scene: held-out photographs cannot
+//! reach the tuner (noise in their place leaves a `--steps` tune bit-identical, while a
+//! change to a tuning view does not), the same seed and steps give the same file, the
+//! tuned model is taken by `eval --model`, and bad input is refused with nothing written.
+
+use deepstereo_tests::*;
+use std::path::{Path, PathBuf};
+
+const W: u32 = 64;
+const H: u32 = 48;
+
+/// A procedural scene of 8 views at W x H in `dir/scene_0000`. With `auto_bounds` its
+/// transforms.json loses near/far, so the bounds are estimated from the images.
+fn scene(dir: &Path, auto_bounds: bool) -> PathBuf {
+    let size = format!("{W}x{H}");
+    let out = dir.to_string_lossy();
+    let res = run_deepstereo([
+        "synth",
+        "--out",
+        &out,
+        "--scenes",
+        "1",
+        "--views",
+        "8",
+        "--seed",
+        "5",
+        "--size",
+        &size,
+        "--rig",
+        "forward",
+        "--supersample",
+        "1",
+    ]);
+    assert_eq!(res.code, Some(0), "synth failed: {}", res.stderr);
+    let s = dir.join("scene_0000");
+    if auto_bounds {
+        let path = s.join("transforms.json");
+        let mut json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&path).expect("read")).expect("json");
+        let obj = json.as_object_mut().expect("an object");
+        obj.remove("near");
+        obj.remove("far");
+        std::fs::write(&path, serde_json::to_string(&json).expect("json")).expect("write");
+    }
+    s
+}
+
+/// `tune` with a small budget; returns the command's output.
+fn tune(scene: &Path, out: &Path, extra: &[&str]) -> CmdOutput {
+    let (s, o) = (scene.to_string_lossy(), out.to_string_lossy());
+    let mut args = vec![
+        "tune",
+        "--scene",
+        &s,
+        "--out",
+        &o,
+        "--batch",
+        "2",
+        "--val-batches",
+        "1",
+        "--validate-every",
+        "2",
+    ];
+    args.extend_from_slice(extra);
+    run_deepstereo(args)
+}
+
+fn tuned(scene: &Path, out: &Path) -> Vec<u8> {
+    let res = tune(scene, out, &["--llffhold", "4", "--steps", "4"]);
+    assert_eq!(res.code, Some(0), "tune failed:\n{}", res.stderr);
+    std::fs::read(out).expect("the tuned model")
+}
+
+/// The `__metadata__` of a safetensors file.
+fn read_safetensors_metadata(path: &Path) -> serde_json::Map<String, serde_json::Value> {
+    let bytes = std::fs::read(path).expect("read the model");
+    let n = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).expect("header");
+    header["__metadata__"]
+        .as_object()
+        .expect("metadata")
+        .clone()
+}
+
+fn held_out_noise_changes_nothing(auto_bounds: bool) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = scene(dir.path(), auto_bounds);
+    let a = tuned(&s, &dir.path().join("a.safetensors"));
+    assert_eq!(
+        a,
+        tuned(&s, &dir.path().join("again.safetensors")),
+        "same seed and steps"
+    );
+    // --llffhold 4 of 8 views holds out views 0 and 4: noise in their place.
+    for v in [0, 4] {
+        write_png(&s.join(format!("images/view_{v:03}.png")), W, H, 99 + v);
+    }
+    let b = tuned(&s, &dir.path().join("b.safetensors"));
+    assert!(
+        a == b,
+        "noise in the held-out photographs changed the tuned model"
+    );
+    // The test can fail: noise in a tuning view does change it.
+    write_png(&s.join("images/view_002.png"), W, H, 7);
+    let c = tuned(&s, &dir.path().join("c.safetensors"));
+    assert!(
+        a != c,
+        "a tuning view's photograph did not change the tuned model"
+    );
+}
+
+#[test]
+fn held_out_photographs_cannot_reach_the_tuner() {
+    held_out_noise_changes_nothing(false);
+}
+
+#[test]
+fn held_out_photographs_cannot_move_estimated_bounds() {
+    held_out_noise_changes_nothing(true);
+}
+
+#[test]
+fn the_tuned_model_renders_and_names_its_tune() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = scene(dir.path(), false);
+    let model = dir.path().join("tuned.safetensors");
+    tuned(&s, &model);
+    let meta = read_safetensors_metadata(&model);
+    let tune: serde_json::Value =
+        serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
+    assert_eq!(tune["holdout"], serde_json::json!([0, 4]));
+    assert_eq!(tune["steps"], 4);
+    let (m, sc) = (model.to_string_lossy(), s.to_string_lossy());
+    let res = run_deepstereo([
+        "eval",
+        "--scene",
+        &sc,
+        "--llffhold",
+        "4",
+        "--model",
+        &m,
+        "--json",
+        "-",
+    ]);
+    assert_eq!(res.code, Some(0), "eval --model failed:\n{}", res.stderr);
+    let json: serde_json::Value = serde_json::from_str(&res.stdout).expect("eval json");
+    let psnr = json["mean"]["psnr"].as_f64().expect("a mean PSNR");
+    assert!(psnr.is_finite() && psnr > 10.0, "PSNR {psnr}");
+}
+
+#[test]
+fn bad_input_is_refused_and_writes_nothing() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = scene(dir.path(), false);
+    let out = dir.path().join("out.safetensors");
+    let tiny = tiny_asset();
+    let tiny = tiny.to_string_lossy();
+    let cases: [(&[&str], &str); 7] = [
+        (&["--holdout", "0,1,2,3,4,5", "--steps", "2"], "at least 3"),
+        (&["--holdout", "0,9", "--steps", "2"], "out of range"),
+        (&["--llffhold", "4", "--minutes", "0"], "--minutes"),
+        (&["--llffhold", "4", "--minutes=-2"], "--minutes"),
+        (&["--llffhold", "4", "--steps", "0"], "--steps"),
+        (
+            &["--llffhold", "4", "--steps", "2", "--model", &tiny],
+            "family",
+        ),
+        (&["--steps", "2", "--curve", "curve"], "held-out"),
+    ];
+    for (args, want) in cases {
+        let res = tune(&s, &out, args);
+        assert_ne!(res.code, Some(0), "{args:?} was accepted");
+        assert!(
+            !res.timed_out && res.code.is_some(),
+            "{args:?}: no clean exit"
+        );
+        assert!(
+            res.stderr.contains(want),
+            "{args:?}: expected '{want}' in:\n{}",
+            res.stderr
+        );
+        assert!(!out.exists(), "{args:?} wrote {}", out.display());
+    }
+    let missing = dir.path().join("no/such/dir/out.safetensors");
+    let res = tune(&s, &missing, &["--llffhold", "4", "--steps", "2"]);
+    assert_ne!(
+        res.code,
+        Some(0),
+        "an --out in a missing directory was accepted"
+    );
+    assert!(res.stderr.contains("does not exist"), "{}", res.stderr);
+    let res = tune(&s, dir.path(), &["--llffhold", "4", "--steps", "2"]);
+    assert!(
+        res.code != Some(0) && res.stderr.contains("directory"),
+        "{}",
+        res.stderr
+    );
+    assert_eq!(
+        std::fs::read_dir(dir.path()).expect("ls").count(),
+        1,
+        "only the scene"
+    );
+}
