@@ -41,10 +41,9 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import deepstereo_ref as ref  # noqa: E402
-import train_ddp  # noqa: E402
-from optim_ref import RefOptimizer  # noqa: E402
+import deepstereo_ref as ref
+import train_ddp
+from optim_ref import RefOptimizer
 
 ROOT = Path(__file__).resolve().parent.parent
 WEIGHT_TOL = 1e-5

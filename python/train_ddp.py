@@ -6,8 +6,8 @@ samples `deepstereo samples` writes, with DistributedDataParallel.
         --optimizer adam --lr 1e-3 --steps 1000 --batch 8 --out runs/ddp
 
 `--lr-schedule cosine:START-END --lr-final F` decays the rate as `deepstereo train` does
-(`optim_ref.LrSchedule`, lr.rs), so the fine-tuning runs of the default model
-(`deepstereo-train/scripts/finetune.sh`) have a DDP equivalent.
+(`optim_ref.LrSchedule`, lr.rs), so the fine-tuning recipes of the default model
+(`deepstereo-train/scripts/train.sh`) have a DDP equivalent.
 
 One process without torchrun works too. The backend is `nccl` when CUDA is available
 (one GPU per process, `LOCAL_RANK`), else `gloo` on the CPU.
@@ -43,9 +43,8 @@ import torch.distributed as dist
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import deepstereo_ref as ref  # noqa: E402
-from optim_ref import DEFAULT_LR_FINAL, KINDS, LrSchedule, RefOptimizer  # noqa: E402
+import deepstereo_ref as ref
+from optim_ref import DEFAULT_LR_FINAL, KINDS, LrSchedule, RefOptimizer
 
 SHARD_FORMAT = "deepstereo-samples-v1"
 SHARD_GLOB = "shard-*.safetensors"
