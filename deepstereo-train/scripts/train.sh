@@ -4,7 +4,7 @@
 #
 # Usage: bash deepstereo-train/scripts/train.sh RECIPE [OUT]
 #        bash deepstereo-train/scripts/train.sh --list
-# Run from anywhere (it works in the repository root). OUT is the run directory (default:
+# Runs from any directory (it changes to the repository root). OUT is the run directory (default:
 # the recipe's, under deepstereo-train/runs/); a run continues from OUT's checkpoint
 # (`--resume`) when there is one. The environment may change a recipe's values: STEPS,
 # LR_SCHEDULE, INIT, LR, VALIDATE_EVERY, VIEW_RANGE (source views per batch, default
