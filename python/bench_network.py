@@ -25,8 +25,7 @@ import onnxruntime as ort
 import torch
 from safetensors.numpy import load_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import deepstereo_ref as ref  # noqa: E402
+import deepstereo_ref as ref
 
 
 # Seconds to wait after a run before answering (OpenMP and onnxruntime workers spin for a
@@ -39,6 +38,9 @@ def levels(arrays, n):
 
 
 def main():
+    if len(sys.argv) != 3 or not sys.argv[2].isdigit():
+        print(__doc__.strip())
+        sys.exit(0 if sys.argv[1:2] in (["-h"], ["--help"]) else 2)
     d, threads = Path(sys.argv[1]), int(sys.argv[2])
     torch.set_num_threads(threads)
     model = ref.load(str(d / "weights.safetensors"))

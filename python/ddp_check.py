@@ -21,7 +21,12 @@ the same Rust-initialised weights (`deepstereo train --steps 0`) and the shards 
 (e) the same `--lr-schedule cosine:...` and `--lr-final` give the same rate at every step
     in the logs of `deepstereo train` and of `train_ddp.py` (tiny only);
 (f) `--loss l2`: one step of each trainer logs the same loss (1e-5 relative; not the L1
-    run's) and gives the same weights (tiny only).
+    run's) and gives the same weights (tiny only);
+(g) `train_ddp.py --config PRESET` (a preset by name, as `deepstereo train --config`)
+    writes the config `deepstereo train --config PRESET` does;
+(h) bad input (unknown preset, missing shards directory or --init, a corrupt file, a bad
+    number, --resume without a checkpoint) ends with an `error:` line and exit status 2
+    or 1, no traceback.
 
 Exit status 1 when any check fails.
 """
@@ -41,10 +46,9 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import deepstereo_ref as ref  # noqa: E402
-import train_ddp  # noqa: E402
-from optim_ref import RefOptimizer  # noqa: E402
+import deepstereo_ref as ref
+import train_ddp
+from optim_ref import RefOptimizer
 
 ROOT = Path(__file__).resolve().parent.parent
 WEIGHT_TOL = 1e-5
@@ -188,9 +192,33 @@ class Check:
         self.expect(d <= IMAGE_TOL, f"{preset}: `deepstereo forward` on the DDP model against PyTorch: max difference {d:.2e} (tolerance {IMAGE_TOL:.0e})")
         run([self.bin, "export", "--model", model, "--out", w / "model.onnx"], "export")
         self.expect((w / "model.onnx").stat().st_size > 0, f"{preset}: `deepstereo export --model` takes the DDP model")
+        # (g) the preset by name: the config the Rust trainer writes for it.
+        self.ddp(["--shards", shards, "--config", preset, "--steps", 0, "--batch", BATCH, "--out", w / "preset"])
+        ours = ref.read_config(str(w / "preset" / "model.safetensors"))
+        self.expect(ours == ref.read_config(str(init)), f"{preset}: `train_ddp.py --config {preset}` writes the config of `deepstereo train --config {preset}`")
         if preset == "tiny":
             self.schedule(w, common, init, shards)
             self.l2(w, common, init, shards)
+            self.bad_input(w, init, shards)
+
+    def bad_input(self, w: Path, init: Path, shards: Path) -> None:
+        """(h) bad input: one `error:` line, exit status 2 (arguments) or 1 (files), no traceback."""
+        corrupt = w / "corrupt.safetensors"
+        corrupt.write_bytes(b"not a safetensors file")
+        out = ["--out", w / "bad"]
+        cases = [
+            ("an unknown preset", 2, ["--shards", shards, "--config", "nosuchpreset", *out]),
+            ("a missing shards directory", 2, ["--shards", w / "nosuchdir", *out]),
+            ("a missing --init", 2, ["--shards", shards, "--init", w / "nosuchfile.safetensors", *out]),
+            ("a bad number", 2, ["--shards", shards, "--steps", "many", *out]),
+            ("--resume without a checkpoint", 2, ["--shards", shards, "--resume", *out]),
+            ("a corrupt --init", 1, ["--shards", shards, "--init", corrupt, *out]),
+        ]
+        for what, want, args in cases:
+            p = subprocess.run([sys.executable, ROOT / "python" / "train_ddp.py", *map(str, args)], capture_output=True, text=True)
+            last = p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ""
+            ok = p.returncode == want and "Traceback" not in p.stderr and "error:" in last
+            self.expect(ok, f"train_ddp.py with {what}: exit status {p.returncode} (want {want}), {last!r}")
 
     def l2(self, w: Path, common: list, init: Path, shards: Path) -> None:
         """(f) `--loss l2`: both trainers log the same loss and reach the same weights."""

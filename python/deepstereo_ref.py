@@ -208,6 +208,59 @@ class Config:
     def input_size(self, l: int, t: int) -> int:
         return (t >> l) + 2 * self.pad(l)
 
+    # The presets of config.rs (`Config::paper`, `tiny`, `nviews`, `Config::preset`).
+    @staticmethod
+    def paper() -> "Config":
+        tower = TowerConfig(4, [Conv(5, 96), Conv(3, 48), Conv(3, 16)], [Conv(5, 96), Conv(5, 64), Conv(3, 32)])
+        return Config(
+            name="paper",
+            views=5,
+            planes=96,
+            levels=4,
+            tile=8,
+            select=tower,
+            depth_convs=[Conv(3, 32), Conv(3, 16), Conv(3, 1)],
+            colour=TowerConfig(4, list(tower.level_convs), list(tower.merge_convs)),
+            colour_skip=False,
+        )
+
+    @staticmethod
+    def tiny() -> "Config":
+        return Config(
+            name="tiny",
+            views=4,
+            planes=32,
+            levels=2,
+            tile=24,
+            select=TowerConfig(2, [Conv(3, 12), Conv(3, 12)], [Conv(3, 16), Conv(3, 12)]),
+            depth_convs=[Conv(3, 12), Conv(3, 8), Conv(3, 1)],
+            colour=TowerConfig(1, [Conv(1, 12)], [Conv(1, 12)]),
+            colour_skip=True,
+        )
+
+    @staticmethod
+    def nviews() -> "Config":
+        return Config(
+            name="nviews",
+            views=6,
+            planes=32,
+            levels=3,
+            tile=24,
+            select=TowerConfig(3, [Conv(3, 12), Conv(3, 12)], [Conv(3, 12), Conv(3, 12)]),
+            depth_convs=[Conv(3, 12), Conv(3, 6), Conv(3, 1)],
+            colour=TowerConfig(1, [Conv(1, 12)], []),
+            colour_skip=False,
+            pool=ViewPool(encoder=[Conv(1, 6), Conv(1, 6)], blend=[Conv(1, 6)], falloff={"full": 4, "power": 8}),
+        )
+
+    @staticmethod
+    def preset(name: str) -> "Config | None":
+        """A preset by name (`PRESETS`), or None."""
+        return {"paper": Config.paper, "tiny": Config.tiny, "nviews": Config.nviews}.get(name, lambda: None)()
+
+
+PRESETS = ("tiny", "paper", "nviews")
+
 
 # --- the network (mirrors model.rs) ----------------------------------------------------
 

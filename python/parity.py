@@ -42,8 +42,7 @@ import onnxruntime as ort
 import torch
 from safetensors.numpy import load_file, save_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import deepstereo_ref as ref  # noqa: E402
+import deepstereo_ref as ref
 
 ROOT = Path(__file__).resolve().parent.parent
 TOL = 1e-4

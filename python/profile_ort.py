@@ -21,11 +21,13 @@ import time
 import numpy as np
 import onnxruntime as ort
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import deepstereo_ref as ref  # noqa: E402
+import deepstereo_ref as ref
 
 
 def main():
+    if len(sys.argv) < 2 or sys.argv[1] in ("-h", "--help") or len(sys.argv) > 4:
+        print(__doc__.strip())
+        sys.exit(0 if len(sys.argv) > 1 and sys.argv[1] in ("-h", "--help") else 2)
     path = sys.argv[1]
     tile = int(sys.argv[2]) if len(sys.argv) > 2 else 64
     threads = int(sys.argv[3]) if len(sys.argv) > 3 else os.cpu_count()

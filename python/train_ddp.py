@@ -5,9 +5,16 @@ samples `deepstereo samples` writes, with DistributedDataParallel.
     torchrun --nproc-per-node 2 python/train_ddp.py --shards shards --init runs/tiny/model.safetensors \\
         --optimizer adam --lr 1e-3 --steps 1000 --batch 8 --out runs/ddp
 
+The model starts from `--init` weights, or is initialised afresh (`--seed`) for `--config`:
+a preset by name as `deepstereo train --config` takes it (tiny, paper, nviews;
+`deepstereo_ref.Config.preset`), a config JSON file, or a weights file holding one; by
+default, the shards' config. Bad input (a missing shards directory, an unknown preset, an
+unreadable or corrupt file, a checkpoint of other options) ends with one `error:` line:
+exit status 2 for the arguments, 1 for what the files hold.
+
 `--lr-schedule cosine:START-END --lr-final F` decays the rate as `deepstereo train` does
-(`optim_ref.LrSchedule`, lr.rs), so the fine-tuning runs of the default model
-(`deepstereo-train/scripts/finetune.sh`) have a DDP equivalent.
+(`optim_ref.LrSchedule`, lr.rs), so the fine-tuning recipes of the default model
+(`deepstereo-train/scripts/train.sh`) have a DDP equivalent.
 
 One process without torchrun works too. The backend is `nccl` when CUDA is available
 (one GPU per process, `LOCAL_RANK`), else `gloo` on the CPU.
@@ -37,15 +44,15 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import torch
 import torch.distributed as dist
-from safetensors import safe_open
+from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file, save_file
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import deepstereo_ref as ref  # noqa: E402
-from optim_ref import DEFAULT_LR_FINAL, KINDS, LrSchedule, RefOptimizer  # noqa: E402
+import deepstereo_ref as ref
+from optim_ref import DEFAULT_LR_FINAL, KINDS, LrSchedule, RefOptimizer
 
 SHARD_FORMAT = "deepstereo-samples-v1"
 SHARD_GLOB = "shard-*.safetensors"
@@ -91,19 +98,59 @@ def write_text_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def fail(msg: str) -> NoReturn:
+    """Ends the process with `error: MSG` on stderr and exit status 1."""
+    raise SystemExit(f"error: {msg}")
+
+
 def metadata_of(path: Path) -> dict[str, str]:
-    with safe_open(str(path), framework="pt") as f:
-        return f.metadata() or {}
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return f.metadata() or {}
+    except (OSError, SafetensorError) as e:
+        fail(f"{path}: not a readable safetensors file ({e})")
+
+
+def tensors_of(path: Path) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(str(path))
+    except (OSError, SafetensorError) as e:
+        fail(f"{path}: not a readable safetensors file ({e})")
+
+
+def parse_config(text: str, origin: str) -> ref.Config:
+    try:
+        return ref.Config.from_json(text)
+    except (ValueError, KeyError, TypeError) as e:
+        fail(f"{origin}: not a valid config ({type(e).__name__}: {e})")
 
 
 def config_json_of(path: Path) -> str:
-    """A config JSON from a JSON file or from a weights/shard file's metadata."""
+    """A config JSON (checked) from a JSON file or from a weights/shard file's metadata."""
     if path.suffix == ".json":
-        return path.read_text()
-    meta = metadata_of(path)
-    if ref.CONFIG_KEY not in meta:
-        raise SystemExit(f"error: {path}: no '{ref.CONFIG_KEY}' in the metadata")
-    return meta[ref.CONFIG_KEY]
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as e:
+            fail(f"{path}: cannot read it ({e})")
+    else:
+        meta = metadata_of(path)
+        if ref.CONFIG_KEY not in meta:
+            fail(f"{path}: no '{ref.CONFIG_KEY}' in the metadata")
+        text = meta[ref.CONFIG_KEY]
+    parse_config(text, str(path))
+    return text
+
+
+def resolve_config(spec: str) -> str:
+    """`--config`: a preset's JSON, as `deepstereo train --config` takes presets by name,
+    else the config of a JSON file or of a weights file."""
+    preset = ref.Config.preset(spec)
+    if preset is not None:
+        return preset.to_json()
+    path = Path(spec)
+    if not path.is_file():
+        fail(f"--config '{spec}' is neither a preset ({', '.join(ref.PRESETS)}) nor a readable file")
+    return config_json_of(path)
 
 
 @dataclass
@@ -116,16 +163,22 @@ class Shard:
 def list_shards(d: Path) -> tuple[list[Shard], str]:
     paths = sorted(d.glob(SHARD_GLOB))
     if not paths:
-        raise SystemExit(f"error: {d}: no {SHARD_GLOB} (write them with `deepstereo samples`)")
+        fail(f"{d}: no {SHARD_GLOB} (write them with `deepstereo samples`)")
     shards, cfg_json = [], None
     for p in paths:
         m = metadata_of(p)
         if m.get("format") != SHARD_FORMAT:
-            raise SystemExit(f"error: {p}: not a deepstereo samples shard (format {m.get('format')!r})")
-        if cfg_json is not None and ref.Config.from_json(m[ref.CONFIG_KEY]) != ref.Config.from_json(cfg_json):
-            raise SystemExit(f"error: {p}: made for another config than {paths[0]}")
-        cfg_json = cfg_json or m[ref.CONFIG_KEY]
-        shards.append(Shard(p, int(m["samples"]), int(m["views"])))
+            fail(f"{p}: not a deepstereo samples shard (format {m.get('format')!r})")
+        try:
+            samples, views = int(m["samples"]), int(m["views"])
+            text = m[ref.CONFIG_KEY]
+        except (KeyError, ValueError) as e:
+            fail(f"{p}: a shard without a valid {e} in its metadata")
+        if cfg_json is not None and parse_config(text, str(p)) != parse_config(cfg_json, str(paths[0])):
+            fail(f"{p}: made for another config than {paths[0]}")
+        cfg_json = cfg_json or text
+        shards.append(Shard(p, samples, views))
+    parse_config(cfg_json, str(paths[0]))
     return shards, cfg_json
 
 
@@ -140,10 +193,10 @@ class Shards:
         if s.path not in self.cache:
             if len(self.cache) >= SHARD_CACHE:
                 self.cache.pop(next(iter(self.cache)))
-            t = load_file(str(s.path))
-            for l in range(self.cfg.levels):
-                if f"level{l}" not in t:
-                    raise SystemExit(f"error: {s.path}: no tensor 'level{l}'")
+            t = tensors_of(s.path)
+            for name in [f"level{l}" for l in range(self.cfg.levels)] + [TARGET]:
+                if name not in t:
+                    fail(f"{s.path}: no tensor '{name}'")
             self.cache[s.path] = t
         return self.cache[s.path]
 
@@ -160,7 +213,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--shards", type=Path, required=True, help="directory of `deepstereo samples` shards")
     ap.add_argument("--init", type=Path, help="start from these weights (a model.safetensors or a candle checkpoint.safetensors)")
-    ap.add_argument("--config", type=Path, help="config (a JSON file, or a weights file holding one) for a freshly initialised model; default: the shards' config")
+    ap.add_argument("--config", metavar="CONFIG", help=f"config of a freshly initialised model: a preset ({', '.join(ref.PRESETS)}), as `deepstereo train --config`, or a JSON file of a Config, or a weights file holding one; default: the shards' config")
     ap.add_argument("--seed", type=int, default=0, help="seed of the PyTorch initialisation (without --init)")
     ap.add_argument("--optimizer", choices=KINDS, default="adagrad")
     ap.add_argument("--lr", type=float, default=5e-4)
@@ -179,10 +232,26 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--threads", type=int, default=0, help="torch threads per process (default: cores / local processes)")
     a = ap.parse_args(argv)
     for name in ("steps", "batch", "checkpoint_every", "validate_every", "log_every"):
-        if getattr(a, name) < (0 if name == "steps" else 1):
-            ap.error(f"--{name.replace('_', '-')} must be at least 1")
+        least = 0 if name == "steps" else 1
+        if getattr(a, name) < least:
+            ap.error(f"--{name.replace('_', '-')} must be at least {least}")
+    for name in ("seed", "threads", "val_shards"):
+        if getattr(a, name) < 0:
+            ap.error(f"--{name.replace('_', '-')} must not be negative")
+    if not (math.isfinite(a.lr) and a.lr > 0):
+        ap.error(f"--lr must be a positive number, got {a.lr}")
     if a.init is not None and a.config is not None:
         ap.error("pass --init or --config, not both")
+    if not a.shards.is_dir():
+        ap.error(f"--shards {a.shards}: not a directory")
+    if a.init is not None and not a.init.is_file():
+        ap.error(f"--init {a.init}: no such file")
+    if a.config is not None and ref.Config.preset(a.config) is None and not Path(a.config).is_file():
+        ap.error(f"--config '{a.config}' is neither a preset ({', '.join(ref.PRESETS)}) nor a readable file")
+    if a.out.exists() and not a.out.is_dir():
+        ap.error(f"--out {a.out}: not a directory")
+    if a.resume and not (a.out / "checkpoint.safetensors").is_file():
+        ap.error(f"--resume: no checkpoint.safetensors in {a.out}")
     try:
         a.schedule = LrSchedule(a.lr_schedule, a.lr_final)
     except ValueError as e:
@@ -227,23 +296,23 @@ def main(argv=None) -> int:
     rank, world, device = setup(a)
     shards_all, shard_cfg = list_shards(a.shards)
     if not 0 <= a.val_shards < len(shards_all):
-        raise SystemExit(f"error: --val-shards {a.val_shards} leaves no training shard ({len(shards_all)} shards)")
+        fail(f"--val-shards {a.val_shards} leaves no training shard ({len(shards_all)} shards)")
     train_shards = shards_all[: len(shards_all) - a.val_shards]
     val_shards = shards_all[len(shards_all) - a.val_shards :]
-    cfg_json = config_json_of(a.init) if a.init else config_json_of(a.config) if a.config else shard_cfg
+    cfg_json = config_json_of(a.init) if a.init else resolve_config(a.config) if a.config else shard_cfg
     cfg = ref.Config.from_json(cfg_json)
     check_geometry(cfg, ref.Config.from_json(shard_cfg), a.shards)
     gbatch = a.batch * world
     chunks = [(s, c * gbatch) for s in train_shards for c in range(s.samples // gbatch)]
     if not chunks:
-        raise SystemExit(f"error: no training shard holds a global batch of {gbatch} samples (--batch {a.batch} x {world} processes)")
+        fail(f"no training shard holds a global batch of {gbatch} samples (--batch {a.batch} x {world} processes)")
     run = RunOptions(str(a.shards.resolve()), cfg_json, a.optimizer, a.lr, gbatch, a.val_shards, str(a.init) if a.init else None, a.seed, a.loss)
 
     torch.manual_seed(a.seed)
     model = ref.DeepStereo(cfg).to(device)
     if a.init is not None:
-        state = {k: v for k, v in load_file(str(a.init)).items() if not k.startswith("optim.")}
-        model.load_state_dict(state, strict=True)
+        state = {k: v for k, v in tensors_of(a.init).items() if not k.startswith("optim.")}
+        load_weights(model, state, a.init)
     opt = RefOptimizer(a.optimizer, a.lr, list(model.named_parameters()))
     out = a.out
     ckpt, log_path = out / "checkpoint.safetensors", out / "log.jsonl"
@@ -251,7 +320,7 @@ def main(argv=None) -> int:
     if a.resume:
         start = restore(ckpt, run, model, opt)
     elif ckpt.exists():
-        raise SystemExit(f"error: {out} already holds a checkpoint: pass --resume to continue it, or choose another --out")
+        fail(f"{out} already holds a checkpoint: pass --resume to continue it, or choose another --out")
     if rank == 0:
         out.mkdir(parents=True, exist_ok=True)
         if a.resume:
@@ -287,7 +356,7 @@ def main(argv=None) -> int:
             bad += 1
             print(f"step {step}: non-finite loss {loss_v} or gradient norm {gnorm}: step skipped", file=sys.stderr)
             if bad >= MAX_CONSECUTIVE_BAD_STEPS:
-                raise SystemExit(f"error: {bad} consecutive non-finite steps: training stopped; the last good checkpoint is {ckpt}")
+                fail(f"{bad} consecutive non-finite steps: training stopped; the last good checkpoint is {ckpt}")
         else:
             bad = 0
             opt.lr = a.schedule.lr_at(a.lr, opt.steps)
@@ -336,35 +405,50 @@ def check_geometry(cfg: ref.Config, shard_cfg: ref.Config, d: Path) -> None:
         and (cfg.pool is not None or cfg.views == shard_cfg.views)
     )
     if not same:
-        raise SystemExit(f"error: the model '{cfg.name}' does not read the inputs of the shards in {d} (made for '{shard_cfg.name}')")
+        fail(f"the model '{cfg.name}' does not read the inputs of the shards in {d} (made for '{shard_cfg.name}')")
 
 
 def save(out: Path, run: RunOptions, cfg_json: str, model: ref.DeepStereo, opt: RefOptimizer, step: int) -> None:
     weights = dict(model.state_dict())
     for k, v in weights.items():
         if not torch.isfinite(v).all():
-            raise SystemExit(f"error: tensor '{k}' holds non-finite values: not saved")
+            fail(f"tensor '{k}' holds non-finite values: not saved")
     meta = {ref.CONFIG_KEY: cfg_json, ref.FORMAT_KEY: ref.FORMAT_VALUE}
     ck_meta = dict(meta, **{RUN_KEY: json.dumps(asdict(run)), STEP_KEY: str(step), OPT_STEPS_KEY: str(opt.steps)})
     write_atomic(out / "checkpoint.safetensors", {**weights, **opt.state()}, ck_meta)
     write_atomic(out / "model.safetensors", weights, meta)
 
 
+def load_weights(model: ref.DeepStereo, state: dict[str, torch.Tensor], path: Path) -> None:
+    """Loads `state` strictly; a missing, unexpected or misshapen tensor is an error."""
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError as e:
+        detail = " ".join(str(e).split())
+        fail(f"{path}: its tensors do not fit the config '{model.cfg.name}' ({detail[:300]})")
+
+
 def restore(ckpt: Path, run: RunOptions, model: ref.DeepStereo, opt: RefOptimizer) -> int:
     if not ckpt.exists():
-        raise SystemExit(f"error: --resume: no {ckpt}")
+        fail(f"--resume: no {ckpt}")
     meta = metadata_of(ckpt)
-    saved = json.loads(meta.get(RUN_KEY, "null"))
-    if saved is None:
-        raise SystemExit(f"error: {ckpt}: no run options (not a train_ddp.py checkpoint)")
-    saved = RunOptions(**saved)
+    try:
+        saved = RunOptions(**json.loads(meta[RUN_KEY]))
+        step, opt_steps = int(meta[STEP_KEY]), int(meta[OPT_STEPS_KEY])
+    except KeyError as e:
+        fail(f"{ckpt}: no {e} in its metadata (not a train_ddp.py checkpoint)")
+    except (ValueError, TypeError) as e:
+        fail(f"{ckpt}: unreadable run options or step ({e})")
     if saved != run:
-        raise SystemExit(f"error: {ckpt}: the checkpoint was made with different options:\n  saved: {saved}\n  now:   {run}")
-    tensors = load_file(str(ckpt))
+        fail(f"{ckpt}: the checkpoint was made with different options:\n  saved: {saved}\n  now:   {run}")
+    tensors = tensors_of(ckpt)
     device = next(model.parameters()).device
-    model.load_state_dict({k: v for k, v in tensors.items() if not k.startswith("optim.")}, strict=True)
-    opt.restore(int(meta[OPT_STEPS_KEY]), {k: v.to(device) for k, v in tensors.items() if k.startswith("optim.")})
-    return int(meta[STEP_KEY])
+    load_weights(model, {k: v for k, v in tensors.items() if not k.startswith("optim.")}, ckpt)
+    try:
+        opt.restore(opt_steps, {k: v.to(device) for k, v in tensors.items() if k.startswith("optim.")})
+    except (KeyError, RuntimeError, ValueError) as e:
+        fail(f"{ckpt}: its optimizer state does not fit the model ({e})")
+    return step
 
 
 if __name__ == "__main__":

@@ -1,11 +1,10 @@
-# Sourced by the default model's training scripts (train_default.sh, train_falloff.sh):
-# the training scenes of ../shared/data/train (all but `lego`, a render whose transparent
-# background the reader drops) and the scenes validated on, never trained on. Sets DATA,
-# TRAIN and VAL, SAMPLING (the data and sampling options every run of the default model
-# passes to `train`; VIEW_RANGE, default 2-10, sets the source views per batch, SYNTH_SIZE,
-# default 240x180, the procedural scenes' image size) and, for
-# run directory OUT, RESUME (`--resume` when OUT holds a checkpoint); run from the
-# repository root.
+# Sourced by train.sh (the default model's training recipes): the training scenes of
+# ../shared/data/train (all but `lego`, a render whose transparent background the reader
+# drops) and the scenes validated on, never trained on. Sets DATA, TRAIN and VAL, SAMPLING
+# (the data and sampling options every run of the default model passes to `train`;
+# VIEW_RANGE, default 2-10, sets the source views per batch, SYNTH_SIZE, default 240x180,
+# the procedural scenes' image size) and, for run directory OUT, RESUME (`--resume` when
+# OUT holds a checkpoint); run from the repository root.
 DATA=../shared/data
 TRAIN=()
 for s in bird blowtorch can cityscape cup duckqueen figurine fruit maryrose milk mouse plant statue; do

@@ -2,7 +2,7 @@
 uniform "model soup", Wortsman et al. 2022): fine-tunes of one set of weights usually lie
 in one basin, and their mean often scores better than each. The config (and metadata)
 is the first model's; every model must have the same tensors with the same shapes.
-Usage: python soup.py OUT.safetensors OUT_CONFIG.json MODEL.safetensors MODEL2... """
+Usage: python python/soup.py OUT.safetensors OUT_CONFIG.json MODEL.safetensors MODEL2... """
 import sys
 
 import numpy as np
@@ -11,6 +11,9 @@ import model_file
 
 
 def main(argv):
+    if len(argv) > 1 and argv[1] in ("-h", "--help"):
+        print(__doc__.strip())
+        return
     if len(argv) < 4:
         sys.exit(__doc__.strip().splitlines()[-1])
     out, cfg_out, paths = argv[1], argv[2], argv[3:]

@@ -1,6 +1,6 @@
 """Reading and writing a model file (safetensors with its config in the metadata) for
-the scripts that rewrite one (widen.py, spatial_encoder.py). Needs numpy and safetensors
-(the test command's venv has both)."""
+the scripts that rewrite one (soup.py; the architecture-changing tools of the runs at
+commit fda1758 used it too). Needs numpy and safetensors (python/requirements.txt)."""
 import json
 import os
 

@@ -8,8 +8,8 @@ the model's PSNR on the same view is what a better depth selection could gain. B
 the same for each source alone; the plane where the sources agree best over the window
 (mean absolute deviation from their mean; a classical windowed plane sweep, which does
 not see the target); and the one plane that is best for the whole image (an oracle).
-Needs numpy and safetensors (the test command's venv has both).
-Usage: python oracle_depth.py PSV.safetensors [WIN...] (default 1 9 31)
+Needs numpy and safetensors (python/requirements.txt).
+Usage: python python/oracle_depth.py PSV.safetensors [WIN...] (default 1 9 31)
 """
 import sys
 
@@ -43,6 +43,9 @@ def oracle(colours, valid, target, win):
 
 
 def main(argv):
+    if len(argv) > 1 and argv[1] in ("-h", "--help"):
+        print(__doc__.strip())
+        return
     if len(argv) < 2:
         sys.exit(__doc__.strip().splitlines()[-1])
     try:

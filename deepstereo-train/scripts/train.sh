@@ -1,0 +1,151 @@
+#!/usr/bin/env bash
+# The training runs of the default model, as named recipes of one `deepstereo train`
+# command (the scenes and sampling: default_data.sh).
+#
+# Usage: bash deepstereo-train/scripts/train.sh RECIPE [OUT]
+#        bash deepstereo-train/scripts/train.sh --list
+# Runs from any directory (it changes to the repository root). OUT is the run directory (default:
+# the recipe's, under deepstereo-train/runs/); a run continues from OUT's checkpoint
+# (`--resume`) when there is one. The environment may change a recipe's values: STEPS,
+# LR_SCHEDULE, INIT, LR, VALIDATE_EVERY, VIEW_RANGE (source views per batch, default
+# 2-10), SYNTH_SIZE (procedural scenes' size, default 240x180), LOSS, VIEW_STRIDE,
+# SKIP_FLAT, SCENE_WEIGHTS (`train --loss/--view-stride/--skip-flat/--scene-weights`).
+# DRY_RUN=1 prints the command instead of building and running it, and writes nothing.
+#
+# Two recipes made the shipped model (deepstereo-train/assets/nviews-real.safetensors,
+# ship_default.sh): `default` (runs/nviews-real, from scratch) and then `prox`
+# (runs/nviews-prox, fine-tuned from nviews-real's weights at step 8600). The others are
+# experiments fine-tuned from (or, `scratch`, compared with) the shipped weights; their
+# runs and results are at commit fda1758. The experiments that changed the architecture
+# with a Python tool first (`wide`: widen.py, `encoder3`: spatial_encoder.py, `levels`:
+# add_levels.py; runs nviews-wide, nviews-enc3, nviews-l4) are only at that commit
+# (deepstereo-train/scripts/train_{wide,encoder3,levels}.sh there).
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+RUNS=deepstereo-train/runs
+PROX_CONFIG=$RUNS/nviews-prox/config.json
+SHIPPED=$RUNS/nviews-prox/model.safetensors
+
+# name|description, in the order --list prints them.
+RECIPES=(
+  "default|runs/nviews-real: the nviews architecture (the run's config.json) from scratch, Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
+  "prox|runs/nviews-prox: its config's 1:2 proximity falloff, fine-tuned from nviews-real at step 8600, Adam 2e-4, cosine:200-2000 to a tenth, seed 2 (the shipped weights)"
+  "prox2|runs/nviews-prox2: prox's weights fine-tuned 3000 more steps, cosine:500-3000"
+  "falloff|runs/nviews-falloff: the nviews preset's 4:8 falloff, fine-tuned from nviews-real at step 8600, cosine:200-2200"
+  "scratch|runs/nviews-scratch: prox's config trained from scratch as default, cosine:3000-5500, validation every 250"
+  "v4|runs/nviews-v4: the shipped weights fine-tuned with exactly 4 source views per batch, cosine:100-1500"
+  "hires|runs/nviews-hires: the shipped weights fine-tuned with procedural scenes at 360x270, cosine:100-1500"
+  "l2|runs/nviews-l2: the shipped weights fine-tuned with --loss l2, cosine:100-1200"
+  "stride|runs/nviews-stride: the shipped weights fine-tuned with --view-stride 1-3, cosine:100-1500"
+  "flat|runs/nviews-flat: the shipped weights fine-tuned with --skip-flat 0.02, cosine:100-1500"
+  "weighted|runs/nviews-weighted: the shipped weights fine-tuned with --scene-weights (360-degree captures x3), cosine:100-1500"
+)
+
+list() {
+  echo "usage: bash deepstereo-train/scripts/train.sh RECIPE [OUT]   (DRY_RUN=1: print the command)"
+  echo "recipes:"
+  for r in "${RECIPES[@]}"; do printf '  %-9s %s\n' "${r%%|*}" "${r#*|}"; done
+  echo "  (wide, encoder3, levels: architecture changes made with Python tools, at commit fda1758)"
+}
+
+RECIPE="${1:-}"
+case "$RECIPE" in
+  "" | --list | -l | --help | -h) list; exit 0 ;;
+esac
+if [ $# -gt 2 ]; then
+  echo "error: too many arguments (STEPS and LR_SCHEDULE come from the environment)" >&2
+  list >&2
+  exit 2
+fi
+
+# A fine-tune of the shipped weights: the run's own copy of prox's config.
+experiment() {
+  : "${INIT:=$SHIPPED}" "${STEPS:=1500}" "${LR_SCHEDULE:=cosine:100-1500}"
+  COPY_CONFIG=$PROX_CONFIG
+}
+
+# Fine-tunes (`--init`): Adam 2e-4, seed 2, a cosine down to a tenth, validation every
+# 250 steps (the former finetune.sh); from scratch: Adam 1e-3, seed 1, a cosine down to
+# 5e-5 (a twentieth), validation every 200 steps.
+COPY_CONFIG=
+CONFIG=
+case "$RECIPE" in
+  default)
+    OUT="${2:-$RUNS/nviews-real}"
+    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}"
+    # The run's own config (the nviews preset before it gained the view falloff).
+    # Constant Adam 1e-3 to step 6000 (validation flat from ~1400), then a cosine decay to
+    # 5e-5 at step 8600 (added on resume at step 6030 as cosine:6000-10000, shortened at
+    # step 6501). The run then continued at 5e-5 to step 9577, no better.
+    ;;
+  prox)
+    OUT="${2:-$RUNS/nviews-prox}"
+    # nviews-real's weights at step 8600: the path its checkpoint records as --init.
+    : "${INIT:=$RUNS/nviews-falloff/init.safetensors}" "${STEPS:=2000}" "${LR_SCHEDULE:=cosine:200-2000}"
+    ;;
+  prox2)
+    OUT="${2:-$RUNS/nviews-prox2}"
+    : "${INIT:=$SHIPPED}" "${STEPS:=3000}" "${LR_SCHEDULE:=cosine:500-3000}"
+    COPY_CONFIG=$PROX_CONFIG
+    ;;
+  falloff)
+    OUT="${2:-$RUNS/nviews-falloff}"
+    CONFIG=nviews
+    # Started as cosine:200-3000, shortened at step 1582.
+    : "${INIT:=$RUNS/nviews-falloff/init.safetensors}" "${STEPS:=2200}" "${LR_SCHEDULE:=cosine:200-2200}"
+    ;;
+  scratch)
+    OUT="${2:-$RUNS/nviews-scratch}"
+    : "${STEPS:=5500}" "${LR_SCHEDULE:=cosine:3000-5500}" "${VALIDATE_EVERY:=250}"
+    COPY_CONFIG=$PROX_CONFIG
+    ;;
+  v4) OUT="${2:-$RUNS/nviews-v4}"; experiment; : "${VIEW_RANGE:=4}" ;;
+  hires) OUT="${2:-$RUNS/nviews-hires}"; experiment; : "${SYNTH_SIZE:=360x270}" ;;
+  l2)
+    OUT="${2:-$RUNS/nviews-l2}"
+    : "${LOSS:=l2}" "${STEPS:=1200}" "${LR_SCHEDULE:=cosine:100-1200}"; experiment
+    ;;
+  stride) OUT="${2:-$RUNS/nviews-stride}"; experiment; : "${VIEW_STRIDE:=1-3}" ;;
+  flat) OUT="${2:-$RUNS/nviews-flat}"; experiment; : "${SKIP_FLAT:=0.02}" ;;
+  weighted)
+    OUT="${2:-$RUNS/nviews-weighted}"; experiment
+    : "${SCENE_WEIGHTS:=blowtorch=3,maryrose=3,milk=3,plant=3}"
+    ;;
+  wide | encoder3 | levels)
+    echo "error: recipe '$RECIPE' changed the architecture with a Python tool first; it is at commit fda1758 (deepstereo-train/scripts/train_$RECIPE.sh)" >&2
+    exit 2
+    ;;
+  *)
+    echo "error: unknown recipe '$RECIPE'" >&2
+    list >&2
+    exit 2
+    ;;
+esac
+CONFIG="${CONFIG:-$OUT/config.json}"
+if [ -n "${INIT:-}" ]; then
+  : "${LR:=2e-4}" "${SEED:=2}" "${LR_FINAL:=0.1}" "${VALIDATE_EVERY:=250}"
+else
+  : "${LR:=1e-3}" "${SEED:=1}" "${LR_FINAL:=0.05}" "${VALIDATE_EVERY:=200}"
+fi
+
+# shellcheck source=deepstereo-train/scripts/default_data.sh
+source deepstereo-train/scripts/default_data.sh
+CMD=(nice -n 19 target/release/deepstereo train --config "$CONFIG" ${INIT:+--init "$INIT"} "${SAMPLING[@]}"
+  --steps "$STEPS" --batch 8 --optimizer adam --lr "$LR" --seed "$SEED"
+  --lr-schedule "$LR_SCHEDULE" --lr-final "$LR_FINAL"
+  --checkpoint-every 100 --validate-every "$VALIDATE_EVERY" --log-every 20 --no-progress
+  ${LOSS:+--loss "$LOSS"} ${VIEW_STRIDE:+--view-stride "$VIEW_STRIDE"}
+  ${SKIP_FLAT:+--skip-flat "$SKIP_FLAT"} ${SCENE_WEIGHTS:+--scene-weights "$SCENE_WEIGHTS"}
+  --out "$OUT" "${RESUME[@]}")
+if [ -n "${DRY_RUN:-}" ]; then
+  if [ -n "$COPY_CONFIG" ] && [ ! -f "$CONFIG" ]; then echo "# would copy $COPY_CONFIG to $CONFIG"; fi
+  printf '%q ' "${CMD[@]}"
+  echo
+  exit 0
+fi
+if [ -n "$COPY_CONFIG" ] && [ ! -f "$CONFIG" ]; then
+  mkdir -p "$OUT"
+  cp "$COPY_CONFIG" "$CONFIG"
+fi
+cargo build --release -p deepstereo-train
+exec "${CMD[@]}"
