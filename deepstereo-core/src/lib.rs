@@ -17,6 +17,7 @@ pub mod geometry;
 pub mod inputs;
 pub mod metrics;
 pub mod model;
+pub mod mpi;
 pub mod plot;
 pub mod pool;
 pub mod prune;

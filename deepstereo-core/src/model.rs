@@ -137,6 +137,9 @@ pub struct Output {
     pub image: Tensor,
     /// `[B, D, th, tw]`, selection probabilities (sum to 1 over D).
     pub selection: Tensor,
+    /// `[B, D, 3, th, tw]`, the colour tower's colour `c_z` of every plane (what a
+    /// multiplane image stores).
+    pub colours: Tensor,
 }
 
 /// The two-tower DeepStereo network.
@@ -224,6 +227,7 @@ impl DeepStereo {
         Ok(Output {
             image: out.image.detach(),
             selection: out.selection.detach(),
+            colours: out.colours.detach(),
         })
     }
 
@@ -343,7 +347,12 @@ impl DeepStereo {
         let image = composite(&colours, &selection)? // sum over D of s * c
             .reshape((b, 3, th, tw))?; // [B, 3, th, tw]
         let selection = selection.reshape((b, d, th, tw))?; // [B, D, th, tw]
-        Ok(Output { image, selection })
+        let colours = colours.reshape((b, d, 3, th, tw))?; // [B, D, 3, th, tw]
+        Ok(Output {
+            image,
+            selection,
+            colours,
+        })
     }
 
     /// The depth layers and the softmax, one op at a time: `s` `[B*D, C, th, tw]` ->

@@ -22,6 +22,15 @@ pub trait Backend: Sync {
     fn config(&self) -> &Config;
     /// Returns the image `[3, th, tw]` and the selection `[D, th, tw]`, row-major.
     fn run(&self, inputs: &TileInputs, planes: usize) -> Result<(Vec<f32>, Vec<f32>)>;
+    /// Returns every plane's colour `[D, 3, th, tw]` and the selection `[D, th, tw]`,
+    /// row-major: the layers a multiplane image is baked from. Backends that run only
+    /// the exported graph (image and selection) refuse.
+    fn run_layers(&self, _inputs: &TileInputs, _planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
+        Err(Error::Invalid(format!(
+            "the {} backend returns no per-plane colours: bake multiplane images with candle",
+            self.name()
+        )))
+    }
 }
 
 /// The candle backend (CPU, f32).
@@ -43,6 +52,13 @@ impl Backend for CandleBackend {
         let image = out.image.flatten_all()?.to_vec1::<f32>()?;
         let selection = out.selection.flatten_all()?.to_vec1::<f32>()?;
         Ok((image, selection))
+    }
+    fn run_layers(&self, inputs: &TileInputs, planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
+        let tensors = inputs_to_tensors(self.config(), inputs, 1, planes, &self.device)?;
+        let out = self.model.infer(&tensors)?;
+        let colours = out.colours.flatten_all()?.to_vec1::<f32>()?;
+        let selection = out.selection.flatten_all()?.to_vec1::<f32>()?;
+        Ok((colours, selection))
     }
 }
 

@@ -1,0 +1,126 @@
+use super::*;
+use crate::camera::WorldToCamera;
+use glam::DMat3;
+
+fn camera(w: u32, h: u32, centre: DVec3) -> Camera {
+    let k = Intrinsics::pinhole(40.0, 42.0, w as f64 / 2.0 + 0.3, h as f64 / 2.0 - 0.2, w, h);
+    Camera::global(
+        k,
+        WorldToCamera {
+            rotation: DMat3::IDENTITY,
+            translation: -centre,
+        },
+    )
+}
+
+/// Deterministic values in [0, 1).
+fn values(n: usize, seed: u64) -> Vec<f32> {
+    let mut s = seed;
+    (0..n)
+        .map(|_| {
+            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        })
+        .collect()
+}
+
+/// Random layers: colours `[D, 3, H, W]` and a selection `[D, H, W]` summing to 1.
+fn layers(d: usize, n: usize) -> (Vec<f32>, Vec<f32>) {
+    let colours = values(d * 3 * n, 1);
+    let mut sel = values(d * n, 2);
+    for p in 0..n {
+        let sum: f32 = (0..d).map(|z| sel[z * n + p]).sum();
+        (0..d).for_each(|z| sel[z * n + p] /= sum);
+    }
+    (colours, sel)
+}
+
+#[test]
+fn the_composite_at_the_reference_is_the_networks_sum() -> Result<()> {
+    let (w, h, d) = (7, 5, 6);
+    let n = w * h;
+    let (colours, sel) = layers(d, n);
+    let inv = crate::geometry::inverse_depths(1.0, f64::INFINITY, d);
+    let mpi = Mpi::from_layers(camera(w as u32, h as u32, DVec3::ZERO), inv, &colours, &sel)?;
+    let img = mpi.composite();
+    let (rendered, alpha) = mpi.render(&mpi.camera);
+    for p in 0..n {
+        for c in 0..3 {
+            let want: f32 = (0..d).map(|z| sel[z * n + p] * colours[(z * 3 + c) * n + p]).sum();
+            assert!((img.data[p * 3 + c] - want).abs() < 1e-5, "composite at {p}");
+            assert!((rendered.data[p * 3 + c] - want).abs() < 1e-5, "render at {p}");
+        }
+        assert!((alpha[p] - 1.0).abs() < 1e-5);
+    }
+    Ok(())
+}
+
+#[test]
+fn alphas_telescope_and_survive_empty_planes() {
+    let a = alphas(&[0.2, 0.0, 0.5, 0.3, 0.0]);
+    assert_eq!(a[4], 0.0);
+    assert!((a[3] - 1.0).abs() < 1e-7);
+    assert!((a[2] - 0.5 / 0.8).abs() < 1e-7);
+    assert_eq!(a[1], 0.0);
+    assert!((a[0] - 0.2).abs() < 1e-7);
+    assert_eq!(alphas(&[0.0, 0.0]), vec![0.0, 0.0]);
+}
+
+#[test]
+fn planes_move_with_exact_parallax() -> Result<()> {
+    // One opaque plane at depth 4 with a vertical edge at column 10 (left 0, right 1);
+    // a camera moved by b = 0.5 along x sees it shifted by fx * b / depth = 5 pixels.
+    let (w, h) = (40u32, 8u32);
+    let cam = camera(w, h, DVec3::ZERO);
+    let mut plane = vec![0f32; (w * h * 4) as usize];
+    for y in 0..h as usize {
+        for x in 0..w as usize {
+            let px = &mut plane[(y * w as usize + x) * 4..][..4];
+            px.copy_from_slice(&[if x >= 10 { 1.0 } else { 0.0 }, 0.0, 0.0, 1.0]);
+        }
+    }
+    let mpi = Mpi {
+        camera: cam,
+        inv_depths: vec![0.25],
+        planes: vec![plane.clone()],
+    };
+    let moved = camera(w, h, DVec3::new(0.5, 0.0, 0.0));
+    let (img, _) = mpi.render(&moved);
+    let red = |x: usize| img.data[(3 * w as usize + x) * 3];
+    assert_eq!((red(4), red(5)), (0.0, 1.0), "edge moved to column 5");
+    // At infinity a translation moves nothing.
+    let far = Mpi {
+        inv_depths: vec![0.0],
+        ..mpi
+    };
+    let (img, _) = far.render(&moved);
+    let red = |x: usize| img.data[(3 * w as usize + x) * 3];
+    assert_eq!((red(9), red(10)), (0.0, 1.0));
+    Ok(())
+}
+
+#[test]
+fn the_directory_format_round_trips() -> Result<()> {
+    let (w, h, d) = (9, 4, 3);
+    let (colours, sel) = layers(d, w * h);
+    let inv = vec![0.5, 0.25, 0.0];
+    let cam = camera(w as u32, h as u32, DVec3::new(0.1, -0.2, 0.3));
+    let mpi = Mpi::from_layers(cam, inv, &colours, &sel)?;
+    let dir = tempfile::tempdir().map_err(|e| Error::io(Path::new("tmp"), e))?;
+    io::write(&mpi, dir.path())?;
+    let back = io::read(dir.path())?;
+    assert_eq!(back.inv_depths, mpi.inv_depths);
+    assert!((back.camera.pose.translation - cam.pose.translation).length() < 1e-12);
+    for (a, b) in back.planes.iter().zip(&mpi.planes) {
+        assert!(a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 0.5 / 255.0 + 1e-6));
+    }
+    // A plane of the wrong size is refused, naming the file.
+    std::fs::copy(dir.path().join("plane_00.png"), dir.path().join("plane_01.png"))
+        .map_err(|e| Error::io(dir.path(), e))?;
+    crate::imageio::save_rgb8_png(&dir.path().join("plane_02.png"), 2, 2, &[0; 12])?;
+    let err = io::read(dir.path()).expect_err("a 2x2 plane").to_string();
+    assert!(err.contains("plane_02.png") && err.contains("2x2"), "{err}");
+    Ok(())
+}
+
+use std::path::Path;
