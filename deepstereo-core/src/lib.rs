@@ -3,6 +3,7 @@
 //! Geometry (cameras, homographies, plane sweeps) is f64 on the CPU with no candle types;
 //! tensors appear only at the edge, in [`model`] and the modules that feed it.
 
+pub mod alloc;
 pub mod camera;
 pub mod error;
 pub mod imageio;
