@@ -13,6 +13,7 @@ pub use error::{Error, Result};
 pub mod baseline;
 pub mod config;
 pub mod conv;
+mod cpu;
 pub mod fused;
 pub mod geometry;
 pub mod inputs;

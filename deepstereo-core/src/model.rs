@@ -17,6 +17,7 @@
 use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};
 use crate::fused::{composite, pad_rows, select_softmax, upsample_cat, upsample_crop};
+pub use crate::fused::upsample_nearest;
 use crate::pool::{view_dims, Blend, ViewEncoder};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
@@ -117,17 +118,6 @@ impl Tower {
             .collect::<Result<Vec<_>>>()?;
         Tensor::cat(&feats, 1) // [N, sum C, h, w]
     }
-}
-
-/// Exact nearest upsampling by an integer factor through reshape and broadcast (candle's
-/// `upsample_nearest2d` backward overwrites accumulated gradients). `[N, C, H, W]` ->
-/// `[N, C, sH, sW]`.
-pub fn upsample_nearest(x: &Tensor, s: usize) -> Result<Tensor> {
-    let (n, c, h, w) = x.dims4()?;
-    x.reshape((n, c, h, 1, w, 1))? // [N, C, H, 1, W, 1]
-        .broadcast_as((n, c, h, s, w, s))? // [N, C, H, s, W, s]
-        .contiguous()?
-        .reshape((n, c, h * s, w * s)) // [N, C, sH, sW]
 }
 
 /// What the network returns for a batch of tiles.

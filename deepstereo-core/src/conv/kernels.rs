@@ -2,9 +2,8 @@
 //! the module doc). Each [`Chunk`] runs on one thread: im2col into a buffer reused by that
 //! thread, one gemm, then bias and ReLU (forward) or col2im (backward).
 
-use super::im2col::{
-    col2im, for_each_chunk, im2col, matmul, plan, reduction_blocks, Chunk, Geom, SharedMut,
-};
+use super::im2col::{col2im, for_each_chunk, im2col, matmul, plan, reduction_blocks, Chunk, Geom};
+use crate::cpu::SharedMut;
 use candle_core::WithDType;
 
 /// `dst = act(src + bias)` with `act` ReLU or identity.

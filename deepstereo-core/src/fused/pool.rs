@@ -17,7 +17,7 @@
 //! f64, the same maths runs as candle ops (`pool.rs`); tests compare the two.
 
 use super::{data, on_cpu, slice};
-use crate::pool::POOL_EPS;
+use crate::config::POOL_EPS;
 use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
