@@ -16,8 +16,8 @@
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};
-use crate::fused::{composite, pad_rows, select_softmax, upsample_cat, upsample_crop};
 pub use crate::fused::upsample_nearest;
+use crate::fused::{composite, pad_rows, select_softmax, upsample_cat, upsample_crop};
 use crate::pool::{view_dims, Blend, ViewEncoder};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};

@@ -395,7 +395,13 @@ fn draw_axes(img: &mut RgbImage, f: &Frame, (title, x_title, y_title): (&str, &s
     for (v, l) in xticks.iter().zip(xlabels) {
         let gx = f.sx(*v);
         line(img, (gx, TOP), (gx, H - BOTTOM), GREY);
-        text(img, gx - GLYPH_W / 2 * l.len() as i32, H - BOTTOM + 6, &l, BLACK);
+        text(
+            img,
+            gx - GLYPH_W / 2 * l.len() as i32,
+            H - BOTTOM + 6,
+            &l,
+            BLACK,
+        );
     }
     let yticks = nice_ticks(f.y0, f.y1, false).0;
     for (v, l) in yticks.iter().zip(tick_labels(&yticks)) {
@@ -437,7 +443,12 @@ fn series_colours(series: &[Series]) -> Vec<[f32; 3]> {
 
 /// The series' lines and markers; returns every marker's box, so that labels avoid
 /// markers too.
-fn draw_series(img: &mut RgbImage, f: &Frame, series: &[Series], colours: &[[f32; 3]]) -> Vec<Rect> {
+fn draw_series(
+    img: &mut RgbImage,
+    f: &Frame,
+    series: &[Series],
+    colours: &[[f32; 3]],
+) -> Vec<Rect> {
     let mut taken: Vec<Rect> = Vec::new();
     for (k, s) in series.iter().enumerate() {
         let screen: Vec<(i32, i32)> = s

@@ -733,7 +733,6 @@ impl<'w> Graph<'w> {
         Ok(self.op("Reshape", &[&sel, &sel_shape], vec![], "selection")) // [B, D, th, tw]
     }
 
-
     /// Colour tower (with the skip input), its output layer and, pooled, the blend of the
     /// sources' colours by the view features: `[B*D, 3, th, tw]`.
     fn colours(

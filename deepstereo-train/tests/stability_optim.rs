@@ -11,13 +11,13 @@ mod fixtures;
 #[path = "../../deepstereo-core/tests/stability/table.rs"]
 mod table;
 
-use fixtures::{inputs, small};
-use table::{row, row_text};
 use anyhow::Result;
 use candle_core::{DType, Device, Tensor, Var};
 use deepstereo_core::model::l1_loss;
 use deepstereo_core::weights::{init, named_vars};
 use deepstereo_train::optim::{Optimizer, OptimizerKind, ADAGRAD_EPS, ADAM_EPS};
+use fixtures::{inputs, small};
+use table::{row, row_text};
 
 fn flat(t: &Tensor) -> Result<Vec<f64>> {
     Ok(t.to_dtype(DType::F64)?.flatten_all()?.to_vec1::<f64>()?)

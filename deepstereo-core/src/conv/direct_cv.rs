@@ -35,10 +35,7 @@ const BLOCKS_PER_THREAD: usize = 8;
 
 /// Whether [`forward`] can run this layer (f32 callers only; `plan.rs` chooses).
 pub(crate) fn applies(g: &Geom) -> bool {
-    available()
-        && g.cout.is_multiple_of(CV)
-        && g.k() >= MIN_K
-        && g.wo() >= NP
+    available() && g.cout.is_multiple_of(CV) && g.k() >= MIN_K && g.wo() >= NP
 }
 
 /// A tile's outputs: [`NP`] consecutive outputs of row `r` from column `c`, or [`NP`]

@@ -16,9 +16,9 @@
 //!   not depend on the schedule.
 
 use super::direct::{self, flat_len, tap_offsets};
+use super::im2col::Geom;
 use super::{plan, winograd};
 use crate::cpu::avx2_fma_available as available;
-use super::im2col::Geom;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 

@@ -2,9 +2,7 @@
 //! the module doc). Each [`Chunk`] runs on one thread: im2col into a buffer reused by that
 //! thread, one gemm, then bias and ReLU (forward) or col2im (backward).
 
-use super::im2col::{
-    col2im, for_each_chunk, im2col, matmul, plan, reduction_blocks, Chunk, Geom,
-};
+use super::im2col::{col2im, for_each_chunk, im2col, matmul, plan, reduction_blocks, Chunk, Geom};
 use crate::cpu::SharedMut;
 use candle_core::WithDType;
 
@@ -181,8 +179,7 @@ fn masked_gy<T: WithDType>(
             let off = (n * cout + co) * p + c.r0 * wo;
             let dst = &mut gy[co * cols + (n - c.n0) * per..][..per];
             if relu {
-                for ((d, &dv), &yv) in dst.iter_mut().zip(&dy[off..][..per]).zip(&y[off..][..per])
-                {
+                for ((d, &dv), &yv) in dst.iter_mut().zip(&dy[off..][..per]).zip(&y[off..][..per]) {
                     *d = if yv > zero { dv } else { zero };
                 }
             } else {

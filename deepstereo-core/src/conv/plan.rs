@@ -94,7 +94,8 @@ pub(crate) fn backward(g: &Geom, need_dx: bool) -> Backward {
     let allowed = kernels_allowed();
     if allowed != Kernels::Im2col && direct_grad::applies(g) {
         Backward::Direct
-    } else if need_dx && allowed == Kernels::Auto && winograd::applies(&direct_grad::transposed(g)) {
+    } else if need_dx && allowed == Kernels::Auto && winograd::applies(&direct_grad::transposed(g))
+    {
         Backward::InputByWinograd
     } else {
         Backward::Im2col

@@ -2,8 +2,8 @@
 //! `tanh`. Rendering only: training and the candle composition keep libm's `tanh` and
 //! `exp`; the tests bound the difference.
 
-use crate::cpu::fastmath::{exp_f32, tanh_f32};
 use crate::config::BLEND_LOGIT_BOUND;
+use crate::cpu::fastmath::{exp_f32, tanh_f32};
 
 /// `y[i] <- exp(B tanh(y[i] / B))`, the blend's bounded weight ([`super::blend`]'s
 /// `bounded_exp`), over a slice.

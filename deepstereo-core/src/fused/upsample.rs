@@ -27,9 +27,7 @@ pub fn upsample_crop(x: &Tensor, s: usize, off: usize, h: usize, w: usize) -> Re
         bail!("upsample_crop: {h}x{w} at {off} does not fit {hi}x{wi} upsampled by {s}");
     }
     if !on_cpu(&[x]) {
-        return upsample_nearest(x, s)?
-            .narrow(2, off, h)?
-            .narrow(3, off, w);
+        return upsample_nearest(x, s)?.narrow(2, off, h)?.narrow(3, off, w);
     }
     x.contiguous()?.apply_op1(UpsampleCrop { s, off, h, w })
 }
