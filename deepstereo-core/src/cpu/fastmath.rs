@@ -67,10 +67,11 @@ pub(crate) fn tanh_f32(x: f32) -> f32 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn rel(a: f32, b: f64) -> f64 {
+    /// The relative error of `a` against `b`.
+    pub(crate) fn rel(a: f32, b: f64) -> f64 {
         ((a as f64 - b) / b).abs()
     }
 

@@ -18,10 +18,7 @@ pub(crate) fn bounded_exp_slice(y: &mut [f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn rel(a: f32, b: f64) -> f64 {
-        ((a as f64 - b) / b).abs()
-    }
+    use crate::cpu::fastmath::tests::rel;
 
     #[test]
     fn the_bounded_weight_matches_libm_and_stays_finite() {
