@@ -1,4 +1,4 @@
-//! The any-number-of-views family's colour blend (`crate::pool` has the maths), one pass
+//! The any-number-of-views family's colour blend (`pool.rs` has the maths), one pass
 //! over the pixels each, with gradients:
 //!
 //! - [`blend_colours`]: the blend of the source colours from the raw logits `y`

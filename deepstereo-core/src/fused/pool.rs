@@ -1,4 +1,4 @@
-//! The any-number-of-views family's per-pixel steps across views (`crate::pool` has the
+//! The any-number-of-views family's per-pixel steps across views (`pool.rs` has the
 //! maths): each a single pass over the pixels, in parallel, instead of a dozen broadcast
 //! ops and their backward passes.
 //!
