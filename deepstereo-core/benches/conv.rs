@@ -171,7 +171,7 @@ impl Drop for Python {
 
 fn main() -> Result<()> {
     // As the `deepstereo` binary does: freed memory is reused instead of unmapped.
-    deepstereo_train::alloc::tune_allocator();
+    deepstereo_core::alloc::tune_allocator();
     let reference = std::env::var("CONV_BENCH_REF").as_deref() != Ok("0");
     let wanted = std::env::var("CONV_BENCH_CONFIGS").unwrap_or_else(|_| "tiny,paper".into());
     let configs: Vec<(Config, usize)> = [(Config::tiny(), 4), (Config::paper(), 8)]

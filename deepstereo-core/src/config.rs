@@ -116,6 +116,12 @@ pub const MAX_FALLOFF_POWER: u32 = 64;
 
 /// Channels of a view's encoder input: its RGBA and its colour minus the mean colour.
 pub const ENCODER_IN: usize = 7;
+/// Added to the alpha sum before dividing (pixels no view sees get zero statistics).
+pub const POOL_EPS: f64 = 1e-6;
+/// Added to the blend weights' sum (pixels no view sees get colour `out(f)` alone).
+pub const BLEND_EPS: f64 = 1e-12;
+/// Bound on the blend logits: `exp(+-20)` stays far inside f32's range.
+pub const BLEND_LOGIT_BOUND: f64 = 20.0;
 
 impl ViewPool {
     /// Channels of one view's features `e_v`.

@@ -3,6 +3,7 @@
 //! Geometry (cameras, homographies, plane sweeps) is f64 on the CPU with no candle types;
 //! tensors appear only at the edge, in [`model`] and the modules that feed it.
 
+pub mod alloc;
 pub mod camera;
 pub mod error;
 pub mod imageio;
@@ -12,6 +13,7 @@ pub use error::{Error, Result};
 pub mod baseline;
 pub mod config;
 pub mod conv;
+mod cpu;
 pub mod fused;
 pub mod geometry;
 pub mod inputs;

@@ -16,6 +16,7 @@
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};
+pub use crate::fused::upsample_nearest;
 use crate::fused::{composite, pad_rows, select_softmax, upsample_cat, upsample_crop};
 use crate::pool::{view_dims, Blend, ViewEncoder};
 use candle_core::Module;
@@ -117,17 +118,6 @@ impl Tower {
             .collect::<Result<Vec<_>>>()?;
         Tensor::cat(&feats, 1) // [N, sum C, h, w]
     }
-}
-
-/// Exact nearest upsampling by an integer factor through reshape and broadcast (candle's
-/// `upsample_nearest2d` backward overwrites accumulated gradients). `[N, C, H, W]` ->
-/// `[N, C, sH, sW]`.
-pub fn upsample_nearest(x: &Tensor, s: usize) -> Result<Tensor> {
-    let (n, c, h, w) = x.dims4()?;
-    x.reshape((n, c, h, 1, w, 1))? // [N, C, H, 1, W, 1]
-        .broadcast_as((n, c, h, s, w, s))? // [N, C, H, s, W, s]
-        .contiguous()?
-        .reshape((n, c, h * s, w * s)) // [N, C, sH, sW]
 }
 
 /// What the network returns for a batch of tiles.
@@ -236,48 +226,7 @@ impl DeepStereo {
         if inputs.len() != cfg.levels {
             candle_core::bail!("expected {} input levels, got {}", cfg.levels, inputs.len());
         }
-        // The towers' input per level, `[B, D, C, H_l, W_l]`: the sweep itself (paper
-        // family) or the pooled statistics; and, pooled, level 0's view features.
-        let (towers_in, features) = match &self.pool {
-            Some((encoder, _)) => {
-                let v = view_dims(&inputs[0])?.1;
-                let mut stats = Vec::with_capacity(inputs.len());
-                let mut features = None;
-                for (l, x) in inputs.iter().enumerate() {
-                    if view_dims(x)?.1 != v {
-                        candle_core::bail!("input level {l} has a different number of views");
-                    }
-                    // Rendering: one fused pass where it runs (view features at level 0 only).
-                    let fused = match fuse {
-                        true => encoder.infer(x, l == 0)?,
-                        false => None,
-                    };
-                    let (s, e) = match fused {
-                        Some(pooled) => pooled,
-                        None => {
-                            let pooled = encoder.forward(x, fuse)?;
-                            (pooled.stats, Some(pooled.features))
-                        }
-                    };
-                    stats.push(s);
-                    if l == 0 {
-                        features = e;
-                    }
-                }
-                (stats, features)
-            }
-            None => {
-                let cin = inputs[0].dims5()?.2;
-                if cin != cfg.in_channels() {
-                    candle_core::bail!(
-                        "expected {} input channels (4 x {} views), got {cin}",
-                        cfg.in_channels(),
-                        cfg.views
-                    );
-                }
-                (inputs.to_vec(), None)
-            }
-        };
+        let (towers_in, features) = self.towers_input(inputs, fuse)?;
         let (b, d, cin, h0, w0) = towers_in[0].dims5()?;
         let (th, tw) = (h0 - 2 * cfg.pad(0), w0 - 2 * cfg.pad(0));
         let folded = |t: &TowerConfig, from: usize| -> Result<Vec<Tensor>> {
@@ -292,56 +241,12 @@ impl DeepStereo {
                 })
                 .collect()
         };
-        // Selection tower.
-        let s = self
-            .select
-            .forward(&folded(&cfg.select, 0)?, th, tw, fuse)?; // [B*D, C, th, tw]
-        let fused = if fuse {
-            depth_head(&s, d, &self.depth, &self.log_scale)?
-        } else {
-            None
-        };
-        let selection = match fused {
-            Some(sel) => sel, // [B, D, th*tw]
-            None => self.selection(&s, b, d, th, tw)?,
-        };
-
-        // Colour tower: one fused pass for a 1x1 tower when rendering (the tile sits at
-        // `pad(0)` in level 0), else layer by layer; pooled, plus the blend of the
-        // sources' colours.
-        let p = cfg.pad(0);
+        let selection = self.select_probabilities(&folded, (b, d), (th, tw), fuse)?; // [B, D, th*tw]
         let out = match (&self.pool, features) {
             (Some((_, blend)), Some(e)) => {
-                let f = self
-                    .colour
-                    .forward(&folded(&cfg.colour, 0)?, th, tw, fuse)?; // [B*D, C_c, th, tw]
-                let centre = |t: &Tensor| t.narrow(3, p, th)?.narrow(4, p, tw); // [B*D, V, C, th, tw]
-                let (n, v, h, w, _) = view_dims(&inputs[0])?;
-                let x0 = inputs[0].reshape((n, v, 4, h, w))?; // [B*D, V, 4, H_0, W_0]
-                let fused = match fuse {
-                    true => blend.infer(&e, &x0, &f, p)?, // [B*D, 3, th*tw]
-                    false => None,
-                };
-                let blended = match fused {
-                    Some(c) => c.reshape((n, 3, th, tw))?, // [B*D, 3, th, tw]
-                    None => blend.forward(&centre(&e)?, &centre(&x0)?, &f)?, // [B*D, 3, th, tw]
-                };
-                (blended + self.colour_out.forward(&f)?)?
+                self.blended_colours(blend, inputs, &folded, &e, (th, tw), fuse)?
             }
-            _ => {
-                let pointwise = match fuse.then(|| self.colour.pointwise()).flatten() {
-                    Some(convs) => {
-                        let x0 = inputs[0].reshape((b * d, cin, h0, w0))?; // [B*D, 4V, H_0, W_0]
-                        let (out, skip) = (&self.colour_out, cfg.colour_skip);
-                        pointwise_colours(&x0, p, (th, tw), &convs, out, skip)?
-                    }
-                    None => None,
-                };
-                match pointwise {
-                    Some(out) => out,
-                    None => self.colours(inputs, &folded, th, tw)?,
-                }
-            }
+            _ => self.paper_colours(inputs, &folded, (b, d, cin, h0, w0), (th, tw), fuse)?,
         }; // [B*D, 3, th, tw]
         let colours = out.reshape((b, d, 3, th * tw))?; // [B, D, 3, th*tw]
         let image = composite(&colours, &selection)? // sum over D of s * c
@@ -353,6 +258,125 @@ impl DeepStereo {
             selection,
             colours,
         })
+    }
+
+    /// The towers' input per level, `[B, D, C, H_l, W_l]`: the sweep itself (paper
+    /// family) or the pooled statistics; and, pooled, level 0's view features.
+    fn towers_input(&self, inputs: &[Tensor], fuse: bool) -> Result<(Vec<Tensor>, Option<Tensor>)> {
+        let cfg = &self.cfg;
+        let Some((encoder, _)) = &self.pool else {
+            let cin = inputs[0].dims5()?.2;
+            if cin != cfg.in_channels() {
+                candle_core::bail!(
+                    "expected {} input channels (4 x {} views), got {cin}",
+                    cfg.in_channels(),
+                    cfg.views
+                );
+            }
+            return Ok((inputs.to_vec(), None));
+        };
+        let v = view_dims(&inputs[0])?.1;
+        let mut stats = Vec::with_capacity(inputs.len());
+        let mut features = None;
+        for (l, x) in inputs.iter().enumerate() {
+            if view_dims(x)?.1 != v {
+                candle_core::bail!("input level {l} has a different number of views");
+            }
+            // Rendering: one fused pass where it runs (view features at level 0 only).
+            let fused = match fuse {
+                true => encoder.infer(x, l == 0)?,
+                false => None,
+            };
+            let (s, e) = match fused {
+                Some(pooled) => pooled,
+                None => {
+                    let pooled = encoder.forward(x, fuse)?;
+                    (pooled.stats, Some(pooled.features))
+                }
+            };
+            stats.push(s);
+            if l == 0 {
+                features = e;
+            }
+        }
+        Ok((stats, features))
+    }
+
+    /// The selection tower and its head: `[B, D, th*tw]` (rendering: the depth layers and
+    /// the softmax in one fused pass where it runs).
+    fn select_probabilities(
+        &self,
+        folded: &dyn Fn(&TowerConfig, usize) -> Result<Vec<Tensor>>,
+        (b, d): (usize, usize),
+        (th, tw): (usize, usize),
+        fuse: bool,
+    ) -> Result<Tensor> {
+        let s = self
+            .select
+            .forward(&folded(&self.cfg.select, 0)?, th, tw, fuse)?; // [B*D, C, th, tw]
+        let fused = if fuse {
+            depth_head(&s, d, &self.depth, &self.log_scale)?
+        } else {
+            None
+        };
+        match fused {
+            Some(sel) => Ok(sel), // [B, D, th*tw]
+            None => self.selection(&s, b, d, th, tw),
+        }
+    }
+
+    /// Pooled family: the colour tower's linear RGB plus the blend of the sources' colours
+    /// by the view features `e`, `[B*D, 3, th, tw]` (rendering: the blend in one fused
+    /// pass where it runs).
+    fn blended_colours(
+        &self,
+        blend: &Blend,
+        inputs: &[Tensor],
+        folded: &dyn Fn(&TowerConfig, usize) -> Result<Vec<Tensor>>,
+        e: &Tensor,
+        (th, tw): (usize, usize),
+        fuse: bool,
+    ) -> Result<Tensor> {
+        let p = self.cfg.pad(0);
+        let f = self
+            .colour
+            .forward(&folded(&self.cfg.colour, 0)?, th, tw, fuse)?; // [B*D, C_c, th, tw]
+        let centre = |t: &Tensor| t.narrow(3, p, th)?.narrow(4, p, tw); // [B*D, V, C, th, tw]
+        let (n, v, h, w, _) = view_dims(&inputs[0])?;
+        let x0 = inputs[0].reshape((n, v, 4, h, w))?; // [B*D, V, 4, H_0, W_0]
+        let fused = match fuse {
+            true => blend.infer(e, &x0, &f, p)?, // [B*D, 3, th*tw]
+            false => None,
+        };
+        let blended = match fused {
+            Some(c) => c.reshape((n, 3, th, tw))?, // [B*D, 3, th, tw]
+            None => blend.forward(&centre(e)?, &centre(&x0)?, &f)?, // [B*D, 3, th, tw]
+        };
+        blended + self.colour_out.forward(&f)?
+    }
+
+    /// Paper family: the colour tower, `[B*D, 3, th, tw]`; one fused pass for a 1x1 tower
+    /// when rendering (the tile sits at `pad(0)` in level 0), else layer by layer.
+    fn paper_colours(
+        &self,
+        inputs: &[Tensor],
+        folded: &dyn Fn(&TowerConfig, usize) -> Result<Vec<Tensor>>,
+        (b, d, cin, h0, w0): (usize, usize, usize, usize, usize),
+        (th, tw): (usize, usize),
+        fuse: bool,
+    ) -> Result<Tensor> {
+        let pointwise = match fuse.then(|| self.colour.pointwise()).flatten() {
+            Some(convs) => {
+                let x0 = inputs[0].reshape((b * d, cin, h0, w0))?; // [B*D, 4V, H_0, W_0]
+                let (out, skip) = (&self.colour_out, self.cfg.colour_skip);
+                pointwise_colours(&x0, self.cfg.pad(0), (th, tw), &convs, out, skip)?
+            }
+            None => None,
+        };
+        match pointwise {
+            Some(out) => Ok(out),
+            None => self.colours(inputs, folded, th, tw),
+        }
     }
 
     /// The depth layers and the softmax, one op at a time: `s` `[B*D, C, th, tw]` ->

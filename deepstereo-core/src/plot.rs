@@ -291,6 +291,71 @@ fn overlaps(a: Rect, b: Rect) -> bool {
     a.0 <= b.2 && b.0 <= a.2 && a.1 <= b.3 && b.1 <= a.3
 }
 
+/// Whether a point has both coordinates finite (others are not drawn).
+fn finite(p: &(f64, f64)) -> bool {
+    p.0.is_finite() && p.1.is_finite()
+}
+
+/// The data-to-pixel mapping of the plot area: x (log10 when `log_x`) in `x0..x1` to
+/// `LEFT..plot_r`, y in `y0..y1` to `H - BOTTOM..TOP`.
+struct Frame {
+    log_x: bool,
+    /// Every finite x is an integer (step counts): ticks at integers.
+    integer_x: bool,
+    x0: f64,
+    x1: f64,
+    y0: f64,
+    y1: f64,
+    plot_r: i32,
+}
+
+impl Frame {
+    /// The finite points' range with margins of 5% (x) and 8% (y); `0..1` when there are
+    /// none.
+    fn fit(series: &[Series], log_x: bool, plot_r: i32) -> Self {
+        let tx = |x: f64| if log_x { x.max(1e-12).log10() } else { x };
+        let pts: Vec<(f64, f64)> = series
+            .iter()
+            .flat_map(|s| s.points.iter())
+            .filter(|p| finite(p))
+            .cloned()
+            .collect();
+        let integer_x = !log_x && !pts.is_empty() && pts.iter().all(|p| p.0.fract() == 0.0);
+        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for &(x, y) in &pts {
+            (x0, x1, y0, y1) = (x0.min(tx(x)), x1.max(tx(x)), y0.min(y), y1.max(y));
+        }
+        if x0 > x1 {
+            (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+        }
+        let (px, py) = ((x1 - x0).max(1e-9) * 0.05, (y1 - y0).max(1e-9) * 0.08);
+        Self {
+            log_x,
+            integer_x,
+            x0: x0 - px,
+            x1: x1 + px,
+            y0: y0 - py,
+            y1: y1 + py,
+            plot_r,
+        }
+    }
+
+    /// The pixel column of an axis value (log10 of x on a log axis).
+    fn sxt(&self, t: f64) -> i32 {
+        LEFT + ((t - self.x0) / (self.x1 - self.x0) * (self.plot_r - LEFT) as f64) as i32
+    }
+
+    /// The pixel column of x.
+    fn sx(&self, x: f64) -> i32 {
+        self.sxt(if self.log_x { x.max(1e-12).log10() } else { x })
+    }
+
+    /// The pixel row of y.
+    fn sy(&self, y: f64) -> i32 {
+        H - BOTTOM - ((y - self.y0) / (self.y1 - self.y0) * (H - TOP - BOTTOM) as f64) as i32
+    }
+}
+
 /// A plot of `series` with axis titles; `log_x` plots x on a log10 scale. Each series gets
 /// its own marker shape (by index) and colour (an already used colour is replaced from
 /// [`PALETTE`]); point labels are placed where they overlap no other label, or left out;
@@ -302,75 +367,66 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
     let width = W.max(plot_r + LEGEND_TEXT + GLYPH_W * longest + GLYPH_W);
     let mut img = RgbImage::new(width as u32, H as u32);
     img.data.iter_mut().for_each(|v| *v = 1.0);
-    let tx = |x: f64| if log_x { x.max(1e-12).log10() } else { x };
-    let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
-    let pts: Vec<(f64, f64)> = series
-        .iter()
-        .flat_map(|s| s.points.iter())
-        .filter(finite)
-        .cloned()
-        .collect();
-    let integer_x = !log_x && !pts.is_empty() && pts.iter().all(|p| p.0.fract() == 0.0);
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for &(x, y) in &pts {
-        (x0, x1, y0, y1) = (x0.min(tx(x)), x1.max(tx(x)), y0.min(y), y1.max(y));
-    }
-    if x0 > x1 {
-        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
-    }
-    let (px, py) = ((x1 - x0).max(1e-9) * 0.05, (y1 - y0).max(1e-9) * 0.08);
-    let (x0, x1, y0, y1) = (x0 - px, x1 + px, y0 - py, y1 + py);
-    let sxt = |t: f64| LEFT + ((t - x0) / (x1 - x0) * (plot_r - LEFT) as f64) as i32;
-    let sx = |x: f64| sxt(tx(x));
-    let sy = |y: f64| H - BOTTOM - ((y - y0) / (y1 - y0) * (H - TOP - BOTTOM) as f64) as i32;
-    let grey = [0.85, 0.85, 0.85];
-    let black = [0.0, 0.0, 0.0];
-    let xticks = if log_x {
-        log_ticks(x0, x1)
+    let frame = Frame::fit(series, log_x, plot_r);
+    draw_axes(&mut img, &frame, (title, x_title, y_title));
+    let colours = series_colours(series);
+    let taken = draw_series(&mut img, &frame, series, &colours);
+    draw_point_labels(&mut img, &frame, series, &colours, taken);
+    draw_legend(&mut img, series, &colours, plot_r);
+    img
+}
+
+const GREY: [f32; 3] = [0.85, 0.85, 0.85];
+const BLACK: [f32; 3] = [0.0, 0.0, 0.0];
+
+/// Grid lines and tick labels, the axes, and the titles `(plot, x axis, y axis)`.
+fn draw_axes(img: &mut RgbImage, f: &Frame, (title, x_title, y_title): (&str, &str, &str)) {
+    let plot_r = f.plot_r;
+    let xticks = if f.log_x {
+        log_ticks(f.x0, f.x1)
     } else {
-        nice_ticks(x0, x1, integer_x).0
+        nice_ticks(f.x0, f.x1, f.integer_x).0
     };
-    let xlabels = if log_x {
+    let xlabels = if f.log_x {
         log_tick_labels(&xticks)
     } else {
         tick_labels(&xticks)
     };
     for (v, l) in xticks.iter().zip(xlabels) {
-        let gx = sx(*v);
-        line(&mut img, (gx, TOP), (gx, H - BOTTOM), grey);
+        let gx = f.sx(*v);
+        line(img, (gx, TOP), (gx, H - BOTTOM), GREY);
         text(
-            &mut img,
+            img,
             gx - GLYPH_W / 2 * l.len() as i32,
             H - BOTTOM + 6,
             &l,
-            black,
+            BLACK,
         );
     }
-    let yticks = nice_ticks(y0, y1, false).0;
+    let yticks = nice_ticks(f.y0, f.y1, false).0;
     for (v, l) in yticks.iter().zip(tick_labels(&yticks)) {
-        let gy = sy(*v);
-        line(&mut img, (LEFT, gy), (plot_r, gy), grey);
-        text(
-            &mut img,
-            LEFT - 6 - GLYPH_W * l.len() as i32,
-            gy - 3,
-            &l,
-            black,
-        );
+        let gy = f.sy(*v);
+        line(img, (LEFT, gy), (plot_r, gy), GREY);
+        text(img, LEFT - 6 - GLYPH_W * l.len() as i32, gy - 3, &l, BLACK);
     }
-    line(&mut img, (LEFT, H - BOTTOM), (plot_r, H - BOTTOM), black);
-    line(&mut img, (LEFT, TOP), (LEFT, H - BOTTOM), black);
-    text(&mut img, LEFT, 10, title, black);
+    line(img, (LEFT, H - BOTTOM), (plot_r, H - BOTTOM), BLACK);
+    line(img, (LEFT, TOP), (LEFT, H - BOTTOM), BLACK);
+    text(img, LEFT, 10, title, BLACK);
     text(
-        &mut img,
+        img,
         (LEFT + plot_r - GLYPH_W * x_title.len() as i32) / 2,
         H - 18,
         x_title,
-        black,
+        BLACK,
     );
-    text(&mut img, 4, TOP - 14, y_title, black);
+    text(img, 4, TOP - 14, y_title, BLACK);
+}
+
+/// Each series' colour: its own, or when an earlier series already has it the first
+/// unused colour of [`PALETTE`] (then generated ones).
+fn series_colours(series: &[Series]) -> Vec<[f32; 3]> {
     let mut used: Vec<[f32; 3]> = Vec::new();
-    let colours: Vec<[f32; 3]> = series
+    series
         .iter()
         .map(|s| {
             let c = if used.contains(&s.colour) {
@@ -382,38 +438,56 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
             used.push(c);
             c
         })
-        .collect();
-    // Every marker's box, so that labels avoid markers too.
+        .collect()
+}
+
+/// The series' lines and markers; returns every marker's box, so that labels avoid
+/// markers too.
+fn draw_series(
+    img: &mut RgbImage,
+    f: &Frame,
+    series: &[Series],
+    colours: &[[f32; 3]],
+) -> Vec<Rect> {
     let mut taken: Vec<Rect> = Vec::new();
-    let screen: Vec<Vec<(i32, i32)>> = series
-        .iter()
-        .map(|s| {
-            s.points
-                .iter()
-                .filter(finite)
-                .map(|&(x, y)| (sx(x), sy(y)))
-                .collect()
-        })
-        .collect();
     for (k, s) in series.iter().enumerate() {
+        let screen: Vec<(i32, i32)> = s
+            .points
+            .iter()
+            .filter(|p| finite(p))
+            .map(|&(x, y)| (f.sx(x), f.sy(y)))
+            .collect();
         let c = colours[k];
         if s.line {
-            for w in screen[k].windows(2) {
-                line(&mut img, w[0], w[1], c);
+            for w in screen.windows(2) {
+                line(img, w[0], w[1], c);
             }
         }
         if s.marker > 0 {
             let r = s.marker;
-            for &p in &screen[k] {
-                marker(&mut img, p, shape_of(k), r, c);
+            for &p in &screen {
+                marker(img, p, shape_of(k), r, c);
                 taken.push((p.0 - r - 1, p.1 - r - 1, p.0 + r + 1, p.1 + r + 1));
             }
         }
     }
+    taken
+}
+
+/// Point labels, each at the first of six places around its point that stays inside the
+/// plot area and overlaps no marker and no earlier label (else left out).
+fn draw_point_labels(
+    img: &mut RgbImage,
+    f: &Frame,
+    series: &[Series],
+    colours: &[[f32; 3]],
+    mut taken: Vec<Rect>,
+) {
+    let plot_r = f.plot_r;
     for (k, s) in series.iter().enumerate() {
         let labelled = s.points.iter().zip(&s.labels).filter(|(p, _)| finite(p));
         for ((x, y), l) in labelled {
-            let (px, py, r) = (sx(*x), sy(*y), s.marker.max(1) + 2);
+            let (px, py, r) = (f.sx(*x), f.sy(*y), s.marker.max(1) + 2);
             let (w, h) = (GLYPH_W * l.len() as i32, GLYPH_H);
             let candidates = [
                 (px + r, py - h - 1),
@@ -430,24 +504,27 @@ pub fn plot(title: &str, x_title: &str, y_title: &str, series: &[Series], log_x:
             });
             if let Some((lx, ly)) = free {
                 taken.push((lx - 1, ly - 1, lx + w, ly + h));
-                text(&mut img, lx, ly, l, colours[k]);
+                text(img, lx, ly, l, colours[k]);
             }
         }
     }
+}
+
+/// The legend right of the plot area: each series' line and marker, and its label.
+fn draw_legend(img: &mut RgbImage, series: &[Series], colours: &[[f32; 3]], plot_r: i32) {
     for (k, s) in series.iter().enumerate() {
         let c = colours[k];
         let ly = TOP + 6 + 14 * k as i32;
         let (lx, mid) = (plot_r + 10, ly + 3);
         if s.line {
-            line(&mut img, (lx, mid), (lx + 16, mid), c);
-            line(&mut img, (lx, mid + 1), (lx + 16, mid + 1), c);
+            line(img, (lx, mid), (lx + 16, mid), c);
+            line(img, (lx, mid + 1), (lx + 16, mid + 1), c);
         }
         if s.marker > 0 {
-            marker(&mut img, (lx + 8, mid), shape_of(k), s.marker.min(3), c);
+            marker(img, (lx + 8, mid), shape_of(k), s.marker.min(3), c);
         }
-        text(&mut img, plot_r + LEGEND_TEXT, ly, &s.label, black);
+        text(img, plot_r + LEGEND_TEXT, ly, &s.label, BLACK);
     }
-    img
 }
 
 /// Indices of the points on the Pareto front (lower x and higher y are better).

@@ -33,12 +33,7 @@ use crate::fused;
 use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 
-/// Added to the alpha sum before dividing (pixels no view sees get zero statistics).
-pub const POOL_EPS: f64 = 1e-6;
-/// Added to the blend weights' sum (pixels no view sees get colour `out(f)` alone).
-pub const BLEND_EPS: f64 = 1e-12;
-/// Bound on the blend logits: `exp(+-20)` stays far inside f32's range.
-pub const BLEND_LOGIT_BOUND: f64 = 20.0;
+pub use crate::config::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 
 /// The per-view encoder (`views.encode.*`).
 #[derive(Debug, Clone)]

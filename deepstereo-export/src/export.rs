@@ -115,32 +115,63 @@ pub fn build_model(cfg: &Config, weights: &[Weight], opset: i64) -> Result<Model
     g.rename_output(&image, "image")?;
     g.rename_output(&selection, "selection")?;
     g.check_all_weights_used()?;
+    let graph = GraphProto {
+        node: g.nodes,
+        name: Some(format!("deepstereo_{}", cfg.name)),
+        initializer: g.initializers,
+        doc_string: Some(format!(
+            "DeepStereo network '{}': {} views, {} levels; output tile th x tw, th and tw multiples of {}",
+            cfg.name,
+            cfg.views,
+            cfg.levels,
+            cfg.tile_align()
+        )),
+        input: graph_inputs(cfg),
+        output: graph_outputs(),
+        ..Default::default()
+    };
+    model_proto(cfg, graph, opset)
+}
 
-    let dim = |name: &str| tensor_shape_proto::Dimension {
+/// A dynamic dimension named `name`.
+fn dim(name: &str) -> tensor_shape_proto::Dimension {
+    tensor_shape_proto::Dimension {
         denotation: None,
         value: Some(tensor_shape_proto::dimension::Value::DimParam(
             name.to_string(),
         )),
-    };
-    let fixed = |v: usize| tensor_shape_proto::Dimension {
+    }
+}
+
+/// A dimension of fixed size `v`.
+fn fixed(v: usize) -> tensor_shape_proto::Dimension {
+    tensor_shape_proto::Dimension {
         denotation: None,
         value: Some(tensor_shape_proto::dimension::Value::DimValue(v as i64)),
-    };
-    let value_info =
-        |name: &str, dims: Vec<tensor_shape_proto::Dimension>, doc: &str| ValueInfoProto {
-            name: Some(name.to_string()),
-            r#type: Some(TypeProto {
-                denotation: None,
-                value: Some(type_proto::Value::TensorType(type_proto::Tensor {
-                    elem_type: Some(DataType::Float as i32),
-                    shape: Some(TensorShapeProto { dim: dims }),
-                })),
-            }),
-            doc_string: Some(doc.to_string()),
-            metadata_props: vec![],
-        };
+    }
+}
+
+/// A float tensor's name, dimensions and description.
+fn value_info(name: &str, dims: Vec<tensor_shape_proto::Dimension>, doc: &str) -> ValueInfoProto {
+    ValueInfoProto {
+        name: Some(name.to_string()),
+        r#type: Some(TypeProto {
+            denotation: None,
+            value: Some(type_proto::Value::TensorType(type_proto::Tensor {
+                elem_type: Some(DataType::Float as i32),
+                shape: Some(TensorShapeProto { dim: dims }),
+            })),
+        }),
+        doc_string: Some(doc.to_string()),
+        metadata_props: vec![],
+    }
+}
+
+/// The graph's inputs: one plane-sweep level each, with its layout (and the view falloff,
+/// which whoever builds the inputs applies) in its description.
+fn graph_inputs(cfg: &Config) -> Vec<ValueInfoProto> {
     let cin = cfg.in_channels();
-    let inputs = (0..cfg.levels)
+    (0..cfg.levels)
         .map(|l| {
             let (h, w) = (
                 dim(&format!("level{l}_height")),
@@ -172,8 +203,12 @@ pub fn build_model(cfg: &Config, weights: &[Weight], opset: i64) -> Result<Model
             );
             value_info(&input_name(l), dims, &doc)
         })
-        .collect();
-    let outputs = vec![
+        .collect()
+}
+
+/// The graph's outputs: the rendered colour and the selection probabilities.
+fn graph_outputs() -> Vec<ValueInfoProto> {
+    vec![
         value_info(
             "image",
             vec![
@@ -194,23 +229,13 @@ pub fn build_model(cfg: &Config, weights: &[Weight], opset: i64) -> Result<Model
             ],
             "selection probabilities over planes [B, D, th, tw]",
         ),
-    ];
+    ]
+}
+
+/// The model around `graph`: opset, IR version, producer, and the config (and tile
+/// alignment) in the metadata.
+fn model_proto(cfg: &Config, graph: GraphProto, opset: i64) -> Result<ModelProto> {
     let config_json = serde_json::to_string(cfg).map_err(|e| Error::Config(e.to_string()))?;
-    let graph = GraphProto {
-        node: g.nodes,
-        name: Some(format!("deepstereo_{}", cfg.name)),
-        initializer: g.initializers,
-        doc_string: Some(format!(
-            "DeepStereo network '{}': {} views, {} levels; output tile th x tw, th and tw multiples of {}",
-            cfg.name,
-            cfg.views,
-            cfg.levels,
-            cfg.tile_align()
-        )),
-        input: inputs,
-        output: outputs,
-        ..Default::default()
-    };
     let meta = |k: &str, v: String| StringStringEntryProto {
         key: Some(k.to_string()),
         value: Some(v),
@@ -636,8 +661,6 @@ impl<'w> Graph<'w> {
     /// `DeepStereo::forward`; returns the names of `image` and `selection`.
     fn forward(&mut self, cfg: &Config) -> Result<(String, String)> {
         let cin = cfg.tower_in_channels();
-        let bd = self.bd.clone();
-        let tile = self.tile.clone();
         // The towers' inputs: the sweep itself, or the pooled statistics.
         let (towers_in, features) = match &cfg.pool {
             Some(pool) => {
@@ -647,8 +670,17 @@ impl<'w> Graph<'w> {
             None => ((0..cfg.levels).map(input_name).collect(), None),
         };
 
-        // Selection tower.
-        let inputs = self.folded(cfg, &cfg.select, "select", &towers_in, cin);
+        let selection = self.selection(cfg, &towers_in, cin)?; // [B, D, th, tw]
+        let colours = self.colours(cfg, &towers_in, features.as_deref(), cin)?; // [B*D, 3, th, tw]
+        let image = self.composite(&colours, &selection); // [B, 3, th, tw]
+        Ok((image, selection))
+    }
+
+    /// Selection tower, the depth layers and the softmax over planes: `[B, D, th, tw]`.
+    fn selection(&mut self, cfg: &Config, towers_in: &[String], cin: usize) -> Result<String> {
+        let bd = self.bd.clone();
+        let tile = self.tile.clone();
+        let inputs = self.folded(cfg, &cfg.select, "select", towers_in, cin);
         let s = self.tower(&cfg.select, "select", &inputs, cin)?; // [B*D, C, th, tw]
         let c = cfg.select.out_channels(cin);
         let tail = self.const_i64(&[c as i64, -1], "select_tail");
@@ -698,13 +730,22 @@ impl<'w> Graph<'w> {
             vec![attr_int("axis", 0)],
             "selection_shape",
         );
-        let selection = self.op("Reshape", &[&sel, &sel_shape], vec![], "selection"); // [B, D, th, tw]
+        Ok(self.op("Reshape", &[&sel, &sel_shape], vec![], "selection")) // [B, D, th, tw]
+    }
 
-        // Colour tower.
-        let inputs = self.folded(cfg, &cfg.colour, "colour", &towers_in, cin);
+    /// Colour tower (with the skip input), its output layer and, pooled, the blend of the
+    /// sources' colours by the view features: `[B*D, 3, th, tw]`.
+    fn colours(
+        &mut self,
+        cfg: &Config,
+        towers_in: &[String],
+        features: Option<&str>,
+        cin: usize,
+    ) -> Result<String> {
+        let inputs = self.folded(cfg, &cfg.colour, "colour", towers_in, cin);
         let mut f = self.tower(&cfg.colour, "colour", &inputs, cin)?; // [B*D, C, th, tw]
         let mut cout_in = cfg.colour.out_channels(cin);
-        let blended = match (&cfg.pool, &features) {
+        let blended = match (&cfg.pool, features) {
             (Some(pool), Some(e)) => Some(self.blend(cfg, pool, e, &f)?), // [B*D, 3, th, tw]
             _ => None,
         };
@@ -724,6 +765,14 @@ impl<'w> Graph<'w> {
         if let Some(blended) = blended {
             colours = self.op("Add", &[&blended, &colours], vec![], "colour.sum");
         }
+        Ok(colours)
+    }
+
+    /// The rendered colour `sum over D of s * c`: colours `[B*D, 3, th, tw]` and selection
+    /// `[B, D, th, tw]` -> `[B, 3, th, tw]`.
+    fn composite(&mut self, colours: &str, selection: &str) -> String {
+        let bd = self.bd.clone();
+        let tile = self.tile.clone();
         let three = self.const_i64(&[3], "three");
         let col_shape = self.op(
             "Concat",
@@ -731,18 +780,17 @@ impl<'w> Graph<'w> {
             vec![attr_int("axis", 0)],
             "colours_shape",
         );
-        let colours = self.op("Reshape", &[&colours, &col_shape], vec![], "colours"); // [B, D, 3, th, tw]
+        let colours = self.op("Reshape", &[colours, &col_shape], vec![], "colours"); // [B, D, 3, th, tw]
         let axis2 = self.const_i64(&[2], "axis2");
-        let sel5 = self.op("Unsqueeze", &[&selection, &axis2], vec![], "selection5"); // [B, D, 1, th, tw]
+        let sel5 = self.op("Unsqueeze", &[selection, &axis2], vec![], "selection5"); // [B, D, 1, th, tw]
         let weighted = self.op("Mul", &[&colours, &sel5], vec![], "weighted"); // [B, D, 3, th, tw]
         let axis1 = self.const_i64(&[1], "axis1");
-        let image = self.op(
+        self.op(
             "ReduceSum",
             &[&weighted, &axis1],
             vec![attr_int("keepdims", 0)],
             "image",
-        ); // [B, 3, th, tw]
-        Ok((image, selection))
+        ) // [B, 3, th, tw]
     }
 }
 

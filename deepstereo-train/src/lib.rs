@@ -3,7 +3,7 @@
 //! Kept apart as in burn's examples: [`data`] (scenes and the online sampler),
 //! [`optim`] (Adagrad, Adam), [`training`] (the loop), [`cmd`] (the subcommands).
 
-pub mod alloc;
+pub use deepstereo_core::alloc;
 pub mod cmd;
 pub mod colmap_run;
 pub mod data;

@@ -14,24 +14,16 @@
 //! layer with `k` taps along rows writes output row `r` from input rows `r .. r + k`
 //! through `direct.rs`'s tile (same tap order, so the sums equal the layer-by-layer path's).
 
-use super::direct::{available, kernels_allowed, pack, store_tile, Kernels, LineAligned, MR, NC};
-use super::{Conv2d, SharedMut};
-use candle_core::{bail, DType, Result, Tensor};
+use super::direct::{pack, store_tile, LineAligned, MR, NC};
+use super::{plan, Conv2d};
+use crate::cpu::{softmax_columns, SharedMut};
+use candle_core::{bail, Result, Tensor};
 use rayon::prelude::*;
 
 /// Pixels per block: one tile of the kernel.
 const PX: usize = NC;
 /// Work items wanted per thread (blocks are grouped into this many runs per thread).
 const RUNS_PER_THREAD: usize = 8;
-
-/// Whether the fused chains run these tensors: f32 on the CPU, with the AVX2 kernels.
-fn fast(ts: &[&Tensor]) -> bool {
-    available()
-        && kernels_allowed() != Kernels::Im2col
-        && ts
-            .iter()
-            .all(|t| t.device().is_cpu() && t.dtype() == DType::F32)
-}
 
 /// Runs `f(block)` for blocks `0..n` on all threads, each run of blocks with its own
 /// scratch from `init`.
@@ -132,7 +124,7 @@ pub fn depth_head(
     log_scale: &Tensor,
 ) -> Result<Option<Tensor>> {
     let (n, c, h, w) = s.dims4()?;
-    if !fast(&[s, log_scale]) || planes == 0 || n * h * w == 0 {
+    if !plan::chain(&[s, log_scale]) || planes == 0 || n * h * w == 0 {
         return Ok(None);
     }
     let (b, d, p) = (n / planes, planes, h * w);
@@ -195,7 +187,7 @@ pub fn depth_head(
             // SAFETY: `soft` holds d * PX values; columns 0..np.
             unsafe {
                 let logits = &bufs[layers.len()][..];
-                crate::fused::softmax_columns(logits, soft.as_mut_ptr(), a, (d, PX), 0, np);
+                softmax_columns(logits, soft.as_mut_ptr(), a, (d, PX), 0, np);
             }
             for (row, sr) in soft.chunks_exact(PX).enumerate() {
                 // SAFETY: block (bi, q0) owns columns q0 .. q0 + np of batch item bi.
@@ -249,7 +241,7 @@ fn pointwise_run(
     head_relu: bool,
 ) -> Result<Option<Tensor>> {
     let (n, c, h, w) = x.dims4()?;
-    if !fast(&[x]) || n * th * tw == 0 {
+    if !plan::chain(&[x]) || n * th * tw == 0 {
         return Ok(None);
     }
     if crop + th > h || crop + tw > w || convs.is_empty() {

@@ -19,7 +19,8 @@
 //! im2col path. Threads take runs of up to [`BLOCK_TILES`] tiles of one image; a tile that
 //! overlaps its neighbour stays in its neighbour's run.
 
-use super::im2col::{Geom, SharedMut};
+use super::im2col::Geom;
+use crate::cpu::{avx2_fma_available as available, SharedMut};
 use rayon::prelude::*;
 
 /// Output channels per tile.
@@ -38,40 +39,6 @@ const HALF_EFFICIENCY: f64 = 0.75;
 /// Relative speed assumed for flat tiles (scattered stores of tiles that cross rows) in
 /// [`by_rows`].
 const SCATTER_EFFICIENCY: f64 = 0.8;
-
-/// Whether this CPU runs the kernel (checked once; the answer is cached by std).
-pub(crate) fn available() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
-}
-
-/// Which f32 kernels `DEEPSTEREO_CONV` allows (read once): `im2col` forces the im2col +
-/// gemm path everywhere, `pixels` keeps the pixel-vectorised kernels but not the
-/// channel-vectorised one (`direct_cv.rs`); anything else (or unset) lets each layer take
-/// the kernel that suits it. For comparing the paths in benchmarks.
-#[derive(Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Kernels {
-    Auto,
-    Direct,
-    Pixels,
-    Im2col,
-}
-
-pub(crate) fn kernels_allowed() -> Kernels {
-    static K: std::sync::OnceLock<Kernels> = std::sync::OnceLock::new();
-    *K.get_or_init(|| match std::env::var("DEEPSTEREO_CONV").as_deref() {
-        Ok("im2col") => Kernels::Im2col,
-        Ok("direct") => Kernels::Direct,
-        Ok("pixels") => Kernels::Pixels,
-        _ => Kernels::Auto,
-    })
-}
 
 /// Flat positions per image that hold outputs: `Q = (Ho - 1) * W + Wo`.
 pub(crate) fn flat_len(g: &Geom) -> usize {
@@ -122,10 +89,10 @@ impl std::ops::DerefMut for LineAligned {
     }
 }
 
-/// Whether [`forward`] runs this layer (f32 callers only): the CPU has AVX2 and FMA and
-/// an image holds at least one tile.
+/// Whether [`forward`] can run this layer (f32 callers only): the CPU has AVX2 and FMA
+/// and an image holds at least one tile. `plan.rs` chooses among the kernels that can.
 pub(crate) fn applies(g: &Geom) -> bool {
-    available() && flat_len(g) >= NC && kernels_allowed() != Kernels::Im2col
+    available() && flat_len(g) >= NC
 }
 
 /// Weights `[Cout, K]` as panels of `width` output channels, each `[K, width]` (the last
@@ -242,18 +209,6 @@ fn blocks(g: &Geom) -> Vec<(usize, Vec<Tile>)> {
         }
     }
     out
-}
-
-/// `y = act(conv(x, w) + b)` by the channel-vectorised kernel where it applies
-/// (`direct_cv.rs`), else by [`forward`]; call only when [`applies`] holds.
-pub(crate) fn forward_best(g: &Geom, x: &[f32], w: &[f32], b: &[f32], relu: bool) -> Vec<f32> {
-    if super::winograd::applies(g) {
-        super::winograd::forward(g, x, w, b, relu)
-    } else if super::direct_cv::applies(g) {
-        super::direct_cv::forward(g, x, w, b, relu)
-    } else {
-        forward(g, x, w, b, relu)
-    }
 }
 
 /// `y = act(conv(x, w) + b)`, as [`super::kernels::forward`]; call only when

@@ -14,8 +14,9 @@
 //! forward); gathered tiles store theirs one by one.
 //! Taps are blocked by [`KC`] as in `direct.rs`.
 
-use super::direct::{available, kernels_allowed, pack, tap_offsets, Kernels};
-use super::im2col::{Geom, SharedMut};
+use super::direct::{pack, tap_offsets};
+use super::im2col::Geom;
+use crate::cpu::{avx2_fma_available as available, SharedMut};
 use rayon::prelude::*;
 
 /// Output channels per tile.
@@ -32,13 +33,9 @@ const BLOCK_TILES: usize = 16;
 /// Work blocks wanted per thread, for load balance.
 const BLOCKS_PER_THREAD: usize = 8;
 
-/// Whether [`forward`] runs this layer (f32 callers only).
+/// Whether [`forward`] can run this layer (f32 callers only; `plan.rs` chooses).
 pub(crate) fn applies(g: &Geom) -> bool {
-    available()
-        && matches!(kernels_allowed(), Kernels::Auto | Kernels::Direct)
-        && g.cout.is_multiple_of(CV)
-        && g.k() >= MIN_K
-        && g.wo() >= NP
+    available() && g.cout.is_multiple_of(CV) && g.k() >= MIN_K && g.wo() >= NP
 }
 
 /// A tile's outputs: [`NP`] consecutive outputs of row `r` from column `c`, or [`NP`]

@@ -5,7 +5,7 @@
 //!   past `Wo`), the bias gradient summed on the way;
 //! - input gradient: the "full" convolution of `gy` (laid out again, zero-padded by
 //!   `kh - 1`, `kw - 1`; one layout serves both when `kw = 1`) with the weights flipped in
-//!   space and transposed in channels, run by [`direct::forward_best`];
+//!   space and transposed in channels, run by the forward kernel `plan.rs` picks for it;
 //! - weight gradient `dW [Cout, K] = sum over flat positions q of gy[co, q] x[q +
 //!   offset[k]]` (positions as in `direct.rs`; those past `Wo` add zero): a reduction
 //!   vectorised along positions. A tile holds [`GR`] output channels x [`GK`] taps in 12
@@ -15,8 +15,10 @@
 //!   accumulator per group of blocks; groups are summed in a fixed order, so gradients do
 //!   not depend on the schedule.
 
-use super::direct::{self, available, flat_len, tap_offsets};
+use super::direct::{self, flat_len, tap_offsets};
 use super::im2col::Geom;
+use super::{plan, winograd};
+use crate::cpu::avx2_fma_available as available;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 
@@ -35,30 +37,26 @@ const GROUPS_PER_THREAD: usize = 4;
 /// `examples/forward_probe.rs paper 1 32 step`), narrow ones (`tiny`'s) on this one.
 const MAX_K: usize = 255;
 
-/// Whether [`backward`] runs this layer: few taps, and the input gradient's convolution
-/// holds a tile.
+/// Whether [`backward`] can run this layer: few taps, and the input gradient's
+/// convolution holds a tile (`plan.rs` chooses).
 pub(crate) fn applies(g: &Geom) -> bool {
     available() && g.k() <= MAX_K && direct::applies(&transposed(g))
 }
 
-/// Whether [`input_grad`] runs this layer's input gradient by Winograd (`winograd.rs`),
-/// for layers whose weight gradient stays on the im2col path (more than [`MAX_K`] taps).
-pub(crate) fn input_by_winograd(g: &Geom) -> bool {
-    available() && super::winograd::applies(&transposed(g))
-}
-
-/// The input gradient alone: the forward kernels on the padded, masked output gradient
-/// with flipped weights, as in [`backward`].
+/// The input gradient alone, for layers whose weight gradient stays on the im2col path
+/// (more than [`MAX_K`] taps) and whose input gradient's convolution is a Winograd layer
+/// (`plan.rs`): Winograd's forward on the padded, masked output gradient with flipped
+/// weights, as in [`backward`].
 pub(crate) fn input_grad(g: &Geom, w: &[f32], y: &[f32], dy: &[f32], relu: bool) -> Vec<f32> {
     let mask = Mask { dy, y, relu };
     let t = transposed(g);
     let (padded, _) = mask.laid_out(g, t.w, g.kh - 1, g.kw - 1);
-    direct::forward_best(&t, &padded, &flipped(g, w), &vec![0f32; g.cin], false)
+    winograd::forward(&t, &padded, &flipped(g, w), &vec![0f32; g.cin], false)
 }
 
 /// The input gradient's convolution: `gy` padded to `[n, cout, h + kh - 1, w + kw - 1]`
 /// (1x1: not padded) -> `[n, cin, h, w]`.
-fn transposed(g: &Geom) -> Geom {
+pub(super) fn transposed(g: &Geom) -> Geom {
     Geom {
         n: g.n,
         cin: g.cout,
@@ -93,7 +91,7 @@ pub(crate) fn backward(
     // dx reads gy zero-padded (rows of t.w); the weight gradient reads it at the input's
     // row stride (zeros past Wo). With kw = 1 the two are one layout.
     let (padded, db) = mask.laid_out(g, t.w, ph, pw);
-    let dx = need_dx.then(|| direct::forward_best(&t, &padded, &wt, &zero_bias, false));
+    let dx = need_dx.then(|| plan::forward_f32(&t, &padded, &wt, &zero_bias, false));
     let dw = if g.kw == 1 {
         weight_grad(g, x, &padded, t.hw(), ph * g.w)
     } else {

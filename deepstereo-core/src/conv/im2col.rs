@@ -4,6 +4,7 @@
 //! convolution is `Y [Cout, N*P] = W [Cout, K] x cols [K, N*P]` with `K = Cin * kh * kw`.
 //! That product is cut into [`Chunk`]s of whole images or of output rows of one image.
 
+use crate::cpu::SharedMut;
 use candle_core::WithDType;
 use gemm::{gemm, Parallelism};
 use rayon::prelude::*;
@@ -148,19 +149,6 @@ pub(crate) fn for_each_chunk<S, A: Send>(
 /// Blocks for [`for_each_chunk`] when their accumulators are summed.
 pub(crate) fn reduction_blocks() -> usize {
     rayon::current_num_threads() * CHUNKS_PER_THREAD
-}
-
-/// A pointer shared by threads that write disjoint parts of its buffer.
-#[derive(Clone, Copy)]
-pub(crate) struct SharedMut<T>(pub *mut T);
-unsafe impl<T> Send for SharedMut<T> {}
-unsafe impl<T> Sync for SharedMut<T> {}
-
-impl<T> SharedMut<T> {
-    /// The pointer (a method, so that closures capture the `Sync` wrapper).
-    pub fn get(self) -> *mut T {
-        self.0
-    }
 }
 
 /// `dst := (dst if accumulate) + lhs x rhs`, single-threaded; `(m, n, k)` and strides in

@@ -10,7 +10,7 @@
 //! (no second-order gradients). Off the CPU, or for dtypes other than f32 / f64, the layer
 //! falls back to candle's `conv2d` ([`Conv2d::forward_reference`]).
 //!
-//! Three CPU paths, chosen per layer in `op.rs`:
+//! Three CPU paths, chosen per layer in `plan.rs`:
 //! - **f32 with AVX2 and FMA** (checked at run time): implicit GEMM, no im2col buffer.
 //!   `direct.rs` vectorises along output pixels (tiles of 6 output channels x 16 pixels,
 //!   input read at a per-tap offset, bias and ReLU fused, taps blocked for L1);
@@ -35,7 +35,7 @@
 //! block of 16 pixels on `direct.rs`'s tile, activations kept in a per-thread scratch:
 //! [`depth_head`] (the depth convolutions and the selection softmax) and
 //! [`pointwise_colours`] (a colour tower of 1x1 convolutions and its output layer);
-//! [`crate::model::DeepStereo::infer`] uses them.
+//! `DeepStereo::infer` (`model.rs`) uses them.
 //!
 //! Column space: `Y [Cout, N*P] = W [Cout, K] x cols [K, N*P]`, `P = Ho*Wo`,
 //! `K = Cin*kh*kw`. The
@@ -97,9 +97,8 @@ mod direct_grad;
 mod im2col;
 mod kernels;
 pub use chain::{depth_head, pointwise_chain, pointwise_colours};
-pub(crate) use direct::available as avx2_fma_available;
-pub(crate) use im2col::SharedMut;
 mod op;
+mod plan;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]

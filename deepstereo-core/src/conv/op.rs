@@ -2,7 +2,8 @@
 //! the kernels directly.
 
 use super::im2col::Geom;
-use super::{direct, direct_grad, kernels};
+use super::plan::{self, Backward};
+use super::{direct_grad, kernels};
 use candle_core::{
     bail, CpuStorage, CustomOp3, DType, Layout, Result, Shape, Storage, Tensor, WithDType,
 };
@@ -155,23 +156,13 @@ impl CustomOp3 for ConvOp {
             }
         }
         let y = match xs {
-            CpuStorage::F32(_) if direct::applies(&g) => CpuStorage::F32(direct::forward_best(
+            CpuStorage::F32(_) => CpuStorage::F32(plan::forward_f32(
                 &g,
                 slice(xs, xl)?,
                 slice(ws, wl)?,
                 slice(bs, bl)?,
                 self.relu,
             )),
-            CpuStorage::F32(_) => {
-                let y = kernels::forward(
-                    &g,
-                    slice(xs, xl)?,
-                    slice(ws, wl)?,
-                    slice(bs, bl)?,
-                    self.relu,
-                );
-                CpuStorage::F32(y)
-            }
             CpuStorage::F64(_) => {
                 let y = kernels::forward(
                     &g,
@@ -194,9 +185,11 @@ impl CustomOp3 for ConvOp {
         let dy = dy.contiguous()?;
         let t = (x, w, b, y, &dy);
         match x.dtype() {
-            DType::F32 if direct_grad::applies(&g) => self.bwd_direct(t),
-            DType::F32 if x.track_op() && direct_grad::input_by_winograd(&g) => self.bwd_split(t),
-            DType::F32 => self.bwd_typed::<f32>(t),
+            DType::F32 => match plan::backward(&g, x.track_op()) {
+                Backward::Direct => self.bwd_direct(t),
+                Backward::InputByWinograd => self.bwd_split(t),
+                Backward::Im2col => self.bwd_typed::<f32>(t),
+            },
             DType::F64 => self.bwd_typed::<f64>(t),
             dt => bail!("conv2d: f32 or f64 only, got {dt:?}"),
         }

@@ -256,7 +256,7 @@ fn gradients_are_deterministic() -> Result<()> {
 #[test]
 fn direct_kernels_match_im2col_on_model_layers() {
     use super::im2col::Geom;
-    use super::{direct, direct_cv, direct_grad, kernels, winograd};
+    use super::{direct, direct_cv, direct_grad, kernels, plan, winograd};
     use crate::config::Config;
     let mut state = 0x9E37_79B9_7F4A_7C15u64;
     let mut rand = |len: usize| -> Vec<f32> {
@@ -311,7 +311,7 @@ fn direct_kernels_match_im2col_on_model_layers() {
                     let want = kernels::forward(&g, &x, &w, &b, relu);
                     // The dispatched kernel, and each kernel that takes the layer.
                     let mut paths = vec![
-                        ("best", direct::forward_best(&g, &x, &w, &b, relu)),
+                        ("best", plan::forward_f32(&g, &x, &w, &b, relu)),
                         ("pixels", direct::forward(&g, &x, &w, &b, relu)),
                     ];
                     if direct_cv::applies(&g) {
@@ -326,7 +326,7 @@ fn direct_kernels_match_im2col_on_model_layers() {
                         assert!(e < 1e-5, "{} forward ({path}) {g:?}: {e}", l.name);
                     }
                 }
-                if direct_grad::input_by_winograd(&g) && !direct_grad::applies(&g) {
+                if plan::backward(&g, true) == plan::Backward::InputByWinograd {
                     ran_split += 1;
                     let y = kernels::forward(&g, &x, &w, &b, relu);
                     let dy = rand(y.len());
@@ -353,7 +353,7 @@ fn direct_kernels_match_im2col_on_model_layers() {
             }
         }
     }
-    if direct::available() {
+    if crate::cpu::avx2_fma_available() {
         assert!(
             ran >= 40 && ran_cv >= 10 && ran_wino >= 10 && ran_split >= 10,
             "AVX2 kernels ran on {ran} layers ({ran_cv} channel-vectorised, {ran_wino} Winograd, \
@@ -463,7 +463,7 @@ fn winograd_matches_im2col_on_edge_shapes() {
             kw: k,
         };
         // Called directly: some of these shapes save too little for `applies` to pick it.
-        if !super::direct::available() {
+        if !crate::cpu::avx2_fma_available() {
             return;
         }
         for (scale, relu) in [(1.0, false), (1.0, true), (1e4, false)] {

@@ -1,4 +1,4 @@
-//! The any-number-of-views family's colour blend (`crate::pool` has the maths), one pass
+//! The any-number-of-views family's colour blend (`pool.rs` has the maths), one pass
 //! over the pixels each, with gradients:
 //!
 //! - [`blend_colours`]: the blend of the source colours from the raw logits `y`
@@ -11,7 +11,7 @@
 
 use super::pool::{cast, wide};
 use super::{data, on_cpu, slice};
-use crate::pool::{BLEND_EPS, BLEND_LOGIT_BOUND};
+use crate::config::{BLEND_EPS, BLEND_LOGIT_BOUND};
 use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;

@@ -13,7 +13,7 @@
 use super::data;
 use super::fastmath::bounded_exp_slice;
 use super::pool::wide;
-use crate::pool::BLEND_EPS;
+use crate::config::BLEND_EPS;
 use candle_core::{bail, DType, Result, Tensor};
 use rayon::prelude::*;
 
@@ -75,7 +75,7 @@ pub fn blend_infer(
         dims: (v, cf, cc, h, w),
         tile: (th, tw, pad),
     };
-    let avx2 = crate::conv::avx2_fma_available();
+    let avx2 = crate::cpu::avx2_fma_available();
     out.par_chunks_mut(3 * p).enumerate().for_each(|(i, o)| {
         if avx2 {
             // SAFETY: the CPU has AVX2 and FMA (checked above).

@@ -16,7 +16,7 @@
 use super::blend_infer::Dense;
 use super::data;
 use super::pool::{cast, wide};
-use crate::pool::POOL_EPS;
+use crate::config::{ENCODER_IN, POOL_EPS};
 use candle_core::{bail, DType, Result, Tensor};
 use rayon::prelude::*;
 
@@ -24,8 +24,6 @@ use rayon::prelude::*;
 const CHUNK: usize = 64;
 /// Pixels summed at once in [`dense_relu`] (one AVX register); divides [`CHUNK`].
 const LANES: usize = 8;
-/// The encoder's input channels: RGBA, then RGB minus the alpha-weighted mean.
-const ENCODER_IN: usize = 7;
 
 /// `(stats [N, 4 + 2 C, P], features [N, V, C, P] when `features`)` from the sources `x`
 /// `[N, V, 4, P]` and the encoder's 1x1 layers (each followed by ReLU; the first takes
@@ -43,7 +41,7 @@ pub fn encode_pool(
     let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
     let usable = x.dtype() == DType::F32
         && x.device().is_cpu()
-        && crate::conv::avx2_fma_available()
+        && crate::cpu::avx2_fma_available()
         && layers.first().is_some_and(|l| l.cin == ENCODER_IN)
         && chained
         && v > 0;

@@ -2,7 +2,7 @@
 //! (the rendered colour).
 
 use super::{data, on_cpu, par_columns, slice, COLUMNS};
-use crate::conv::SharedMut;
+use crate::cpu::{softmax_columns, SharedMut};
 use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
 use num_traits::Float;
 use rayon::prelude::*;
@@ -26,66 +26,14 @@ pub fn select_softmax(x: &Tensor, log_scale: &Tensor) -> Result<Tensor> {
 
 struct SelectSoftmax;
 
-/// [`select_softmax`] of columns `j0..j1` of one batch item: `x`, `s` `[d, p]` (for the
-/// fused depth head, `conv/chain.rs`).
-///
-/// # Safety
-/// `s` addresses `d * p` values of which no other thread touches these columns.
-pub(crate) unsafe fn softmax_columns(
-    x: &[f32],
-    s: *mut f32,
-    a: f32,
-    dp: (usize, usize),
-    j0: usize,
-    j1: usize,
-) {
-    SelectSoftmax::columns(x, s, a, dp, j0, j1)
-}
-
 impl SelectSoftmax {
-    /// Softmax over `d` of `tanh(x) a` for columns `j0..j1` of one batch item (`x`, `s`:
-    /// `[d, p]`).
-    ///
-    /// # Safety
-    /// `s` addresses `d * p` values of which no other thread touches these columns.
-    unsafe fn columns<T: Float>(
-        x: &[T],
-        s: *mut T,
-        a: T,
-        (d, p): (usize, usize),
-        j0: usize,
-        j1: usize,
-    ) {
-        let mut m = vec![T::neg_infinity(); j1 - j0];
-        for i in 0..d {
-            for (j, mj) in (j0..j1).zip(m.iter_mut()) {
-                let z = x[i * p + j].tanh() * a;
-                *s.add(i * p + j) = z;
-                *mj = mj.max(z);
-            }
-        }
-        let mut sum = vec![T::zero(); j1 - j0];
-        for i in 0..d {
-            for ((j, &mj), sj) in (j0..j1).zip(&m).zip(sum.iter_mut()) {
-                let e = (*s.add(i * p + j) - mj).exp();
-                *s.add(i * p + j) = e;
-                *sj = *sj + e;
-            }
-        }
-        for i in 0..d {
-            for (j, &sj) in (j0..j1).zip(&sum) {
-                *s.add(i * p + j) = *s.add(i * p + j) / sj;
-            }
-        }
-    }
-
     fn fwd<T: WithDType + Float>(x: &[T], a: T, (d, p): (usize, usize)) -> Vec<T> {
         let mut s = vec![T::zero(); x.len()];
         let sp = SharedMut(s.as_mut_ptr());
         par_columns(x.len() / (d * p), p, |b, j0, j1| {
             // SAFETY: items own disjoint columns of one batch item.
             unsafe {
-                Self::columns(
+                softmax_columns(
                     &x[b * d * p..][..d * p],
                     sp.get().add(b * d * p),
                     a,

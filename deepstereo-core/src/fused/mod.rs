@@ -31,11 +31,10 @@ mod upsample;
 pub use blend::{add_views_relu, blend_colours};
 pub use blend_infer::{blend_infer, Dense};
 pub use encode::encode_pool;
-pub(crate) use head::softmax_columns;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;
 pub use pool::{pool_front, pooled_stats, view_stats};
-pub use upsample::{upsample_cat, upsample_crop};
+pub use upsample::{upsample_cat, upsample_crop, upsample_nearest};
 
 use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};
 use rayon::prelude::*;

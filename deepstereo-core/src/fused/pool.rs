@@ -1,4 +1,4 @@
-//! The any-number-of-views family's per-pixel steps across views (`crate::pool` has the
+//! The any-number-of-views family's per-pixel steps across views (`pool.rs` has the
 //! maths): each a single pass over the pixels, in parallel, instead of a dozen broadcast
 //! ops and their backward passes.
 //!
@@ -17,7 +17,7 @@
 //! f64, the same maths runs as candle ops (`pool.rs`); tests compare the two.
 
 use super::{data, on_cpu, slice};
-use crate::pool::POOL_EPS;
+use crate::config::POOL_EPS;
 use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;

@@ -12,7 +12,7 @@ fn upsample_crop_matches_composition() -> Result<()> {
                 &Tensor::randn(0f64, 1., (2, 3, hi, wi), &Device::Cpu)?.to_dtype(dt)?,
             )?;
             let r = Tensor::randn(0f64, 1., (2, 3, h, w), &Device::Cpu)?.to_dtype(dt)?;
-            let want = crate::model::upsample_nearest(x.as_tensor(), s)?
+            let want = super::upsample_nearest(x.as_tensor(), s)?
                 .narrow(2, off, h)?
                 .narrow(3, off, w)?;
             let got = upsample_crop(x.as_tensor(), s, off, h, w)?;

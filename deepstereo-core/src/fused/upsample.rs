@@ -1,10 +1,23 @@
-//! [`upsample_crop`]: nearest upsampling by an integer factor and a crop in one pass;
+//! [`upsample_nearest`]: exact nearest upsampling as a candle composition (the training
+//! path's and the fallback's); [`upsample_crop`]: nearest upsampling by an integer factor
+//! and a crop in one pass;
 //! [`upsample_cat`]: several of them concatenated along channels, written straight into
 //! the concatenated buffer (rendering: the towers' level merge without a `cat` copy).
 
 use super::{data, on_cpu, plane_grad, slice, PlaneBackward};
 use candle_core::{bail, CpuStorage, CustomOp1, DType, Layout, Result, Shape, Tensor, WithDType};
 use rayon::prelude::*;
+
+/// Exact nearest upsampling by an integer factor through reshape and broadcast (candle's
+/// `upsample_nearest2d` backward overwrites accumulated gradients). `[N, C, H, W]` ->
+/// `[N, C, sH, sW]`.
+pub fn upsample_nearest(x: &Tensor, s: usize) -> Result<Tensor> {
+    let (n, c, h, w) = x.dims4()?;
+    x.reshape((n, c, h, 1, w, 1))? // [N, C, H, 1, W, 1]
+        .broadcast_as((n, c, h, s, w, s))? // [N, C, H, s, W, s]
+        .contiguous()?
+        .reshape((n, c, h * s, w * s)) // [N, C, sH, sW]
+}
 
 /// `upsample_nearest(x, s)` cropped to rows `off .. off + h` and columns `off .. off + w`:
 /// `[N, C, H, W]` -> `[N, C, h, w]`, `y[.., i, j] = x[.., (i + off) / s, (j + off) / s]`.
@@ -14,9 +27,7 @@ pub fn upsample_crop(x: &Tensor, s: usize, off: usize, h: usize, w: usize) -> Re
         bail!("upsample_crop: {h}x{w} at {off} does not fit {hi}x{wi} upsampled by {s}");
     }
     if !on_cpu(&[x]) {
-        return crate::model::upsample_nearest(x, s)?
-            .narrow(2, off, h)?
-            .narrow(3, off, w);
+        return upsample_nearest(x, s)?.narrow(2, off, h)?.narrow(3, off, w);
     }
     x.contiguous()?.apply_op1(UpsampleCrop { s, off, h, w })
 }

@@ -15,6 +15,47 @@ use crate::synth::{generate, Rig, SynthOptions};
 use crate::weights::init_seeded;
 use candle_core::{DType, Device};
 
+/// A grid point: `(mass, tolerance, stride, margin, window)`.
+type GridPoint = (f32, f32, usize, usize, usize);
+
+/// The grid of `PRUNE_GRID` (`mass,tol,stride,margin[,window];...`), else `default` alone.
+fn grid_from_env(default: GridPoint) -> Vec<GridPoint> {
+    std::env::var("PRUNE_GRID")
+        .ok()
+        .map(|g| {
+            g.split(';')
+                .map(|t| {
+                    let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
+                    (
+                        v[0] as f32,
+                        v[1] as f32,
+                        v[2] as usize,
+                        v[3] as usize,
+                        v.get(4).map_or(1, |&x| x as usize),
+                    )
+                })
+                .collect()
+        })
+        .unwrap_or_else(|| vec![default])
+}
+
+/// The pruning options of a grid point, with the contrast of `PRUNE_CONTRAST` if set.
+fn options((mass, tol, stride, margin, window): GridPoint) -> PruneOptions {
+    let contrast = std::env::var("PRUNE_CONTRAST")
+        .ok()
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(DEFAULT_CONTRAST);
+    PruneOptions {
+        mass,
+        tolerance: tol,
+        stride,
+        margin,
+        window,
+        contrast,
+        ..PruneOptions::auto()
+    }
+}
+
 /// Calibration, not a check: per scene, how many planes pruning keeps and how many
 /// pixels lose their true plane (`cargo test --release -p deepstereo-core prune_calibrate
 /// -- --ignored --nocapture`).
@@ -66,38 +107,10 @@ fn prune_calibrate() {
         );
         println!("tile {tile}: ground-truth hull keeps {:.1}%, with margin 3 {:.1}%; widths by eighths {hist:?}", 100.0 * k as f64 / t as f64, 100.0 * k3 as f64 / t as f64);
     }
-    let grid: Vec<(f32, f32, usize, usize, usize)> = std::env::var("PRUNE_GRID")
-        .ok()
-        .map(|g| {
-            g.split(';')
-                .map(|t| {
-                    let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
-                    (
-                        v[0] as f32,
-                        v[1] as f32,
-                        v[2] as usize,
-                        v[3] as usize,
-                        v.get(4).map_or(1, |&x| x as usize),
-                    )
-                })
-                .collect()
-        })
-        .unwrap_or_else(|| vec![(1.0, 0.1, 2, 1, 1)]);
+    let grid = grid_from_env((1.0, 0.1, 2, 1, 1));
     for tile in [64usize] {
         for &(mass, tol, stride, margin, window) in &grid {
-            let contrast = std::env::var("PRUNE_CONTRAST")
-                .ok()
-                .and_then(|c| c.parse().ok())
-                .unwrap_or(DEFAULT_CONTRAST);
-            let opts = PruneOptions {
-                mass,
-                tolerance: tol,
-                stride,
-                margin,
-                window,
-                contrast,
-                ..PruneOptions::auto()
-            };
+            let opts = options((mass, tol, stride, margin, window));
             let (mut m, mut n, mut k, mut t) = (0, 0, 0, 0);
             for i in 0..8u64 {
                 let s = scene(4242 + i, Rig::Mixed);
@@ -130,23 +143,7 @@ fn prune_calibrate_network() -> TestResult {
         device: Device::Cpu,
     };
     let cfg = backend.config().clone();
-    let grid: Vec<(f32, f32, usize, usize, usize)> = std::env::var("PRUNE_GRID")
-        .ok()
-        .map(|g| {
-            g.split(';')
-                .map(|t| {
-                    let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
-                    (
-                        v[0] as f32,
-                        v[1] as f32,
-                        v[2] as usize,
-                        v[3] as usize,
-                        v.get(4).map_or(1, |&x| x as usize),
-                    )
-                })
-                .collect()
-        })
-        .unwrap_or_else(|| vec![(1.0, 0.05, 2, 1, 1)]);
+    let grid = grid_from_env((1.0, 0.05, 2, 1, 1));
     let scenes: usize = std::env::var("PRUNE_SCENES")
         .ok()
         .and_then(|s| s.parse().ok())
@@ -213,19 +210,7 @@ fn prune_calibrate_network() -> TestResult {
         let off_psnr = crate::metrics::psnr(&off.image, &s.images[target]);
         off_sum += off_psnr;
         for (g, &(mass, tol, stride, margin, window)) in grid.iter().enumerate() {
-            let contrast = std::env::var("PRUNE_CONTRAST")
-                .ok()
-                .and_then(|c| c.parse().ok())
-                .unwrap_or(DEFAULT_CONTRAST);
-            let opts = PruneOptions {
-                mass,
-                tolerance: tol,
-                stride,
-                margin,
-                window,
-                contrast,
-                ..PruneOptions::auto()
-            };
+            let opts = options((mass, tol, stride, margin, window));
             let pruner = Pruner::new(&cfg, cam, &refs, &inv, None, &opts);
             let mut lost = 0.0f64;
             for y0 in (0..h).step_by(tile) {

@@ -389,14 +389,7 @@ fn match_reference(
     let step = (rho_hi - rho_lo) / (d - 1) as f64;
     let rho_of = |z: f64| rho_hi - z * step;
     let hw = w * h;
-    let nwin = ((2 * r + 1) * (2 * r + 1)) as f64;
-    let g_ref = grey(&reference.image);
-    let s_r = box_sums(&g_ref, w, h, r);
-    let sq: Vec<f64> = g_ref.iter().map(|g| g * g).collect();
-    let s_rr = box_sums(&sq, w, h, r);
-    let var_r: Vec<f64> = (0..hw).map(|p| s_rr[p] - s_r[p] * s_r[p] / nwin).collect();
-    let min_var = nwin * MIN_TEXTURE_STD * MIN_TEXTURE_STD;
-    let textured: Vec<bool> = (0..hw).map(|p| var_r[p] >= min_var).collect();
+    let windows = RefWindows::new(reference, (w, h));
     let region = Region::full(&cam.intrinsics);
     let mut cost_sum = vec![0.0f32; d * hw];
     let mut cost_n = vec![0u8; d * hw];
@@ -410,38 +403,14 @@ fn match_reference(
         // iteratively) are computed once.
         let volume = sweep(cam, region, &[src], &inv_depths);
         for (z, vol) in volume.chunks_exact(4 * hw).enumerate() {
-            let (rgb, alpha) = vol.split_at(3 * hw);
-            let g: Vec<f64> = (0..hw)
-                .map(|p| (rgb[p] as f64 + rgb[hw + p] as f64 + rgb[2 * hw + p] as f64) / 3.0)
-                .collect();
-            let a: Vec<f64> = alpha.iter().map(|&v| v as f64).collect();
-            let s_a = box_sums(&a, w, h, r);
-            let s_n = box_sums(&g, w, h, r);
-            let gg: Vec<f64> = g.iter().map(|v| v * v).collect();
-            let s_nn = box_sums(&gg, w, h, r);
-            let rg: Vec<f64> = g.iter().zip(&g_ref).map(|(a, b)| a * b).collect();
-            let s_rn = box_sums(&rg, w, h, r);
-            for p in 0..hw {
-                if !textured[p] || s_a[p] < nwin - ALPHA_TOLERANCE {
-                    continue;
-                }
-                let var_n = s_nn[p] - s_n[p] * s_n[p] / nwin;
-                let cov = s_rn[p] - s_r[p] * s_n[p] / nwin;
-                let denom = (var_r[p] * var_n).sqrt();
-                let ncc = if var_n > 0.0 && denom > 0.0 {
-                    (cov / denom).clamp(-1.0, 1.0)
-                } else {
-                    0.0
-                };
-                cost_sum[z * hw + p] += (1.0 - ncc) as f32;
-                cost_n[z * hw + p] += 1;
-            }
+            let costs = (&mut cost_sum[z * hw..][..hw], &mut cost_n[z * hw..][..hw]);
+            windows.add_costs(vol, costs);
         }
     }
     let min_scored = (MIN_SCORED_FRACTION * d as f64).ceil() as usize;
     let mut out = Vec::new();
     let mut costs = vec![f64::NAN; d];
-    for p in (0..hw).filter(|&p| textured[p]) {
+    for p in (0..hw).filter(|&p| windows.textured[p]) {
         let mut scored = 0;
         for z in 0..d {
             let n = cost_n[z * hw + p];
@@ -470,6 +439,75 @@ fn match_reference(
         });
     }
     Some((out, step))
+}
+
+/// The reference's matching windows (`2 WINDOW_RADIUS + 1` pixels square): grey values,
+/// window sums and (unnormalised) variances, and which windows are textured enough to
+/// match.
+struct RefWindows {
+    w: usize,
+    h: usize,
+    grey: Vec<f64>,
+    sum: Vec<f64>,
+    var: Vec<f64>,
+    textured: Vec<bool>,
+}
+
+impl RefWindows {
+    fn new(reference: &Small, (w, h): (usize, usize)) -> Self {
+        let (r, hw) = (WINDOW_RADIUS, w * h);
+        let nwin = ((2 * r + 1) * (2 * r + 1)) as f64;
+        let g_ref = grey(&reference.image);
+        let s_r = box_sums(&g_ref, w, h, r);
+        let sq: Vec<f64> = g_ref.iter().map(|g| g * g).collect();
+        let s_rr = box_sums(&sq, w, h, r);
+        let var_r: Vec<f64> = (0..hw).map(|p| s_rr[p] - s_r[p] * s_r[p] / nwin).collect();
+        let min_var = nwin * MIN_TEXTURE_STD * MIN_TEXTURE_STD;
+        let textured: Vec<bool> = (0..hw).map(|p| var_r[p] >= min_var).collect();
+        Self {
+            w,
+            h,
+            grey: g_ref,
+            sum: s_r,
+            var: var_r,
+            textured,
+        }
+    }
+
+    /// Adds `1 - NCC` against one neighbour's swept plane `vol` (RGB planes, then alpha)
+    /// to `(cost_sum, cost_n)` of every textured window the neighbour fully covers.
+    fn add_costs(&self, vol: &[f32], (cost_sum, cost_n): (&mut [f32], &mut [u8])) {
+        let (w, h, r) = (self.w, self.h, WINDOW_RADIUS);
+        let hw = w * h;
+        let nwin = ((2 * r + 1) * (2 * r + 1)) as f64;
+        let (s_r, var_r) = (&self.sum, &self.var);
+        let (rgb, alpha) = vol.split_at(3 * hw);
+        let g: Vec<f64> = (0..hw)
+            .map(|p| (rgb[p] as f64 + rgb[hw + p] as f64 + rgb[2 * hw + p] as f64) / 3.0)
+            .collect();
+        let a: Vec<f64> = alpha.iter().map(|&v| v as f64).collect();
+        let s_a = box_sums(&a, w, h, r);
+        let s_n = box_sums(&g, w, h, r);
+        let gg: Vec<f64> = g.iter().map(|v| v * v).collect();
+        let s_nn = box_sums(&gg, w, h, r);
+        let rg: Vec<f64> = g.iter().zip(&self.grey).map(|(a, b)| a * b).collect();
+        let s_rn = box_sums(&rg, w, h, r);
+        for p in 0..hw {
+            if !self.textured[p] || s_a[p] < nwin - ALPHA_TOLERANCE {
+                continue;
+            }
+            let var_n = s_nn[p] - s_n[p] * s_n[p] / nwin;
+            let cov = s_rn[p] - s_r[p] * s_n[p] / nwin;
+            let denom = (var_r[p] * var_n).sqrt();
+            let ncc = if var_n > 0.0 && denom > 0.0 {
+                (cov / denom).clamp(-1.0, 1.0)
+            } else {
+                0.0
+            };
+            cost_sum[p] += (1.0 - ncc) as f32;
+            cost_n[p] += 1;
+        }
+    }
 }
 
 /// The plane (fractional, refined by a parabola) of a pixel's distinct cost minimum, or

@@ -159,10 +159,9 @@ pub(crate) fn render(
     let moving = cam.moving_shutter().is_some();
     let mut locals = localize_all(cam);
     let ss = supersample.max(1) as usize;
-    let ssf = ss as f64;
     // Angle of one pixel and of one sub-pixel ray.
     let pixel_angle = 2.0 / (k.fx + k.fy);
-    let sample_angle = pixel_angle / ssf;
+    let sample_angle = pixel_angle / ss as f64;
     let weight = gain / (ss * ss) as f32;
     let mut image = RgbImage::new(k.width, k.height);
     let mut depth = vec![0f32; w * h];
@@ -198,42 +197,18 @@ pub(crate) fn render(
                     .copied()
                     .filter(|&i| locals[i].bbox[0] <= x1 && locals[i].bbox[1] >= x0),
             );
-            if ss.is_multiple_of(2) {
-                let (t, _) = trace(ray(x0 + 0.5, y0 + 0.5), &locals, &cands)
-                    .ok_or_else(|| missed(px, py))?;
-                depth[py * w + px] = t as f32;
-            }
-            let mut acc = [0f32; 3];
-            groups.clear();
-            for sy in 0..ss {
-                for sx in 0..ss {
-                    // With odd `ss` the middle sub-ray is exactly the pixel-centre ray.
-                    let d = ray(x0 + (sx as f64 + 0.5) / ssf, y0 + (sy as f64 + 0.5) / ssf);
-                    let (t, i) = trace(d, &locals, &cands).ok_or_else(|| missed(px, py))?;
-                    if !ss.is_multiple_of(2) && sx == ss / 2 && sy == ss / 2 {
-                        depth[py * w + px] = t as f32;
-                    }
-                    let p = d * t;
-                    if locals[i].surf.texture.prefiltered() {
-                        match groups.iter_mut().find(|g| g.0 == i) {
-                            Some(g) => {
-                                g.1 += p;
-                                g.2 += 1;
-                            }
-                            None => groups.push((i, p, 1)),
-                        }
-                    } else {
-                        add(&mut acc, shade(p, &locals[i], sample_angle, photos), 1.0);
-                    }
-                }
-            }
-            for &(i, sum, n) in &groups {
-                add(
-                    &mut acc,
-                    shade(sum / n as f64, &locals[i], pixel_angle, photos),
-                    n as f32,
-                );
-            }
+            let sampler = Sampler {
+                ray: &ray,
+                locals: &locals,
+                cands: &cands,
+                ss,
+                angles: (pixel_angle, sample_angle),
+                photos,
+            };
+            let (acc, t) = sampler
+                .pixel((x0, y0), &mut groups)
+                .ok_or_else(|| missed(px, py))?;
+            depth[py * w + px] = t;
             let o = (py * w + px) * 3;
             for (out, a) in image.data[o..o + 3].iter_mut().zip(acc) {
                 *out = (a * weight).clamp(0.0, 1.0);
@@ -241,6 +216,72 @@ pub(crate) fn render(
         }
     }
     Ok((image, depth))
+}
+
+/// One pixel's rays: its sub-pixel rays against the candidate surfaces of its screen box.
+struct Sampler<'a, R: Fn(f64, f64) -> DVec3> {
+    /// The ray direction through an image point.
+    ray: &'a R,
+    locals: &'a [Local<'a>],
+    cands: &'a [usize],
+    /// Sub-pixel rays per side.
+    ss: usize,
+    /// Angle of one pixel and of one sub-pixel ray.
+    angles: (f64, f64),
+    photos: &'a [RgbImage],
+}
+
+impl<R: Fn(f64, f64) -> DVec3> Sampler<'_, R> {
+    /// The sum of the shaded colours of the pixel at `(x0, y0)` (its corner) over its
+    /// sub-rays, and the camera depth of its centre ray; `None` when a ray hits nothing.
+    /// `groups` is scratch: per prefiltered surface hit, (surface, sum of hit points,
+    /// count), shaded once at the mean hit point with the footprint of the whole pixel.
+    fn pixel(
+        &self,
+        (x0, y0): (f64, f64),
+        groups: &mut Vec<(usize, DVec3, u32)>,
+    ) -> Option<([f32; 3], f32)> {
+        let (ss, ssf) = (self.ss, self.ss as f64);
+        let (locals, cands, photos) = (self.locals, self.cands, self.photos);
+        let (pixel_angle, sample_angle) = self.angles;
+        let mut depth = 0f32;
+        if ss.is_multiple_of(2) {
+            let (t, _) = trace((self.ray)(x0 + 0.5, y0 + 0.5), locals, cands)?;
+            depth = t as f32;
+        }
+        let mut acc = [0f32; 3];
+        groups.clear();
+        for sy in 0..ss {
+            for sx in 0..ss {
+                // With odd `ss` the middle sub-ray is exactly the pixel-centre ray.
+                let d = (self.ray)(x0 + (sx as f64 + 0.5) / ssf, y0 + (sy as f64 + 0.5) / ssf);
+                let (t, i) = trace(d, locals, cands)?;
+                if !ss.is_multiple_of(2) && sx == ss / 2 && sy == ss / 2 {
+                    depth = t as f32;
+                }
+                let p = d * t;
+                if locals[i].surf.texture.prefiltered() {
+                    match groups.iter_mut().find(|g| g.0 == i) {
+                        Some(g) => {
+                            g.1 += p;
+                            g.2 += 1;
+                        }
+                        None => groups.push((i, p, 1)),
+                    }
+                } else {
+                    add(&mut acc, shade(p, &locals[i], sample_angle, photos), 1.0);
+                }
+            }
+        }
+        for &(i, sum, n) in groups.iter() {
+            add(
+                &mut acc,
+                shade(sum / n as f64, &locals[i], pixel_angle, photos),
+                n as f32,
+            );
+        }
+        Some((acc, depth))
+    }
 }
 
 #[inline]

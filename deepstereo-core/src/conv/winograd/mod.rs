@@ -21,11 +21,12 @@
 mod algos;
 mod transforms;
 
-use super::direct::{available, kernels_allowed, Kernels, LineAligned};
+use super::direct::LineAligned;
 #[cfg(target_arch = "x86_64")]
 use super::direct_cv::gemm_groups;
 use super::direct_cv::{CV, NP};
-use super::im2col::{Geom, SharedMut};
+use super::im2col::Geom;
+use crate::cpu::{avx2_fma_available as available, SharedMut};
 use algos::{Algo, F25, F43};
 use rayon::prelude::*;
 use transforms::{input_transform, output_transform};
@@ -51,10 +52,9 @@ const MIN_SAVING: f64 = 1.3;
 /// Fewest input channels for this path (below it the transforms cost more than they save).
 const MIN_CIN: usize = 8;
 
-/// Whether [`forward`] runs this layer (f32 callers only).
+/// Whether [`forward`] can run this layer (f32 callers only; `plan.rs` chooses).
 pub(crate) fn applies(g: &Geom) -> bool {
     available()
-        && kernels_allowed() == Kernels::Auto
         && g.kh == g.kw
         && matches!(g.kh, 3 | 5)
         && g.cout.is_multiple_of(CV)

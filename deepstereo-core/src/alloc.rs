@@ -1,4 +1,4 @@
-//! Allocator settings for the command-line tool and the benchmarks.
+//! Allocator settings for the command-line tool (deepstereo-train) and the benchmarks.
 //!
 //! The network allocates large, short-lived buffers on every call (im2col columns,
 //! activations of tens of MB). With glibc's defaults, buffers above the mmap threshold are

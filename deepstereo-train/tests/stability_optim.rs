@@ -1,14 +1,23 @@
-//! Optimizer cases (`deepstereo_train::optim`): huge learning rates, zero gradients on
-//! zero accumulators, and exploding gradients, which `grad_norm` must flag as non-finite
-//! so that the trainer's guard (tested in deepstereo-train/tests/guard.rs) skips them.
+//! Numerical stability of the optimizers (`deepstereo_train::optim`; issue 7, with the
+//! geometry and network cases in deepstereo-core's `tests/stability.rs`): huge learning
+//! rates, zero gradients on zero accumulators, and exploding gradients, which `grad_norm`
+//! must flag as non-finite so that the trainer's guard (tested in `tests/guard.rs`) skips
+//! them. Every check prints one markdown row into the same table, `target/stability.md`.
+//! Reproduce with
+//! `cargo test --release -p deepstereo-train --test stability_optim -- --nocapture`.
 
-use super::network::{inputs, small};
-use super::table::{row, row_text};
+#[path = "../../deepstereo-core/tests/stability/fixtures.rs"]
+mod fixtures;
+#[path = "../../deepstereo-core/tests/stability/table.rs"]
+mod table;
+
 use anyhow::Result;
 use candle_core::{DType, Device, Tensor, Var};
 use deepstereo_core::model::l1_loss;
 use deepstereo_core::weights::{init, named_vars};
 use deepstereo_train::optim::{Optimizer, OptimizerKind, ADAGRAD_EPS, ADAM_EPS};
+use fixtures::{inputs, small};
+use table::{row, row_text};
 
 fn flat(t: &Tensor) -> Result<Vec<f64>> {
     Ok(t.to_dtype(DType::F64)?.flatten_all()?.to_vec1::<f64>()?)
