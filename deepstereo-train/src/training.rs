@@ -16,6 +16,7 @@ use candle_core::{Device, Tensor};
 use deepstereo_core::config::Config;
 use deepstereo_core::imageio::write_atomic;
 use deepstereo_core::model::{l1_loss, l2_loss};
+use deepstereo_core::scene::scene_dirs;
 use deepstereo_core::synth::SynthOptions;
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use deepstereo_core::weights::{self, metadata, named_vars, tensor_f32, Trainable};
@@ -184,11 +185,7 @@ pub fn training_scenes(
 ) -> Result<Vec<SceneData>> {
     let mut train = Vec::new();
     for dir in data {
-        for d in crate::cmd::scene_dirs(dir)? {
-            train.push(
-                SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?,
-            );
-        }
+        train.extend(load_scene_dirs(dir, levels)?);
     }
     if synthetic > 0 {
         train.extend(synth_scenes(synthetic, seed, synth, levels)?);
@@ -224,13 +221,17 @@ fn validation_scenes(run: &RunOptions) -> Result<Vec<SceneData>> {
         Vec::new()
     };
     for dir in &run.val_data {
-        for d in crate::cmd::scene_dirs(dir)? {
-            val.push(
-                SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?,
-            );
-        }
+        val.extend(load_scene_dirs(dir, levels)?);
     }
     Ok(val)
+}
+
+/// Loads the scenes of `dir` ([`scene_dirs`]: the scene itself, or the scenes in it).
+fn load_scene_dirs(dir: &Path, levels: usize) -> Result<Vec<SceneData>> {
+    scene_dirs(dir)?
+        .iter()
+        .map(|d| SceneData::load(d, levels).with_context(|| format!("loading {}", d.display())))
+        .collect()
 }
 
 /// Every --data directory holds scenes, and every name --scene-weights gives is one of
@@ -238,7 +239,7 @@ fn validation_scenes(run: &RunOptions) -> Result<Vec<SceneData>> {
 pub fn check_data(data: &[PathBuf], weights: Option<&SceneWeights>) -> Result<()> {
     let mut dirs = Vec::new();
     for dir in data {
-        dirs.extend(crate::cmd::scene_dirs(dir)?);
+        dirs.extend(scene_dirs(dir)?);
     }
     if let Some(w) = weights {
         w.check_names(&dirs)?;

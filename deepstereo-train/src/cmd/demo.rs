@@ -1,9 +1,9 @@
 //! `deepstereo demo`: the whole pipeline with no files: a procedural scene, a held-out
 //! view rendered with the embedded model, scored against both baselines.
 
-use super::model_args::ModelArgs;
-use super::render::{path_cameras, render_path, PathKind};
+use super::args::ModelArgs;
 use crate::inference::{evaluate, Prepared};
+use crate::path::{path_cameras, render_path, PathKind};
 use crate::video::write_video;
 use anyhow::{Context, Result};
 use deepstereo_core::scene::{LoadOptions, Scene};
@@ -44,7 +44,7 @@ const DEMO_PATH_FPS: f64 = 8.0;
 
 pub fn run(a: Args) -> Result<()> {
     let settings = a.model.settings()?;
-    let (width, height) = super::train::parse_size(&a.size)?;
+    let (width, height) = super::args::size_of("--size", &a.size)?;
     let opts = SynthOptions {
         views: 10,
         width,

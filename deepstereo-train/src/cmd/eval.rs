@@ -1,7 +1,6 @@
 //! `deepstereo eval`: held-out views against the photographs and the baselines.
 
-use super::model_args::ModelArgs;
-use super::SceneArgs;
+use super::args::{ModelArgs, SceneArgs};
 use crate::inference::{evaluate, holdout_list, Baselines, EvalReport, Mean, Score};
 use deepstereo_core::imageio::write_atomic;
 use std::path::PathBuf;
@@ -32,7 +31,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let dirs = if a.scene.format.is_some() {
         vec![a.scene.scene.clone()]
     } else {
-        super::scene_dirs(&a.scene.scene)?
+        deepstereo_core::scene::scene_dirs(&a.scene.scene)?
     };
     let backend = a.model.backend()?;
     // Images go to a staged directory, moved into place only when everything succeeded.

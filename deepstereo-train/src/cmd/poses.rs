@@ -14,8 +14,10 @@
 //! images' resolution. When the mapper finds several disconnected models the largest is
 //! used and the images of the others are named in a warning; images that did not register
 //! are named in a warning and left out. `--masks DIR` gives COLMAP feature masks
-//! (`poses_masks.rs`). Everything is built in a temporary directory beside `--out` and
+//! (`poses/masks.rs`). Everything is built in a temporary directory beside `--out` and
 //! renamed into place at the end, so a failure leaves nothing behind.
+
+mod masks;
 
 use crate::colmap_run::{log_tail, model_dirs, registered_names, Colmap, Matcher};
 use anyhow::{bail, Context};
@@ -98,7 +100,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let images = list_images(&args.images)?;
     let masks = match &args.masks {
-        Some(dir) => Some(super::poses_masks::find_masks(dir, &images)?),
+        Some(dir) => Some(masks::find_masks(dir, &images)?),
         None => None,
     };
     if args.out.exists() {
@@ -250,7 +252,7 @@ fn build(
                 .with_context(|| format!("cannot copy {}", p.display()))?;
         }
         if let Some(m) = masks {
-            super::poses_masks::copy_masks(m, images, &mask_dir)?;
+            masks::copy_masks(m, images, &mask_dir)?;
         }
         Ok(())
     })?;

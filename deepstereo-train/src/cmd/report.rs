@@ -1,8 +1,8 @@
 //! `deepstereo report`: error against run time over a grid of settings.
 
-use super::model_args::ModelArgs;
-use super::report_html::{page, picture_names, PageRow, ViewPictures, BEST_DIR};
-use super::SceneArgs;
+mod html;
+
+use super::args::{ModelArgs, SceneArgs};
 use crate::inference::{evaluate, holdout_list, make_backend, BackendKind, RenderSettings};
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
@@ -13,6 +13,7 @@ use deepstereo_core::plot::{pareto_front, plot, Series, PALETTE};
 use deepstereo_core::prune::{PruneMode, PruneOptions};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
+use html::{page, picture_names, PageRow, ViewPictures, BEST_DIR};
 use std::fmt::Write as _;
 use std::path::PathBuf;
 

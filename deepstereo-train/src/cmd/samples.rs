@@ -8,8 +8,7 @@
 //! complete (they parse, hold the expected tensors and were made with the same options)
 //! and writes the rest.
 
-use super::sampling_args::SamplingArgs;
-use super::train::{load_config, parse_size};
+use super::args::{load_config, size_of, SamplingArgs};
 use crate::data::{make_batch, Sampling};
 use crate::scene_weights::SceneWeights;
 use crate::training::{check_data, training_scenes};
@@ -180,7 +179,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if a.count == 0 || a.shard_size == 0 {
         bail!("--count and --shard-size must be at least 1");
     }
-    let (w, h) = parse_size(&a.synth_size)?;
+    let (w, h) = size_of("--synth-size", &a.synth_size)?;
     let sa = &a.sampling;
     let sampling = Sampling {
         views: sa.views_range()?.unwrap_or((cfg.views, cfg.views)),

@@ -1,6 +1,6 @@
 //! `deepstereo sweep`: one target view's plane-sweep volume, as safetensors (and PNGs).
 
-use super::SceneArgs;
+use super::args::SceneArgs;
 use anyhow::bail;
 use deepstereo_core::geometry::{depths_of, inverse_depths};
 use deepstereo_core::imageio::RgbImage;
