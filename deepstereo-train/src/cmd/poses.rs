@@ -228,18 +228,7 @@ fn build(
     masks: Option<&[PathBuf]>,
     tmp: &Path,
 ) -> anyhow::Result<()> {
-    let binary = args
-        .colmap
-        .clone()
-        .or_else(|| std::env::var_os("COLMAP").map(PathBuf::from))
-        .unwrap_or_else(|| PathBuf::from("colmap"));
-    let colmap = Colmap {
-        binary,
-        threads: args
-            .threads
-            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
-        log: tmp.join("colmap.log"),
-    };
+    let colmap = colmap_of(args, tmp);
     colmap.check()?;
     let img_dir = tmp.join("images");
     let (db, work) = (tmp.join("database.db"), tmp.join("mapper"));
@@ -295,6 +284,47 @@ fn build(
     let names = stage(5, "writing the model", || {
         choose_model(&colmap, &work, &sparse, images.len())
     })?;
+    drop_unregistered(images, &names, &img_dir);
+    for p in [&db, &work, &mask_dir] {
+        let _ = if p.is_dir() {
+            std::fs::remove_dir_all(p)
+        } else {
+            std::fs::remove_file(p)
+        };
+    }
+    let scene = Scene::load(tmp, &LoadOptions::default())
+        .context("the scene COLMAP made cannot be read back")?;
+    eprintln!(
+        "{} views posed; depth bounds {:.3} .. {:.3} (from {} COLMAP points); COLMAP's log: {}",
+        scene.views.len(),
+        scene.near,
+        scene.far,
+        scene.points.len(),
+        args.out.join("colmap.log").display()
+    );
+    Ok(())
+}
+
+/// The COLMAP to run: `--colmap`, else `$COLMAP`, else `colmap` on the PATH, with
+/// `--threads` (default: every core), logging to `tmp/colmap.log`.
+fn colmap_of(args: &Args, tmp: &Path) -> Colmap {
+    let binary = args
+        .colmap
+        .clone()
+        .or_else(|| std::env::var_os("COLMAP").map(PathBuf::from))
+        .unwrap_or_else(|| PathBuf::from("colmap"));
+    Colmap {
+        binary,
+        threads: args
+            .threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
+        log: tmp.join("colmap.log"),
+    }
+}
+
+/// Names, with a warning, the images COLMAP did not register (not in `names`) and
+/// removes their copies from `img_dir`.
+fn drop_unregistered(images: &[PathBuf], names: &[String], img_dir: &Path) {
     let all: Vec<String> = images
         .iter()
         .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
@@ -315,24 +345,6 @@ fn build(
             let _ = std::fs::remove_file(img_dir.join(n));
         }
     }
-    for p in [&db, &work, &mask_dir] {
-        let _ = if p.is_dir() {
-            std::fs::remove_dir_all(p)
-        } else {
-            std::fs::remove_file(p)
-        };
-    }
-    let scene = Scene::load(tmp, &LoadOptions::default())
-        .context("the scene COLMAP made cannot be read back")?;
-    eprintln!(
-        "{} views posed; depth bounds {:.3} .. {:.3} (from {} COLMAP points); COLMAP's log: {}",
-        scene.views.len(),
-        scene.near,
-        scene.far,
-        scene.points.len(),
-        args.out.join("colmap.log").display()
-    );
-    Ok(())
 }
 
 /// Converts the mapper's largest model to text in `sparse` and returns its image names;

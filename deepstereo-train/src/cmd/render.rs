@@ -1,12 +1,13 @@
 //! `deepstereo render`: new views of a scene, tile by tile.
 
 use super::args::{ModelArgs, SceneArgs};
-use crate::inference::{pick_sources, render_camera, Prepared};
+use crate::inference::{pick_sources, render_camera, Prepared, RenderSettings};
 use crate::outdir::StagedDir;
 use crate::path::{path_cameras, render_path, PathKind};
 use anyhow::{bail, Result};
-use deepstereo_core::render::Rendered;
+use deepstereo_core::render::{Backend, Rendered};
 use deepstereo_core::scene::npy::write_npy_f32;
+use deepstereo_core::scene::Scene;
 use deepstereo_core::viz::{depth_image, grey_image};
 use std::path::{Path, PathBuf};
 
@@ -61,36 +62,15 @@ pub fn run(a: Args) -> Result<()> {
     let v = settings.source_count(backend.config())?;
     let mut prepared = Prepared::new(&scene);
     if let Some(kind) = a.path {
-        let cams = path_cameras(&scene, kind, a.frames)?;
-        let staged = StagedDir::new(&a.out)?;
-        let frames = render_path(
+        return write_path(
+            &a,
+            kind,
             backend.as_ref(),
             &scene,
             &mut prepared,
-            &cams,
             v,
             &settings,
-            staged.path(),
-        )?;
-        let video = match &a.video {
-            Some(p) => Some(crate::video::write_video(&frames, p, a.fps)?),
-            None => None,
-        };
-        staged.commit()?;
-        eprintln!(
-            "wrote frame_0000.png .. frame_{:04}.png to {}",
-            a.frames - 1,
-            a.out.display()
         );
-        if let Some(v) = video {
-            eprintln!(
-                "wrote {} ({} frames at {} fps)",
-                v.path().display(),
-                a.frames,
-                a.fps
-            );
-        }
-        return Ok(());
     }
     let (cam, srcs) = match (a.target, &a.pose) {
         (Some(t), None) => {
@@ -141,6 +121,48 @@ pub fn run(a: Args) -> Result<()> {
         "wrote image.png, image.npy, depth.png, depth.npy, confidence.png, coverage.png to {}",
         a.out.display()
     );
+    Ok(())
+}
+
+/// `--path KIND`: the path's frames rendered from `views` sources, and `--video`.
+fn write_path(
+    a: &Args,
+    kind: PathKind,
+    backend: &dyn Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    views: usize,
+    settings: &RenderSettings,
+) -> Result<()> {
+    let cams = path_cameras(scene, kind, a.frames)?;
+    let staged = StagedDir::new(&a.out)?;
+    let frames = render_path(
+        backend,
+        scene,
+        prepared,
+        &cams,
+        views,
+        settings,
+        staged.path(),
+    )?;
+    let video = match &a.video {
+        Some(p) => Some(crate::video::write_video(&frames, p, a.fps)?),
+        None => None,
+    };
+    staged.commit()?;
+    eprintln!(
+        "wrote frame_0000.png .. frame_{:04}.png to {}",
+        a.frames - 1,
+        a.out.display()
+    );
+    if let Some(v) = video {
+        eprintln!(
+            "wrote {} ({} frames at {} fps)",
+            v.path().display(),
+            a.frames,
+            a.fps
+        );
+    }
     Ok(())
 }
 
