@@ -1,7 +1,8 @@
 //! Cameras as JSON: what `inspect --json` prints and `render --pose` reads.
 //!
-//! A scene is `{"format", "near", "far", "bounds_source", "views"}`, `far` being `"inf"`
-//! for a plane at infinity. A view is
+//! A scene is `{"format", "near", "far", "bounds_source", "views"}`, `far` being `null` for
+//! a plane at infinity (files written before wrote the string `"inf"`, which
+//! [`far_from_json`] reads too). A view is
 //! `{"name", "width", "height", "fx", "fy", "cx", "cy", "distortion", "R", "t"}`, the pose
 //! world-to-camera in OpenCV axes (`R` 9 numbers row-major, `t` 3), and a rolling shutter
 //! adds `rolling_shutter: {"R_start", "t_start", "R_end", "t_end", "time_origin",
@@ -26,13 +27,23 @@ pub fn scene_json(scene: &Scene) -> Value {
     })
 }
 
-/// A far bound as JSON: the number, or `"inf"` for a plane at infinity (JSON has no
+/// A far bound as JSON: the number, or `null` for a plane at infinity (JSON has no
 /// infinity).
 pub fn far_json(far: f64) -> Value {
     if far.is_finite() {
         json!(far)
     } else {
-        json!("inf")
+        Value::Null
+    }
+}
+
+/// A far bound read back from JSON: a number, or infinity for `null` (and for the string
+/// `"inf"` that `inspect --json` wrote before); `None` for anything else.
+pub fn far_from_json(v: &Value) -> Option<f64> {
+    match v {
+        Value::Null => Some(f64::INFINITY),
+        Value::String(s) if s == "inf" => Some(f64::INFINITY),
+        v => v.as_f64(),
     }
 }
 
@@ -185,4 +196,22 @@ pub fn shutter_from_json(j: &Value, path: &Path) -> Result<Option<RollingShutter
     )
     .map_err(|m| anyhow::anyhow!("{p}: {m}"))?;
     Ok(Some(shutter))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{far_from_json, far_json};
+    use serde_json::json;
+
+    #[test]
+    fn an_infinite_far_bound_is_null_and_reads_back() {
+        assert_eq!(far_json(f64::INFINITY), serde_json::Value::Null);
+        assert_eq!(far_json(12.5), json!(12.5));
+        for far in [0.25, 12.5, f64::INFINITY] {
+            assert_eq!(far_from_json(&far_json(far)), Some(far));
+        }
+        assert_eq!(far_from_json(&json!("inf")), Some(f64::INFINITY));
+        assert_eq!(far_from_json(&json!("far")), None);
+        assert_eq!(far_from_json(&json!([1.0])), None);
+    }
 }

@@ -8,10 +8,10 @@ use crate::camera_json::scene_json;
 pub struct Args {
     #[command(flatten)]
     pub scene: SceneArgs,
-    /// Print JSON (`format`, `near`, `far`, `views: [{name, width, height, fx, fy, cx, cy,
-    /// R (3x3 row-major, world-to-camera, OpenCV axes), t}]`) instead of text. A
-    /// rolling-shutter view adds `rolling_shutter: {R_start, t_start, R_end, t_end,
-    /// time_origin, time_per_pixel}` (the pixel `(u, v)` is exposed at time
+    /// Print JSON (`format`, `near`, `far` (`null` for a plane at infinity), `views: [{name,
+    /// width, height, fx, fy, cx, cy, R (3x3 row-major, world-to-camera, OpenCV axes), t}]`)
+    /// instead of text. A rolling-shutter view adds `rolling_shutter: {R_start, t_start,
+    /// R_end, t_end, time_origin, time_per_pixel}` (the pixel `(u, v)` is exposed at time
     /// `time_origin + time_per_pixel . (u, v)`, between the start pose at 0 and the end
     /// pose at 1); its `R`, `t` are then the pose at the image centre's time.
     #[arg(long)]
