@@ -56,6 +56,20 @@ pub fn shared_data() -> Option<PathBuf> {
     }
 }
 
+/// Runs the binary with `args` and checks that it succeeded (else panics with its
+/// standard error).
+pub fn ok(args: &[&str]) -> CmdOutput {
+    let res = run_deepstereo(args);
+    assert_eq!(
+        res.code,
+        Some(0),
+        "deepstereo {} failed:\n{}",
+        args.join(" "),
+        res.stderr
+    );
+    res
+}
+
 /// What one run of the binary did.
 #[derive(Debug)]
 pub struct CmdOutput {

@@ -35,18 +35,6 @@ fn scene(dir: &Path) -> PathBuf {
     dir.join("scenes/scene_0000")
 }
 
-fn ok(args: &[&str]) -> CmdOutput {
-    let res = run_deepstereo(args);
-    assert_eq!(
-        res.code,
-        Some(0),
-        "deepstereo {} failed:\n{}",
-        args.join(" "),
-        res.stderr
-    );
-    res
-}
-
 fn fails(args: &[&str]) -> CmdOutput {
     let res = run_deepstereo(args);
     assert!(

@@ -329,7 +329,7 @@ pub fn evaluate(
         planes,
         views: k,
         prune: settings.prune.mode.name().to_string(),
-        mean: mean_of(&per_view),
+        mean: mean_over(&per_view, |v| (v.psnr, v.ssim, v.seconds, &v.baselines)),
         per_view,
     })
 }
@@ -373,24 +373,28 @@ fn sweep_baseline(
     (ps, t1.elapsed().as_secs_f64())
 }
 
-/// The mean of every score over the views.
-fn mean_of(per_view: &[ViewResult]) -> Mean {
-    let n = per_view.len() as f64;
-    let avg = |f: &dyn Fn(&ViewResult) -> f64| per_view.iter().map(f).sum::<f64>() / n;
+/// An item's PSNR, SSIM, seconds and baselines, as [`mean_over`] averages them.
+pub type Scores<'a> = (f64, f64, f64, &'a Baselines);
+
+/// The mean of every score over `items` (none: 0/0), `scores` giving an item's
+/// [`Scores`]: over the views of a scene, or over scenes' means.
+pub fn mean_over<T>(items: &[T], scores: impl Fn(&T) -> Scores<'_>) -> Mean {
+    let n = items.len().max(1) as f64;
+    let avg = |f: &dyn Fn(Scores<'_>) -> f64| items.iter().map(|x| f(scores(x))).sum::<f64>() / n;
     Mean {
-        psnr: avg(&|v| v.psnr),
-        ssim: avg(&|v| v.ssim),
-        seconds: avg(&|v| v.seconds),
+        psnr: avg(&|s| s.0),
+        ssim: avg(&|s| s.1),
+        seconds: avg(&|s| s.2),
         baselines: Baselines {
             nearest: Score {
-                psnr: avg(&|v| v.baselines.nearest.psnr),
-                ssim: avg(&|v| v.baselines.nearest.ssim),
+                psnr: avg(&|s| s.3.nearest.psnr),
+                ssim: avg(&|s| s.3.nearest.ssim),
                 seconds: None,
             },
             plane_sweep: Score {
-                psnr: avg(&|v| v.baselines.plane_sweep.psnr),
-                ssim: avg(&|v| v.baselines.plane_sweep.ssim),
-                seconds: Some(avg(&|v| v.baselines.plane_sweep.seconds.unwrap_or(0.0))),
+                psnr: avg(&|s| s.3.plane_sweep.psnr),
+                ssim: avg(&|s| s.3.plane_sweep.ssim),
+                seconds: Some(avg(&|s| s.3.plane_sweep.seconds.unwrap_or(0.0))),
             },
         },
     }
