@@ -30,18 +30,6 @@ fn scene(dir: &Path) -> PathBuf {
     dir.join("scene_0000")
 }
 
-fn ok(args: &[&str]) -> CmdOutput {
-    let res = run_deepstereo(args);
-    assert_eq!(
-        res.code,
-        Some(0),
-        "deepstereo {} failed:\n{}",
-        args.join(" "),
-        res.stderr
-    );
-    res
-}
-
 /// `deepstereo eval --scene <scene> --holdout <holdout> <extra...> --json -`, parsed.
 fn eval_json(scene: &Path, holdout: &str, extra: &[&str]) -> serde_json::Value {
     let sd = scene.to_string_lossy();

@@ -56,6 +56,20 @@ pub fn shared_data() -> Option<PathBuf> {
     }
 }
 
+/// Runs the binary with `args` and checks that it succeeded (else panics with its
+/// standard error).
+pub fn ok(args: &[&str]) -> CmdOutput {
+    let res = run_deepstereo(args);
+    assert_eq!(
+        res.code,
+        Some(0),
+        "deepstereo {} failed:\n{}",
+        args.join(" "),
+        res.stderr
+    );
+    res
+}
+
 /// What one run of the binary did.
 #[derive(Debug)]
 pub struct CmdOutput {
@@ -643,6 +657,16 @@ fn close(a: Option<f64>, b: f64) -> bool {
     a.is_some_and(|a| (a - b).abs() <= 1e-12 * b.abs().max(1.0))
 }
 
+/// `far` of `inspect --json`'s output as a reader takes it: a number, or infinity for
+/// `null` (and for the string `"inf"` of files written before); `None` for anything else.
+pub fn inspect_far(far: &Value) -> Option<f64> {
+    match far {
+        Value::Null => Some(f64::INFINITY),
+        Value::String(s) if s == "inf" => Some(f64::INFINITY),
+        v => v.as_f64(),
+    }
+}
+
 /// The keys the issue lists, with the values the library reads; extra keys are only
 /// `bounds_source` and per-view `distortion`.
 pub fn check_inspect_json(json: &Value, scene: &deepstereo_core::scene::Scene, format: &str) {
@@ -658,7 +682,13 @@ pub fn check_inspect_json(json: &Value, scene: &deepstereo_core::scene::Scene, f
     }
     assert_eq!(json["format"], format);
     assert!(close(json["near"].as_f64(), scene.near), "near");
-    assert!(close(json["far"].as_f64(), scene.far), "far");
+    if scene.far.is_finite() {
+        assert!(close(json["far"].as_f64(), scene.far), "far");
+    } else {
+        // JSON has no infinity: inspect writes null, and readers take it as infinity.
+        assert!(json["far"].is_null(), "infinite far as {}", json["far"]);
+        assert_eq!(inspect_far(&json["far"]), Some(f64::INFINITY));
+    }
     let views = json["views"].as_array().expect("views");
     assert_eq!(views.len(), scene.views.len());
     const KEYS: [&str; 9] = ["name", "width", "height", "fx", "fy", "cx", "cy", "R", "t"];

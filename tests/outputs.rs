@@ -35,18 +35,6 @@ fn scene(dir: &Path) -> PathBuf {
     dir.join("scenes/scene_0000")
 }
 
-fn ok(args: &[&str]) -> CmdOutput {
-    let res = run_deepstereo(args);
-    assert_eq!(
-        res.code,
-        Some(0),
-        "deepstereo {} failed:\n{}",
-        args.join(" "),
-        res.stderr
-    );
-    res
-}
-
 fn fails(args: &[&str]) -> CmdOutput {
     let res = run_deepstereo(args);
     assert!(
@@ -387,6 +375,56 @@ fn the_embedded_model_has_one_name_and_render_takes_inspect_json() {
         "render", "--scene", &s, "--pose", &p, "--view", "6", "--out", &o,
     ]);
     assert!(e.stderr.contains("out of range"), "{}", e.stderr);
+}
+
+#[test]
+fn inspect_json_writes_an_infinite_far_bound_as_null() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path()).to_string_lossy().into_owned();
+    let args = [
+        "inspect", "--json", "--scene", &s, "--near", "0.5", "--far", "inf",
+    ];
+    let json = ok(&args).stdout;
+    let v: serde_json::Value = serde_json::from_str(&json).expect("JSON");
+    assert!(v["far"].is_null(), "far: {}", v["far"]);
+    assert_eq!(inspect_far(&v["far"]), Some(f64::INFINITY));
+    assert_eq!(v["near"].as_f64(), Some(0.5));
+    let scene = deepstereo_core::scene::Scene::load(
+        Path::new(&s),
+        &deepstereo_core::scene::LoadOptions {
+            near: Some(0.5),
+            far: Some(f64::INFINITY),
+            ..Default::default()
+        },
+    )
+    .expect("scene");
+    check_inspect_json(&v, &scene, "nerf");
+    // render --pose reads the file back, and one written before (far "inf") alike.
+    let old = json.replace("\"far\": null", "\"far\": \"inf\"");
+    assert_ne!(old, json);
+    for (name, text) in [("null.json", &json), ("inf.json", &old)] {
+        let pose = tmp.path().join(name);
+        std::fs::write(&pose, text).expect("write");
+        let out = tmp.path().join(format!("{name}-out"));
+        ok(&[
+            "render",
+            "--scene",
+            &s,
+            "--pose",
+            &pose.to_string_lossy(),
+            "--view",
+            "2",
+            "--planes",
+            "4",
+            "--far",
+            "inf",
+            "--near",
+            "0.5",
+            "--out",
+            &out.to_string_lossy(),
+        ]);
+        assert!(out.join("image.png").is_file(), "{name}");
+    }
 }
 
 #[test]

@@ -10,12 +10,6 @@ use std::path::Path;
 const W: u32 = 48;
 const H: u32 = 36;
 
-fn ok(args: &[&str]) -> CmdOutput {
-    let r = run_deepstereo(args);
-    assert_eq!(r.code, Some(0), "deepstereo {args:?} failed:\n{}", r.stderr);
-    r
-}
-
 fn synth(out: &Path, share: &str) -> CmdOutput {
     run_deepstereo([
         "synth",

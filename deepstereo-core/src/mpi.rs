@@ -79,7 +79,10 @@ impl Mpi {
         colours: &[f32],
         selection: &[f32],
     ) -> Result<Self> {
-        let (w, h) = (camera.intrinsics.width as usize, camera.intrinsics.height as usize);
+        let (w, h) = (
+            camera.intrinsics.width as usize,
+            camera.intrinsics.height as usize,
+        );
         let (d, n) = (inv_depths.len(), w * h);
         if colours.len() != d * 3 * n || selection.len() != d * n {
             return Err(Error::Invalid(format!(
@@ -246,7 +249,10 @@ pub fn bake(
     let camera = reference_camera(camera);
     let a = cfg.tile_align();
     let tile = tile.max(1).div_ceil(a) * a;
-    let (w, h) = (camera.intrinsics.width as usize, camera.intrinsics.height as usize);
+    let (w, h) = (
+        camera.intrinsics.width as usize,
+        camera.intrinsics.height as usize,
+    );
     let d = inv_depths.len();
     if d == 0 {
         return Err(Error::Invalid("at least one depth plane is needed".into()));

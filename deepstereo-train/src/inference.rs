@@ -290,31 +290,8 @@ pub fn evaluate(
         )?;
         let seconds = t0.elapsed().as_secs_f64();
         let nearest = scene.load_image(srcs[0])?;
-        let near_score = if nearest.width == truth.width && nearest.height == truth.height {
-            Score {
-                psnr: psnr(&nearest, &truth),
-                ssim: ssim(&nearest, &truth),
-                seconds: None,
-            }
-        } else {
-            Score {
-                psnr: f64::NAN,
-                ssim: f64::NAN,
-                seconds: None,
-            }
-        };
-        let t1 = Instant::now();
-        let sources: Vec<Source<'_>> = srcs
-            .iter()
-            .filter_map(|&i| {
-                prepared.pyramids[i].as_ref().map(|p| Source {
-                    camera: &p.cameras[0],
-                    image: &p.images[0],
-                })
-            })
-            .collect();
-        let (ps, _) = plane_sweep(&cam, &sources, &inv);
-        let ps_secs = t1.elapsed().as_secs_f64();
+        let near_score = nearest_score(&nearest, &truth);
+        let (ps, ps_secs) = sweep_baseline(&prepared, &srcs, &cam, &inv);
         let v = ViewResult {
             target: t,
             name: scene.views[t].name.clone(),
@@ -345,25 +322,6 @@ pub fn evaluate(
     if per_view.is_empty() {
         bail!("no held-out views to evaluate");
     }
-    let n = per_view.len() as f64;
-    let avg = |f: &dyn Fn(&ViewResult) -> f64| per_view.iter().map(f).sum::<f64>() / n;
-    let mean = Mean {
-        psnr: avg(&|v| v.psnr),
-        ssim: avg(&|v| v.ssim),
-        seconds: avg(&|v| v.seconds),
-        baselines: Baselines {
-            nearest: Score {
-                psnr: avg(&|v| v.baselines.nearest.psnr),
-                ssim: avg(&|v| v.baselines.nearest.ssim),
-                seconds: None,
-            },
-            plane_sweep: Score {
-                psnr: avg(&|v| v.baselines.plane_sweep.psnr),
-                ssim: avg(&|v| v.baselines.plane_sweep.ssim),
-                seconds: Some(avg(&|v| v.baselines.plane_sweep.seconds.unwrap_or(0.0))),
-            },
-        },
-    };
     Ok(EvalReport {
         scene: scene.root.display().to_string(),
         model: model_name.to_string(),
@@ -371,9 +329,75 @@ pub fn evaluate(
         planes,
         views: k,
         prune: settings.prune.mode.name().to_string(),
+        mean: mean_over(&per_view, |v| (v.psnr, v.ssim, v.seconds, &v.baselines)),
         per_view,
-        mean,
     })
+}
+
+/// The nearest source's score against the photograph (NaN when their sizes differ).
+fn nearest_score(nearest: &RgbImage, truth: &RgbImage) -> Score {
+    if nearest.width == truth.width && nearest.height == truth.height {
+        Score {
+            psnr: psnr(nearest, truth),
+            ssim: ssim(nearest, truth),
+            seconds: None,
+        }
+    } else {
+        Score {
+            psnr: f64::NAN,
+            ssim: f64::NAN,
+            seconds: None,
+        }
+    }
+}
+
+/// The classical plane sweep of `target` on the planes `inv` from the sources `srcs`
+/// (their full-resolution pyramid levels), and the seconds it took.
+fn sweep_baseline(
+    prepared: &Prepared,
+    srcs: &[usize],
+    target: &Camera,
+    inv: &[f64],
+) -> (RgbImage, f64) {
+    let t1 = Instant::now();
+    let sources: Vec<Source<'_>> = srcs
+        .iter()
+        .filter_map(|&i| {
+            prepared.pyramids[i].as_ref().map(|p| Source {
+                camera: &p.cameras[0],
+                image: &p.images[0],
+            })
+        })
+        .collect();
+    let (ps, _) = plane_sweep(target, &sources, inv);
+    (ps, t1.elapsed().as_secs_f64())
+}
+
+/// An item's PSNR, SSIM, seconds and baselines, as [`mean_over`] averages them.
+pub type Scores<'a> = (f64, f64, f64, &'a Baselines);
+
+/// The mean of every score over `items` (none: 0/0), `scores` giving an item's
+/// [`Scores`]: over the views of a scene, or over scenes' means.
+pub fn mean_over<T>(items: &[T], scores: impl Fn(&T) -> Scores<'_>) -> Mean {
+    let n = items.len().max(1) as f64;
+    let avg = |f: &dyn Fn(Scores<'_>) -> f64| items.iter().map(|x| f(scores(x))).sum::<f64>() / n;
+    Mean {
+        psnr: avg(&|s| s.0),
+        ssim: avg(&|s| s.1),
+        seconds: avg(&|s| s.2),
+        baselines: Baselines {
+            nearest: Score {
+                psnr: avg(&|s| s.3.nearest.psnr),
+                ssim: avg(&|s| s.3.nearest.ssim),
+                seconds: None,
+            },
+            plane_sweep: Score {
+                psnr: avg(&|s| s.3.plane_sweep.psnr),
+                ssim: avg(&|s| s.3.plane_sweep.ssim),
+                seconds: Some(avg(&|s| s.3.plane_sweep.seconds.unwrap_or(0.0))),
+            },
+        },
+    }
 }
 
 /// Held-out view indices from `--holdout 0,8,16` or `--llffhold N` (every Nth view).

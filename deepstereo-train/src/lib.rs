@@ -4,6 +4,7 @@
 //! [`optim`] (Adagrad, Adam), [`training`] (the loop), [`cmd`] (the subcommands).
 
 pub use deepstereo_core::alloc;
+pub mod camera_json;
 pub mod cmd;
 pub mod colmap_run;
 pub mod data;
@@ -12,6 +13,7 @@ pub mod lr;
 pub mod models;
 pub mod optim;
 pub mod outdir;
+pub mod path;
 pub mod scene_weights;
 pub mod training;
 pub mod tune;

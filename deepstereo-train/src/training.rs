@@ -16,6 +16,7 @@ use candle_core::{Device, Tensor};
 use deepstereo_core::config::Config;
 use deepstereo_core::imageio::write_atomic;
 use deepstereo_core::model::{l1_loss, l2_loss};
+use deepstereo_core::scene::scene_dirs;
 use deepstereo_core::synth::SynthOptions;
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use deepstereo_core::weights::{self, metadata, named_vars, tensor_f32, Trainable};
@@ -184,11 +185,7 @@ pub fn training_scenes(
 ) -> Result<Vec<SceneData>> {
     let mut train = Vec::new();
     for dir in data {
-        for d in crate::cmd::scene_dirs(dir)? {
-            train.push(
-                SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?,
-            );
-        }
+        train.extend(load_scene_dirs(dir, levels)?);
     }
     if synthetic > 0 {
         train.extend(synth_scenes(synthetic, seed, synth, levels)?);
@@ -224,13 +221,17 @@ fn validation_scenes(run: &RunOptions) -> Result<Vec<SceneData>> {
         Vec::new()
     };
     for dir in &run.val_data {
-        for d in crate::cmd::scene_dirs(dir)? {
-            val.push(
-                SceneData::load(&d, levels).with_context(|| format!("loading {}", d.display()))?,
-            );
-        }
+        val.extend(load_scene_dirs(dir, levels)?);
     }
     Ok(val)
+}
+
+/// Loads the scenes of `dir` ([`scene_dirs`]: the scene itself, or the scenes in it).
+fn load_scene_dirs(dir: &Path, levels: usize) -> Result<Vec<SceneData>> {
+    scene_dirs(dir)?
+        .iter()
+        .map(|d| SceneData::load(d, levels).with_context(|| format!("loading {}", d.display())))
+        .collect()
 }
 
 /// Every --data directory holds scenes, and every name --scene-weights gives is one of
@@ -238,7 +239,7 @@ fn validation_scenes(run: &RunOptions) -> Result<Vec<SceneData>> {
 pub fn check_data(data: &[PathBuf], weights: Option<&SceneWeights>) -> Result<()> {
     let mut dirs = Vec::new();
     for dir in data {
-        dirs.extend(crate::cmd::scene_dirs(dir)?);
+        dirs.extend(scene_dirs(dir)?);
     }
     if let Some(w) = weights {
         w.check_names(&dirs)?;
@@ -284,43 +285,14 @@ pub fn train(
     resume: bool,
     stop: Arc<AtomicBool>,
 ) -> Result<Vec<LogLine>> {
-    run.config.validate().map_err(anyhow::Error::msg)?;
-    if run.batch == 0 {
-        bail!("--batch must be at least 1");
-    }
-    let sampling = run.sampling();
-    sampling.check(&run.config)?;
-    check_data(&run.data, run.scene_weights.as_ref())?;
+    let sampling = check_run(run)?;
     let device = Device::Cpu;
     let t = weights::init_seeded(&run.config, candle_core::DType::F32, &device, run.seed)?;
     let vars = named_vars(&t.varmap);
     let mut opt = Optimizer::new(run.optimizer, run.lr, vars)?;
     let ckpt = out.join("checkpoint.safetensors");
     let log_path = out.join("log.jsonl");
-    let mut start = 0u64;
-    if resume {
-        start = restore(&ckpt, run, &t, &mut opt)?;
-        truncate_log(&log_path, start)?;
-        eprintln!("resuming {} at step {start}", out.display());
-    } else if ckpt.exists() {
-        bail!(
-            "{} already holds a checkpoint: pass --resume to continue it, or choose another --out",
-            out.display()
-        );
-    } else {
-        if let Some(init) = &run.init {
-            let bytes = std::fs::read(init)
-                .with_context(|| format!("--init: cannot read {}", init.display()))?;
-            let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| {
-                anyhow::anyhow!("--init {}: not a safetensors file: {e}", init.display())
-            })?;
-            weights::assign(init, &st, &t.varmap, "")?;
-            eprintln!("starting from the weights of {}", init.display());
-        }
-        // Created only now: options and --init that are refused leave nothing behind.
-        std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-        write_atomic(&log_path, b"")?;
-    }
+    let start = open_run(run, out, resume, &t, &mut opt)?;
     let t0 = Instant::now();
     let (train_scenes, val, n_val) = load_scenes(run)?;
     eprintln!(
@@ -348,27 +320,16 @@ pub fn train(
     let mut step = start;
     while step < sched.steps {
         let batch = rx.recv().context("the sample loader stopped")??;
-        let (x, y) = batch_tensors(&batch, &device)?;
-        let pred = t.model.forward(&x)?;
-        let loss = run.loss.of(&pred.image, &y)?;
-        let loss_v = loss.to_scalar::<f32>()? as f64;
-        let grads = loss.backward()?;
-        let gnorm = opt.grad_norm(&grads)?;
         step += 1;
         window_n += run.batch;
-        let skipped = !(loss_v.is_finite() && gnorm.is_finite());
+        let (loss_v, gnorm, skipped) = optimize(run, &t, &mut opt, &batch, &device, step)?;
         if skipped {
             bad += 1;
-            eprintln!(
-                "step {step}: non-finite loss {loss_v} or gradient norm {gnorm}: step skipped"
-            );
             if bad >= MAX_CONSECUTIVE_BAD_STEPS {
                 bail!("{bad} consecutive non-finite steps: training stopped; the last good checkpoint is {}", ckpt.display());
             }
         } else {
             bad = 0;
-            opt.lr = run.lr_schedule.lr_at(run.lr, opt.steps);
-            opt.step(&grads)?;
         }
         let validate_now = step.is_multiple_of(sched.validate_every) || step == sched.steps;
         if step.is_multiple_of(sched.log_every) || validate_now || skipped {
@@ -389,26 +350,7 @@ pub fn train(
             };
             writeln!(log, "{}", serde_json::to_string(&line)?)?;
             log.flush()?;
-            bar.set_message(format!(
-                "loss {loss_v:.4}  {:.1} samples/s{}",
-                line.samples_per_s,
-                line.val_psnr
-                    .map(|p| format!("  val {p:.2} dB"))
-                    .unwrap_or_default()
-            ));
-            if !sched.progress {
-                let left =
-                    (sched.steps - step) as f64 * run.batch as f64 / line.samples_per_s.max(1e-9);
-                eprintln!(
-                    "step {step}/{}: loss {loss_v:.5} ({:.1} samples/s, {} left){}",
-                    sched.steps,
-                    line.samples_per_s,
-                    duration(left),
-                    line.val_psnr
-                        .map(|p| format!(" val {p:.2} dB"))
-                        .unwrap_or_default()
-                );
-            }
+            show_line(&bar, sched, run, loss_v, &line);
             lines.push(line);
             (window_t, window_n) = (Instant::now(), 0);
         }
@@ -429,6 +371,118 @@ pub fn train(
     bar.finish();
     plot_log(&log_path, &out.join("curve.png"))?;
     Ok(lines)
+}
+
+/// The run's options checked (config, batch, sampling, data and scene weights) before
+/// anything is written or loaded; its sampling.
+fn check_run(run: &RunOptions) -> Result<Sampling> {
+    run.config.validate().map_err(anyhow::Error::msg)?;
+    if run.batch == 0 {
+        bail!("--batch must be at least 1");
+    }
+    let sampling = run.sampling();
+    sampling.check(&run.config)?;
+    check_data(&run.data, run.scene_weights.as_ref())?;
+    Ok(sampling)
+}
+
+/// Readies the run directory `out`: with `resume`, restores the checkpoint into the model
+/// and the optimizer and cuts the log back to it; else refuses a directory that holds a
+/// checkpoint, loads `--init`'s weights, and creates the directory and an empty log.
+/// Returns the step to start at.
+fn open_run(
+    run: &RunOptions,
+    out: &Path,
+    resume: bool,
+    t: &Trainable,
+    opt: &mut Optimizer,
+) -> Result<u64> {
+    let ckpt = out.join("checkpoint.safetensors");
+    let log_path = out.join("log.jsonl");
+    if resume {
+        let start = restore(&ckpt, run, t, opt)?;
+        truncate_log(&log_path, start)?;
+        eprintln!("resuming {} at step {start}", out.display());
+        return Ok(start);
+    }
+    if ckpt.exists() {
+        bail!(
+            "{} already holds a checkpoint: pass --resume to continue it, or choose another --out",
+            out.display()
+        );
+    }
+    if let Some(init) = &run.init {
+        let bytes = std::fs::read(init)
+            .with_context(|| format!("--init: cannot read {}", init.display()))?;
+        let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| {
+            anyhow::anyhow!("--init {}: not a safetensors file: {e}", init.display())
+        })?;
+        weights::assign(init, &st, &t.varmap, "")?;
+        eprintln!("starting from the weights of {}", init.display());
+    }
+    // Created only now: options and --init that are refused leave nothing behind.
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    write_atomic(&log_path, b"")?;
+    Ok(0)
+}
+
+/// Step `step` on `batch`: the loss, the gradient norm, and whether the step was skipped
+/// (a non-finite loss or gradient norm; the weights are then left as they are).
+fn optimize(
+    run: &RunOptions,
+    t: &Trainable,
+    opt: &mut Optimizer,
+    batch: &Batch,
+    device: &Device,
+    step: u64,
+) -> Result<(f64, f64, bool)> {
+    let (x, y) = batch_tensors(batch, device)?;
+    let pred = t.model.forward(&x)?;
+    let loss = run.loss.of(&pred.image, &y)?;
+    let loss_v = loss.to_scalar::<f32>()? as f64;
+    let grads = loss.backward()?;
+    let gnorm = opt.grad_norm(&grads)?;
+    let skipped = !(loss_v.is_finite() && gnorm.is_finite());
+    if skipped {
+        eprintln!("step {step}: non-finite loss {loss_v} or gradient norm {gnorm}: step skipped");
+    } else {
+        opt.lr = run.lr_schedule.lr_at(run.lr, opt.steps);
+        opt.step(&grads)?;
+    }
+    Ok((loss_v, gnorm, skipped))
+}
+
+/// Shows a log line: as the progress bar's message, and without a bar as a line on
+/// standard error with the time left.
+fn show_line(
+    bar: &indicatif::ProgressBar,
+    sched: &Schedule,
+    run: &RunOptions,
+    loss_v: f64,
+    line: &LogLine,
+) {
+    let val = |sep: &str| {
+        line.val_psnr
+            .map(|p| format!("{sep}val {p:.2} dB"))
+            .unwrap_or_default()
+    };
+    bar.set_message(format!(
+        "loss {loss_v:.4}  {:.1} samples/s{}",
+        line.samples_per_s,
+        val("  ")
+    ));
+    if !sched.progress {
+        let left =
+            (sched.steps - line.step) as f64 * run.batch as f64 / line.samples_per_s.max(1e-9);
+        eprintln!(
+            "step {}/{}: loss {loss_v:.5} ({:.1} samples/s, {} left){}",
+            line.step,
+            sched.steps,
+            line.samples_per_s,
+            duration(left),
+            val(" ")
+        );
+    }
 }
 
 /// `1h02m`, `3m05s` or `12s`.

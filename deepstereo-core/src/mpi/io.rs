@@ -41,7 +41,13 @@ impl MpiJson {
     /// The description of `mpi` with plane files `plane_NN.png`.
     pub fn of(mpi: &Mpi) -> Self {
         let k = &mpi.camera.intrinsics;
-        let r = mpi.camera.pose.rotation.transpose().to_cols_array().to_vec(); // row-major
+        let r = mpi
+            .camera
+            .pose
+            .rotation
+            .transpose()
+            .to_cols_array()
+            .to_vec(); // row-major
         let t = mpi.camera.pose.translation.to_array().to_vec();
         Self {
             version: VERSION,
@@ -64,7 +70,10 @@ impl MpiJson {
     pub fn camera(&self, file: &Path) -> Result<Camera> {
         let bad = |m: String| Error::format(file, m);
         if self.version != VERSION {
-            return Err(bad(format!("version {} (this reader knows {VERSION})", self.version)));
+            return Err(bad(format!(
+                "version {} (this reader knows {VERSION})",
+                self.version
+            )));
         }
         if self.r.len() != 9 || self.t.len() != 3 {
             return Err(bad("'R' needs 9 values and 't' 3".into()));
@@ -74,8 +83,9 @@ impl MpiJson {
         let mut cols = [0f64; 9];
         cols.copy_from_slice(&self.r);
         let rotation = DMat3::from_cols_array(&cols).transpose();
-        let pose = WorldToCamera::new_checked(rotation, DVec3::new(self.t[0], self.t[1], self.t[2]))
-            .map_err(|m| bad(format!("R, t: {m}")))?;
+        let pose =
+            WorldToCamera::new_checked(rotation, DVec3::new(self.t[0], self.t[1], self.t[2]))
+                .map_err(|m| bad(format!("R, t: {m}")))?;
         Ok(Camera::global(k, pose))
     }
 }
@@ -125,8 +135,15 @@ pub fn read(dir: &Path) -> Result<Mpi> {
             ),
         ));
     }
-    if json.inverse_depths.iter().any(|r| !(r.is_finite() && *r >= 0.0)) {
-        return Err(Error::format(&file, "inverse depths must be finite and not negative"));
+    if json
+        .inverse_depths
+        .iter()
+        .any(|r| !(r.is_finite() && *r >= 0.0))
+    {
+        return Err(Error::format(
+            &file,
+            "inverse depths must be finite and not negative",
+        ));
     }
     let planes = (json.planes.iter())
         .map(|name| read_plane(&dir.join(name), json.width, json.height))

@@ -18,7 +18,9 @@ fn values(n: usize, seed: u64) -> Vec<f32> {
     let mut s = seed;
     (0..n)
         .map(|_| {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (s >> 40) as f32 / (1u64 << 24) as f32
         })
         .collect()
@@ -46,9 +48,17 @@ fn the_composite_at_the_reference_is_the_networks_sum() -> Result<()> {
     let (rendered, alpha) = mpi.render(&mpi.camera);
     for p in 0..n {
         for c in 0..3 {
-            let want: f32 = (0..d).map(|z| sel[z * n + p] * colours[(z * 3 + c) * n + p]).sum();
-            assert!((img.data[p * 3 + c] - want).abs() < 1e-5, "composite at {p}");
-            assert!((rendered.data[p * 3 + c] - want).abs() < 1e-5, "render at {p}");
+            let want: f32 = (0..d)
+                .map(|z| sel[z * n + p] * colours[(z * 3 + c) * n + p])
+                .sum();
+            assert!(
+                (img.data[p * 3 + c] - want).abs() < 1e-5,
+                "composite at {p}"
+            );
+            assert!(
+                (rendered.data[p * 3 + c] - want).abs() < 1e-5,
+                "render at {p}"
+            );
         }
         assert!((alpha[p] - 1.0).abs() < 1e-5);
     }
@@ -112,11 +122,17 @@ fn the_directory_format_round_trips() -> Result<()> {
     assert_eq!(back.inv_depths, mpi.inv_depths);
     assert!((back.camera.pose.translation - cam.pose.translation).length() < 1e-12);
     for (a, b) in back.planes.iter().zip(&mpi.planes) {
-        assert!(a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 0.5 / 255.0 + 1e-6));
+        assert!(a
+            .iter()
+            .zip(b)
+            .all(|(x, y)| (x - y).abs() <= 0.5 / 255.0 + 1e-6));
     }
     // A plane of the wrong size is refused, naming the file.
-    std::fs::copy(dir.path().join("plane_00.png"), dir.path().join("plane_01.png"))
-        .map_err(|e| Error::io(dir.path(), e))?;
+    std::fs::copy(
+        dir.path().join("plane_00.png"),
+        dir.path().join("plane_01.png"),
+    )
+    .map_err(|e| Error::io(dir.path(), e))?;
     crate::imageio::save_rgb8_png(&dir.path().join("plane_02.png"), 2, 2, &[0; 12])?;
     let err = io::read(dir.path()).expect_err("a 2x2 plane").to_string();
     assert!(err.contains("plane_02.png") && err.contains("2x2"), "{err}");

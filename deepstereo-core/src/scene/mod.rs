@@ -6,10 +6,13 @@
 
 pub mod auto;
 pub mod colmap;
+pub mod discover;
 pub mod llff;
 pub mod middlebury;
 pub mod nerf;
 pub mod npy;
+
+pub use discover::scene_dirs;
 
 use crate::camera::{Camera, Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};

@@ -1,11 +1,12 @@
 //! `deepstereo demo`: the whole pipeline with no files: a procedural scene, a held-out
 //! view rendered with the embedded model, scored against both baselines.
 
-use super::model_args::ModelArgs;
-use super::render::{path_cameras, render_path, PathKind};
-use crate::inference::{evaluate, Prepared};
+use super::args::ModelArgs;
+use crate::inference::{evaluate, EvalReport, Prepared, RenderSettings};
+use crate::path::{path_cameras, render_path, PathKind};
 use crate::video::write_video;
 use anyhow::{Context, Result};
+use deepstereo_core::render::Backend;
 use deepstereo_core::scene::{LoadOptions, Scene};
 use deepstereo_core::synth::{generate, scene_seed, write_scene, Rig, SynthOptions};
 use deepstereo_core::viz::{depth_image, side_by_side};
@@ -44,7 +45,7 @@ const DEMO_PATH_FPS: f64 = 8.0;
 
 pub fn run(a: Args) -> Result<()> {
     let settings = a.model.settings()?;
-    let (width, height) = super::train::parse_size(&a.size)?;
+    let (width, height) = super::args::size_of("--size", &a.size)?;
     let opts = SynthOptions {
         views: 10,
         width,
@@ -92,6 +93,16 @@ pub fn run(a: Args) -> Result<()> {
         },
     )?;
     saved?;
+    print_scores(&report);
+    println!("wrote {0}/image.png, {0}/depth.png and {0}/comparison.png (truth | nearest | plane sweep | DeepStereo | depth)", a.out.display());
+    if a.path_frames > 0 {
+        write_path(&a, backend.as_ref(), &scene, &settings, report.views)?;
+    }
+    Ok(())
+}
+
+/// The held-out view's scores: the network's, the plane sweep's and the nearest source's.
+fn print_scores(report: &EvalReport) {
     let v = &report.per_view[0];
     println!(
         "held-out view {} of a procedural scene, {} planes, {} source views",
@@ -121,30 +132,38 @@ pub fn run(a: Args) -> Result<()> {
         "{:<22} {:>8.2} {:>7.3} {:>9}",
         "nearest source view", nn.psnr, nn.ssim, "-"
     );
-    println!("wrote {0}/image.png, {0}/depth.png and {0}/comparison.png (truth | nearest | plane sweep | DeepStereo | depth)", a.out.display());
-    if a.path_frames > 0 {
-        let cams = path_cameras(&scene, PathKind::Circle, a.path_frames)?;
-        let frames_dir = a.out.join("path");
-        std::fs::create_dir_all(&frames_dir)
-            .with_context(|| format!("cannot create {}", frames_dir.display()))?;
-        let t1 = std::time::Instant::now();
-        let frames = render_path(
-            backend.as_ref(),
-            &scene,
-            &mut Prepared::new(&scene),
-            &cams,
-            report.views,
-            &settings,
-            &frames_dir,
-        )?;
-        let video = write_video(&frames, &a.out.join("path.mp4"), DEMO_PATH_FPS)?;
-        println!(
-            "wrote a {}-frame camera path in {:.1} s: {} (frames in {})",
-            a.path_frames,
-            t1.elapsed().as_secs_f64(),
-            video.path().display(),
-            frames_dir.display()
-        );
-    }
+}
+
+/// The camera-path video: `--path-frames` frames on a circle through the views, rendered
+/// from `views` sources into `path/`, and `path.mp4` (or `path.gif`).
+fn write_path(
+    a: &Args,
+    backend: &dyn Backend,
+    scene: &Scene,
+    settings: &RenderSettings,
+    views: usize,
+) -> Result<()> {
+    let cams = path_cameras(scene, PathKind::Circle, a.path_frames)?;
+    let frames_dir = a.out.join("path");
+    std::fs::create_dir_all(&frames_dir)
+        .with_context(|| format!("cannot create {}", frames_dir.display()))?;
+    let t1 = std::time::Instant::now();
+    let frames = render_path(
+        backend,
+        scene,
+        &mut Prepared::new(scene),
+        &cams,
+        views,
+        settings,
+        &frames_dir,
+    )?;
+    let video = write_video(&frames, &a.out.join("path.mp4"), DEMO_PATH_FPS)?;
+    println!(
+        "wrote a {}-frame camera path in {:.1} s: {} (frames in {})",
+        a.path_frames,
+        t1.elapsed().as_secs_f64(),
+        video.path().display(),
+        frames_dir.display()
+    );
     Ok(())
 }

@@ -1,8 +1,7 @@
 //! `deepstereo eval`: held-out views against the photographs and the baselines.
 
-use super::model_args::ModelArgs;
-use super::SceneArgs;
-use crate::inference::{evaluate, holdout_list, Baselines, EvalReport, Mean, Score};
+use super::args::{ModelArgs, SceneArgs};
+use crate::inference::{evaluate, holdout_list, mean_over, EvalReport, Mean};
 use deepstereo_core::imageio::write_atomic;
 use std::path::PathBuf;
 
@@ -32,7 +31,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let dirs = if a.scene.format.is_some() {
         vec![a.scene.scene.clone()]
     } else {
-        super::scene_dirs(&a.scene.scene)?
+        deepstereo_core::scene::scene_dirs(&a.scene.scene)?
     };
     let backend = a.model.backend()?;
     // Images go to a staged directory, moved into place only when everything succeeded.
@@ -116,23 +115,8 @@ fn print_mean(what: &str, m: &Mean) {
 
 /// The mean over scenes of the per-scene means (each scene weighs the same).
 fn mean_of(reports: &[EvalReport]) -> Mean {
-    let n = reports.len().max(1) as f64;
-    let avg = |f: &dyn Fn(&Mean) -> f64| reports.iter().map(|r| f(&r.mean)).sum::<f64>() / n;
-    Mean {
-        psnr: avg(&|m| m.psnr),
-        ssim: avg(&|m| m.ssim),
-        seconds: avg(&|m| m.seconds),
-        baselines: Baselines {
-            nearest: Score {
-                psnr: avg(&|m| m.baselines.nearest.psnr),
-                ssim: avg(&|m| m.baselines.nearest.ssim),
-                seconds: None,
-            },
-            plane_sweep: Score {
-                psnr: avg(&|m| m.baselines.plane_sweep.psnr),
-                ssim: avg(&|m| m.baselines.plane_sweep.ssim),
-                seconds: Some(avg(&|m| m.baselines.plane_sweep.seconds.unwrap_or(0.0))),
-            },
-        },
-    }
+    mean_over(reports, |r| {
+        let m = &r.mean;
+        (m.psnr, m.ssim, m.seconds, &m.baselines)
+    })
 }

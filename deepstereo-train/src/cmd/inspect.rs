@@ -1,17 +1,17 @@
 //! `deepstereo inspect`: what a scene reader made of a directory: its format, near/far
 //! and every view's size, intrinsics, centre and world-to-camera `R` (row-major), `t`.
 
-use super::SceneArgs;
-use serde_json::json;
+use super::args::SceneArgs;
+use crate::camera_json::scene_json;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
     #[command(flatten)]
     pub scene: SceneArgs,
-    /// Print JSON (`format`, `near`, `far`, `views: [{name, width, height, fx, fy, cx, cy,
-    /// R (3x3 row-major, world-to-camera, OpenCV axes), t}]`) instead of text. A
-    /// rolling-shutter view adds `rolling_shutter: {R_start, t_start, R_end, t_end,
-    /// time_origin, time_per_pixel}` (the pixel `(u, v)` is exposed at time
+    /// Print JSON (`format`, `near`, `far` (`null` for a plane at infinity), `views: [{name,
+    /// width, height, fx, fy, cx, cy, R (3x3 row-major, world-to-camera, OpenCV axes), t}]`)
+    /// instead of text. A rolling-shutter view adds `rolling_shutter: {R_start, t_start,
+    /// R_end, t_end, time_origin, time_per_pixel}` (the pixel `(u, v)` is exposed at time
     /// `time_origin + time_per_pixel . (u, v)`, between the start pose at 0 and the end
     /// pose at 1); its `R`, `t` are then the pose at the image centre's time.
     #[arg(long)]
@@ -20,39 +20,8 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let scene = args.scene.load()?;
-    let views: Vec<serde_json::Value> = scene
-        .views
-        .iter()
-        .map(|v| {
-            let k = &v.camera.intrinsics;
-            let r = v.camera.pose.rotation;
-            let t = v.camera.pose.translation;
-            let rows: Vec<f64> = (0..3)
-                .flat_map(|i| [r.x_axis[i], r.y_axis[i], r.z_axis[i]])
-                .collect();
-            let d = k.distortion;
-            let mut view = json!({
-                "name": v.name, "width": k.width, "height": k.height,
-                "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
-                "distortion": d.map(|d| [d.k1, d.k2, d.p1, d.p2]),
-                "R": rows, "t": [t.x, t.y, t.z],
-            });
-            if let (Some(rs), Some(obj)) = (&v.camera.rolling_shutter, view.as_object_mut()) {
-                obj.insert("rolling_shutter".into(), super::shutter_json::to_json(rs));
-            }
-            view
-        })
-        .collect();
-    let far = if scene.far.is_finite() {
-        json!(scene.far)
-    } else {
-        json!("inf")
-    };
     if args.json {
-        let out = json!({
-            "format": scene.format.name(), "near": scene.near, "far": far,
-            "bounds_source": scene.bounds_source, "views": views,
-        });
+        let out = scene_json(&scene);
         println!("{}", serde_json::to_string_pretty(&out)?);
         return Ok(());
     }

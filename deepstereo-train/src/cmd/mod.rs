@@ -1,28 +1,24 @@
-//! Subcommands of the `deepstereo` binary, one module each, and the options they share.
+//! Subcommands of the `deepstereo` binary, one module each, and the options they share
+//! ([`args`]). A command uses [`args`] and the library, never another command; a command's
+//! own helpers are its submodules (`report::html`, `poses::masks`).
 
+pub mod args;
 pub mod curve;
 pub mod demo;
 pub mod eval;
 pub mod export;
 pub mod forward;
 pub mod inspect;
-pub mod model_args;
 pub mod poses;
-pub mod poses_masks;
 pub mod render;
 pub mod report;
-pub mod report_html;
 pub mod samples;
-pub mod sampling_args;
-pub mod shutter_json;
 pub mod sweep;
 pub mod synth;
 pub mod train;
 pub mod tune;
 
-use clap::{Args, Parser, Subcommand};
-use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat};
-use std::path::PathBuf;
+use clap::{Parser, Subcommand};
 
 /// DeepStereo: learned view synthesis from posed images.
 #[derive(Debug, Parser)]
@@ -82,74 +78,4 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Curve(a) => curve::run(a),
         Command::Tune(a) => tune::run(a),
     }
-}
-
-/// How to read a scene: shared by every command that takes `--scene`.
-#[derive(Debug, Clone, Args)]
-pub struct SceneArgs {
-    /// Scene directory (LLFF, COLMAP, NeRF/instant-ngp or Middlebury; detected).
-    #[arg(long)]
-    pub scene: PathBuf,
-    /// Force the scene format instead of detecting it: llff, colmap, nerf, middlebury.
-    #[arg(long)]
-    pub format: Option<SceneFormat>,
-    /// LLFF: read images from `images_<FACTOR>/` (default: `images/`, else the smallest).
-    #[arg(long)]
-    pub factor: Option<u32>,
-    /// Nearest depth of the planes (overrides the scene's bounds).
-    #[arg(long)]
-    pub near: Option<f64>,
-    /// Farthest depth of the planes; `inf` for a plane at infinity.
-    #[arg(long)]
-    pub far: Option<f64>,
-    /// Read the images at 1/N resolution (N a power of two), intrinsics scaled to match.
-    #[arg(long)]
-    pub downscale: Option<u32>,
-    /// Ignore rolling shutters: every camera is a global shutter at its mid-readout pose
-    /// (the pose `inspect` prints), as a shutter-unaware reader would see the scene.
-    #[arg(long)]
-    pub ignore_rolling_shutter: bool,
-}
-
-impl SceneArgs {
-    /// Loads the scene, printing the reader's notes to stderr.
-    pub fn load(&self) -> anyhow::Result<Scene> {
-        let opts = LoadOptions {
-            format: self.format,
-            factor: self.factor,
-            near: self.near,
-            far: self.far,
-            downscale: self.downscale,
-            ignore_rolling_shutter: self.ignore_rolling_shutter,
-        };
-        let scene = Scene::load(&self.scene, &opts)?;
-        for n in &scene.notes {
-            eprintln!("note: {n}");
-        }
-        Ok(scene)
-    }
-}
-
-/// Scene directories under `dir`: `dir` itself when it is a scene, else its immediate
-/// subdirectories that are (sorted), e.g. the output of `deepstereo synth`.
-pub fn scene_dirs(dir: &std::path::Path) -> anyhow::Result<Vec<PathBuf>> {
-    if !dir.is_dir() {
-        anyhow::bail!("{}: not a directory", dir.display());
-    }
-    if deepstereo_core::scene::detect(dir).is_ok() {
-        return Ok(vec![dir.to_path_buf()]);
-    }
-    let mut out: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_dir() && deepstereo_core::scene::detect(p).is_ok())
-        .collect();
-    out.sort();
-    if out.is_empty() {
-        anyhow::bail!(
-            "{}: neither a scene nor a directory of scenes",
-            dir.display()
-        );
-    }
-    Ok(out)
 }

@@ -14,8 +14,10 @@
 //! images' resolution. When the mapper finds several disconnected models the largest is
 //! used and the images of the others are named in a warning; images that did not register
 //! are named in a warning and left out. `--masks DIR` gives COLMAP feature masks
-//! (`poses_masks.rs`). Everything is built in a temporary directory beside `--out` and
+//! (`poses/masks.rs`). Everything is built in a temporary directory beside `--out` and
 //! renamed into place at the end, so a failure leaves nothing behind.
+
+mod masks;
 
 use crate::colmap_run::{log_tail, model_dirs, registered_names, Colmap, Matcher};
 use anyhow::{bail, Context};
@@ -98,7 +100,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let images = list_images(&args.images)?;
     let masks = match &args.masks {
-        Some(dir) => Some(super::poses_masks::find_masks(dir, &images)?),
+        Some(dir) => Some(masks::find_masks(dir, &images)?),
         None => None,
     };
     if args.out.exists() {
@@ -226,18 +228,7 @@ fn build(
     masks: Option<&[PathBuf]>,
     tmp: &Path,
 ) -> anyhow::Result<()> {
-    let binary = args
-        .colmap
-        .clone()
-        .or_else(|| std::env::var_os("COLMAP").map(PathBuf::from))
-        .unwrap_or_else(|| PathBuf::from("colmap"));
-    let colmap = Colmap {
-        binary,
-        threads: args
-            .threads
-            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
-        log: tmp.join("colmap.log"),
-    };
+    let colmap = colmap_of(args, tmp);
     colmap.check()?;
     let img_dir = tmp.join("images");
     let (db, work) = (tmp.join("database.db"), tmp.join("mapper"));
@@ -250,7 +241,7 @@ fn build(
                 .with_context(|| format!("cannot copy {}", p.display()))?;
         }
         if let Some(m) = masks {
-            super::poses_masks::copy_masks(m, images, &mask_dir)?;
+            masks::copy_masks(m, images, &mask_dir)?;
         }
         Ok(())
     })?;
@@ -293,6 +284,47 @@ fn build(
     let names = stage(5, "writing the model", || {
         choose_model(&colmap, &work, &sparse, images.len())
     })?;
+    drop_unregistered(images, &names, &img_dir);
+    for p in [&db, &work, &mask_dir] {
+        let _ = if p.is_dir() {
+            std::fs::remove_dir_all(p)
+        } else {
+            std::fs::remove_file(p)
+        };
+    }
+    let scene = Scene::load(tmp, &LoadOptions::default())
+        .context("the scene COLMAP made cannot be read back")?;
+    eprintln!(
+        "{} views posed; depth bounds {:.3} .. {:.3} (from {} COLMAP points); COLMAP's log: {}",
+        scene.views.len(),
+        scene.near,
+        scene.far,
+        scene.points.len(),
+        args.out.join("colmap.log").display()
+    );
+    Ok(())
+}
+
+/// The COLMAP to run: `--colmap`, else `$COLMAP`, else `colmap` on the PATH, with
+/// `--threads` (default: every core), logging to `tmp/colmap.log`.
+fn colmap_of(args: &Args, tmp: &Path) -> Colmap {
+    let binary = args
+        .colmap
+        .clone()
+        .or_else(|| std::env::var_os("COLMAP").map(PathBuf::from))
+        .unwrap_or_else(|| PathBuf::from("colmap"));
+    Colmap {
+        binary,
+        threads: args
+            .threads
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
+        log: tmp.join("colmap.log"),
+    }
+}
+
+/// Names, with a warning, the images COLMAP did not register (not in `names`) and
+/// removes their copies from `img_dir`.
+fn drop_unregistered(images: &[PathBuf], names: &[String], img_dir: &Path) {
     let all: Vec<String> = images
         .iter()
         .filter_map(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
@@ -313,24 +345,6 @@ fn build(
             let _ = std::fs::remove_file(img_dir.join(n));
         }
     }
-    for p in [&db, &work, &mask_dir] {
-        let _ = if p.is_dir() {
-            std::fs::remove_dir_all(p)
-        } else {
-            std::fs::remove_file(p)
-        };
-    }
-    let scene = Scene::load(tmp, &LoadOptions::default())
-        .context("the scene COLMAP made cannot be read back")?;
-    eprintln!(
-        "{} views posed; depth bounds {:.3} .. {:.3} (from {} COLMAP points); COLMAP's log: {}",
-        scene.views.len(),
-        scene.near,
-        scene.far,
-        scene.points.len(),
-        args.out.join("colmap.log").display()
-    );
-    Ok(())
 }
 
 /// Converts the mapper's largest model to text in `sparse` and returns its image names;

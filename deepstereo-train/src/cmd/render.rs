@@ -1,25 +1,15 @@
 //! `deepstereo render`: new views of a scene, tile by tile.
 
-use super::model_args::ModelArgs;
-use super::SceneArgs;
-use crate::inference::{pick_sources, render_camera, Prepared};
+use super::args::{ModelArgs, SceneArgs};
+use crate::inference::{pick_sources, render_camera, Prepared, RenderSettings};
 use crate::outdir::StagedDir;
-use anyhow::{bail, Context, Result};
-use deepstereo_core::camera::{Camera, Intrinsics, WorldToCamera};
-use deepstereo_core::imageio::RgbImage;
-use deepstereo_core::render::Rendered;
+use crate::path::{path_cameras, render_path, PathKind};
+use anyhow::{bail, Result};
+use deepstereo_core::render::{Backend, Rendered};
 use deepstereo_core::scene::npy::write_npy_f32;
 use deepstereo_core::scene::Scene;
 use deepstereo_core::viz::{depth_image, grey_image};
-use glam::{DMat3, DVec3};
 use std::path::{Path, PathBuf};
-
-#[derive(Debug, Clone, Copy, clap::ValueEnum)]
-pub enum PathKind {
-    Spiral,
-    Circle,
-    Line,
-}
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -72,36 +62,15 @@ pub fn run(a: Args) -> Result<()> {
     let v = settings.source_count(backend.config())?;
     let mut prepared = Prepared::new(&scene);
     if let Some(kind) = a.path {
-        let cams = path_cameras(&scene, kind, a.frames)?;
-        let staged = StagedDir::new(&a.out)?;
-        let frames = render_path(
+        return write_path(
+            &a,
+            kind,
             backend.as_ref(),
             &scene,
             &mut prepared,
-            &cams,
             v,
             &settings,
-            staged.path(),
-        )?;
-        let video = match &a.video {
-            Some(p) => Some(crate::video::write_video(&frames, p, a.fps)?),
-            None => None,
-        };
-        staged.commit()?;
-        eprintln!(
-            "wrote frame_0000.png .. frame_{:04}.png to {}",
-            a.frames - 1,
-            a.out.display()
         );
-        if let Some(v) = video {
-            eprintln!(
-                "wrote {} ({} frames at {} fps)",
-                v.path().display(),
-                a.frames,
-                a.fps
-            );
-        }
-        return Ok(());
     }
     let (cam, srcs) = match (a.target, &a.pose) {
         (Some(t), None) => {
@@ -115,7 +84,7 @@ pub fn run(a: Args) -> Result<()> {
             (cam, pick_sources(&scene, &cam, &[t], v, &settings))
         }
         (None, Some(p)) => {
-            let cam = read_pose(p, a.view)?;
+            let cam = crate::camera_json::read_pose(p, a.view)?;
             (cam, pick_sources(&scene, &cam, &[], v, &settings))
         }
         _ => bail!("pass one of --target I, --pose FILE or --path KIND"),
@@ -155,47 +124,46 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
-/// Steps of the path progress bar per frame (the bar advances tile by tile).
-const BAR_STEPS_PER_FRAME: u64 = 1000;
-
-/// Renders `cams` in order, saving each as `dir/frame_NNNN.png`, with a progress bar
-/// (frames done, time left); returns the frames.
-pub fn render_path(
-    backend: &dyn deepstereo_core::render::Backend,
+/// `--path KIND`: the path's frames rendered from `views` sources, and `--video`.
+fn write_path(
+    a: &Args,
+    kind: PathKind,
+    backend: &dyn Backend,
     scene: &Scene,
     prepared: &mut Prepared,
-    cams: &[Camera],
     views: usize,
-    settings: &crate::inference::RenderSettings,
-    dir: &Path,
-) -> Result<Vec<RgbImage>> {
-    let n = cams.len() as u64;
-    let bar = indicatif::ProgressBar::new(n * BAR_STEPS_PER_FRAME);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "{spinner} [{elapsed_precise}] {wide_bar} {msg}, {eta} left",
-        )
-        .context("progress bar template")?,
+    settings: &RenderSettings,
+) -> Result<()> {
+    let cams = path_cameras(scene, kind, a.frames)?;
+    let staged = StagedDir::new(&a.out)?;
+    let frames = render_path(
+        backend,
+        scene,
+        prepared,
+        &cams,
+        views,
+        settings,
+        staged.path(),
+    )?;
+    let video = match &a.video {
+        Some(p) => Some(crate::video::write_video(&frames, p, a.fps)?),
+        None => None,
+    };
+    staged.commit()?;
+    eprintln!(
+        "wrote frame_0000.png .. frame_{:04}.png to {}",
+        a.frames - 1,
+        a.out.display()
     );
-    let mut frames = Vec::with_capacity(cams.len());
-    for (f, cam) in cams.iter().enumerate() {
-        bar.set_message(format!("frame {}/{n}", f + 1));
-        let base = f as u64 * BAR_STEPS_PER_FRAME;
-        let progress = |done: usize, total: usize| {
-            let part = done as u64 * BAR_STEPS_PER_FRAME / total.max(1) as u64;
-            bar.set_position(base + part);
-        };
-        let srcs = pick_sources(scene, cam, &[], views, settings);
-        let (r, _) = render_camera(backend, scene, prepared, cam, &srcs, settings, &progress)?;
-        r.image.save_png(&dir.join(format!("frame_{f:04}.png")))?;
-        bar.set_position(base + BAR_STEPS_PER_FRAME);
-        if bar.is_hidden() {
-            eprintln!("frame {}/{n}", f + 1);
-        }
-        frames.push(r.image);
+    if let Some(v) = video {
+        eprintln!(
+            "wrote {} ({} frames at {} fps)",
+            v.path().display(),
+            a.frames,
+            a.fps
+        );
     }
-    bar.finish_and_clear();
-    Ok(frames)
+    Ok(())
 }
 
 /// Writes image, depth (picture and raw), confidence and coverage.
@@ -212,128 +180,4 @@ pub fn write_outputs(dir: &Path, r: &Rendered, near: f64, far: f64) -> Result<()
     grey_image(&r.confidence, w, h).save_png(&dir.join("confidence.png"))?;
     grey_image(&r.coverage, w, h).save_png(&dir.join("coverage.png"))?;
     Ok(())
-}
-
-/// Reads a camera from a JSON file (world-to-camera, OpenCV axes): one view, or with
-/// `view` the view of that index in `inspect --json`'s output.
-pub fn read_pose(path: &Path, view: Option<usize>) -> Result<Camera> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let all: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("{}: invalid JSON", path.display()))?;
-    let j = match (all.get("views").and_then(|v| v.as_array()), view) {
-        (Some(views), Some(i)) => views.get(i).with_context(|| {
-            format!(
-                "{}: --view {i} is out of range: the file holds {} views",
-                path.display(),
-                views.len()
-            )
-        })?,
-        (Some(views), None) => bail!(
-            "{}: holds {} views (inspect --json's output); pick one with --view I",
-            path.display(),
-            views.len()
-        ),
-        (None, Some(_)) => bail!(
-            "{}: --view needs a file with a 'views' list (inspect --json's output)",
-            path.display()
-        ),
-        (None, None) => &all,
-    };
-    let num = |k: &str| -> Result<f64> {
-        j.get(k)
-            .and_then(|v| v.as_f64())
-            .with_context(|| format!("{}: missing or non-numeric '{k}'", path.display()))
-    };
-    let arr = |k: &str, n: usize| -> Result<Vec<f64>> {
-        let a: Vec<f64> = j
-            .get(k)
-            .and_then(|v| v.as_array())
-            .map(|a| a.iter().filter_map(|x| x.as_f64()).collect())
-            .unwrap_or_default();
-        if a.len() != n {
-            bail!("{}: '{k}' must be an array of {n} numbers", path.display());
-        }
-        Ok(a)
-    };
-    let (w, h) = (num("width")?, num("height")?);
-    if !(w >= 1.0 && h >= 1.0 && w <= 32768.0 && h <= 32768.0) {
-        bail!("{}: width and height must be 1..=32768", path.display());
-    }
-    let intr = Intrinsics::pinhole(
-        num("fx")?,
-        num("fy")?,
-        num("cx")?,
-        num("cy")?,
-        w as u32,
-        h as u32,
-    );
-    intr.validate()
-        .map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
-    let r = arr("R", 9)?;
-    let t = arr("t", 3)?;
-    let rot = DMat3::from_cols(
-        DVec3::new(r[0], r[3], r[6]),
-        DVec3::new(r[1], r[4], r[7]),
-        DVec3::new(r[2], r[5], r[8]),
-    );
-    let pose = WorldToCamera::new_checked(rot, DVec3::new(t[0], t[1], t[2]))
-        .map_err(|m| anyhow::anyhow!("{}: {m}", path.display()))?;
-    // With a rolling shutter, each row is rendered at its own pose; `R`/`t` (the pose at
-    // the image centre's time, as `inspect` prints it) are then not used.
-    Ok(match super::shutter_json::from_json(j, path)? {
-        Some(rs) => Camera::rolling(intr, rs),
-        None => Camera::global(intr, pose),
-    })
-}
-
-/// Cameras along a path through the views: the mean orientation of the views, centres
-/// offset from the mean centre in that frame by the spread of the views.
-pub fn path_cameras(scene: &Scene, kind: PathKind, frames: usize) -> Result<Vec<Camera>> {
-    let n = scene.views.len() as f64;
-    let centre = scene
-        .views
-        .iter()
-        .map(|v| v.camera.pose.centre())
-        .sum::<DVec3>()
-        / n;
-    // Mean camera axes (rows of R are the camera axes in world coordinates).
-    let axis = |i: usize| {
-        scene
-            .views
-            .iter()
-            .map(|v| v.camera.pose.rotation.row(i))
-            .sum::<DVec3>()
-            .normalize_or_zero()
-    };
-    let (x, z0) = (axis(0), axis(2));
-    let z = z0;
-    let y = z.cross(x).normalize_or_zero();
-    let x = y.cross(z).normalize_or_zero();
-    if !(x.is_finite() && y.is_finite() && z.is_finite()) || x.length() < 0.5 {
-        bail!("cannot build a path: the views' orientations average to nothing");
-    }
-    let mut d: Vec<f64> = scene
-        .views
-        .iter()
-        .map(|v| (v.camera.pose.centre() - centre).length())
-        .collect();
-    d.sort_by(f64::total_cmp);
-    let radius = d[(d.len() * 9 / 10).min(d.len() - 1)].max(1e-9) * 0.5;
-    let rot = DMat3::from_cols(x, y, z).transpose(); // world-to-camera: rows are axes
-    let intr = scene.views[0].camera.intrinsics;
-    (0..frames)
-        .map(|f| {
-            let s = f as f64 / frames as f64;
-            let th = s * std::f64::consts::TAU;
-            let off = match kind {
-                PathKind::Circle => x * th.cos() + y * th.sin(),
-                PathKind::Spiral => x * th.cos() - y * th.sin() - z * (0.5 * th).sin() * 0.5,
-                PathKind::Line => x * (2.0 * (f as f64 / (frames.max(2) - 1) as f64) - 1.0),
-            };
-            let c = centre + off * radius;
-            let pose = WorldToCamera::new_checked(rot, -(rot * c)).map_err(anyhow::Error::msg)?;
-            Ok(Camera::global(intr, pose))
-        })
-        .collect()
 }

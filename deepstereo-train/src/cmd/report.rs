@@ -1,8 +1,8 @@
 //! `deepstereo report`: error against run time over a grid of settings.
 
-use super::model_args::ModelArgs;
-use super::report_html::{page, picture_names, PageRow, ViewPictures, BEST_DIR};
-use super::SceneArgs;
+mod html;
+
+use super::args::{ModelArgs, SceneArgs};
 use crate::inference::{evaluate, holdout_list, make_backend, BackendKind, RenderSettings};
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
@@ -13,8 +13,9 @@ use deepstereo_core::plot::{pareto_front, plot, Series, PALETTE};
 use deepstereo_core::prune::{PruneMode, PruneOptions};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
+use html::{page, picture_names, PageRow, ViewPictures, BEST_DIR};
 use std::fmt::Write as _;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -65,10 +66,73 @@ struct Row {
     seconds: f64,
 }
 
+/// The settings `report` tries: every combination of them.
+struct Grid {
+    planes: Vec<usize>,
+    /// `None`: the model's.
+    views: Vec<Option<usize>>,
+    /// Each image scale 1/N with its scene: `None` for the base scene (N = 1), else the
+    /// same files read at 1/N.
+    scaled: Vec<(u32, Option<Scene>)>,
+    backends: Vec<BackendKind>,
+    prunes: Vec<PruneMode>,
+}
+
+/// What the grid's runs measured.
+struct Measured {
+    rows: Vec<Row>,
+    /// The nearest source's (PSNR, SSIM), from the first setting.
+    nearest: Option<(f64, f64)>,
+    /// The best network setting: its row and its pictures.
+    best: Option<(usize, Vec<ViewPictures>)>,
+}
+
 pub fn run(a: Args) -> Result<()> {
     let base = a.model.settings()?;
     let scene = a.scene.load()?;
     let targets = holdout_list(a.holdout.as_deref(), a.llffhold, scene.views.len())?;
+    let grid = parse_grid(&a)?;
+    let staged = StagedDir::new(&a.out)?;
+    let out = staged.path().to_path_buf();
+    let Measured {
+        rows,
+        nearest,
+        best,
+    } = measure(&a, &base, &scene, &targets, &grid)?;
+    let net: Vec<(f64, f64)> = rows
+        .iter()
+        .filter(|r| r.method.starts_with("deepstereo"))
+        .map(|r| (r.seconds, r.psnr))
+        .collect();
+    let front = pareto_front(&net);
+    let (csv, md) = tables(&rows, nearest, &scene, &a.model.name(), &targets)?;
+    let img = plot(
+        "PSNR against run time (labels: planes)",
+        "seconds per image (log)",
+        "PSNR dB",
+        &plot_series(&rows, &net, &front, nearest),
+        true,
+    );
+    img.save_png(&out.join("report.png"))?;
+    write_atomic(&out.join("report.csv"), csv.as_bytes())?;
+    write_atomic(&out.join("report.md"), md.as_bytes())?;
+    let heading = format!(
+        "Scene {}, model {}, held-out views {targets:?}. Scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.",
+        scene.root.display(),
+        a.model.name()
+    );
+    write_page(&out, &heading, &rows, &front, nearest, best)?;
+    staged.commit()?;
+    print!("{md}");
+    eprintln!(
+        "wrote report.csv, report.md, report.png, index.html and {BEST_DIR}/ to {}",
+        a.out.display()
+    );
+    Ok(())
+}
+
+/// The grid options parsed, and the scene read at each scale.
+fn parse_grid(a: &Args) -> Result<Grid> {
     let positive = |n: &usize| *n > 0;
     let planes: Vec<usize> = grid(
         &a.planes_grid,
@@ -91,7 +155,7 @@ pub fn run(a: Args) -> Result<()> {
     )?;
     // Each scale's scene: the base scene, or the same files read at 1/N.
     let base_downscale = a.scene.downscale.unwrap_or(1);
-    let scaled: Vec<(u32, Option<deepstereo_core::scene::Scene>)> = scales
+    let scaled: Vec<(u32, Option<Scene>)> = scales
         .iter()
         .map(|&n| -> Result<_> {
             if n == 1 {
@@ -125,20 +189,39 @@ pub fn run(a: Args) -> Result<()> {
                 .map_err(|e| anyhow::anyhow!("--prune-grid: {e}"))
         })
         .collect::<Result<_>>()?;
-    let staged = StagedDir::new(&a.out)?;
-    let out = staged.path().to_path_buf();
-    let mut rows: Vec<Row> = Vec::new();
-    let mut nearest = None;
-    // The best network setting so far: its row and its pictures.
-    let mut best: Option<(usize, Vec<ViewPictures>)> = None;
-    for (bi, &kind) in backends.iter().enumerate() {
+    Ok(Grid {
+        planes,
+        views,
+        scaled,
+        backends,
+        prunes,
+    })
+}
+
+/// Runs every setting of the grid: a row for the network and (with the first backend)
+/// one for the plane sweep on its sources, printing each as it is measured.
+fn measure(
+    a: &Args,
+    base: &RenderSettings,
+    scene: &Scene,
+    targets: &[usize],
+    g: &Grid,
+) -> Result<Measured> {
+    let mut m = Measured {
+        rows: Vec::new(),
+        nearest: None,
+        best: None,
+    };
+    let rows = &mut m.rows;
+    for (bi, &kind) in g.backends.iter().enumerate() {
         let backend = make_backend(kind, a.model.model.as_deref())?;
-        for (si, (n, scaled_scene)) in scaled.iter().enumerate() {
-            for (p, (vi, &nv)) in planes
+        for (si, (n, scaled_scene)) in g.scaled.iter().enumerate() {
+            for (p, (vi, &nv)) in g
+                .planes
                 .iter()
-                .flat_map(|&p| views.iter().enumerate().map(move |v| (p, v)))
+                .flat_map(|&p| g.views.iter().enumerate().map(move |v| (p, v)))
             {
-                for (pi, &mode) in prunes.iter().enumerate() {
+                for (pi, &mode) in g.prunes.iter().enumerate() {
                     let prune = PruneOptions {
                         mode,
                         ..base.prune.clone()
@@ -153,72 +236,83 @@ pub fn run(a: Args) -> Result<()> {
                     let pt = point(
                         backend.as_ref(),
                         &a.model.name(),
-                        &scene,
+                        scene,
                         scaled_scene.as_ref(),
                         *n,
-                        &targets,
+                        targets,
                         &settings,
                     )?;
-                    // The plane sweep runs on the network's sources, which pruning picks.
-                    let (net, sweep) = match mode {
-                        PruneMode::Off => ("", "plane_sweep"),
-                        PruneMode::Auto => ("-pruned", "plane_sweep-pruned-views"),
-                    };
-                    let mut suffix = String::new();
-                    if *n > 1 {
-                        suffix += &format!("-1/{n}");
-                    }
-                    if views.len() > 1 {
-                        suffix += &format!("-{k}views");
-                    }
-                    let method = format!("deepstereo-{}{net}{suffix}", pt.backend);
-                    let ps_method = format!("{sweep}{suffix}");
+                    let (method, ps_method) = method_names(&pt.backend, mode, *n, g.views.len(), k);
                     eprintln!(
                     "{method:>28} {p:3} planes: PSNR {:.2} SSIM {:.3} {:.2} s/view | plane sweep {:.2} dB {:.2} s",
                     pt.net.0, pt.net.1, pt.net.2, pt.plane_sweep.0, pt.plane_sweep.2
                 );
-                    let better = best.as_ref().is_none_or(|(b, _)| pt.net.0 > rows[*b].psnr);
+                    let better = (m.best.as_ref()).is_none_or(|(b, _)| pt.net.0 > rows[*b].psnr);
                     if better {
-                        best = Some((rows.len(), pt.pictures));
+                        m.best = Some((rows.len(), pt.pictures));
                     }
-                    rows.push(Row {
+                    let row = |method: String, (psnr, ssim, seconds): (f64, f64, f64)| Row {
                         method,
                         planes: p,
                         views: k,
                         scale: *n,
                         prune: mode,
-                        psnr: pt.net.0,
-                        ssim: pt.net.1,
-                        seconds: pt.net.2,
-                    });
+                        psnr,
+                        ssim,
+                        seconds,
+                    };
+                    rows.push(row(method, pt.net));
                     if bi == 0 {
-                        rows.push(Row {
-                            method: ps_method,
-                            planes: p,
-                            views: k,
-                            scale: *n,
-                            prune: mode,
-                            psnr: pt.plane_sweep.0,
-                            ssim: pt.plane_sweep.1,
-                            seconds: pt.plane_sweep.2,
-                        });
+                        rows.push(row(ps_method, pt.plane_sweep));
                         if si == 0 && pi == 0 && vi == 0 {
-                            nearest = Some(pt.nearest);
+                            m.nearest = Some(pt.nearest);
                         }
                     }
                 }
             }
         }
     }
-    let net: Vec<(f64, f64)> = rows
-        .iter()
-        .filter(|r| r.method.starts_with("deepstereo"))
-        .map(|r| (r.seconds, r.psnr))
-        .collect();
-    let front = pareto_front(&net);
+    Ok(m)
+}
+
+/// The names of a setting's network and plane-sweep rows: the backend, `-pruned`, the
+/// scale `-1/N` when not 1 and `-{k}views` when the grid tries several view counts.
+fn method_names(
+    backend: &str,
+    mode: PruneMode,
+    n: u32,
+    view_settings: usize,
+    k: usize,
+) -> (String, String) {
+    // The plane sweep runs on the network's sources, which pruning picks.
+    let (net, sweep) = match mode {
+        PruneMode::Off => ("", "plane_sweep"),
+        PruneMode::Auto => ("-pruned", "plane_sweep-pruned-views"),
+    };
+    let mut suffix = String::new();
+    if n > 1 {
+        suffix += &format!("-1/{n}");
+    }
+    if view_settings > 1 {
+        suffix += &format!("-{k}views");
+    }
+    (
+        format!("deepstereo-{backend}{net}{suffix}"),
+        format!("{sweep}{suffix}"),
+    )
+}
+
+/// report.csv and report.md: a line per row, then the nearest source's.
+fn tables(
+    rows: &[Row],
+    nearest: Option<(f64, f64)>,
+    scene: &Scene,
+    model: &str,
+    targets: &[usize],
+) -> Result<(String, String)> {
     let mut csv = String::from("method,planes,views,scale,prune,psnr,ssim,seconds_per_image\n");
-    let mut md = format!("Scene `{}`, model `{}`, held-out views {targets:?}; scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.\n\n| method | planes | views | scale | prune | PSNR (dB) | SSIM | s / image |\n|---|---|---|---|---|---|---|---|\n", scene.root.display(), a.model.name());
-    for r in &rows {
+    let mut md = format!("Scene `{}`, model `{}`, held-out views {targets:?}; scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.\n\n| method | planes | views | scale | prune | PSNR (dB) | SSIM | s / image |\n|---|---|---|---|---|---|---|---|\n", scene.root.display(), model);
+    for r in rows {
         writeln!(
             csv,
             "{},{},{},{},{},{:.4},{:.4},{:.4}",
@@ -237,6 +331,18 @@ pub fn run(a: Args) -> Result<()> {
             "| nearest source | - | 1 | - | - | {p:.2} | {s:.3} | - |"
         )?;
     }
+    Ok((csv, md))
+}
+
+/// The plot's series: one per method (points labelled with their planes), the network's
+/// Pareto front (`front` indexes `net`, the network rows' (seconds, PSNR)) and the
+/// nearest source's PSNR as a level line.
+fn plot_series(
+    rows: &[Row],
+    net: &[(f64, f64)],
+    front: &[usize],
+    nearest: Option<(f64, f64)>,
+) -> Vec<Series> {
     let colours = PALETTE;
     let mut series: Vec<Series> = Vec::new();
     let methods: Vec<String> =
@@ -289,16 +395,18 @@ pub fn run(a: Args) -> Result<()> {
             labels: Vec::new(),
         });
     }
-    let img = plot(
-        "PSNR against run time (labels: planes)",
-        "seconds per image (log)",
-        "PSNR dB",
-        &series,
-        true,
-    );
-    img.save_png(&out.join("report.png"))?;
-    write_atomic(&out.join("report.csv"), csv.as_bytes())?;
-    write_atomic(&out.join("report.md"), md.as_bytes())?;
+    series
+}
+
+/// index.html and the best setting's pictures in best/ (`front` indexes the network rows).
+fn write_page(
+    out: &Path,
+    heading: &str,
+    rows: &[Row],
+    front: &[usize],
+    nearest: Option<(f64, f64)>,
+    best: Option<(usize, Vec<ViewPictures>)>,
+) -> Result<()> {
     let net_rows: Vec<usize> = (0..rows.len())
         .filter(|&i| rows[i].method.starts_with("deepstereo"))
         .collect();
@@ -327,19 +435,8 @@ pub fn run(a: Args) -> Result<()> {
             im.save_png(&best_dir.join(n))?;
         }
     }
-    let heading = format!(
-        "Scene {}, model {}, held-out views {targets:?}. Scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.",
-        scene.root.display(),
-        a.model.name()
-    );
-    let html = page(&heading, &page_rows, nearest, best_row, &pictures);
+    let html = page(heading, &page_rows, nearest, best_row, &pictures);
     write_atomic(&out.join("index.html"), html.as_bytes())?;
-    staged.commit()?;
-    print!("{md}");
-    eprintln!(
-        "wrote report.csv, report.md, report.png, index.html and {BEST_DIR}/ to {}",
-        a.out.display()
-    );
     Ok(())
 }
 

@@ -8,9 +8,8 @@
 //! complete (they parse, hold the expected tensors and were made with the same options)
 //! and writes the rest.
 
-use super::sampling_args::SamplingArgs;
-use super::train::{load_config, parse_size};
-use crate::data::{make_batch, Sampling};
+use super::args::{load_config, size_of, SamplingArgs};
+use crate::data::{make_batch, Batch, Sampling};
 use crate::scene_weights::SceneWeights;
 use crate::training::{check_data, training_scenes};
 use anyhow::{bail, Context};
@@ -180,20 +179,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if a.count == 0 || a.shard_size == 0 {
         bail!("--count and --shard-size must be at least 1");
     }
-    let (w, h) = parse_size(&a.synth_size)?;
+    let (w, h) = size_of("--synth-size", &a.synth_size)?;
     let sa = &a.sampling;
-    let sampling = Sampling {
-        views: sa.views_range()?.unwrap_or((cfg.views, cfg.views)),
-        synthetic_percent: sa.synthetic_percent,
-        augment: sa.augment,
-        view_stride: sa.view_stride_range()?.unwrap_or((1, 1)),
-        skip_flat: sa.skip_flat,
-        scene_weights: sa.weights()?.unwrap_or_default(),
-    };
-    sampling.check(&cfg)?;
-    if !sampling.scene_weights.is_empty() {
-        check_data(&a.data, Some(&sampling.scene_weights))?;
-    }
+    let sampling = sampling_of(&a, &cfg)?;
     let opts = SampleOptions {
         data: a.data.clone(),
         synthetic: a.synthetic,
@@ -214,19 +202,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
     let shards = a.count.div_ceil(a.shard_size);
-    let size_of = |i: usize| a.shard_size.min(a.count - i * a.shard_size);
-    let mut todo = Vec::new();
-    for i in 0..shards {
-        let path = a.out.join(shard_name(i));
-        match check_shard(&path, &cfg, &opts_json, &cfg_json, size_of(i))? {
-            Existing::Complete => {}
-            Existing::Missing => todo.push(i),
-            Existing::Incomplete(why) => {
-                eprintln!("{}: {why}: writing it again", path.display());
-                todo.push(i);
-            }
-        }
-    }
+    let todo = shards_to_write(&a, &cfg, &opts_json, &cfg_json)?;
     let kept = shards - todo.len();
     if todo.is_empty() {
         eprintln!("all {shards} shards in {} are complete", a.out.display());
@@ -247,28 +223,27 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         todo.len()
     );
     todo.par_iter().try_for_each(|&i| -> anyhow::Result<()> {
-        let b = make_batch(&cfg, &sampling, &scenes, a.seed, i as u64, size_of(i))?;
-        let mut arrays: Vec<NamedArray> = b
-            .levels
-            .iter()
-            .zip(&b.level_shapes)
-            .enumerate()
-            .map(|(l, (d, s))| NamedArray::f32(&deepstereo_export::input_name(l), s, d))
-            .collect();
-        arrays.push(NamedArray::f32(TARGET_NAME, &b.target_shape, &b.target));
+        let b = make_batch(
+            &cfg,
+            &sampling,
+            &scenes,
+            a.seed,
+            i as u64,
+            samples_in(&a, i),
+        )?;
         let meta = HashMap::from([
             (CONFIG_KEY.to_string(), cfg_json.clone()),
             (FORMAT_KEY.to_string(), SHARD_FORMAT.to_string()),
             (OPTIONS_KEY.to_string(), opts_json.clone()),
             (VIEWS_KEY.to_string(), b.views.to_string()),
             (SHARD_KEY.to_string(), i.to_string()),
-            (SAMPLES_KEY.to_string(), size_of(i).to_string()),
+            (SAMPLES_KEY.to_string(), samples_in(&a, i).to_string()),
         ]);
-        write_safetensors(&a.out.join(shard_name(i)), &arrays, Some(meta))?;
+        write_safetensors(&a.out.join(shard_name(i)), &shard_arrays(&b), Some(meta))?;
         Ok(())
     })?;
     let secs = t0.elapsed().as_secs_f64();
-    let n: usize = todo.iter().map(|&i| size_of(i)).sum();
+    let n: usize = todo.iter().map(|&i| samples_in(&a, i)).sum();
     eprintln!(
         "wrote {} shards ({n} samples) to {} in {secs:.1} s ({:.0} samples/s); {kept} kept",
         todo.len(),
@@ -276,4 +251,63 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         n as f64 / secs.max(1e-9)
     );
     Ok(())
+}
+
+/// How samples are drawn: the sampling options, the config's views and the nearest
+/// views by default; checked, with the --scene-weights names against --data's scenes.
+fn sampling_of(a: &Args, cfg: &Config) -> anyhow::Result<Sampling> {
+    let sa = &a.sampling;
+    let sampling = Sampling {
+        views: sa.views_range()?.unwrap_or((cfg.views, cfg.views)),
+        synthetic_percent: sa.synthetic_percent,
+        augment: sa.augment,
+        view_stride: sa.view_stride_range()?.unwrap_or((1, 1)),
+        skip_flat: sa.skip_flat,
+        scene_weights: sa.weights()?.unwrap_or_default(),
+    };
+    sampling.check(cfg)?;
+    if !sampling.scene_weights.is_empty() {
+        check_data(&a.data, Some(&sampling.scene_weights))?;
+    }
+    Ok(sampling)
+}
+
+/// The shards of `--out` still to write: missing, or incomplete (each named, with why).
+fn shards_to_write(
+    a: &Args,
+    cfg: &Config,
+    opts_json: &str,
+    cfg_json: &str,
+) -> anyhow::Result<Vec<usize>> {
+    let mut todo = Vec::new();
+    for i in 0..a.count.div_ceil(a.shard_size) {
+        let path = a.out.join(shard_name(i));
+        match check_shard(&path, cfg, opts_json, cfg_json, samples_in(a, i))? {
+            Existing::Complete => {}
+            Existing::Missing => todo.push(i),
+            Existing::Incomplete(why) => {
+                eprintln!("{}: {why}: writing it again", path.display());
+                todo.push(i);
+            }
+        }
+    }
+    Ok(todo)
+}
+
+/// Samples in shard `i` (the last may hold fewer).
+fn samples_in(a: &Args, i: usize) -> usize {
+    a.shard_size.min(a.count - i * a.shard_size)
+}
+
+/// A shard's tensors: the network's inputs per level and the target.
+fn shard_arrays(b: &Batch) -> Vec<NamedArray> {
+    let mut arrays: Vec<NamedArray> = b
+        .levels
+        .iter()
+        .zip(&b.level_shapes)
+        .enumerate()
+        .map(|(l, (d, s))| NamedArray::f32(&deepstereo_export::input_name(l), s, d))
+        .collect();
+    arrays.push(NamedArray::f32(TARGET_NAME, &b.target_shape, &b.target));
+    arrays
 }

@@ -1,6 +1,7 @@
 //! `deepstereo synth`: write a set of procedural posed scenes (images, exact depth maps,
 //! NeRF-style `transforms.json`) for training and testing.
 
+use super::args::parse_size;
 use anyhow::{bail, Context};
 use deepstereo_core::synth::{
     contact_sheet, generate, load_textures, scene_seed, write_scenes_progress, Rig, SynthOptions,
@@ -59,19 +60,6 @@ pub struct Args {
     /// its colour-mapped inverse depth (bright = near).
     #[arg(long)]
     pub sheet: Option<PathBuf>,
-}
-
-/// Parses `WIDTHxHEIGHT` (positive whole numbers).
-fn parse_size(s: &str) -> Result<(u32, u32), String> {
-    let bad =
-        || format!("expected WIDTHxHEIGHT with positive whole numbers, such as 160x120, got '{s}'");
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
-    let w: u32 = w.trim().parse().map_err(|_| bad())?;
-    let h: u32 = h.trim().parse().map_err(|_| bad())?;
-    if w == 0 || h == 0 {
-        return Err(bad());
-    }
-    Ok((w, h))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -138,18 +126,4 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // Only now, with the contact sheet written too, do the scenes appear.
     staged.commit()?;
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::parse_size;
-
-    #[test]
-    fn synth_sizes_parse() {
-        assert_eq!(parse_size("160x120"), Ok((160, 120)));
-        assert_eq!(parse_size("64X48"), Ok((64, 48)));
-        for bad in ["160", "0x120", "160x0", "axb", "-1x5", "160x120x3", ""] {
-            assert!(parse_size(bad).is_err(), "{bad}");
-        }
-    }
 }

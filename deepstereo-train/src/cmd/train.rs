@@ -1,12 +1,11 @@
 //! `deepstereo train`: train a model on procedural and/or real scenes.
 
-use super::sampling_args::SamplingArgs;
+use super::args::{load_config, size_of, SamplingArgs};
 use crate::lr::{LrSchedule, DEFAULT_LR_FINAL};
 use crate::optim::OptimizerKind;
 use crate::training::{train, Loss, RunOptions, Schedule};
-use anyhow::{bail, Context};
-use deepstereo_core::config::Config;
-use std::path::{Path, PathBuf};
+use anyhow::bail;
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -93,65 +92,8 @@ pub struct Args {
     pub sampling: SamplingArgs,
 }
 
-/// Parses `K` or `MIN-MAX`.
-pub fn parse_range(s: &str) -> anyhow::Result<(usize, usize)> {
-    parse_range_of("--views", s)
-}
-
-/// Parses `K` or `MIN-MAX` for option `name`.
-pub fn parse_range_of(name: &str, s: &str) -> anyhow::Result<(usize, usize)> {
-    let parse = |t: &str| -> anyhow::Result<usize> {
-        t.trim()
-            .parse()
-            .with_context(|| format!("{name} '{s}': '{t}' is not a whole number"))
-    };
-    let (lo, hi) = match s.split_once('-') {
-        Some((a, b)) => (parse(a)?, parse(b)?),
-        None => (parse(s)?, parse(s)?),
-    };
-    if lo == 0 || lo > hi {
-        bail!("{name} '{s}': expected K or MIN-MAX with 1 <= MIN <= MAX");
-    }
-    Ok((lo, hi))
-}
-
-/// Parses `WxH`.
-pub fn parse_size(s: &str) -> anyhow::Result<(u32, u32)> {
-    let (w, h) = s
-        .split_once(['x', 'X'])
-        .with_context(|| format!("size '{s}' is not WxH"))?;
-    let (w, h): (u32, u32) = (
-        w.trim()
-            .parse()
-            .with_context(|| format!("bad width in '{s}'"))?,
-        h.trim()
-            .parse()
-            .with_context(|| format!("bad height in '{s}'"))?,
-    );
-    if w == 0 || h == 0 {
-        bail!("size '{s}' must be positive");
-    }
-    Ok((w, h))
-}
-
-/// A preset name or a JSON config file.
-pub fn load_config(s: &str) -> anyhow::Result<Config> {
-    if let Some(c) = Config::preset(s) {
-        return Ok(c);
-    }
-    let p = Path::new(s);
-    let text = std::fs::read_to_string(p).with_context(|| {
-        format!("--config '{s}' is neither a preset (tiny, paper, nviews) nor a readable file")
-    })?;
-    let c: Config = serde_json::from_str(&text)
-        .with_context(|| format!("{}: invalid config JSON", p.display()))?;
-    c.validate()
-        .map_err(|m| anyhow::anyhow!("{}: {m}", p.display()))?;
-    Ok(c)
-}
-
 pub fn run(a: Args) -> anyhow::Result<()> {
-    let (w, h) = parse_size(&a.synth_size)?;
+    let (w, h) = size_of("--synth-size", &a.synth_size)?;
     for (name, v) in [
         ("--checkpoint-every", a.checkpoint_every),
         ("--validate-every", a.validate_every),

@@ -2,8 +2,7 @@
 //! (the paper's training, on the capture itself), and writes a model every command takes
 //! with `--model`.
 
-use super::model_args::ModelArgs;
-use super::SceneArgs;
+use super::args::{ModelArgs, SceneArgs};
 use crate::data::SceneData;
 use crate::inference::{evaluate, holdout_list, RenderSettings};
 use crate::tune::{tune, validation_views, Budget, Progress, TuneOptions, TuneResult};

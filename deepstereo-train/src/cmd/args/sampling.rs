@@ -1,7 +1,7 @@
 //! Options shared by `train` and `samples`: how training samples are drawn (a shard of
 //! `samples` is batch `b` of `train` with the same ones).
 
-use super::train::{parse_range, parse_range_of};
+use super::parse_range_of;
 use crate::scene_weights::SceneWeights;
 use anyhow::Result;
 
@@ -39,7 +39,9 @@ pub struct SamplingArgs {
 impl SamplingArgs {
     /// `--views` parsed (`None`: the config's).
     pub fn views_range(&self) -> Result<Option<(usize, usize)>> {
-        self.views.as_deref().map(parse_range).transpose()
+        (self.views.as_deref())
+            .map(|s| parse_range_of("--views", s))
+            .transpose()
     }
 
     /// `--view-stride` parsed (`None`: the nearest views).
