@@ -61,10 +61,6 @@ fn runs(prog: &str) -> bool {
         .unwrap_or(false)
 }
 
-fn required(var: &str) -> bool {
-    std::env::var(var).is_ok_and(|v| v == "1")
-}
-
 fn gif_frames(path: &Path) -> (usize, u32, u32) {
     use image::AnimationDecoder;
     let f = std::fs::File::open(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
@@ -195,19 +191,6 @@ fn path_video_is_a_decodable_mp4_or_gif_of_every_frame() {
         .filter(|n| n.contains(".tmp") || n.contains(".partial"))
         .collect();
     assert!(left.is_empty(), "left over: {left:?}");
-}
-
-/// A Chromium binary that runs, if any.
-fn chromium() -> Option<&'static str> {
-    ["chromium", "chromium-browser", "google-chrome"]
-        .into_iter()
-        .find(|p| {
-            Command::new(p)
-                .arg("--version")
-                .output()
-                .map(|o| o.status.success())
-                .unwrap_or(false)
-        })
 }
 
 #[test]

@@ -25,6 +25,7 @@ use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 
 pub mod io;
+pub mod viewer;
 
 /// A multiplane image: straight-alpha RGBA planes in a pinhole reference camera.
 #[derive(Clone, Debug)]
@@ -130,16 +131,17 @@ impl Mpi {
     }
 
     /// Renders the MPI at `camera` (any intrinsics and distortion; rolling shutter
-    /// ignored): colour `[H, W, 3]` and the accumulated alpha `[H, W]` (0 where no plane
-    /// covers the ray: outside the reference image, or behind).
+    /// ignored): colour `[H, W, 3]` composited over black (so premultiplied by the
+    /// coverage) and the accumulated alpha `[H, W]` (0 where no plane covers the ray:
+    /// outside the reference image, or behind). Planes are composited front to back,
+    /// `C += T a c`, `T *= 1 - a` (the same sum as "over" back to front), and a ray stops
+    /// once its transmittance `T` is below [`OPAQUE_T`].
     pub fn render(&self, camera: &Camera) -> (RgbImage, Vec<f32>) {
         let (w, h) = (
             camera.intrinsics.width as usize,
             camera.intrinsics.height as usize,
         );
         let rel = camera.pose.relative_to(&self.camera.pose);
-        let (r, t) = (rel.rotation, rel.translation);
-        let k = &self.camera.intrinsics;
         let mut img = RgbImage::new(w as u32, h as u32);
         let mut alpha = vec![0f32; w * h];
         img.data
@@ -150,34 +152,48 @@ impl Mpi {
                 for x in 0..w {
                     let uv = DVec2::new(x as f64 + 0.5, y as f64 + 0.5);
                     let n = camera.intrinsics.unproject_pixel(uv);
-                    let rr = r * DVec3::new(n.x, n.y, 1.0);
-                    let (mut c, mut acc) = ([0f32; 3], 0f32);
-                    for (z, plane) in self.planes.iter().enumerate().rev() {
-                        let rho = self.inv_depths[z];
-                        let s = (1.0 - rho * t.z) / rr.z;
-                        if !(s > 0.0 && s.is_finite()) {
-                            continue;
-                        }
-                        let q = rr * s + t * rho;
-                        if q.z <= 0.0 {
-                            continue;
-                        }
-                        let u = k.fx * q.x / q.z + k.cx;
-                        let v = k.fy * q.y / q.z + k.cy;
-                        let px = sample(plane, self.width(), self.height(), u, v);
-                        let a = px[3];
-                        for ch in 0..3 {
-                            c[ch] = a * px[ch] + (1.0 - a) * c[ch];
-                        }
-                        acc = a + (1.0 - a) * acc;
-                    }
+                    let rr = rel.rotation * DVec3::new(n.x, n.y, 1.0);
+                    let (c, a) = self.ray(rr, rel.translation);
                     row[x * 3..x * 3 + 3].copy_from_slice(&c);
-                    arow[x] = acc;
+                    arow[x] = a;
                 }
             });
         (img, alpha)
     }
+
+    /// One ray, `rr` its direction in the reference camera's coordinates and `t` the
+    /// other camera's centre there: premultiplied colour and accumulated alpha.
+    fn ray(&self, rr: DVec3, t: DVec3) -> ([f32; 3], f32) {
+        let k = &self.camera.intrinsics;
+        let (mut c, mut trans) = ([0f32; 3], 1f32);
+        for (plane, &rho) in self.planes.iter().zip(&self.inv_depths) {
+            let s = (1.0 - rho * t.z) / rr.z;
+            if !(s > 0.0 && s.is_finite()) {
+                continue;
+            }
+            let q = rr * s + t * rho;
+            if q.z <= 0.0 {
+                continue;
+            }
+            let u = k.fx * q.x / q.z + k.cx;
+            let v = k.fy * q.y / q.z + k.cy;
+            let px = sample(plane, self.width(), self.height(), u, v);
+            let wgt = trans * px[3];
+            for ch in 0..3 {
+                c[ch] += wgt * px[ch];
+            }
+            trans *= 1.0 - px[3];
+            if trans < OPAQUE_T {
+                break;
+            }
+        }
+        (c, 1.0 - trans)
+    }
 }
+
+/// Transmittance below which a ray is opaque: what is behind moves its colour by less
+/// than a tenth of an 8-bit step.
+pub const OPAQUE_T: f32 = 1.0 / 2560.0;
 
 /// Bilinear RGBA at pixel coordinate `(u, v)` (centres at `i + 0.5`); transparent
 /// outside the image (edge pixels extend half a pixel).
@@ -201,9 +217,11 @@ fn sample(plane: &[f32], w: usize, h: usize, u: f64, v: f64) -> [f32; 4] {
     out
 }
 
-/// Renders several MPIs of one scene at `camera`, blended as LLFF does: each MPI's
-/// render weighs its accumulated alpha times `1 / (d_i + eps)^2`, `d_i` the distance of
-/// its reference camera's centre to `camera`'s (`eps`: a thousandth of the largest).
+/// Renders several MPIs of one scene at `camera`, blended as LLFF does:
+/// `C = sum_i w_i C_i / sum_i w_i A_i`, with `C_i` MPI `i`'s render (composited over
+/// black, so premultiplied by its accumulated alpha `A_i`) and `w_i = 1 / (d_i + eps)^2`,
+/// `d_i` the distance of its reference camera's centre to `camera`'s (`eps`: a
+/// thousandth of the largest). Black where no MPI covers the ray.
 pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
     let centre = camera.pose.centre();
     let dists: Vec<f64> = (mpis.iter())
@@ -219,15 +237,15 @@ pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
     for p in 0..w * h {
         let (mut c, mut total) = ([0f64; 3], 0f64);
         for ((r, a), d) in renders.iter().zip(&dists) {
-            let wgt = a[p] as f64 / (d + eps).powi(2);
-            for k in 0..3 {
-                c[k] += wgt * r.data[p * 3 + k] as f64;
+            let wgt = 1.0 / (d + eps).powi(2);
+            for (ck, &rk) in c.iter_mut().zip(&r.data[p * 3..p * 3 + 3]) {
+                *ck += wgt * rk as f64;
             }
-            total += wgt;
+            total += wgt * a[p] as f64;
         }
-        if total > 0.0 {
-            for k in 0..3 {
-                img.data[p * 3 + k] = (c[k] / total) as f32;
+        if total > 1e-12 {
+            for (out, ck) in img.data[p * 3..p * 3 + 3].iter_mut().zip(c) {
+                *out = (ck / total) as f32;
             }
         }
     }

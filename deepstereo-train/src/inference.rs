@@ -88,12 +88,15 @@ pub fn pick_sources(
 /// A scene's views prepared for rendering (pyramids built once).
 pub struct Prepared {
     pub pyramids: Vec<Option<PyramidSource>>,
+    /// The paper family's padding: a view that sees nothing (set by [`source_inputs`]).
+    empty: Option<PyramidSource>,
 }
 
 impl Prepared {
     pub fn new(scene: &Scene) -> Self {
         Self {
             pyramids: vec![None; scene.views.len()],
+            empty: None,
         }
     }
 
@@ -105,6 +108,48 @@ impl Prepared {
         }
         self.pyramids[i].as_ref().context("pyramid missing")
     }
+}
+
+/// What the model takes for the first `k` of `sources` (`k` from `settings`): their
+/// pyramids (loaded on first use) padded, for the paper family, with views that see
+/// nothing up to its input count; and the requested inverse depths, near to far.
+pub fn source_inputs<'a>(
+    cfg: &Config,
+    scene: &Scene,
+    prepared: &'a mut Prepared,
+    sources: &[usize],
+    settings: &RenderSettings,
+) -> Result<(Vec<&'a PyramidSource>, Vec<f64>)> {
+    let k = settings.source_count(cfg)?;
+    if sources.len() < k {
+        bail!(
+            "{k} source views are needed, the scene offers {} (try --views {})",
+            sources.len(),
+            sources.len().max(1)
+        );
+    }
+    let sources = &sources[..k];
+    let planes = settings.planes.unwrap_or(cfg.planes);
+    if planes == 0 {
+        bail!("--planes must be at least 1");
+    }
+    for &i in sources {
+        prepared.get(scene, i, cfg.levels)?;
+    }
+    prepared.empty = (sources.first())
+        .and_then(|&i| prepared.pyramids[i].as_ref())
+        .map(|s| PyramidSource::empty(&s.cameras[0], cfg.levels));
+    let prepared: &'a Prepared = prepared;
+    let mut srcs: Vec<&PyramidSource> = sources
+        .iter()
+        .filter_map(|&i| prepared.pyramids[i].as_ref())
+        .collect();
+    if let Some(e) = prepared.empty.as_ref().filter(|_| cfg.pool.is_none()) {
+        while srcs.len() < cfg.views {
+            srcs.push(e);
+        }
+    }
+    Ok((srcs, inverse_depths(scene.near, scene.far, planes)))
 }
 
 /// Renders `target` (a camera) from the scene's views `sources`.
@@ -119,35 +164,8 @@ pub fn render_camera(
 ) -> Result<(Rendered, Vec<f64>)> {
     let cfg = backend.config().clone();
     let k = settings.source_count(&cfg)?;
-    if sources.len() < k {
-        bail!(
-            "{k} source views are needed, the scene offers {} (try --views {})",
-            sources.len(),
-            sources.len().max(1)
-        );
-    }
+    let (srcs, requested) = source_inputs(&cfg, scene, prepared, sources, settings)?;
     let sources = &sources[..k];
-    let planes = settings.planes.unwrap_or(cfg.planes);
-    if planes == 0 {
-        bail!("--planes must be at least 1");
-    }
-    let requested = inverse_depths(scene.near, scene.far, planes);
-    for &i in sources {
-        prepared.get(scene, i, cfg.levels)?;
-    }
-    let mut srcs: Vec<&PyramidSource> = sources
-        .iter()
-        .filter_map(|&i| prepared.pyramids[i].as_ref())
-        .collect();
-    // The model's inputs beyond the `k` sources: views that see nothing.
-    let empty = srcs
-        .first()
-        .map(|s| PyramidSource::empty(&s.cameras[0], cfg.levels));
-    if let Some(e) = empty.as_ref().filter(|_| cfg.pool.is_none()) {
-        while srcs.len() < cfg.views {
-            srcs.push(e);
-        }
-    }
     if !settings.prune.is_on() {
         let r = render_view(backend, target, &srcs, &requested, settings.tile, progress)?;
         return Ok((r, requested));

@@ -11,6 +11,7 @@ pub mod data;
 pub mod inference;
 pub mod lr;
 pub mod models;
+pub mod mpi;
 pub mod optim;
 pub mod outdir;
 pub mod path;

@@ -155,6 +155,27 @@ pub fn read(dir: &Path) -> Result<Mpi> {
     })
 }
 
+/// The MPIs of a directory written by `deepstereo mpi`: the one in `dir` itself (its
+/// `mpi.json`), else one per subdirectory holding an `mpi.json`, in name order.
+pub fn read_dir(dir: &Path) -> Result<Vec<Mpi>> {
+    if dir.join(JSON_NAME).is_file() {
+        return Ok(vec![read(dir)?]);
+    }
+    let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    let mut subs: Vec<_> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.join(JSON_NAME).is_file())
+        .collect();
+    subs.sort();
+    if subs.is_empty() {
+        return Err(Error::format(
+            dir,
+            format!("no {JSON_NAME} in it or in its subdirectories: not an MPI directory"),
+        ));
+    }
+    subs.iter().map(|p| read(p)).collect()
+}
+
 fn read_plane(path: &Path, w: u32, h: u32) -> Result<Vec<f32>> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     let img = image::load_from_memory(&bytes)

@@ -9,6 +9,7 @@ pub mod eval;
 pub mod export;
 pub mod forward;
 pub mod inspect;
+pub mod mpi;
 pub mod poses;
 pub mod render;
 pub mod report;
@@ -58,6 +59,9 @@ pub enum Command {
     Curve(curve::Args),
     /// Fine-tune a model on one scene by leaving one view out; writes a model for --model.
     Tune(tune::Args),
+    /// Bake multiplane images with the network, with a browser viewer (or --eval: held-out
+    /// views through them).
+    Mpi(mpi::Args),
 }
 
 /// Runs one parsed command line.
@@ -77,5 +81,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Samples(a) => samples::run(a),
         Command::Curve(a) => curve::run(a),
         Command::Tune(a) => tune::run(a),
+        Command::Mpi(a) => mpi::run(a),
     }
 }

@@ -33,6 +33,11 @@ pub struct Args {
     /// Render a camera path around the views (LLFF-style) as a numbered PNG sequence.
     #[arg(long, value_enum)]
     pub path: Option<PathKind>,
+    /// Render from the MPIs of this directory (written by `deepstereo mpi`) on the CPU,
+    /// blended by distance, instead of running the network: image.png (with --pose or
+    /// --target) or the frames of --path.
+    #[arg(long)]
+    pub mpi: Option<PathBuf>,
     /// Frames of --path.
     #[arg(long, default_value_t = 30)]
     pub frames: usize,
@@ -58,6 +63,9 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--frames must be at least 1");
     }
     let scene = a.scene.load()?;
+    if let Some(dir) = &a.mpi {
+        return render_mpis(&a, dir, &scene);
+    }
     let backend = a.model.backend()?;
     let v = settings.source_count(backend.config())?;
     let mut prepared = Prepared::new(&scene);
@@ -160,6 +168,58 @@ fn write_path(
             "wrote {} ({} frames at {} fps)",
             v.path().display(),
             a.frames,
+            a.fps
+        );
+    }
+    Ok(())
+}
+
+/// `--mpi DIR`: the cameras of --path, --pose or --target rendered from MPIs on the CPU.
+fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
+    let mpis = crate::mpi::read_mpis(dir)?;
+    let cams = match (a.path, a.target, &a.pose) {
+        (Some(kind), _, _) => path_cameras(scene, kind, a.frames)?,
+        (None, Some(t), None) if t < scene.views.len() => vec![scene.views[t].camera],
+        (None, Some(t), None) => bail!(
+            "--target {t} is out of range: the scene has {} views",
+            scene.views.len()
+        ),
+        (None, None, Some(p)) => vec![crate::camera_json::read_pose(p, a.view)?],
+        _ => bail!("with --mpi pass one of --path KIND, --target I or --pose FILE"),
+    };
+    let staged = StagedDir::new(&a.out)?;
+    let bar = indicatif::ProgressBar::new(cams.len() as u64);
+    let t0 = std::time::Instant::now();
+    let mut frames = Vec::with_capacity(cams.len());
+    for (f, cam) in cams.iter().enumerate() {
+        let img = deepstereo_core::mpi::render_blend(&mpis, cam);
+        let name = match a.path {
+            Some(_) => format!("frame_{f:04}.png"),
+            None => "image.png".to_string(),
+        };
+        img.save_png(&staged.path().join(name))?;
+        frames.push(img);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let secs = t0.elapsed().as_secs_f64();
+    eprintln!(
+        "rendered {} frame(s) from {} MPI(s) in {secs:.2} s ({:.3} s per frame)",
+        frames.len(),
+        mpis.len(),
+        secs / frames.len() as f64
+    );
+    let video = match &a.video {
+        Some(p) => Some(crate::video::write_video(&frames, p, a.fps)?),
+        None => None,
+    };
+    staged.commit()?;
+    eprintln!("wrote {}", a.out.display());
+    if let Some(v) = video {
+        eprintln!(
+            "wrote {} ({} frames at {} fps)",
+            v.path().display(),
+            frames.len(),
             a.fps
         );
     }

@@ -1,0 +1,247 @@
+//! `deepstereo mpi`: multiplane images baked by the network, with a browser viewer; or,
+//! with `--eval`, held-out views seen through MPIs beside the network's own renders.
+
+use super::args::{ModelArgs, SceneArgs};
+use crate::inference::{holdout_list, pick_sources, Prepared, RenderSettings};
+use crate::mpi::{bake_camera, eval_through_mpi, reference_sources};
+use crate::outdir::StagedDir;
+use anyhow::{bail, Context, Result};
+use deepstereo_core::camera::Camera;
+use deepstereo_core::imageio::write_atomic;
+use deepstereo_core::mpi::{io, viewer};
+use deepstereo_core::render::Backend;
+use deepstereo_core::scene::Scene;
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    #[command(flatten)]
+    pub model: ModelArgs,
+    /// Bake at view I's camera (its own photograph among the sources).
+    #[arg(long, conflicts_with_all = ["targets", "pose", "eval"])]
+    pub target: Option<usize>,
+    /// Bake one MPI at each of these views (`I,J,K`, at most 8), blended by distance in
+    /// the viewer and by `render --mpi`, for a wider range of motion.
+    #[arg(long, conflicts_with_all = ["pose", "eval"])]
+    pub targets: Option<String>,
+    /// Bake at a camera given as JSON (as `render --pose` takes it).
+    #[arg(long, conflicts_with = "eval")]
+    pub pose: Option<PathBuf>,
+    /// With --pose FILE holding `inspect --json`'s output: which of its views.
+    #[arg(long, requires = "pose")]
+    pub view: Option<usize>,
+    /// Views held out: never sources (comma-separated indices).
+    #[arg(long)]
+    pub holdout: Option<String>,
+    /// Hold out every Nth view (LLFF protocol: 8): never sources.
+    #[arg(long, conflicts_with = "holdout")]
+    pub llffhold: Option<usize>,
+    /// Bake at --target/--targets views without their own photographs: the planes'
+    /// colours come from the other views only (the reference view is then the network's
+    /// prediction of it, as `render --target` gives, not the photograph). Measured in
+    /// docs/results.md: better from cameras away from the reference.
+    #[arg(long)]
+    pub exclude_own_photo: bool,
+    /// Instead of writing MPIs: render every held-out view through an MPI baked at its
+    /// nearest view that is not held out, beside the network's render of it; writes
+    /// eval.json into --out.
+    #[arg(long)]
+    pub eval: bool,
+    /// Output directory: mpi.json, plane_NN.png, index.html and mpi.js (with --targets,
+    /// one mpi_NN/ per MPI beside index.html and mpi.js).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let settings = a.model.settings()?;
+    let scene = a.scene.load()?;
+    let n = scene.views.len();
+    let holdout = match (&a.holdout, a.llffhold) {
+        (None, None) => Vec::new(),
+        (h, l) => holdout_list(h.as_deref(), l, n)?,
+    };
+    if let Some(&h) = holdout.iter().find(|&&h| h >= n) {
+        bail!("--holdout {h} is out of range: the scene has {n} views");
+    }
+    let backend = a.model.backend()?;
+    if a.eval {
+        return run_eval(&a, backend.as_ref(), &scene, &holdout, &settings);
+    }
+    let targets = bake_targets(&a, &scene, &holdout)?;
+    let staged = StagedDir::new(&a.out)?;
+    let k = settings.source_count(backend.config())?;
+    let mut prepared = Prepared::new(&scene);
+    let mut names = Vec::new();
+    let mut range = 0f64;
+    let first = targets[0].0.pose.centre();
+    for (i, (cam, exclude_self)) in targets.iter().enumerate() {
+        let srcs = match exclude_self {
+            Some(v) => reference_sources(&scene, *v, &holdout, !a.exclude_own_photo, k, &settings)?,
+            None => pick_sources(&scene, cam, &holdout, k, &settings),
+        };
+        let t0 = std::time::Instant::now();
+        let bar = indicatif::ProgressBar::new(0);
+        let progress = |done: usize, total: usize| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        };
+        let mpi = bake_camera(
+            backend.as_ref(),
+            &scene,
+            &mut prepared,
+            cam,
+            &srcs,
+            &settings,
+            &progress,
+        )?;
+        bar.finish_and_clear();
+        let name = if targets.len() == 1 {
+            ".".to_string()
+        } else {
+            format!("mpi_{i:02}")
+        };
+        io::write(&mpi, &staged.path().join(&name))?;
+        eprintln!(
+            "baked {}x{}, {} planes, in {:.2} s from views {srcs:?} into {}",
+            mpi.width(),
+            mpi.height(),
+            mpi.planes.len(),
+            t0.elapsed().as_secs_f64(),
+            a.out.join(&name).display()
+        );
+        for &s in &srcs {
+            range = range.max((scene.views[s].camera.pose.centre() - first).length());
+        }
+        range = range.max((mpi.camera.pose.centre() - first).length());
+        names.push(name);
+    }
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    viewer::write(staged.path(), &refs, range)?;
+    staged.commit()?;
+    eprintln!(
+        "wrote the viewer: open {} in a browser (?fit=native: the reference view pixel for pixel)",
+        a.out.join("index.html").display()
+    );
+    Ok(())
+}
+
+/// The cameras to bake at, each with the view it is (whose photograph is a source).
+fn bake_targets(
+    a: &Args,
+    scene: &Scene,
+    holdout: &[usize],
+) -> Result<Vec<(Camera, Option<usize>)>> {
+    let n = scene.views.len();
+    let views: Vec<usize> = match (a.target, &a.targets, &a.pose) {
+        (Some(t), None, None) => vec![t],
+        (None, Some(list), None) => list
+            .split(',')
+            .map(|s| {
+                s.trim()
+                    .parse::<usize>()
+                    .with_context(|| format!("--targets: '{s}' is not a view index"))
+            })
+            .collect::<Result<_>>()?,
+        (None, None, Some(p)) => {
+            let cam = crate::camera_json::read_pose(p, a.view)?;
+            return Ok(vec![(cam, None)]);
+        }
+        _ => bail!("pass one of --target I, --targets I,J,K or --pose FILE (or --eval)"),
+    };
+    if views.is_empty() || views.len() > viewer::MAX_MPIS {
+        bail!(
+            "--targets: 1 to {} views, not {}",
+            viewer::MAX_MPIS,
+            views.len()
+        );
+    }
+    let mut out = Vec::new();
+    for &v in &views {
+        if v >= n {
+            bail!("view {v} is out of range: the scene has {n} views");
+        }
+        if holdout.contains(&v) {
+            bail!("view {v} is held out: bake at a view that is not");
+        }
+        if out.iter().any(|(_, o)| *o == Some(v)) {
+            bail!("--targets: view {v} is listed twice");
+        }
+        out.push((scene.views[v].camera, Some(v)));
+    }
+    Ok(out)
+}
+
+/// `--eval`: held-out views through MPIs, a table on stderr and eval.json in --out.
+fn run_eval(
+    a: &Args,
+    backend: &dyn Backend,
+    scene: &Scene,
+    holdout: &[usize],
+    settings: &RenderSettings,
+) -> Result<()> {
+    if holdout.is_empty() {
+        bail!("--eval needs held-out views: pass --llffhold N or --holdout I,J,...");
+    }
+    let staged = StagedDir::new(&a.out)?;
+    eprintln!("view  reference  network dB  MPI dB  MPI-vs-network dB  network s  bake s  MPI s");
+    let per_view = eval_through_mpi(
+        backend,
+        scene,
+        holdout,
+        !a.exclude_own_photo,
+        settings,
+        |r| {
+            eprintln!(
+                "{:>4}  {:>9}  {:>10.2}  {:>6.2}  {:>17.2}  {:>9.2}  {:>6.2}  {:>5.3}",
+                r.target,
+                r.reference,
+                r.network_psnr,
+                r.mpi_psnr,
+                r.mpi_vs_network_psnr,
+                r.network_seconds,
+                r.bake_seconds,
+                r.mpi_render_seconds
+            );
+        },
+    )?;
+    let m = |f: fn(&crate::mpi::MpiViewResult) -> f64| {
+        per_view.iter().map(f).sum::<f64>() / per_view.len() as f64
+    };
+    let mean = serde_json::json!({
+        "network_psnr": m(|r| r.network_psnr),
+        "network_ssim": m(|r| r.network_ssim),
+        "mpi_psnr": m(|r| r.mpi_psnr),
+        "mpi_ssim": m(|r| r.mpi_ssim),
+        "network_seconds": m(|r| r.network_seconds),
+        "bake_seconds": m(|r| r.bake_seconds),
+        "mpi_render_seconds": m(|r| r.mpi_render_seconds),
+    });
+    eprintln!(
+        "mean: network {:.2} dB, through MPIs {:.2} dB; a frame from an MPI is {:.0}x faster than the network's",
+        mean["network_psnr"].as_f64().unwrap_or(f64::NAN),
+        mean["mpi_psnr"].as_f64().unwrap_or(f64::NAN),
+        m(|r| r.network_seconds) / m(|r| r.mpi_render_seconds).max(1e-9)
+    );
+    let report = serde_json::json!({
+        "scene": a.scene.scene.display().to_string(),
+        "model": a.model.name(),
+        "planes": settings.planes.unwrap_or(backend.config().planes),
+        "views": settings.source_count(backend.config())?,
+        "own_photo": !a.exclude_own_photo,
+        "per_view": per_view,
+        "mean": mean,
+    });
+    write_json(&staged.path().join("eval.json"), &report)?;
+    staged.commit()?;
+    eprintln!("wrote {}", a.out.join("eval.json").display());
+    Ok(())
+}
+
+fn write_json(path: &Path, v: &serde_json::Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(v)?;
+    write_atomic(path, text.as_bytes())?;
+    Ok(())
+}

@@ -1,0 +1,306 @@
+//! `deepstereo mpi` end to end on a small generated scene: an MPI composited at its
+//! reference camera is the network's render there (`render --pose`, >= 40 dB); the
+//! viewer in headless Chromium shows it pixel for pixel at `?fit=native` (>= 30 dB), and
+//! moved (`?offset=`) as `render --mpi` does on the CPU; several MPIs render a path and
+//! a video; bad input is refused with nothing written.
+
+use deepstereo_core::imageio::RgbImage;
+use deepstereo_core::metrics::psnr;
+use deepstereo_tests::*;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+const W: u32 = 64;
+const H: u32 = 48;
+
+fn scene(dir: &Path) -> PathBuf {
+    let res = run_deepstereo([
+        "synth",
+        "--out",
+        &dir.join("scenes").to_string_lossy(),
+        "--scenes",
+        "1",
+        "--views",
+        "6",
+        "--seed",
+        "11",
+        "--size",
+        &format!("{W}x{H}"),
+        "--rig",
+        "forward",
+        "--supersample",
+        "1",
+    ]);
+    assert_eq!(res.code, Some(0), "synth failed: {}", res.stderr);
+    dir.join("scenes/scene_0000")
+}
+
+fn load(path: &Path) -> RgbImage {
+    RgbImage::load(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// View `view` of `inspect --json` as a camera file, its centre moved by `offset` in its
+/// own axes (`t' = t - offset`).
+fn pose_file(scene: &Path, view: usize, offset: [f64; 3], out: &Path) -> PathBuf {
+    let res = ok(&["inspect", "--scene", &scene.to_string_lossy(), "--json"]);
+    let all: serde_json::Value = serde_json::from_str(&res.stdout).expect("inspect JSON");
+    let mut cam = all["views"][view].clone();
+    for (i, o) in offset.iter().enumerate() {
+        let t = cam["t"][i].as_f64().expect("t");
+        cam["t"][i] = serde_json::json!(t - o);
+    }
+    std::fs::write(out, cam.to_string()).expect("write pose");
+    out.to_path_buf()
+}
+
+/// The first frame of `page` (a file URL with its query; `capture=1` is added) in
+/// headless Chromium with software WebGL, as the page's own `canvas.toDataURL` PNG read
+/// back through `--dump-dom`; None when no Chromium runs and none is required.
+fn screenshot(page: &str, dir: &Path, name: &str) -> Option<RgbImage> {
+    let Some(browser) = chromium() else {
+        assert!(
+            !required("DEEPSTEREO_REQUIRE_CHROMIUM"),
+            "Chromium is required (DEEPSTEREO_REQUIRE_CHROMIUM=1) but does not run"
+        );
+        eprintln!(
+            "SKIPPED the viewer check: no chromium on the PATH (tests/run-all.sh installs it)"
+        );
+        return None;
+    };
+    let res = Command::new(browser)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-dev-shm-usage",
+            "--use-angle=swiftshader",
+            "--enable-unsafe-swiftshader",
+            "--force-device-scale-factor=1",
+            "--virtual-time-budget=20000",
+            "--dump-dom",
+        ])
+        .arg(format!("--user-data-dir={}", dir.join("profile").display()))
+        .arg(format!("--window-size={W},{H}"))
+        .arg(format!("{page}&capture=1"))
+        .output()
+        .expect("run chromium");
+    let dom = String::from_utf8_lossy(&res.stdout);
+    let key = "data-capture=\"data:image/png;base64,";
+    let Some(at) = dom.find(key) else {
+        panic!(
+            "{browser}: no capture in the page:\n{}\n{}",
+            dom.chars().take(600).collect::<String>(),
+            String::from_utf8_lossy(&res.stderr)
+        );
+    };
+    let b64 = dom[at + key.len()..].split('"').next().unwrap_or_default();
+    let png = base64_decode(b64).expect("base64 PNG");
+    let path = dir.join(format!("{name}.png"));
+    std::fs::write(&path, png).expect("write capture");
+    let img = load(&path);
+    assert_eq!((img.width, img.height), (W, H), "the canvas at ?fit=native");
+    Some(img)
+}
+
+#[test]
+fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let s = s.to_string_lossy().into_owned();
+    let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
+    let common = ["--planes", "8", "--prune", "off", "--tile", "32"];
+    let mut args = vec!["mpi", "--scene", &s, "--target", "2", "--out"];
+    let m = t("mpi");
+    args.push(&m);
+    args.extend(common);
+    ok(&args);
+    for f in [
+        "mpi.json",
+        "plane_00.png",
+        "plane_07.png",
+        "index.html",
+        "mpi.js",
+    ] {
+        assert!(tmp.path().join("mpi").join(f).is_file(), "{f} missing");
+    }
+    let js = std::fs::read_to_string(tmp.path().join("mpi/mpi.js")).expect("mpi.js");
+    assert!(js.contains("data:image/png;base64,") && !js.contains("http"));
+
+    let pose = pose_file(
+        tmp.path().join("scenes/scene_0000").as_path(),
+        2,
+        [0.0; 3],
+        &tmp.path().join("pose.json"),
+    );
+    let pose = pose.to_string_lossy().into_owned();
+    let (net, via) = (t("net"), t("via"));
+    let mut args = vec!["render", "--scene", &s, "--pose", &pose, "--out", &net];
+    args.extend(common);
+    ok(&args);
+    ok(&[
+        "render", "--scene", &s, "--mpi", &m, "--pose", &pose, "--out", &via,
+    ]);
+    let (net_img, via_img) = (
+        load(&tmp.path().join("net/image.png")),
+        load(&tmp.path().join("via/image.png")),
+    );
+    let db = psnr(&via_img, &net_img);
+    assert!(
+        db >= 40.0,
+        "MPI at its reference vs render --pose: {db:.1} dB"
+    );
+
+    let url = format!("file://{}/mpi/index.html", tmp.path().display());
+    let Some(shot) = screenshot(&format!("{url}?fit=native"), tmp.path(), "native") else {
+        return;
+    };
+    let db = psnr(&shot, &via_img);
+    assert!(
+        db >= 30.0,
+        "viewer at ?fit=native vs the MPI's composite: {db:.1} dB"
+    );
+    eprintln!("viewer at the reference: {db:.1} dB");
+
+    // Moved along the camera's x and z axes: the viewer and the CPU agree.
+    let off = [0.08, -0.03, 0.05];
+    let moved = pose_file(
+        tmp.path().join("scenes/scene_0000").as_path(),
+        2,
+        off,
+        &tmp.path().join("moved.json"),
+    );
+    let via_moved = t("via_moved");
+    ok(&[
+        "render",
+        "--scene",
+        &s,
+        "--mpi",
+        &m,
+        "--pose",
+        &moved.to_string_lossy(),
+        "--out",
+        &via_moved,
+    ]);
+    let cpu = load(&tmp.path().join("via_moved/image.png"));
+    let page = format!("{url}?fit=native&offset={},{},{}", off[0], off[1], off[2]);
+    let shot = screenshot(&page, tmp.path(), "moved").expect("chromium ran before");
+    let db = psnr(&shot, &cpu);
+    assert!(db >= 30.0, "viewer moved vs render --mpi: {db:.1} dB");
+    assert!(psnr(&cpu, &via_img) < db, "the move changed nothing");
+    eprintln!("viewer moved: {db:.1} dB");
+}
+
+#[test]
+fn several_mpis_render_a_path_and_bad_input_is_refused() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path()).to_string_lossy().into_owned();
+    let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
+    let m = t("mpis");
+    ok(&[
+        "mpi",
+        "--scene",
+        &s,
+        "--targets",
+        "1,3",
+        "--holdout",
+        "0",
+        "--planes",
+        "6",
+        "--tile",
+        "32",
+        "--out",
+        &m,
+    ]);
+    for f in [
+        "mpi_00/mpi.json",
+        "mpi_01/plane_05.png",
+        "index.html",
+        "mpi.js",
+    ] {
+        assert!(tmp.path().join("mpis").join(f).is_file(), "{f} missing");
+    }
+    let frames = t("frames");
+    ok(&[
+        "render",
+        "--scene",
+        &s,
+        "--mpi",
+        &m,
+        "--path",
+        "spiral",
+        "--frames",
+        "3",
+        "--out",
+        &frames,
+        "--video",
+        &t("path.gif"),
+    ]);
+    for f in 0..3 {
+        let img = load(&tmp.path().join(format!("frames/frame_{f:04}.png")));
+        assert_eq!((img.width, img.height), (W, H));
+        assert!(img.data.iter().all(|v| v.is_finite()));
+    }
+    assert!(tmp.path().join("path.gif").is_file());
+
+    // Bad input: a clear error naming the problem, and nothing written.
+    let bad = |args: &[&str], want: &str| {
+        let res = run_deepstereo(args);
+        assert!(res.code.is_some_and(|c| c != 0), "{args:?} should fail");
+        assert!(
+            res.stderr.contains(want),
+            "{args:?}: want '{want}' in:\n{}",
+            res.stderr
+        );
+        assert!(!tmp.path().join("bad").exists(), "{args:?} wrote output");
+    };
+    let out = t("bad");
+    bad(
+        &[
+            "mpi",
+            "--scene",
+            &s,
+            "--target",
+            "0",
+            "--holdout",
+            "0",
+            "--out",
+            &out,
+        ],
+        "held out",
+    );
+    bad(
+        &["mpi", "--scene", &s, "--target", "9", "--out", &out],
+        "out of range",
+    );
+    bad(
+        &["mpi", "--scene", &s, "--targets", "1,1", "--out", &out],
+        "twice",
+    );
+    bad(
+        &["mpi", "--scene", &s, "--eval", "--out", &out],
+        "held-out views",
+    );
+    bad(
+        &[
+            "render", "--scene", &s, "--mpi", &s, "--target", "1", "--out", &out,
+        ],
+        "mpi.json",
+    );
+    std::fs::write(tmp.path().join("mpis/mpi_01/plane_02.png"), b"not a png").expect("write");
+    bad(
+        &[
+            "render", "--scene", &s, "--mpi", &m, "--target", "1", "--out", &out,
+        ],
+        "plane_02.png",
+    );
+    let json = tmp.path().join("mpis/mpi_00/mpi.json");
+    let text = std::fs::read_to_string(&json)
+        .expect("read")
+        .replace("\"fx\": ", "\"fx\": -");
+    std::fs::write(&json, text).expect("write");
+    bad(
+        &[
+            "render", "--scene", &s, "--mpi", &m, "--target", "1", "--out", &out,
+        ],
+        "mpi.json",
+    );
+}
