@@ -169,10 +169,10 @@ fn blending_copies_of_one_mpi_gives_it_back_and_8_bits_keep_40_db() -> Result<()
     let moved = camera(w as u32, h as u32, DVec3::new(0.05, 0.02, 0.0));
     let (one, a) = mpi.render(&moved);
     let two = render_blend(&[mpi.clone(), mpi.clone()], &moved);
-    for p in 0..w * h {
+    for (p, &ap) in a.iter().enumerate() {
         for c in 0..3 {
-            let want = if a[p] > 1e-12 {
-                one.data[p * 3 + c] / a[p]
+            let want = if ap > 1e-12 {
+                one.data[p * 3 + c] / ap
             } else {
                 0.0
             };
