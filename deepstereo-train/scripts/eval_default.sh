@@ -12,7 +12,8 @@ MODEL="${1:-deepstereo-train/assets/nviews-real.safetensors}"
 OUT="${2:-/tmp/deepstereo-eval}"
 shift $(( $# > 2 ? 2 : $# ))
 if [ $# -gt 0 ]; then VIEWS=("$@"); else VIEWS=(4 8); fi
-DATA=../shared/data
+# shellcheck source=eval_scenes.sh
+source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
 TINY=deepstereo-train/assets/tiny.safetensors
 mkdir -p "$OUT"
@@ -23,12 +24,7 @@ if [ ! -d "$OUT/procedural/scene_0001" ]; then
 fi
 # scene directory | extra flags
 SCENES=(
-  "$DATA/val/juicebox|"
-  "$DATA/val/moldgoldcape|"
-  "$DATA/val/stitch|"
-  "$DATA/fox|--downscale 4"
-  "$DATA/templeRing|--downscale 2"
-  "$DATA/ethiopianHead|--downscale 4"
+  "${EVAL_SCENES[@]}"
   "$OUT/procedural/scene_0000|"
   "$OUT/procedural/scene_0001|"
 )

@@ -287,26 +287,15 @@ pub fn evaluate(
     let mut prepared = Prepared::new(scene);
     let mut per_view = Vec::new();
     for &t in targets {
-        if t >= scene.views.len() {
-            bail!(
-                "held-out view {t} is out of range: the scene has {} views",
-                scene.views.len()
-            );
-        }
         let truth = scene.load_image(t)?;
         let cam = scene.views[t].camera;
-        let srcs = pick_sources(scene, &cam, targets, k, settings);
-        let t0 = Instant::now();
-        let (r, inv) = render_camera(
-            backend,
-            scene,
-            &mut prepared,
-            &cam,
-            &srcs,
-            settings,
-            &|_, _| {},
-        )?;
-        let seconds = t0.elapsed().as_secs_f64();
+        let held = render_held_out(backend, scene, &mut prepared, t, targets, k, settings)?;
+        let HeldOut {
+            rendered: r,
+            inv_depths: inv,
+            sources: srcs,
+            seconds,
+        } = held;
         let nearest = scene.load_image(srcs[0])?;
         let near_score = nearest_score(&nearest, &truth);
         let (ps, ps_secs) = sweep_baseline(&prepared, &srcs, &cam, &inv);
@@ -416,6 +405,53 @@ pub fn mean_over<T>(items: &[T], scores: impl Fn(&T) -> Scores<'_>) -> Mean {
             },
         },
     }
+}
+
+/// The network's render of a held-out view, and what made it.
+pub struct HeldOut {
+    pub rendered: Rendered,
+    /// The requested inverse depths, near to far.
+    pub inv_depths: Vec<f64>,
+    /// The source views (none of them held out), nearest first.
+    pub sources: Vec<usize>,
+    pub seconds: f64,
+}
+
+/// Renders held-out view `t` from `k` sources among the views not in `holdout`, as
+/// `eval` does.
+pub fn render_held_out(
+    backend: &dyn Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    t: usize,
+    holdout: &[usize],
+    k: usize,
+    settings: &RenderSettings,
+) -> Result<HeldOut> {
+    if t >= scene.views.len() {
+        bail!(
+            "held-out view {t} is out of range: the scene has {} views",
+            scene.views.len()
+        );
+    }
+    let cam = scene.views[t].camera;
+    let sources = pick_sources(scene, &cam, holdout, k, settings);
+    let t0 = Instant::now();
+    let (rendered, inv_depths) = render_camera(
+        backend,
+        scene,
+        prepared,
+        &cam,
+        &sources,
+        settings,
+        &|_, _| {},
+    )?;
+    Ok(HeldOut {
+        rendered,
+        inv_depths,
+        sources,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
 }
 
 /// Held-out view indices from `--holdout 0,8,16` or `--llffhold N` (every Nth view).

@@ -2,7 +2,7 @@
 //! (`deepstereo_core::mpi` holds the format and the rendering), and held-out views seen
 //! through them, beside the network's own renders of those views.
 
-use crate::inference::{pick_sources, render_camera, source_inputs, Prepared, RenderSettings};
+use crate::inference::{pick_sources, render_held_out, source_inputs, Prepared, RenderSettings};
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::metrics::{psnr, ssim};
@@ -54,97 +54,99 @@ pub fn reference_sources(
     Ok(pick_sources(scene, &cam, &exclude, k, settings))
 }
 
-/// The view that is not held out nearest to view `target` (by camera centre).
-pub fn nearest_kept_view(scene: &Scene, target: usize, holdout: &[usize]) -> Option<usize> {
+/// The `n` views that are not held out nearest to view `target` (by camera centre),
+/// nearest first.
+pub fn nearest_kept_views(scene: &Scene, target: usize, holdout: &[usize], n: usize) -> Vec<usize> {
     let c = scene.views[target].camera.pose.centre();
-    (0..scene.views.len())
+    let mut kept: Vec<(f64, usize)> = (0..scene.views.len())
         .filter(|i| !holdout.contains(i))
-        .min_by(|&a, &b| {
-            let da = (scene.views[a].camera.pose.centre() - c).length();
-            let db = (scene.views[b].camera.pose.centre() - c).length();
-            da.total_cmp(&db)
-        })
+        .map(|i| ((scene.views[i].camera.pose.centre() - c).length(), i))
+        .collect();
+    kept.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    kept.into_iter().take(n).map(|(_, i)| i).collect()
 }
 
-/// One held-out view rendered by the network and through an MPI baked at its nearest
-/// view that is not held out.
+/// How held-out views are seen through MPIs.
+#[derive(Clone, Copy, Debug)]
+pub struct MpiEvalOptions {
+    /// MPIs per held-out view, baked at its nearest views that are not held out and
+    /// blended by distance.
+    pub mpis: usize,
+    /// Each MPI's reference photograph among its sources.
+    pub own_photo: bool,
+}
+
+/// One held-out view rendered by the network and through MPIs baked at its nearest
+/// views that are not held out.
 #[derive(Clone, Debug, Serialize)]
 pub struct MpiViewResult {
     pub target: usize,
     pub name: String,
-    /// The view the MPI was baked at.
-    pub reference: usize,
+    /// The views the MPIs were baked at.
+    pub references: Vec<usize>,
     pub network_psnr: f64,
     pub network_ssim: f64,
     pub mpi_psnr: f64,
     pub mpi_ssim: f64,
-    /// The MPI's render against the network's render of the same view.
+    /// The MPIs' render against the network's render of the same view.
     pub mpi_vs_network_psnr: f64,
     /// The network's render of the held-out view.
     pub network_seconds: f64,
-    /// Baking the MPI (the network at the reference camera, every plane kept).
+    /// Baking the MPIs (the network at each reference camera, every plane kept).
     pub bake_seconds: f64,
-    /// Rendering the held-out view from the baked MPI on the CPU.
+    /// Rendering the held-out view from the baked MPIs on the CPU.
     pub mpi_render_seconds: f64,
 }
 
 /// Every held-out view of `holdout` rendered by the network (as `eval` does) and through
-/// the MPI baked at its nearest view that is not held out (with that view's photograph
-/// among its sources when `own_photo`).
+/// MPIs baked at its nearest views that are not held out.
 pub fn eval_through_mpi(
     backend: &dyn Backend,
     scene: &Scene,
     holdout: &[usize],
-    own_photo: bool,
+    opts: MpiEvalOptions,
     settings: &RenderSettings,
     mut on_view: impl FnMut(&MpiViewResult),
 ) -> Result<Vec<MpiViewResult>> {
     let k = settings.source_count(backend.config())?;
+    if opts.mpis == 0 || opts.mpis > viewer::MAX_MPIS {
+        bail!("1 to {} MPIs per view, not {}", viewer::MAX_MPIS, opts.mpis);
+    }
     let mut prepared = Prepared::new(scene);
     let mut out = Vec::new();
     for &t in holdout {
-        if t >= scene.views.len() {
-            bail!(
-                "held-out view {t} is out of range: the scene has {} views",
-                scene.views.len()
-            );
-        }
-        let Some(reference) = nearest_kept_view(scene, t, holdout) else {
+        let held = render_held_out(backend, scene, &mut prepared, t, holdout, k, settings)?;
+        let (net, network_seconds) = (held.rendered, held.seconds);
+        let references = nearest_kept_views(scene, t, holdout, opts.mpis);
+        if references.is_empty() {
             bail!("every view is held out: no view is left to bake an MPI at");
-        };
+        }
         let truth = scene.load_image(t)?;
         let cam = scene.views[t].camera;
-        let srcs = pick_sources(scene, &cam, holdout, k, settings);
         let t0 = Instant::now();
-        let (net, _) = render_camera(
-            backend,
-            scene,
-            &mut prepared,
-            &cam,
-            &srcs,
-            settings,
-            &|_, _| {},
-        )?;
-        let network_seconds = t0.elapsed().as_secs_f64();
-        let ref_srcs = reference_sources(scene, reference, holdout, own_photo, k, settings)?;
-        let t0 = Instant::now();
-        let mpi = bake_camera(
-            backend,
-            scene,
-            &mut prepared,
-            &scene.views[reference].camera,
-            &ref_srcs,
-            settings,
-            &|_, _| {},
-        )?;
+        let mut mpis = Vec::new();
+        for &r in &references {
+            let ref_srcs = reference_sources(scene, r, holdout, opts.own_photo, k, settings)?;
+            let camera = &scene.views[r].camera;
+            let none = &|_, _| {};
+            mpis.push(bake_camera(
+                backend,
+                scene,
+                &mut prepared,
+                camera,
+                &ref_srcs,
+                settings,
+                none,
+            )?);
+        }
         let bake_seconds = t0.elapsed().as_secs_f64();
         let t0 = Instant::now();
-        let img = render_blend(std::slice::from_ref(&mpi), &cam);
+        let img = render_blend(&mpis, &cam);
         let mpi_render_seconds = t0.elapsed().as_secs_f64();
         let r = MpiViewResult {
             target: t,
             name: scene.views[t].name.clone(),
-            reference,
+            references,
             network_psnr: psnr(&net.image, &truth),
             network_ssim: ssim(&net.image, &truth),
             mpi_psnr: psnr(&img, &truth),

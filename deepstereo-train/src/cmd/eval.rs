@@ -1,7 +1,7 @@
 //! `deepstereo eval`: held-out views against the photographs and the baselines.
 
-use super::args::{ModelArgs, SceneArgs};
-use crate::inference::{evaluate, holdout_list, mean_over, EvalReport, Mean};
+use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
+use crate::inference::{evaluate, mean_over, EvalReport, Mean};
 use deepstereo_core::imageio::write_atomic;
 use std::path::PathBuf;
 
@@ -11,13 +11,10 @@ pub struct Args {
     pub scene: SceneArgs,
     #[command(flatten)]
     pub model: ModelArgs,
-    /// Held-out view indices, comma-separated (each is left out of its own sources).
-    /// `--scene` may also be a directory of scenes (as `synth` writes): each is evaluated.
-    #[arg(long)]
-    pub holdout: Option<String>,
-    /// Hold out every Nth view (LLFF's convention: 0, N, 2N, ...).
-    #[arg(long)]
-    pub llffhold: Option<usize>,
+    /// The held-out views (each left out of every source list). `--scene` may also be a
+    /// directory of scenes (as `synth` writes): each is evaluated.
+    #[command(flatten)]
+    pub holdout: HoldoutArgs,
     /// Write the JSON report here (`-` for stdout).
     #[arg(long)]
     pub json: Option<String>,
@@ -46,7 +43,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             ..a.scene.clone()
         };
         let scene = sa.load()?;
-        let targets = holdout_list(a.holdout.as_deref(), a.llffhold, scene.views.len())?;
+        let targets = a.holdout.required(scene.views.len(), "eval")?;
         let images = staged.as_ref().map(|st| {
             let d = st.path();
             if dirs.len() > 1 {

@@ -1,9 +1,9 @@
 //! `deepstereo mpi`: multiplane images baked by the network, with a browser viewer; or,
 //! with `--eval`, held-out views seen through MPIs beside the network's own renders.
 
-use super::args::{ModelArgs, SceneArgs};
-use crate::inference::{holdout_list, pick_sources, Prepared, RenderSettings};
-use crate::mpi::{bake_camera, eval_through_mpi, reference_sources};
+use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
+use crate::inference::{pick_sources, Prepared, RenderSettings};
+use crate::mpi::{bake_camera, eval_through_mpi, reference_sources, MpiEvalOptions};
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::Camera;
@@ -32,12 +32,9 @@ pub struct Args {
     /// With --pose FILE holding `inspect --json`'s output: which of its views.
     #[arg(long, requires = "pose")]
     pub view: Option<usize>,
-    /// Views held out: never sources (comma-separated indices).
-    #[arg(long)]
-    pub holdout: Option<String>,
-    /// Hold out every Nth view (LLFF protocol: 8): never sources.
-    #[arg(long, conflicts_with = "holdout")]
-    pub llffhold: Option<usize>,
+    /// The held-out views: never sources.
+    #[command(flatten)]
+    pub holdout: HoldoutArgs,
     /// Bake at --target/--targets views without their own photographs: the planes'
     /// colours come from the other views only (the reference view is then the network's
     /// prediction of it, as `render --target` gives, not the photograph). Measured in
@@ -49,6 +46,10 @@ pub struct Args {
     /// eval.json into --out.
     #[arg(long)]
     pub eval: bool,
+    /// With --eval: MPIs per held-out view, baked at its nearest views that are not held
+    /// out and blended by distance.
+    #[arg(long, default_value_t = 1, requires = "eval")]
+    pub eval_mpis: usize,
     /// Output directory: mpi.json, plane_NN.png, index.html and mpi.js (with --targets,
     /// one mpi_NN/ per MPI beside index.html and mpi.js).
     #[arg(long)]
@@ -59,13 +60,7 @@ pub fn run(a: Args) -> Result<()> {
     let settings = a.model.settings()?;
     let scene = a.scene.load()?;
     let n = scene.views.len();
-    let holdout = match (&a.holdout, a.llffhold) {
-        (None, None) => Vec::new(),
-        (h, l) => holdout_list(h.as_deref(), l, n)?,
-    };
-    if let Some(&h) = holdout.iter().find(|&&h| h >= n) {
-        bail!("--holdout {h} is out of range: the scene has {n} views");
-    }
+    let holdout = a.holdout.list(n)?;
     let backend = a.model.backend()?;
     if a.eval {
         return run_eval(&a, backend.as_ref(), &scene, &holdout, &settings);
@@ -186,27 +181,24 @@ fn run_eval(
         bail!("--eval needs held-out views: pass --llffhold N or --holdout I,J,...");
     }
     let staged = StagedDir::new(&a.out)?;
-    eprintln!("view  reference  network dB  MPI dB  MPI-vs-network dB  network s  bake s  MPI s");
-    let per_view = eval_through_mpi(
-        backend,
-        scene,
-        holdout,
-        !a.exclude_own_photo,
-        settings,
-        |r| {
-            eprintln!(
-                "{:>4}  {:>9}  {:>10.2}  {:>6.2}  {:>17.2}  {:>9.2}  {:>6.2}  {:>5.3}",
-                r.target,
-                r.reference,
-                r.network_psnr,
-                r.mpi_psnr,
-                r.mpi_vs_network_psnr,
-                r.network_seconds,
-                r.bake_seconds,
-                r.mpi_render_seconds
-            );
-        },
-    )?;
+    eprintln!("view  references  network dB  MPI dB  MPI-vs-network dB  network s  bake s  MPI s");
+    let opts = MpiEvalOptions {
+        mpis: a.eval_mpis,
+        own_photo: !a.exclude_own_photo,
+    };
+    let per_view = eval_through_mpi(backend, scene, holdout, opts, settings, |r| {
+        eprintln!(
+            "{:>4}  {:>10}  {:>10.2}  {:>6.2}  {:>17.2}  {:>9.2}  {:>6.2}  {:>5.3}",
+            r.target,
+            format!("{:?}", r.references),
+            r.network_psnr,
+            r.mpi_psnr,
+            r.mpi_vs_network_psnr,
+            r.network_seconds,
+            r.bake_seconds,
+            r.mpi_render_seconds
+        );
+    })?;
     let m = |f: fn(&crate::mpi::MpiViewResult) -> f64| {
         per_view.iter().map(f).sum::<f64>() / per_view.len() as f64
     };
@@ -231,6 +223,7 @@ fn run_eval(
         "planes": settings.planes.unwrap_or(backend.config().planes),
         "views": settings.source_count(backend.config())?,
         "own_photo": !a.exclude_own_photo,
+        "mpis_per_view": a.eval_mpis,
         "per_view": per_view,
         "mean": mean,
     });

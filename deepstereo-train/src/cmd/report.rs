@@ -2,8 +2,8 @@
 
 mod html;
 
-use super::args::{ModelArgs, SceneArgs};
-use crate::inference::{evaluate, holdout_list, make_backend, BackendKind, RenderSettings};
+use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
+use crate::inference::{evaluate, make_backend, BackendKind, RenderSettings};
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
 use deepstereo_core::imageio::write_atomic;
@@ -23,12 +23,8 @@ pub struct Args {
     pub scene: SceneArgs,
     #[command(flatten)]
     pub model: ModelArgs,
-    /// Held-out view indices, comma-separated.
-    #[arg(long)]
-    pub holdout: Option<String>,
-    /// Hold out every Nth view.
-    #[arg(long)]
-    pub llffhold: Option<usize>,
+    #[command(flatten)]
+    pub holdout: HoldoutArgs,
     /// Plane counts to try, comma-separated.
     #[arg(long, default_value = "8,16,32,64,96")]
     pub planes_grid: String,
@@ -90,7 +86,7 @@ struct Measured {
 pub fn run(a: Args) -> Result<()> {
     let base = a.model.settings()?;
     let scene = a.scene.load()?;
-    let targets = holdout_list(a.holdout.as_deref(), a.llffhold, scene.views.len())?;
+    let targets = a.holdout.required(scene.views.len(), "report")?;
     let grid = parse_grid(&a)?;
     let staged = StagedDir::new(&a.out)?;
     let out = staged.path().to_path_buf();

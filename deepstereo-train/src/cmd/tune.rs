@@ -2,9 +2,9 @@
 //! (the paper's training, on the capture itself), and writes a model every command takes
 //! with `--model`.
 
-use super::args::{ModelArgs, SceneArgs};
+use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::data::SceneData;
-use crate::inference::{evaluate, holdout_list, RenderSettings};
+use crate::inference::{evaluate, RenderSettings};
 use crate::tune::{tune, validation_views, Budget, Progress, TuneOptions, TuneResult};
 use anyhow::{bail, Context, Result};
 use candle_core::Tensor;
@@ -34,13 +34,10 @@ pub struct Args {
     /// rendered.
     #[command(flatten)]
     pub model: ModelArgs,
-    /// Held-out view indices, comma-separated: never a target, never a source, their
-    /// images never read while tuning.
-    #[arg(long)]
-    pub holdout: Option<String>,
-    /// Hold out every Nth view (LLFF's convention: 0, N, 2N, ...).
-    #[arg(long)]
-    pub llffhold: Option<usize>,
+    /// The held-out views: never a target, never a source, their images never read
+    /// while tuning.
+    #[command(flatten)]
+    pub holdout: HoldoutArgs,
     /// Tune for this many minutes (of tuning; the output then depends on the machine's
     /// speed).
     #[arg(long, conflicts_with = "steps", required_unless_present = "steps")]
@@ -110,7 +107,7 @@ pub fn run(a: Args) -> Result<()> {
             cfg.name
         );
     }
-    let (scene, holdout) = load_tuning_scene(&a.scene, a.holdout.as_deref(), a.llffhold)?;
+    let (scene, holdout) = load_tuning_scene(&a.scene, &a.holdout)?;
     if a.curve.is_some() && holdout.is_empty() {
         bail!("--curve scores held-out views: pass --llffhold N or --holdout I,J,...");
     }
@@ -178,23 +175,11 @@ pub fn run(a: Args) -> Result<()> {
 }
 
 /// The scene without its held-out views, and their indices in the full scene.
-fn load_tuning_scene(
-    args: &SceneArgs,
-    holdout: Option<&str>,
-    llffhold: Option<usize>,
-) -> Result<(Scene, Vec<usize>)> {
+fn load_tuning_scene(args: &SceneArgs, holdout: &HoldoutArgs) -> Result<(Scene, Vec<usize>)> {
     let mut held = Vec::new();
     let opts = scene_options(args);
     let scene = Scene::load_views(&args.scene, &opts, |n| {
-        held = match (holdout, llffhold) {
-            (None, None) => Vec::new(),
-            _ => holdout_list(holdout, llffhold, n).map_err(|e| e.to_string())?,
-        };
-        if let Some(&bad) = held.iter().find(|&&i| i >= n) {
-            return Err(format!(
-                "held-out view {bad} is out of range: the scene has {n} views"
-            ));
-        }
+        held = holdout.list(n).map_err(|e| e.to_string())?;
         Ok((0..n).filter(|i| !held.contains(i)).collect())
     })?;
     for n in &scene.notes {

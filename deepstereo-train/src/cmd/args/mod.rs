@@ -2,10 +2,12 @@
 //! how to run a model ([`ModelArgs`]), how training samples are drawn ([`SamplingArgs`]),
 //! and the parsers of the values they take (sizes, ranges, model configs).
 
+pub mod holdout;
 pub mod model;
 pub mod sampling;
 pub mod scene;
 
+pub use holdout::HoldoutArgs;
 pub use model::ModelArgs;
 pub use sampling::SamplingArgs;
 pub use scene::SceneArgs;

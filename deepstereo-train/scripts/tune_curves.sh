@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# Error against tuning time: `deepstereo tune` on each evaluation scene (every 8th view
+# held out and never read; the scene flags of eval_default.sh), held-out PSNR / SSIM of
+# the snapshots at 0, 1, 2, 5 and 10 minutes (0 = the untuned model), one scene at a time.
+# Writes OUT/NAME/{curve.csv,curve.json,curve.png,tune.log} and prints a markdown table.
+# Usage: bash deepstereo-train/scripts/tune_curves.sh [OUT] [MINUTES] [MODEL]
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+OUT="${1:-/tmp/deepstereo-tune}"
+MINUTES="${2:-10}"
+MODEL="${3:-embedded}"
+DATA=../shared/data
+BIN=target/release/deepstereo
+mkdir -p "$OUT"
+SCENES=(
+  "$DATA/ethiopianHead|--downscale 4"
+  "$DATA/templeRing|--downscale 2"
+  "$DATA/fox|--downscale 4"
+  "$DATA/val/juicebox|"
+  "$DATA/val/stitch|"
+  "$DATA/val/moldgoldcape|"
+)
+for entry in "${SCENES[@]}"; do
+  dir="${entry%%|*}"; flags="${entry#*|}"; name="$(basename "$dir")"
+  if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
+  if [ -f "$OUT/$name/curve.json" ]; then echo "done before: $name"; continue; fi
+  mkdir -p "$OUT/$name"
+  # shellcheck disable=SC2086
+  "$BIN" tune --scene "$dir" $flags --llffhold 8 --minutes "$MINUTES" --model "$MODEL" \
+    --curve "$OUT/$name" --curve-minutes "0,1,2,5,$MINUTES" --seed 1 \
+    --out "$OUT/$name/tuned.safetensors" 2> "$OUT/$name/tune.log"
+  echo "done: $name"
+done
+python3 - "$OUT" <<'PY'
+import json, sys, pathlib
+out = pathlib.Path(sys.argv[1])
+rows = []
+for f in sorted(out.glob("*/curve.json")):
+    pts = json.loads(f.read_text())["points"]
+    rows.append((f.parent.name, pts))
+if rows:
+    mins = [p["minutes"] for p in rows[0][1]]
+    print("| scene | " + " | ".join(f"{m:g} min PSNR / SSIM" for m in mins) + " | gain | s/view untuned / tuned |")
+    print("|---|" + "---|" * (len(mins) + 2))
+    for name, pts in rows:
+        cells = [f"{p['psnr']:.2f} / {p['ssim']:.3f}" for p in pts]
+        gain = pts[-1]["psnr"] - pts[0]["psnr"]
+        print(f"| {name} | " + " | ".join(cells) + f" | {gain:+.2f} | {pts[0]['seconds_per_view']:.2f} / {pts[-1]['seconds_per_view']:.2f} |")
+    n = len(rows)
+    print(f"| mean | " + " | ".join(f"{sum(r[1][i]['psnr'] for r in rows)/n:.2f}" for i in range(len(mins))) + f" | {sum(r[1][-1]['psnr']-r[1][0]['psnr'] for r in rows)/n:+.2f} | |")
+PY
