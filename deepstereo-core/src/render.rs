@@ -47,18 +47,27 @@ impl Backend for CandleBackend {
         self.model.config()
     }
     fn run(&self, inputs: &TileInputs, planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
-        let tensors = inputs_to_tensors(self.config(), inputs, 1, planes, &self.device)?;
-        let out = self.model.infer(&tensors)?;
-        let image = out.image.flatten_all()?.to_vec1::<f32>()?;
-        let selection = out.selection.flatten_all()?.to_vec1::<f32>()?;
-        Ok((image, selection))
+        self.infer(inputs, planes, |out| &out.image)
     }
     fn run_layers(&self, inputs: &TileInputs, planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
+        self.infer(inputs, planes, |out| &out.colours)
+    }
+}
+
+impl CandleBackend {
+    /// The network on one tile: `colour(output)` (the image or the per-plane colours) and
+    /// the selection, flattened.
+    fn infer(
+        &self,
+        inputs: &TileInputs,
+        planes: usize,
+        colour: impl Fn(&crate::model::Output) -> &candle_core::Tensor,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
         let tensors = inputs_to_tensors(self.config(), inputs, 1, planes, &self.device)?;
         let out = self.model.infer(&tensors)?;
-        let colours = out.colours.flatten_all()?.to_vec1::<f32>()?;
+        let c = colour(&out).flatten_all()?.to_vec1::<f32>()?;
         let selection = out.selection.flatten_all()?.to_vec1::<f32>()?;
-        Ok((colours, selection))
+        Ok((c, selection))
     }
 }
 

@@ -55,3 +55,20 @@ for n in names:
     row.append(f"{j['own1']['mean']['bake_seconds']:.2f}")
     print("| " + " | ".join(row) + " |")
 PY
+# Speed: a camera path through the network and through 3 MPIs, one after the other,
+# twice; whole-command wall time per frame (loading the model or the MPIs included).
+S="$DATA/val/juicebox"
+FRAMES=12
+if [ -d "$S" ]; then
+  [ -d "$OUT/speed_mpis" ] || "$BIN" mpi --scene "$S" --targets 1,9,17 --model "$MODEL" --out "$OUT/speed_mpis" 2> /dev/null
+  for round in 1 2; do
+    for kind in network mpi; do
+      rm -rf "$OUT/speed_$kind$round"
+      extra=(--model "$MODEL"); [ "$kind" = mpi ] && extra=(--mpi "$OUT/speed_mpis")
+      t0=$(date +%s.%N)
+      "$BIN" render --scene "$S" "${extra[@]}" --path spiral --frames "$FRAMES" --out "$OUT/speed_$kind$round" 2> /dev/null
+      t1=$(date +%s.%N)
+      echo "$kind round $round: $(python3 -c "print(f'{($t1 - $t0) / $FRAMES:.3f}')") s per frame ($FRAMES frames of $(basename "$S"))"
+    done
+  done
+fi

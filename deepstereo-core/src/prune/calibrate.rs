@@ -18,14 +18,19 @@ use candle_core::{DType, Device};
 /// A grid point: `(mass, tolerance, stride, margin, window)`.
 type GridPoint = (f32, f32, usize, usize, usize);
 
+/// The rows of `PRUNE_GRID` (`a,b,c,d[,e];...`), each as numbers.
+fn env_grid() -> Option<Vec<Vec<f64>>> {
+    let g = std::env::var("PRUNE_GRID").ok()?;
+    let row = |t: &str| t.split(',').map(|x| x.parse().unwrap()).collect();
+    Some(g.split(';').map(row).collect())
+}
+
 /// The grid of `PRUNE_GRID` (`mass,tol,stride,margin[,window];...`), else `default` alone.
 fn grid_from_env(default: GridPoint) -> Vec<GridPoint> {
-    std::env::var("PRUNE_GRID")
-        .ok()
-        .map(|g| {
-            g.split(';')
-                .map(|t| {
-                    let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
+    env_grid()
+        .map(|rows| {
+            rows.into_iter()
+                .map(|v| {
                     (
                         v[0] as f32,
                         v[1] as f32,
@@ -355,12 +360,10 @@ fn prune_real_crop() -> TestResult {
         }
     }
     let inv = inverse_depths(scene.near, scene.far, cfg.planes);
-    let grid: Vec<(f32, f32, usize, usize, f32)> = std::env::var("PRUNE_GRID")
-        .ok()
-        .map(|g| {
-            g.split(';')
-                .map(|t| {
-                    let v: Vec<f64> = t.split(',').map(|x| x.parse().unwrap()).collect();
+    let grid: Vec<(f32, f32, usize, usize, f32)> = env_grid()
+        .map(|rows| {
+            rows.into_iter()
+                .map(|v| {
                     (
                         v[0] as f32,
                         v[1] as f32,

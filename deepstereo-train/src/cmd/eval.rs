@@ -7,8 +7,10 @@ use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The scene whose held-out views are scored.
     #[command(flatten)]
     pub scene: SceneArgs,
+    /// The model, and how it renders them.
     #[command(flatten)]
     pub model: ModelArgs,
     /// The held-out views (each left out of every source list). `--scene` may also be a

@@ -15,8 +15,10 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The scene whose views are the sources.
     #[command(flatten)]
     pub scene: SceneArgs,
+    /// The model that bakes the layers, and its settings.
     #[command(flatten)]
     pub model: ModelArgs,
     /// Bake at view I's camera (its own photograph among the sources).
@@ -29,7 +31,8 @@ pub struct Args {
     /// Bake at a camera given as JSON (as `render --pose` takes it).
     #[arg(long, conflicts_with = "eval")]
     pub pose: Option<PathBuf>,
-    /// With --pose FILE holding `inspect --json`'s output: which of its views.
+    /// With --pose FILE holding `inspect --json`'s output: the view whose camera to bake
+    /// at.
     #[arg(long, requires = "pose")]
     pub view: Option<usize>,
     /// The held-out views: never sources.

@@ -13,10 +13,9 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The scene whose views are the sources.
     #[command(flatten)]
     pub scene: SceneArgs,
-    #[command(flatten)]
-    pub model: ModelArgs,
     /// Render the scene's view I (left out of its own sources).
     #[arg(long, conflicts_with_all = ["pose", "path"])]
     pub target: Option<usize>,
@@ -38,6 +37,9 @@ pub struct Args {
     /// --target) or the frames of --path.
     #[arg(long)]
     pub mpi: Option<PathBuf>,
+    /// The model, and how it renders (not used with --mpi).
+    #[command(flatten)]
+    pub model: ModelArgs,
     /// Frames of --path.
     #[arg(long, default_value_t = 30)]
     pub frames: usize,

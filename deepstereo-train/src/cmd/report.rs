@@ -19,8 +19,10 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The scene whose held-out views are scored in every setting.
     #[command(flatten)]
     pub scene: SceneArgs,
+    /// The model, and the settings a grid does not vary.
     #[command(flatten)]
     pub model: ModelArgs,
     #[command(flatten)]

@@ -27,6 +27,7 @@ pub const TUNE_KEY: &str = "deepstereo.tune";
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
+    /// The scene to tune on.
     #[command(flatten)]
     pub scene: SceneArgs,
     /// The model to start from (`--model`, default the embedded one), the views per
