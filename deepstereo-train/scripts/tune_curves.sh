@@ -9,18 +9,11 @@ cd "$(dirname "$0")/../.."
 OUT="${1:-/tmp/deepstereo-tune}"
 MINUTES="${2:-10}"
 MODEL="${3:-embedded}"
-DATA=../shared/data
 BIN=target/release/deepstereo
 mkdir -p "$OUT"
-SCENES=(
-  "$DATA/ethiopianHead|--downscale 4"
-  "$DATA/templeRing|--downscale 2"
-  "$DATA/fox|--downscale 4"
-  "$DATA/val/juicebox|"
-  "$DATA/val/stitch|"
-  "$DATA/val/moldgoldcape|"
-)
-for entry in "${SCENES[@]}"; do
+# shellcheck source=eval_scenes.sh
+source deepstereo-train/scripts/eval_scenes.sh
+for entry in "${EVAL_SCENES[@]}"; do
   dir="${entry%%|*}"; flags="${entry#*|}"; name="$(basename "$dir")"
   if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
   if [ -f "$OUT/$name/curve.json" ]; then echo "done before: $name"; continue; fi
