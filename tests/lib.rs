@@ -778,3 +778,36 @@ pub fn base64_decode(text: &str) -> Option<Vec<u8>> {
     }
     Some(out)
 }
+
+/// One procedural scene of `views` views at `w` x `h` (no supersampling) from `seed`,
+/// written by `deepstereo synth` into `dir/scenes` with the extra options `extra`; its
+/// directory.
+pub fn synth_scene(
+    dir: &Path,
+    (w, h): (usize, usize),
+    views: usize,
+    seed: u64,
+    extra: &[&str],
+) -> PathBuf {
+    let out = dir.join("scenes").to_string_lossy().into_owned();
+    let (views, seed, size) = (views.to_string(), seed.to_string(), format!("{w}x{h}"));
+    let mut args = vec![
+        "synth",
+        "--out",
+        &out,
+        "--scenes",
+        "1",
+        "--views",
+        &views,
+        "--seed",
+        &seed,
+        "--size",
+        &size,
+        "--supersample",
+        "1",
+    ];
+    args.extend_from_slice(extra);
+    let res = run_deepstereo(args);
+    assert_eq!(res.code, Some(0), "synth failed: {}", res.stderr);
+    dir.join("scenes/scene_0000")
+}

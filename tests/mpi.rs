@@ -14,25 +14,7 @@ const W: u32 = 64;
 const H: u32 = 48;
 
 fn scene(dir: &Path) -> PathBuf {
-    let res = run_deepstereo([
-        "synth",
-        "--out",
-        &dir.join("scenes").to_string_lossy(),
-        "--scenes",
-        "1",
-        "--views",
-        "6",
-        "--seed",
-        "11",
-        "--size",
-        &format!("{W}x{H}"),
-        "--rig",
-        "forward",
-        "--supersample",
-        "1",
-    ]);
-    assert_eq!(res.code, Some(0), "synth failed: {}", res.stderr);
-    dir.join("scenes/scene_0000")
+    synth_scene(dir, (W as usize, H as usize), 6, 11, &["--rig", "forward"])
 }
 
 fn load(path: &Path) -> RgbImage {

@@ -16,23 +16,7 @@ const W: usize = 63;
 const H: usize = 47;
 
 fn scene(dir: &Path) -> PathBuf {
-    let res = run_deepstereo([
-        "synth",
-        "--out",
-        &dir.join("scenes").to_string_lossy(),
-        "--scenes",
-        "1",
-        "--views",
-        "6",
-        "--seed",
-        "7",
-        "--size",
-        &format!("{W}x{H}"),
-        "--supersample",
-        "1",
-    ]);
-    assert_eq!(res.code, Some(0), "synth failed: {}", res.stderr);
-    dir.join("scenes/scene_0000")
+    synth_scene(dir, (W, H), 6, 7, &[])
 }
 
 fn fails(args: &[&str]) -> CmdOutput {
