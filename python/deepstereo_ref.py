@@ -11,7 +11,8 @@ the file's metadata under `deepstereo.config`.
 Shapes: input level `l` is `[B, D, 4V, H_l, W_l]` (the paper's family) or
 `[B, D, V, 4, H_l, W_l]` (the any-number-of-views family, config `pool`, any V: its view
 pooling and colour blend mirror `deepstereo-core/src/pool.rs`, tensors `views.encode.{i}.*`
-and `colour.blend.{i}.*`); outputs `image` `[B, 3, th, tw]` and `selection`
+and `colour.blend.{i}.*`; with `pool.cue`, `[B, D, V, 4 + 5, H_l, W_l]`: each view's
+geometric cue after its RGBA, read by the encoder, `deepstereo-core/src/sweep/cue.rs`); outputs `image` `[B, 3, th, tw]` and `selection`
 `[B, D, th, tw]`, with `th = H_0 - 2 pad(0)`.
 """
 
@@ -35,6 +36,7 @@ POOL_EPS = 1e-6
 BLEND_EPS = 1e-12
 BLEND_LOGIT_BOUND = 20.0
 ENCODER_IN = 7
+CUE_CHANNELS = 5
 
 
 # --- configuration (mirrors config.rs) -------------------------------------------------
@@ -98,6 +100,9 @@ class ViewPool:
     # weights (deepstereo-core/src/view_weights.rs), so the network ignores it; kept so
     # that a config round-trips.
     falloff: dict[str, int] | None = None
+    # `pool.cue`: each view's geometric cue follows its RGBA in the inputs and the encoder
+    # reads it.
+    cue: bool = False
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "ViewPool":
@@ -106,16 +111,25 @@ class ViewPool:
             encoder=[Conv(int(c["kernel"]), int(c["channels"])) for c in d["encoder"]],
             blend=[Conv(int(c["kernel"]), int(c["channels"])) for c in d["blend"]],
             falloff=None if f is None else {"full": int(f["full"]), "power": int(f["power"])},
+            cue=bool(d.get("cue", False)),
         )
 
     def to_json(self) -> dict[str, Any]:
         d: dict[str, Any] = {"encoder": [c.__dict__ for c in self.encoder], "blend": [c.__dict__ for c in self.blend]}
         if self.falloff is not None:
             d["falloff"] = dict(self.falloff)
+        if self.cue:
+            d["cue"] = True
         return d
 
+    def encoder_in(self) -> int:
+        return ENCODER_IN + (CUE_CHANNELS if self.cue else 0)
+
+    def view_channels(self) -> int:
+        return 4 + (CUE_CHANNELS if self.cue else 0)
+
     def features(self) -> int:
-        return self.encoder[-1].channels if self.encoder else ENCODER_IN
+        return self.encoder[-1].channels if self.encoder else self.encoder_in()
 
     def pooled_channels(self) -> int:
         return 4 + 2 * self.features()
@@ -254,12 +268,22 @@ class Config:
         )
 
     @staticmethod
+    def nviews_cue() -> "Config":
+        c = Config.nviews()
+        c.name = "nviews-cue"
+        assert c.pool is not None
+        c.pool.cue = True
+        c.pool.falloff = {"full": 1, "power": 2}
+        return c
+
+    @staticmethod
     def preset(name: str) -> "Config | None":
         """A preset by name (`PRESETS`), or None."""
-        return {"paper": Config.paper, "tiny": Config.tiny, "nviews": Config.nviews}.get(name, lambda: None)()
+        presets = {"paper": Config.paper, "tiny": Config.tiny, "nviews": Config.nviews, "nviews-cue": Config.nviews_cue}
+        return presets.get(name, lambda: None)()
 
 
-PRESETS = ("tiny", "paper", "nviews")
+PRESETS = ("tiny", "paper", "nviews", "nviews-cue")
 
 
 # --- the network (mirrors model.rs) ----------------------------------------------------
@@ -361,24 +385,28 @@ class Views(nn.Module):
 
     def __init__(self, pool: ViewPool):
         super().__init__()
+        self.cue = pool.cue
         self.encode = nn.ModuleList()
-        ch = ENCODER_IN
+        ch = pool.encoder_in()
         for c in pool.encoder:
             self.encode.append(nn.Conv2d(ch, c.channels, 1))
             ch = c.channels
 
     def pool_forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """`ViewEncoder::forward`: `[B, D, V, 4, H, W]` -> (stats `[B, D, 4 + 2 C_f, H, W]`,
-        features `[B*D, V, C_f, H, W]`)."""
-        b, d, v, four, h, w = x.shape
-        if four != 4:
-            raise ValueError(f"expected [B, D, V, 4, H, W], got {tuple(x.shape)}")
-        x = x.reshape(b * d, v, 4, h, w)
+        """`ViewEncoder::forward`: `[B, D, V, C_v, H, W]` (`C_v` 4, or 4 + 5 with the cue)
+        -> (stats `[B, D, 4 + 2 C_f, H, W]`, features `[B*D, V, C_f, H, W]`)."""
+        b, d, v, cv, h, w = x.shape
+        want = 4 + (CUE_CHANNELS if self.cue else 0)
+        if cv != want:
+            raise ValueError(f"expected [B, D, V, {want}, H, W], got {tuple(x.shape)}")
+        x = x.reshape(b * d, v, cv, h, w)
+        cue = x[:, :, 4:]
+        x = x[:, :, :4]
         rgb, a = x[:, :, :3], x[:, :, 3:4]
         asum = a.sum(1, keepdim=True)
         den = asum + POOL_EPS
         mean_rgb = (rgb * a).sum(1, keepdim=True) / den
-        e = torch.cat([x, rgb - mean_rgb], 2).reshape(b * d * v, ENCODER_IN, h, w)
+        e = torch.cat([x, rgb - mean_rgb, cue], 2).reshape(b * d * v, -1, h, w)
         for conv in self.encode:
             e = F.relu(conv(e))
         e = e.reshape(b * d, v, -1, h, w)
@@ -438,7 +466,7 @@ class DeepStereo(nn.Module):
         f = self.colour.tower_forward(self._folded(inputs, cfg.colour), th, tw)  # [B*D, C, th, tw]
         if features is not None:
             p = cfg.pad(0)
-            x0 = raw[0].reshape(b * d, -1, 4, h0, w0)[:, :, :, p : p + th, p : p + tw]
+            x0 = raw[0].reshape(b * d, raw[0].shape[2], -1, h0, w0)[:, :, :4, p : p + th, p : p + tw]
             e0 = features[:, :, :, p : p + th, p : p + tw]
             colours = self.colour.blend_forward(e0, x0, f) + self.colour.out(f)
             image = (colours.reshape(b, d, 3, th, tw) * selection.unsqueeze(2)).sum(1)

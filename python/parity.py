@@ -237,11 +237,12 @@ class Parity:
 
 
 def level_shapes(cfg: ref.Config, b: int, d: int, th: int, tw: int, v: int | None = None) -> list[tuple[int, ...]]:
-    """`[B, D, 4V, H, W]`, or `[B, D, V, 4, H, W]` for the any-number-of-views family."""
+    """`[B, D, 4V, H, W]`, or `[B, D, V, C_v, H, W]` for the any-number-of-views family
+    (`C_v` 4, or 9 with the per-view cue)."""
     v = cfg.views if v is None else v
     sizes = [(cfg.input_size(l, th), cfg.input_size(l, tw)) for l in range(cfg.levels)]
     if cfg.pool is not None:
-        return [(b, d, v, 4, h, w) for h, w in sizes]
+        return [(b, d, v, cfg.pool.view_channels(), h, w) for h, w in sizes]
     return [(b, d, 4 * v, h, w) for h, w in sizes]
 
 
@@ -254,16 +255,18 @@ def make_inputs(cfg: ref.Config, b: int, d: int, th: int, tw: int, fill, rng: np
 
 
 def rgb_alpha(shape, rng, rgb, alpha):
-    """Volume with colour `rgb(shape)` premultiplied by `alpha(shape)` per source view."""
+    """Volume with colour `rgb(shape)` premultiplied by `alpha(shape)` per source view
+    (and, with the per-view cue, cue channels in the range the geometry gives, [-7, 5])."""
     if len(shape) == 6:
-        b, d, v, _, h, w = shape
+        b, d, v, cv, h, w = shape
     else:
         b, d, c, h, w = shape
-        v = c // 4
-    x = np.empty((b, d, v, 4, h, w), np.float64)
+        v, cv = c // 4, 4
+    x = np.empty((b, d, v, cv, h, w), np.float64)
     a = alpha((b, d, v, 1, h, w))
     x[:, :, :, :3] = rgb((b, d, v, 3, h, w)) * a
-    x[:, :, :, 3:] = a
+    x[:, :, :, 3:4] = a
+    x[:, :, :, 4:] = rng.random((b, d, v, cv - 4, h, w)) * 12.0 - 7.0
     return x.reshape(shape)
 
 
@@ -477,6 +480,18 @@ def main() -> int:
         w = work / "pooled_variant.safetensors"
         ref.init_weights(pooled_variant_config(), str(w), seed=4)
         models.append(p.load_model("py-pooled", w))
+        # The per-view cue: Rust-initialised `nviews-cue`, and the Python variant with it.
+        if example.is_file():
+            w = work / "rust_nviews_cue.safetensors"
+            run([example, "nviews-cue", w], "init_weights nviews-cue")
+            models.append(p.load_model("rust-nviews-cue", w))
+        cue_cfg = pooled_variant_config()
+        assert cue_cfg.pool is not None
+        cue_cfg.name, cue_cfg.pool.cue = "pooled-variant-cue", True
+        w = work / "pooled_variant_cue.safetensors"
+        ref.init_weights(cue_cfg, str(w), seed=5)
+        models.append(p.load_model("py-pooled-cue", w))
+        cue_model = models[-1]
         for extra in args.weights:
             models.append(p.load_model(extra.stem, extra))
         reference_loader_checks(p, models[0].weights)
@@ -497,6 +512,8 @@ def main() -> int:
         scene = procedural_scene(p)
         if scene is not None:
             sweep_case(p, main_model, "procedural", scene, None, [])
+            # The cue's channels as `sweep --model` writes them, through every runtime.
+            sweep_case(p, cue_model, "procedural-cue", scene, None, ["--views", "5"])
         # Real scenes: few planes so that a whole-image tile stays small.
         real = [("templeRing", 4, []), ("ethiopianHead", 2, [])]
         for name, planes, extra in real:

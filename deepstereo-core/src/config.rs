@@ -100,6 +100,12 @@ pub struct ViewPool {
     /// every source counts alike (models trained before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub falloff: Option<ViewFalloff>,
+    /// Each view's geometric cue ([`crate::sweep::cue`], [`CUE_CHANNELS`] channels after
+    /// its RGBA in the input) is fed to the encoder beside its colours, so the view
+    /// features, their pooled statistics and the blend logits can depend on how the
+    /// source sees each plane point. `false`: RGBA alone (models trained before it).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub cue: bool,
 }
 
 /// The weight of a source view `v` at distance `d_v` from the target camera centre:
@@ -114,8 +120,11 @@ pub struct ViewFalloff {
 /// Largest [`ViewFalloff::power`] (a view at 1.1 times `d_ref` then weighs 2e-3).
 pub const MAX_FALLOFF_POWER: u32 = 64;
 
-/// Channels of a view's encoder input: its RGBA and its colour minus the mean colour.
+/// Channels of a view's encoder input: its RGBA and its colour minus the mean colour
+/// (then its cue, with [`ViewPool::cue`]).
 pub const ENCODER_IN: usize = 7;
+/// Channels of a view's geometric cue ([`crate::sweep::cue`]).
+pub const CUE_CHANNELS: usize = 5;
 /// Added to the alpha sum before dividing (pixels no view sees get zero statistics).
 pub const POOL_EPS: f64 = 1e-6;
 /// Added to the blend weights' sum (pixels no view sees get colour `out(f)` alone).
@@ -124,9 +133,19 @@ pub const BLEND_EPS: f64 = 1e-12;
 pub const BLEND_LOGIT_BOUND: f64 = 20.0;
 
 impl ViewPool {
+    /// Channels of the encoder's input: [`ENCODER_IN`], plus [`CUE_CHANNELS`] with the cue.
+    pub fn encoder_in(&self) -> usize {
+        ENCODER_IN + if self.cue { CUE_CHANNELS } else { 0 }
+    }
+    /// Channels of one view in an input level: RGBA, then the cue when the model reads it.
+    pub fn view_channels(&self) -> usize {
+        4 + if self.cue { CUE_CHANNELS } else { 0 }
+    }
     /// Channels of one view's features `e_v`.
     pub fn features(&self) -> usize {
-        self.encoder.last().map_or(ENCODER_IN, |c| c.channels)
+        self.encoder
+            .last()
+            .map_or(self.encoder_in(), |c| c.channels)
     }
     /// Channels of the pooled tower input: mean RGB, coverage, mean and variance of `e`.
     pub fn pooled_channels(&self) -> usize {
@@ -244,8 +263,21 @@ impl Config {
                 encoder: vec![c(1, 6), c(1, 6)],
                 blend: vec![c(1, 6)],
                 falloff: Some(ViewFalloff { full: 4, power: 8 }),
+                cue: false,
             }),
         }
+    }
+
+    /// [`Self::nviews`] with the per-view geometric cue ([`ViewPool::cue`]) and the
+    /// shipped default's proximity weights `1:2`.
+    pub fn nviews_cue() -> Self {
+        let mut c = Self::nviews();
+        c.name = "nviews-cue".into();
+        if let Some(p) = c.pool.as_mut() {
+            p.cue = true;
+            p.falloff = Some(ViewFalloff { full: 1, power: 2 });
+        }
+        c
     }
 
     /// A preset by name.
@@ -254,6 +286,7 @@ impl Config {
             "paper" => Some(Self::paper()),
             "tiny" => Some(Self::tiny()),
             "nviews" => Some(Self::nviews()),
+            "nviews-cue" => Some(Self::nviews_cue()),
             _ => None,
         }
     }
@@ -280,11 +313,18 @@ impl Config {
         }
     }
 
+    /// Channels of one view in an input level: 4 (RGBA), or with the cue
+    /// [`ViewPool::view_channels`].
+    pub fn view_channels(&self) -> usize {
+        self.pool.as_ref().map_or(4, ViewPool::view_channels)
+    }
+
     /// Shape of an input level for `v` views: `[B, D, 4V, H, W]` (paper family) or
-    /// `[B, D, V, 4, H, W]` (any-number-of-views family); the same bytes either way.
+    /// `[B, D, V, C_v, H, W]` (any-number-of-views family, `C_v` = [`Self::view_channels`]:
+    /// 4, or 4 + [`CUE_CHANNELS`] with the cue); the same bytes either way.
     pub fn input_shape(&self, b: usize, d: usize, v: usize, h: usize, w: usize) -> Vec<usize> {
-        match self.pool {
-            Some(_) => vec![b, d, v, 4, h, w],
+        match &self.pool {
+            Some(p) => vec![b, d, v, p.view_channels(), h, w],
             None => vec![b, d, 4 * v, h, w],
         }
     }
@@ -436,7 +476,7 @@ impl Config {
         if let Some(pool) = &self.pool {
             // Every level's whole input, each of the default `views` views.
             let pixels: usize = (0..self.levels).map(|l| self.input_size(l, t).pow(2)).sum();
-            let mut ch = ENCODER_IN;
+            let mut ch = pool.encoder_in();
             for (i, conv) in pool.encoder.iter().enumerate() {
                 let macs = (pixels * ch * conv.channels * self.views) as f64;
                 out.push(LayerInfo::new(

@@ -4,14 +4,17 @@
 //! camera downsampled by `2^l`, over the region [`Config::input_origin`] /
 //! [`Config::input_size`] give (see `config.rs` for the tile geometry). Only the pixels a
 //! tile needs are warped. With a `pool.falloff` in the config, every view's alpha is then
-//! scaled by its weight ([`crate::view_weights`]).
+//! scaled by its weight ([`crate::view_weights`]); with `pool.cue`, every view's
+//! geometric cue ([`crate::sweep::cue`]) follows its RGBA.
 
 use crate::camera::Camera;
-use crate::config::{Config, MAX_VIEWS};
+use crate::config::{Config, CUE_CHANNELS, MAX_VIEWS};
 use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
-use crate::sweep::{sweep_into, Region, Source, CHANNELS};
+use crate::sweep::cue::{centre_in, cue_slice};
+use crate::sweep::{sweep_into, target_rays, Region, Source, CHANNELS};
 use crate::view_weights::view_weights;
+use glam::DVec3;
 
 /// A source view prepared for sampling: its camera at every pyramid level and the images.
 #[derive(Clone, Debug)]
@@ -51,8 +54,9 @@ pub fn level_camera(camera: &Camera, l: usize, width: u32, height: u32) -> Camer
     camera.downscaled((1u64 << l) as f64, width, height)
 }
 
-/// The input tensors' data for one tile: `levels[l]` is `[D, V, 4, h_l, w_l]` f32 (the
-/// paper family reads the same bytes as `[D, 4V, h_l, w_l]`).
+/// The input tensors' data for one tile: `levels[l]` is `[D, V, C_v, h_l, w_l]` f32 with
+/// `C_v` = [`Config::view_channels`] (RGBA, then the cue); the paper family reads the same
+/// bytes as `[D, 4V, h_l, w_l]`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TileInputs {
     pub levels: Vec<Vec<f32>>,
@@ -60,6 +64,16 @@ pub struct TileInputs {
     pub sizes: Vec<(usize, usize)>,
     /// Source views `V`.
     pub views: usize,
+    /// Channels per view `C_v` (alpha is channel 3).
+    pub channels: usize,
+}
+
+impl TileInputs {
+    /// Index of view `k`'s alpha at plane `z`, level-`l` pixel `(x, y)`.
+    pub fn alpha_index(&self, l: usize, z: usize, k: usize, (x, y): (usize, usize)) -> usize {
+        let (h, w) = self.sizes[l];
+        ((z * self.views + k) * self.channels + 3) * h * w + y * w + x
+    }
 }
 
 /// Checks a tile placement against the config's alignment.
@@ -148,6 +162,10 @@ pub fn tile_inputs(
         if let Some(w) = weights.as_deref().filter(|w| w.iter().any(|&g| g != 1.0)) {
             scale_alpha(&mut buf, w, region.len());
         }
+        if cfg.pool.as_ref().is_some_and(|p| p.cue) {
+            let centres: Vec<DVec3> = srcs.iter().map(|s| centre_in(&tcam, s.camera)).collect();
+            buf = with_cue(&buf, &tcam, region, &centres, inv_depths);
+        }
         levels.push(buf);
         sizes.push((region.height, region.width));
     }
@@ -155,7 +173,34 @@ pub fn tile_inputs(
         levels,
         sizes,
         views: sources.len(),
+        channels: cfg.view_channels(),
     })
+}
+
+/// The volume `rgba` `[D, V, 4, h, w]` with every view's cue after its RGBA:
+/// `[D, V, 4 + CUE_CHANNELS, h, w]` (sources' centres in the target's coordinates).
+fn with_cue(
+    rgba: &[f32],
+    target: &Camera,
+    region: Region,
+    centres: &[DVec3],
+    inv_depths: &[f64],
+) -> Vec<f32> {
+    use rayon::prelude::*;
+    let (hw, v) = (region.len(), centres.len());
+    let rays = target_rays(&target.intrinsics, region);
+    let per_view = (CHANNELS + CUE_CHANNELS) * hw;
+    let mut out = vec![0.0f32; inv_depths.len() * v * per_view];
+    out.par_chunks_mut(per_view)
+        .zip(rgba.par_chunks(CHANNELS * hw))
+        .enumerate()
+        .for_each(|(slice, (dst, src))| {
+            let (d, k) = (slice / v, slice % v);
+            let (colour, cue) = dst.split_at_mut(CHANNELS * hw);
+            colour.copy_from_slice(src);
+            cue_slice(&rays, inv_depths[d], centres[k], cue);
+        });
+    out
 }
 
 /// Scales the alpha of view `v` by `weights[v]` in a volume `[D, V, 4, h, w]` of `hw`

@@ -4,7 +4,8 @@
 //! `H`, `W` spatial. Input level `l` is a plane-sweep tensor `[B, D, 4V, H_l, W_l]` (the
 //! paper's family: views concatenated, exactly `Config::views` of them) or
 //! `[B, D, V, 4, H_l, W_l]` (the any-number-of-views family, `Config::pool`: any `V`;
-//! its view pooling and colour blend are in [`crate::pool`]). Both families then run the
+//! `[B, D, V, 4 + K, H_l, W_l]` with each view's geometric cue after its RGBA; its view
+//! pooling and colour blend are in [`crate::pool`]). Both families then run the
 //! same towers on `[B*D, C, H_l, W_l]`.
 //!
 //! Parameter names equal the PyTorch reference's attribute names (`python/deepstereo_ref.py`),
@@ -18,7 +19,7 @@ use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};
 pub use crate::fused::upsample_nearest;
 use crate::fused::{composite, pad_rows, select_softmax, upsample_cat, upsample_crop};
-use crate::pool::{view_dims, Blend, ViewEncoder};
+use crate::pool::{rgba, view_dims, Blend, ViewEncoder};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
 use candle_nn::VarBuilder;
@@ -275,11 +276,12 @@ impl DeepStereo {
             }
             return Ok((inputs.to_vec(), None));
         };
-        let v = view_dims(&inputs[0])?.1;
+        let c = encoder.view_channels();
+        let v = view_dims(&inputs[0], c)?.1;
         let mut stats = Vec::with_capacity(inputs.len());
         let mut features = None;
         for (l, x) in inputs.iter().enumerate() {
-            if view_dims(x)?.1 != v {
+            if view_dims(x, c)?.1 != v {
                 candle_core::bail!("input level {l} has a different number of views");
             }
             // Rendering: one fused pass where it runs (view features at level 0 only).
@@ -342,8 +344,10 @@ impl DeepStereo {
             .colour
             .forward(&folded(&self.cfg.colour, 0)?, th, tw, fuse)?; // [B*D, C_c, th, tw]
         let centre = |t: &Tensor| t.narrow(3, p, th)?.narrow(4, p, tw); // [B*D, V, C, th, tw]
-        let (n, v, h, w, _) = view_dims(&inputs[0])?;
-        let x0 = inputs[0].reshape((n, v, 4, h, w))?; // [B*D, V, 4, H_0, W_0]
+        let x0 = rgba(&inputs[0])?; // [B, D, V, 4, H_0, W_0]
+        let (v, h, w) = (x0.dim(2)?, x0.dim(4)?, x0.dim(5)?);
+        let n = x0.dim(0)? * x0.dim(1)?;
+        let x0 = x0.reshape((n, v, 4, h, w))?; // [B*D, V, 4, H_0, W_0]
         let fused = match fuse {
             true => blend.infer(e, &x0, &f, p)?, // [B*D, 3, th*tw]
             false => None,

@@ -10,7 +10,12 @@
 //! alpha (1 where the source sees the pixel):
 //! 1. `m = sum_v a_v rgb_v / (sum_v a_v + eps)`: the mean colour, `[N, 1, 3, H, W]`.
 //! 2. `e_v = encoder([rgba_v, rgb_v - m])`: 1x1 layers, ReLU after each, on
-//!    `[N * V, 7, H, W]` -> `[N, V, C_f, H, W]`.
+//!    `[N * V, 7, H, W]` -> `[N, V, C_f, H, W]`. With the cue (`ViewPool::cue`), the
+//!    input level is `[B, D, V, 4 + K, H, W]` (each view's RGBA, then its
+//!    [`crate::sweep::cue`] of `K` channels) and the encoder reads
+//!    `[rgba_v, rgb_v - m, cue_v]`, `[N * V, 7 + K, H, W]`: the cue reaches the pooled
+//!    statistics and the blend through `e_v`, while the weights of the pooling and the
+//!    blend stay the alphas (a view that is not there still adds exact zeros).
 //! 3. Tower input `[m, s / (1 + s), mean_a(e), var_a(e)]`: `[B, D, 4 + 2 C_f, H, W]`,
 //!    where `s = sum_v a_v` (how many views see the pixel, bounded) and `mean_a` /
 //!    `var_a` are the alpha-weighted mean and variance over views (variance is the
@@ -27,7 +32,7 @@
 //! Parameter names (equal to the PyTorch reference's): `views.encode.{i}.{weight,bias}`,
 //! `colour.blend.{i}.{weight,bias}` (the last one the 1-channel logit layer).
 
-use crate::config::{ViewPool, ENCODER_IN};
+use crate::config::{ViewPool, CUE_CHANNELS, ENCODER_IN};
 use crate::conv::{pointwise_chain, Conv2d};
 use crate::fused;
 use candle_core::{DType, Module, Result, Tensor};
@@ -39,6 +44,8 @@ pub use crate::config::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 #[derive(Debug, Clone)]
 pub struct ViewEncoder {
     convs: Vec<Conv2d>,
+    /// Whether the input levels carry each view's cue after its RGBA.
+    cue: bool,
 }
 
 /// One level's pooled tower input and, for the colour blend, the views' features.
@@ -49,13 +56,24 @@ pub struct Pooled {
     pub features: Tensor,
 }
 
-/// Splits an input level `[B, D, V, 4, H, W]` into its dims, checking the rank and the 4.
-pub fn view_dims(x: &Tensor) -> Result<(usize, usize, usize, usize, usize)> {
+/// Splits an input level `[B, D, V, C_v, H, W]` into `(B*D, V, H, W, B)`, checking the
+/// rank and that `C_v` is `channels` (4, or 4 + [`CUE_CHANNELS`] with the cue).
+pub fn view_dims(x: &Tensor, channels: usize) -> Result<(usize, usize, usize, usize, usize)> {
     match *x.dims() {
-        [b, d, v, 4, h, w] => Ok((b * d, v, h, w, b)),
+        [b, d, v, c, h, w] if c == channels => Ok((b * d, v, h, w, b)),
         ref got => candle_core::bail!(
-            "expected an input level [B, D, V, 4, H, W] (any-number-of-views model), got {got:?}"
+            "expected an input level [B, D, V, {channels}, H, W] (any-number-of-views model{}), got {got:?}",
+            if channels > 4 { " with the per-view cue" } else { "" }
         ),
+    }
+}
+
+/// The RGBA of every view of an input level `[B, D, V, C_v, H, W]`: `[B, D, V, 4, H, W]`,
+/// contiguous (the level itself when it has no cue).
+pub fn rgba(x: &Tensor) -> Result<Tensor> {
+    match x.dim(3)? {
+        4 => Ok(x.clone()),
+        _ => x.narrow(3, 0, 4)?.contiguous(),
     }
 }
 
@@ -67,13 +85,32 @@ fn weighted_mean(t: &Tensor, a: &Tensor, den: &Tensor) -> Result<Tensor> {
 
 impl ViewEncoder {
     pub fn new(pool: &ViewPool, vb: VarBuilder) -> Result<Self> {
-        let mut ch = ENCODER_IN;
+        let mut ch = pool.encoder_in();
         let mut convs = Vec::with_capacity(pool.encoder.len());
         for (i, c) in pool.encoder.iter().enumerate() {
             convs.push(Conv2d::new(ch, c.channels, (1, 1), vb.pp(i))?);
             ch = c.channels;
         }
-        Ok(Self { convs })
+        Ok(Self {
+            convs,
+            cue: pool.cue,
+        })
+    }
+
+    /// Channels of one view in an input level.
+    pub fn view_channels(&self) -> usize {
+        4 + if self.cue { CUE_CHANNELS } else { 0 }
+    }
+
+    /// The cue of every view of an input level `[B, D, V, 4 + K, H, W]` as
+    /// `[B * D * V, K, H, W]` (`None` without the cue).
+    fn cue_of(&self, x: &Tensor) -> Result<Option<Tensor>> {
+        if !self.cue {
+            return Ok(None);
+        }
+        let (n, v, h, w, _) = view_dims(x, self.view_channels())?;
+        let c = x.narrow(3, 4, CUE_CHANNELS)?.contiguous()?; // [B, D, V, K, H, W]
+        Ok(Some(c.reshape((n * v, CUE_CHANNELS, h, w))?))
     }
 
     /// Steps 1-3 of the module doc for one level `x` `[B, D, V, 4, H, W]`: fused passes
@@ -81,12 +118,16 @@ impl ViewEncoder {
     /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain and the
     /// pooled statistics are written in one buffer ([`fused::pooled_stats`]).
     pub fn forward(&self, x: &Tensor, fuse: bool) -> Result<Pooled> {
-        let (n, v, h, w, b) = view_dims(x)?;
-        let xp = x.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
+        let (n, v, h, w, b) = view_dims(x, self.view_channels())?;
+        let xp = rgba(x)?.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
         let Some((enc, front)) = fused::pool_front(&xp)? else {
             return self.forward_reference(x);
         };
         let enc = enc.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
+        let enc = match self.cue_of(x)? {
+            Some(cue) => Tensor::cat(&[&enc, &cue], 1)?, // [N*V, 7 + K, H, W]
+            None => enc,
+        };
         let chained = match fuse {
             true => pointwise_chain(&enc, &self.convs.iter().collect::<Vec<_>>())?,
             false => None,
@@ -114,7 +155,7 @@ impl ViewEncoder {
         Ok(Pooled { stats, features })
     }
 
-    /// Rendering: steps 1-3 for one level `x` `[B, D, V, 4, H, W]` as one fused pass
+    /// Rendering: steps 1-3 for one level `x` `[B, D, V, C_v, H, W]` as one fused pass
     /// ([`fused::encode_pool`]: the same values as [`Self::forward`]'s passes, bit for bit
     /// for encoders of two or more layers; a one-layer encoder runs there as a candle
     /// convolution, which sums in another order, and agrees to rounding): the stats
@@ -122,11 +163,11 @@ impl ViewEncoder {
     /// them), the view features `[B * D, V, C_f, H, W]`. `None` where the fused pass does
     /// not run (the caller then runs [`Self::forward`]).
     pub fn infer(&self, x: &Tensor, features: bool) -> Result<Option<(Tensor, Option<Tensor>)>> {
-        let (n, v, h, w, b) = view_dims(x)?;
+        let (n, v, h, w, b) = view_dims(x, self.view_channels())?;
         let Some(layers) = dense_layers(&self.convs)? else {
             return Ok(None);
         };
-        let xp = x.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
+        let xp = x.reshape((n, v, self.view_channels(), h * w))?; // [N, V, C_v, P]
         let Some((stats, e)) = fused::encode_pool(&xp, &layers, features)? else {
             return Ok(None);
         };
@@ -147,9 +188,9 @@ impl ViewEncoder {
     }
 
     /// [`Self::forward`] as candle ops (the fused passes' reference and fallback).
-    pub fn forward_reference(&self, x: &Tensor) -> Result<Pooled> {
-        let (n, v, h, w, b) = view_dims(x)?;
-        let x = x.reshape((n, v, 4, h, w))?; // [N, V, 4, H, W]
+    pub fn forward_reference(&self, x_in: &Tensor) -> Result<Pooled> {
+        let (n, v, h, w, b) = view_dims(x_in, self.view_channels())?;
+        let x = rgba(x_in)?.reshape((n, v, 4, h, w))?; // [N, V, 4, H, W]
         let rgb = x.narrow(2, 0, 3)?; // [N, V, 3, H, W]
         let a = x.narrow(2, 3, 1)?; // [N, V, 1, H, W]
         let asum = a.sum_keepdim(1)?; // [N, 1, 1, H, W]
@@ -157,6 +198,10 @@ impl ViewEncoder {
         let mean_rgb = weighted_mean(&rgb, &a, &den)?; // [N, 1, 3, H, W]
         let diff = rgb.broadcast_sub(&mean_rgb)?; // [N, V, 3, H, W]
         let e_in = Tensor::cat(&[&x, &diff], 2)?.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
+        let e_in = match self.cue_of(x_in)? {
+            Some(cue) => Tensor::cat(&[&e_in, &cue], 1)?, // [N*V, 7 + K, H, W]
+            None => e_in,
+        };
         let e = self.encode(e_in)?;
         let cf = e.dim(1)?;
         let e = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
@@ -307,6 +352,7 @@ mod tests {
             }],
             blend: vec![],
             falloff: None,
+            cue: false,
         };
         let vm = candle_nn::VarMap::new();
         let enc = ViewEncoder::new(

@@ -11,7 +11,6 @@ use crate::imageio::RgbImage;
 use crate::inputs::{tile_inputs, PyramidSource, TileInputs};
 use crate::model::DeepStereo;
 use crate::prune::{Block, PruneStats, Pruner, TilePlan};
-use crate::sweep::CHANNELS;
 use candle_core::{Device, Tensor};
 use std::time::Instant;
 
@@ -346,7 +345,6 @@ fn write_block(
     sel: &[f32],
 ) {
     let (tile, w) = (area.size, area.w);
-    let (ih, iw) = inputs.sizes[0];
     let v = inputs.views;
     let tt = tile * tile;
     for yy in 0..area.rows.len() {
@@ -363,8 +361,7 @@ fn write_block(
                 best = best.max(s);
                 let mut alpha = 0.0;
                 for k in 0..v {
-                    let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
-                    alpha += inputs.levels[0][base + (yy + pad) * iw + xx + pad];
+                    alpha += inputs.levels[0][inputs.alpha_index(0, z, k, (xx + pad, yy + pad))];
                 }
                 cov += s * alpha / v as f32;
             }
@@ -410,12 +407,13 @@ pub fn empty_response(backend: &dyn Backend, planes: usize) -> Result<(Vec<f32>,
         .collect();
     let levels = sizes
         .iter()
-        .map(|(h, w)| vec![0.0f32; planes * 4 * views * h * w])
+        .map(|(h, w)| vec![0.0f32; planes * cfg.view_channels() * views * h * w])
         .collect();
     let inputs = TileInputs {
         levels,
         sizes,
         views,
+        channels: cfg.view_channels(),
     };
     let (img, sel) = backend.run(&inputs, planes)?;
     let n = a * a;

@@ -256,6 +256,7 @@ pub fn sample_bilinear(img: &RgbImage, u: f64, v: f64) -> [f32; 4] {
     acc.map(|v| v as f32)
 }
 
+pub mod cue;
 pub mod rolling;
 #[cfg(test)]
 mod tests;

@@ -14,22 +14,33 @@ use deepstereo_core::pool::ViewEncoder;
 
 /// Sources `[B, D, V, 4, H, W]`: colours in [0, 1), alphas 0, 1 or fractional.
 fn sources(shape: (usize, usize, usize, usize, usize), seed: u64) -> Result<Tensor> {
+    sources_with(shape, 4, seed)
+}
+
+/// Sources `[B, D, V, C_v, H, W]`: as [`sources`], then (`C_v` > 4) cue channels in
+/// [-7, 3).
+fn sources_with(
+    shape: (usize, usize, usize, usize, usize),
+    cv: usize,
+    seed: u64,
+) -> Result<Tensor> {
     let (b, d, v, h, w) = shape;
     let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    let data: Vec<f32> = (0..b * d * v * 4 * h * w)
+    let data: Vec<f32> = (0..b * d * v * cv * h * w)
         .map(|i| {
             s ^= s << 13;
             s ^= s >> 7;
             s ^= s << 17;
             let x = (s >> 40) as f32 / (1u64 << 24) as f32;
-            match (i / (h * w)) % 4 {
+            match (i / (h * w)) % cv {
                 3 if x < 0.2 => 0.0,
                 3 if x > 0.5 => 1.0,
+                c if c >= 4 => x * 10.0 - 7.0,
                 _ => x,
             }
         })
         .collect();
-    Ok(Tensor::from_vec(data, (b, d, v, 4, h, w), &Device::Cpu)?)
+    Ok(Tensor::from_vec(data, (b, d, v, cv, h, w), &Device::Cpu)?)
 }
 
 /// Whether the fused pass can run here (it needs AVX2 + FMA; elsewhere `infer` is `None`
@@ -50,6 +61,10 @@ fn max_diff(a: &Tensor, b: &Tensor) -> Result<f32> {
 }
 
 fn encoder(channels: &[usize]) -> Result<(ViewEncoder, VarMap)> {
+    encoder_with(channels, false)
+}
+
+fn encoder_with(channels: &[usize], cue: bool) -> Result<(ViewEncoder, VarMap)> {
     let pool = ViewPool {
         encoder: channels
             .iter()
@@ -60,6 +75,7 @@ fn encoder(channels: &[usize]) -> Result<(ViewEncoder, VarMap)> {
             .collect(),
         blend: vec![],
         falloff: None,
+        cue,
     };
     let vm = VarMap::new();
     let enc = ViewEncoder::new(
@@ -106,6 +122,37 @@ fn the_fused_pass_equals_the_three_passes() -> Result<()> {
             assert_eq!(max_diff(&again, &enc.forward(&x, true)?.stats)?, 0.0);
         }
     }
+    Ok(())
+}
+
+/// With the per-view cue after each view's RGBA: the same, bit for bit.
+#[test]
+fn the_fused_pass_with_the_cue_equals_the_three_passes() -> Result<()> {
+    use deepstereo_core::config::CUE_CHANNELS;
+    let cv = 4 + CUE_CHANNELS;
+    let (enc, _vm) = encoder_with(&[6, 6], true)?;
+    if !fused_runs() {
+        assert!(enc
+            .infer(&sources_with((1, 2, 2, 3, 3), cv, 1)?, true)?
+            .is_none());
+        return Ok(());
+    }
+    for (v, h, w) in [(1, 3, 5), (3, 7, 9), (6, 9, 17)] {
+        let x = sources_with((2, 3, v, h, w), cv, (v * 10 + h) as u64)?;
+        let (ds, de) = diffs(&enc, &x)?;
+        assert!(
+            ds == 0.0 && de == 0.0,
+            "cue, {v} views, {h}x{w}: stats {ds:e}, features {de:e}"
+        );
+    }
+    // The cue reaches the stats: other cue values, other stats.
+    let x = sources_with((1, 2, 3, 5, 5), cv, 7)?;
+    let y = x.narrow(3, 0, 4)?.contiguous()?;
+    let y = Tensor::cat(&[&y, &(x.narrow(3, 4, CUE_CHANNELS)? + 1.0)?], 3)?;
+    let (Some((a, _)), Some((b, _))) = (enc.infer(&x, false)?, enc.infer(&y, false)?) else {
+        anyhow::bail!("the fused pass did not run");
+    };
+    assert!(max_diff(&a, &b)? > 0.0, "the cue changed nothing");
     Ok(())
 }
 

@@ -39,8 +39,17 @@ fn small() -> Config {
             encoder: vec![c(1, 4), c(1, 3)],
             blend: vec![c(1, 4)],
             falloff: None,
+            cue: false,
         }),
     }
+}
+
+/// `cfg` with the per-view cue.
+fn with_cue(mut cfg: Config) -> Config {
+    if let Some(p) = cfg.pool.as_mut() {
+        p.cue = true;
+    }
+    cfg
 }
 
 /// Deterministic pseudo-random values in [lo, hi).
@@ -56,16 +65,19 @@ fn rand_vec(n: usize, seed: u64, lo: f64, hi: f64) -> Vec<f64> {
         .collect()
 }
 
-/// Random inputs `[B, D, V, 4, H, W]` per level: colours in [0, 1], alphas 0, 1 or
-/// fractional.
+/// Random inputs `[B, D, V, C_v, H, W]` per level: colours in [0, 1], alphas 0, 1 or
+/// fractional, cue channels (when the config has them) in [-7, 3].
 fn inputs(cfg: &Config, b: usize, v: usize, dtype: DType, seed: u64) -> Result<Vec<Tensor>> {
+    let c = cfg.view_channels();
     (0..cfg.levels)
         .map(|l| {
             let s = cfg.input_size(l, cfg.tile);
-            let n = b * cfg.planes * v * 4 * s * s;
+            let n = b * cfg.planes * v * c * s * s;
             let mut data = rand_vec(n, seed + l as u64, 0.0, 1.0);
             for (i, x) in data.iter_mut().enumerate() {
-                if (i / (s * s)) % 4 == 3 {
+                if (i / (s * s)) % c >= 4 {
+                    *x = *x * 10.0 - 7.0;
+                } else if (i / (s * s)) % c == 3 {
                     *x = if *x < 0.2 {
                         0.0
                     } else if *x > 0.5 {
@@ -75,7 +87,7 @@ fn inputs(cfg: &Config, b: usize, v: usize, dtype: DType, seed: u64) -> Result<V
                     };
                 }
             }
-            let t = Tensor::from_vec(data, (b, cfg.planes, v, 4, s, s), &Device::Cpu)?;
+            let t = Tensor::from_vec(data, (b, cfg.planes, v, c, s, s), &Device::Cpu)?;
             Ok(t.to_dtype(dtype)?)
         })
         .collect()
@@ -104,50 +116,75 @@ fn max_diff(a: &Tensor, b: &Tensor) -> Result<f32> {
 
 #[test]
 fn views_order_does_not_matter() -> Result<()> {
-    let cfg = Config::nviews();
-    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 3)?;
-    let x = inputs(&cfg, 1, 5, DType::F32, 1)?;
-    let a = t.model.forward(&x)?;
-    let b = t.model.forward(&reorder(&x, &[3, 0, 4, 2, 1])?)?;
-    let (di, ds) = (
-        max_diff(&a.image, &b.image)?,
-        max_diff(&a.selection, &b.selection)?,
-    );
-    println!("shuffled views: image {di:e}, selection {ds:e}");
-    assert!(di < 1e-6 && ds < 1e-6, "image {di}, selection {ds}");
+    for cfg in [Config::nviews(), Config::nviews_cue()] {
+        let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 3)?;
+        let x = inputs(&cfg, 1, 5, DType::F32, 1)?;
+        let a = t.model.forward(&x)?;
+        let b = t.model.forward(&reorder(&x, &[3, 0, 4, 2, 1])?)?;
+        let (di, ds) = (
+            max_diff(&a.image, &b.image)?,
+            max_diff(&a.selection, &b.selection)?,
+        );
+        println!(
+            "{}: shuffled views: image {di:e}, selection {ds:e}",
+            cfg.name
+        );
+        assert!(di < 1e-6 && ds < 1e-6, "image {di}, selection {ds}");
+    }
     Ok(())
 }
 
+/// Empty views have alpha and colour 0; with the cue, their cue is arbitrary (it is
+/// what the geometry gives), and must not matter either.
 #[test]
 fn a_view_that_sees_nothing_changes_nothing() -> Result<()> {
-    let cfg = Config::nviews();
-    let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 4)?;
-    let x = inputs(&cfg, 2, 3, DType::F32, 2)?;
-    let with = |extra: usize, at: usize| -> Result<Vec<Tensor>> {
-        x.iter()
-            .map(|t| {
-                let mut shape = t.dims().to_vec();
-                shape[2] = extra;
-                let zeros = Tensor::zeros(shape, t.dtype(), t.device())?;
-                let (front, back) = (t.narrow(2, 0, at)?, t.narrow(2, at, 3 - at)?);
-                Ok(Tensor::cat(&[&front, &zeros, &back], 2)?)
-            })
-            .collect()
-    };
-    let base = t.model.forward(&x)?;
-    for (extra, at) in [(1, 3), (1, 0), (4, 1)] {
-        let o = t.model.forward(&with(extra, at)?)?;
-        let di = max_diff(&base.image, &o.image)?;
-        let ds = max_diff(&base.selection, &o.selection)?;
-        println!("{extra} empty views at {at}: image {di:e}, selection {ds:e}");
-        assert!(di < 1e-6 && ds < 1e-6, "image {di}, selection {ds}");
+    for cfg in [Config::nviews(), Config::nviews_cue()] {
+        let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 4)?;
+        let x = inputs(&cfg, 2, 3, DType::F32, 2)?;
+        let with = |extra: usize, at: usize| -> Result<Vec<Tensor>> {
+            x.iter()
+                .zip(inputs(&cfg, 2, extra, DType::F32, 99)?)
+                .map(|(t, noise)| {
+                    let c = t.dim(3)?;
+                    let mut shape = t.dims().to_vec();
+                    (shape[2], shape[3]) = (extra, 4);
+                    let zeros = Tensor::zeros(shape, t.dtype(), t.device())?;
+                    let empty = match c {
+                        4 => zeros,
+                        _ => Tensor::cat(&[&zeros, &noise.narrow(3, 4, c - 4)?], 3)?,
+                    };
+                    let (front, back) = (t.narrow(2, 0, at)?, t.narrow(2, at, 3 - at)?);
+                    Ok(Tensor::cat(&[&front, &empty, &back], 2)?)
+                })
+                .collect()
+        };
+        let base = t.model.forward(&x)?;
+        for (extra, at) in [(1, 3), (1, 0), (4, 1)] {
+            let x2 = with(extra, at)?;
+            for o in [t.model.forward(&x2)?, t.model.infer(&x2)?] {
+                let di = max_diff(&base.image, &o.image)?;
+                let ds = max_diff(&base.selection, &o.selection)?;
+                println!(
+                    "{}: {extra} empty views at {at}: image {di:e}, selection {ds:e}",
+                    cfg.name
+                );
+                assert!(di < 2e-6 && ds < 2e-6, "image {di}, selection {ds}");
+            }
+        }
     }
     Ok(())
 }
 
 #[test]
 fn every_view_count_from_1_to_16_runs() -> Result<()> {
-    let cfg = small();
+    for cfg in [small(), with_cue(small())] {
+        every_view_count(&cfg)?;
+    }
+    Ok(())
+}
+
+fn every_view_count(cfg: &Config) -> Result<()> {
+    let cfg = cfg.clone();
     let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 5)?;
     for v in 1..=16 {
         let x = inputs(&cfg, 2, v, DType::F32, 10 + v as u64)?;
@@ -172,12 +209,28 @@ fn wrong_input_layout_is_an_error() -> Result<()> {
     let flat = Tensor::zeros((1, cfg.planes, 12, s, s), DType::F32, &Device::Cpu)?;
     let err = t.model.forward(&[flat.clone(), flat]).err();
     assert!(err.is_some_and(|e| e.to_string().contains("[B, D, V, 4, H, W]")));
+    // RGBA alone where the model reads the cue, and the reverse.
+    let cue = with_cue(small());
+    let tc = init_seeded(&cue, DType::F32, &Device::Cpu, 5)?;
+    let err = tc.model.forward(&inputs(&cfg, 1, 2, DType::F32, 3)?).err();
+    assert!(err.is_some_and(|e| e.to_string().contains("[B, D, V, 9, H, W]")));
+    assert!(t
+        .model
+        .forward(&inputs(&cue, 1, 2, DType::F32, 3)?)
+        .is_err());
     Ok(())
 }
 
 #[test]
 fn gradients_through_the_pooling_match_finite_differences_f64() -> Result<()> {
-    let cfg = small();
+    for cfg in [small(), with_cue(small())] {
+        pooling_gradients(&cfg)?;
+    }
+    Ok(())
+}
+
+fn pooling_gradients(cfg: &Config) -> Result<()> {
+    let cfg = cfg.clone();
     let t = init_seeded(&cfg, DType::F64, &Device::Cpu, 6)?;
     let x = inputs(&cfg, 2, 3, DType::F64, 7)?;
     let (th, d) = (cfg.tile, cfg.planes);
@@ -398,5 +451,74 @@ fn the_shipped_default_has_the_view_falloff() -> Result<()> {
         Some(deepstereo_core::config::ViewFalloff { full: 1, power: 2 })
     );
     assert_eq!(cfg.views, 4, "the default number of views");
+    Ok(())
+}
+
+/// `pool.cue`: the input levels hold each view's RGBA exactly as without the cue, then its
+/// cue: the geometry of `sweep::cue` for that pixel's ray, plane and source centre (a
+/// source that is not there has alpha 0 and the cue of a source at the target).
+#[test]
+fn cue_inputs_are_the_sweep_then_the_geometry() -> Result<()> {
+    use deepstereo_core::config::CUE_CHANNELS;
+    use deepstereo_core::inputs::{level_camera, tile_inputs};
+    use deepstereo_core::sweep::cue::{centre_in, cue};
+    use glam::DVec3;
+    let cfg = Config::nviews_cue();
+    let mut plain = cfg.clone();
+    if let Some(p) = plain.pool.as_mut() {
+        p.cue = false;
+    }
+    let (s, pyr) = scene_pyramids(5, 10, (48, 36), cfg.levels)?;
+    let inv = inverse_depths(s.near, s.far, 6);
+    let (t, (x0, y0)) = (cfg.tile, (8i64, 0i64));
+    let empty = PyramidSource::empty(&s.cameras[0], cfg.levels);
+    let srcs: Vec<&PyramidSource> = vec![&pyr[1], &pyr[2], &empty, &pyr[3]];
+    let a = tile_inputs(&cfg, &s.cameras[0], &srcs, &inv, (x0, y0), (t, t))?;
+    let b = tile_inputs(&plain, &s.cameras[0], &srcs, &inv, (x0, y0), (t, t))?;
+    assert_eq!((a.channels, b.channels), (4 + CUE_CHANNELS, 4));
+    let v = srcs.len();
+    let mut checked = 0;
+    for (l, ((la, lb), &(h, w))) in a.levels.iter().zip(&b.levels).zip(&a.sizes).enumerate() {
+        let hw = h * w;
+        let tcam = level_camera(
+            &s.cameras[0],
+            l,
+            s.cameras[0].intrinsics.width >> l,
+            s.cameras[0].intrinsics.height >> l,
+        );
+        for (i, (sa, sb)) in la
+            .chunks(a.channels * hw)
+            .zip(lb.chunks(4 * hw))
+            .enumerate()
+        {
+            assert_eq!(sa[..4 * hw], sb[..], "level {l}: RGBA changed");
+            let (z, k) = (i / v, i % v);
+            let centre = centre_in(&tcam, &srcs[k].cameras[l]);
+            for p in [0, hw / 2 + 3, hw - 1] {
+                let (px, py) = ((p % w) as i64, (p / w) as i64);
+                let uv = glam::DVec2::new(
+                    (cfg.input_origin(l, x0) + px) as f64 + 0.5,
+                    (cfg.input_origin(l, y0) + py) as f64 + 0.5,
+                );
+                let r = tcam.intrinsics.unproject_pixel(uv);
+                let want = cue(DVec3::new(r.x, r.y, 1.0), inv[z], centre);
+                for (c, wv) in want.iter().enumerate() {
+                    let got = sa[(4 + c) * hw + p];
+                    assert!(
+                        (got as f64 - wv).abs() <= 1e-6 * wv.abs().max(1.0),
+                        "level {l}, plane {z}, view {k}, pixel {p}, channel {c}: {got} vs {wv}"
+                    );
+                }
+                checked += 1;
+            }
+            if k == 2 {
+                assert!(
+                    sa[3 * hw..4 * hw].iter().all(|&x| x == 0.0),
+                    "empty view's alpha"
+                );
+            }
+        }
+    }
+    assert!(checked > 0);
     Ok(())
 }

@@ -177,7 +177,22 @@ fn graph_inputs(cfg: &Config) -> Vec<ValueInfoProto> {
                 dim(&format!("level{l}_height")),
                 dim(&format!("level{l}_width")),
             );
-            let (dims, layout) = match cfg.pool {
+            let (dims, layout) = match &cfg.pool {
+                Some(p) if p.cue => (
+                    vec![
+                        dim("batch"),
+                        dim("planes"),
+                        dim("views"),
+                        fixed(p.view_channels()),
+                        h,
+                        w,
+                    ],
+                    "[B, D, V, 9, H, W] (per source and plane: RGBA, then the geometric cue \
+                     [u_x, u_y, u_z, ln(n + 1e-3), clamp(ln(|X - c_v| / |X - c_t|), -5, 5)], \
+                     u = (d_v - d_t) / (n + 1e-3), n = |d_v - d_t|, d_t and d_v the unit rays \
+                     from the target and the source to the plane point in target camera \
+                     coordinates: deepstereo-core/src/sweep/cue.rs; any V >= 1)",
+                ),
                 Some(_) => (
                     vec![dim("batch"), dim("planes"), dim("views"), fixed(4), h, w],
                     "[B, D, V, 4, H, W] (RGBA of each source per plane, any V >= 1)",

@@ -183,7 +183,8 @@ impl OrtBackend {
     }
 
     /// Runs the network on `levels[l]` = (shape `[B, D, 4V, H_l, W_l]`, or
-    /// `[B, D, V, 4, H_l, W_l]` for the any-number-of-views family, data).
+    /// `[B, D, V, C_v, H_l, W_l]` for the any-number-of-views family, `C_v` =
+    /// `Config::view_channels`, data).
     pub fn forward(&self, levels: &[(&[usize], &[f32])]) -> Result<Forward> {
         let cfg = &self.cfg;
         if levels.len() != cfg.levels {
@@ -194,16 +195,17 @@ impl OrtBackend {
             )));
         }
         let mut inputs = Vec::with_capacity(levels.len());
+        let cv = cfg.view_channels();
         for (l, (shape, data)) in levels.iter().enumerate() {
             let ok = match cfg.pool {
-                Some(_) => shape.len() == 6 && shape[3] == 4 && !shape[..3].contains(&0),
+                Some(_) => shape.len() == 6 && shape[3] == cv && !shape[..3].contains(&0),
                 None => {
                     shape.len() == 5 && shape[2] == cfg.in_channels() && !shape[..2].contains(&0)
                 }
             };
             if !ok {
                 let want = match cfg.pool {
-                    Some(_) => "[B, D, V, 4, H, W] with B, D and V at least 1".to_string(),
+                    Some(_) => format!("[B, D, V, {cv}, H, W] with B, D and V at least 1"),
                     None => format!(
                         "[B, D, {}, H, W] with B and D at least 1",
                         cfg.in_channels()

@@ -208,6 +208,7 @@ fn ort_backend_renders_through_the_backend_trait() -> anyhow::Result<()> {
             .map(|l| (cfg.input_size(l, th), cfg.input_size(l, tw)))
             .collect(),
         views: cfg.views,
+        channels: cfg.view_channels(),
     };
     let candle = CandleBackend {
         model: t.model.clone(),

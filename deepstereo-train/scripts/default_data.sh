@@ -4,12 +4,16 @@
 # (the data and sampling options every run of the default model passes to `train`;
 # VIEW_RANGE, default 2-10, sets the source views per batch, SYNTH_SIZE, default 240x180,
 # the procedural scenes' image size) and, for run directory OUT, RESUME (`--resume` when
-# OUT holds a checkpoint); run from the repository root.
+# OUT holds a checkpoint); run from the repository root. CORPUS=all adds the captures
+# that came after the shipped model's runs (coke, desk, gum, plush: 17 scenes).
 DATA=../shared/data
 TRAIN=()
 for s in bird blowtorch can cityscape cup duckqueen figurine fruit maryrose milk mouse plant statue; do
   TRAIN+=("$DATA/train/$s")
 done
+if [ "${CORPUS:-}" = all ]; then
+  for s in coke desk gum plush; do TRAIN+=("$DATA/train/$s"); done
+fi
 VAL=("$DATA/val/juicebox" "$DATA/val/moldgoldcape" "$DATA/val/stitch" "$DATA/templeRing" "$DATA/ethiopianHead" "$DATA/fox")
 SAMPLING=(--views "${VIEW_RANGE:-2-10}" --data "${TRAIN[@]}" --synthetic 200 --synth-size "${SYNTH_SIZE:-240x180}" --synth-views 12
   --synthetic-percent 40 --augment --val-data "${VAL[@]}" --val-scenes 8 --val-batches 8)

@@ -135,7 +135,7 @@ pub fn synth_scenes(
         .collect()
 }
 
-/// One minibatch: inputs per level (`[B, D, 4V, h_l, w_l]`, or `[B, D, V, 4, h_l, w_l]`
+/// One minibatch: inputs per level (`[B, D, 4V, h_l, w_l]`, or `[B, D, V, C_v, h_l, w_l]`
 /// for the any-number-of-views family) and targets `[B, 3, t, t]`, as flat f32 data with
 /// their shapes.
 pub struct Batch {
@@ -328,10 +328,11 @@ fn sample(
             .map(|_| (exposure * (1.0 + AUGMENT_WHITE_BALANCE * unit(next()))) as f32)
             .collect();
         let flip = next() & 1 == 1;
+        let cycle = inputs.channels;
         for (data, &(h, w)) in inputs.levels.iter_mut().zip(&inputs.sizes) {
-            augment_planes(data, h * w, w, &gains, flip);
+            augment_planes(data, (h * w, w, cycle), &gains, flip);
         }
-        augment_planes(&mut patch, t * t, t, &gains, flip);
+        augment_planes(&mut patch, (t * t, t, 3), &gains, flip);
     }
     Ok((inputs.levels, patch))
 }
@@ -353,17 +354,27 @@ fn luminance_std(img: &RgbImage, (x0, y0): (u32, u32), t: u32) -> f32 {
     ((sq / n - mean * mean).max(0.0)).sqrt() as f32
 }
 
-/// Scales the colour channels of `data` (planes of `plane` values, channels cycling
-/// RGBA, or RGB for a 3-plane target) by `gains` and optionally mirrors every row of
-/// `w` values. Premultiplied colours stay consistent: alpha is left alone.
-fn augment_planes(data: &mut [f32], plane: usize, w: usize, gains: &[f32], flip: bool) {
-    let cycle = if data.len() == 3 * plane { 3 } else { 4 };
+/// Applies photometric gains and an optional horizontal flip to planes of `plane` pixels
+/// in rows of `w`, channels cycling with period `cycle` (3 for the target patch; 4 or
+/// 4 + `CUE_CHANNELS` per source view: R, G, B get the gains, alpha none). A flip mirrors
+/// the target camera, which negates the cue's horizontal direction (its channel 0, the
+/// volume's channel 4) and leaves the rest.
+fn augment_planes(
+    data: &mut [f32],
+    (plane, w, cycle): (usize, usize, usize),
+    gains: &[f32],
+    flip: bool,
+) {
     for (i, p) in data.chunks_exact_mut(plane).enumerate() {
-        if let Some(&g) = gains.get(i % cycle) {
+        let c = i % cycle;
+        if let Some(&g) = gains.get(c) {
             p.iter_mut().for_each(|x| *x *= g);
         }
         if flip {
             p.chunks_exact_mut(w).for_each(|row| row.reverse());
+            if c == 4 {
+                p.iter_mut().for_each(|x| *x = -*x);
+            }
         }
     }
 }

@@ -2,7 +2,8 @@
 //! views of one input level (`pool::ViewEncoder::forward`'s steps 1-3) as one pass over
 //! each plane's pixels, a chunk of [`CHUNK`] pixels at a time, instead of three passes
 //! over whole tensors ([`super::pool_front`], the encoder's 1x1 chain, [`super::pooled_stats`]):
-//! the encoder's input (RGBA and colour minus the mean) and its layers' activations live
+//! the encoder's input (RGBA, colour minus the mean, and the cue when the level carries
+//! one) and its layers' activations live
 //! in a per-thread scratch that stays in L1, and the view features are written out only
 //! where the blend reads them (level 0).
 //!
@@ -16,7 +17,7 @@
 use super::blend_infer::Dense;
 use super::data;
 use super::pool::{cast, wide};
-use crate::config::{ENCODER_IN, POOL_EPS};
+use crate::config::{CUE_CHANNELS, ENCODER_IN, POOL_EPS};
 use candle_core::{bail, DType, Result, Tensor};
 use rayon::prelude::*;
 
@@ -26,23 +27,29 @@ const CHUNK: usize = 64;
 const LANES: usize = 8;
 
 /// `(stats [N, 4 + 2 C, P], features [N, V, C, P] when `features`)` from the sources `x`
-/// `[N, V, 4, P]` and the encoder's 1x1 layers (each followed by ReLU; the first takes
-/// 7 channels). `None` where it does not apply (not f32, not on the CPU, no AVX2 + FMA,
-/// layers that do not chain): the caller runs the three passes.
+/// `[N, V, C_v, P]` (RGBA, then with `C_v` = 4 + [`CUE_CHANNELS`] each view's cue) and the
+/// encoder's 1x1 layers (each followed by ReLU; the first takes 7 channels, or 7 + the
+/// cue's, in the order RGBA, colour minus mean, cue). `None` where it does not apply (not
+/// f32, not on the CPU, no AVX2 + FMA, layers that do not chain): the caller runs the
+/// three passes.
 pub fn encode_pool(
     x: &Tensor,
     layers: &[Dense],
     features: bool,
 ) -> Result<Option<(Tensor, Option<Tensor>)>> {
-    let (n, v, c4, p) = x.dims4()?;
-    if c4 != 4 {
-        bail!("encode_pool: expected [N, V, 4, P], got {:?}", x.dims());
+    let (n, v, cv, p) = x.dims4()?;
+    if cv != 4 && cv != 4 + CUE_CHANNELS {
+        bail!(
+            "encode_pool: expected [N, V, 4 or {}, P], got {:?}",
+            4 + CUE_CHANNELS,
+            x.dims()
+        );
     }
     let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
     let usable = x.dtype() == DType::F32
         && x.device().is_cpu()
         && crate::cpu::avx2_fma_available()
-        && layers.first().is_some_and(|l| l.cin == ENCODER_IN)
+        && layers.first().is_some_and(|l| l.cin == ENCODER_IN + cv - 4)
         && chained
         && v > 0;
     if !usable || n * p == 0 {
@@ -65,8 +72,14 @@ pub fn encode_pool(
         .zip(feat_items.par_iter_mut())
         .enumerate()
         .for_each(|(i, (st, fe))| {
-            let xi = &xd[i * v * 4 * p..][..v * 4 * p];
-            let dims = Dims { v, c, p, widest };
+            let xi = &xd[i * v * cv * p..][..v * cv * p];
+            let dims = Dims {
+                v,
+                cv,
+                c,
+                p,
+                widest,
+            };
             // SAFETY: `usable` checked AVX2 and FMA.
             #[cfg(target_arch = "x86_64")]
             unsafe {
@@ -83,22 +96,30 @@ pub fn encode_pool(
     Ok(Some((stats, feats)))
 }
 
-/// Views, feature channels, pixels per plane, and the widest layer (scratch rows).
+/// Views, channels per view in the input, feature channels, pixels per plane, and the
+/// widest layer (scratch rows).
 #[derive(Clone, Copy)]
 struct Dims {
     v: usize,
+    cv: usize,
     c: usize,
     p: usize,
     widest: usize,
 }
 
-/// One plane: `xi` `[V, 4, P]` -> `st` `[4 + 2C, P]` and (when not empty) `fe` `[V, C, P]`.
+/// One plane: `xi` `[V, C_v, P]` -> `st` `[4 + 2C, P]` and (when not empty) `fe` `[V, C, P]`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn item_avx2(xi: &[f32], layers: &[Dense], d: Dims, st: &mut [f32], fe: &mut [f32]) {
-    let Dims { v, c, p, widest } = d;
+    let Dims {
+        v,
+        cv,
+        c,
+        p,
+        widest,
+    } = d;
     // Scratch: the encoder's input, two layer buffers, every view's features, f64 sums.
-    let mut input = vec![0f32; ENCODER_IN * CHUNK];
+    let mut input = vec![0f32; (ENCODER_IN + cv - 4) * CHUNK];
     let (mut ha, mut hb) = (vec![0f32; widest * CHUNK], vec![0f32; widest * CHUNK]);
     let mut e = vec![0f32; v * c * CHUNK];
     let mut cover = [0f64; CHUNK];
@@ -108,7 +129,7 @@ unsafe fn item_avx2(xi: &[f32], layers: &[Dense], d: Dims, st: &mut [f32], fe: &
     let mut j0 = 0;
     while j0 < p {
         let len = CHUNK.min(p - j0);
-        let plane = |k: usize, ch: usize| &xi[(k * 4 + ch) * p + j0..][..len];
+        let plane = |k: usize, ch: usize| &xi[(k * cv + ch) * p + j0..][..len];
         // The coverage and the mean colour (pool_front's sums: view 0's term first).
         for k in 0..v {
             for (s, &a) in cover[..len].iter_mut().zip(plane(k, 3)) {
@@ -146,6 +167,9 @@ unsafe fn item_avx2(xi: &[f32], layers: &[Dense], d: Dims, st: &mut [f32], fe: &
                 for j in 0..len {
                     dst[j] = src[j] - m[j];
                 }
+            }
+            for ch in 4..cv {
+                input[(ENCODER_IN + ch - 4) * CHUNK..][..len].copy_from_slice(plane(k, ch));
             }
             // Layer 0 from the input, the hidden layers between `ha` and `hb`, the last
             // into the view's features.

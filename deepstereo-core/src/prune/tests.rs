@@ -8,7 +8,6 @@ use crate::config::{Config, Conv, TowerConfig};
 use crate::geometry::inverse_depths;
 use crate::inputs::{tile_inputs, PyramidSource};
 use crate::render::{render_view, render_view_pruned, Backend, CandleBackend, Rendered};
-use crate::sweep::CHANNELS;
 use crate::synth::{generate, Rig, SynthOptions, SynthScene};
 use crate::weights::init_seeded;
 use candle_core::{DType, Device};
@@ -344,7 +343,6 @@ fn reference_render(
             )
             .unwrap();
             let (img, sel) = backend.run(&inputs, inv.len()).unwrap();
-            let (ih, iw) = inputs.sizes[0];
             let p = cfg.pad(0);
             let tt = tile * tile;
             for yy in 0..tile.min(h - y0) {
@@ -361,8 +359,8 @@ fn reference_render(
                         best = best.max(s);
                         let mut alpha = 0.0;
                         for k in 0..v {
-                            let base = ((z * v + k) * CHANNELS + 3) * ih * iw;
-                            alpha += inputs.levels[0][base + (yy + p) * iw + xx + p];
+                            alpha +=
+                                inputs.levels[0][inputs.alpha_index(0, z, k, (xx + p, yy + p))];
                         }
                         cov += s * alpha / v as f32;
                     }

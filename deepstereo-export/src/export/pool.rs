@@ -4,7 +4,7 @@
 
 use super::{attr_int, input_name, Graph};
 use crate::error::Result;
-use deepstereo_core::config::{Config, ViewPool, ENCODER_IN};
+use deepstereo_core::config::{Config, ViewPool, CUE_CHANNELS};
 use deepstereo_core::pool::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 
 impl Graph<'_> {
@@ -54,20 +54,39 @@ impl Graph<'_> {
         let mut stats = Vec::with_capacity(cfg.levels);
         let mut features0 = String::new();
         for l in 0..cfg.levels {
-            let x = input_name(l); // [B, D, V, 4, H, W]
             let p = format!("views.level{l}");
+            let level = input_name(l); // [B, D, V, C_v, H, W]
+                                       // With the cue: RGBA and cue apart ([B, D, V, 4, H, W], [B, D, V, K, H, W]).
+            let (x, cue) = match pool.cue {
+                true => (
+                    self.slice_axis(&level, 3, 0, 4, &format!("{p}.rgba")),
+                    Some(self.slice_axis(
+                        &level,
+                        3,
+                        4,
+                        (4 + CUE_CHANNELS) as i64,
+                        &format!("{p}.cue"),
+                    )),
+                ),
+                false => (level, None),
+            };
             let rgb = self.slice_axis(&x, 3, 0, 3, &format!("{p}.rgb")); // [B, D, V, 3, H, W]
             let a = self.slice_axis(&x, 3, 3, 4, &format!("{p}.alpha")); // [B, D, V, 1, H, W]
             let asum = self.sum_axis(&a, 2, true, &format!("{p}.alpha_sum")); // [B, D, 1, 1, H, W]
             let den = self.add_scalar(&asum, POOL_EPS, &format!("{p}.den"));
             let mean_rgb = self.weighted_mean(&rgb, &a, &den, 2, &format!("{p}.mean_rgb")); // [B, D, 1, 3, H, W]
             let diff = self.op("Sub", &[&rgb, &mean_rgb], vec![], &format!("{p}.diff"));
-            let e_in = self.concat(&[&x, &diff], 3, &format!("{p}.encoder_in")); // [B, D, V, 7, H, W]
+            let parts: Vec<&str> = [&x, &diff]
+                .into_iter()
+                .chain(cue.as_ref())
+                .map(String::as_str)
+                .collect();
+            let e_in = self.concat(&parts, 3, &format!("{p}.encoder_in")); // [B, D, V, 7 (+ K), H, W]
             let hw = self.shape_of(&x, 4, 6, &format!("{p}.hw"));
-            let lead = self.const_i64(&[-1, ENCODER_IN as i64], "fold_lead");
+            let lead = self.const_i64(&[-1, pool.encoder_in() as i64], "fold_lead");
             let shape = self.concat(&[&lead, &hw], 0, "fold_shape");
-            let mut e = self.op("Reshape", &[&e_in, &shape], vec![], &format!("{p}.folded")); // [B*D*V, 7, H, W]
-            let mut ch = ENCODER_IN;
+            let mut e = self.op("Reshape", &[&e_in, &shape], vec![], &format!("{p}.folded")); // [B*D*V, 7 (+ K), H, W]
+            let mut ch = pool.encoder_in();
             for (i, c) in pool.encoder.iter().enumerate() {
                 e = self.conv(
                     &e,
@@ -177,11 +196,11 @@ impl Graph<'_> {
         let scaled = self.op("Mul", &[&logits, &inv], vec![], "colour.blend.scaled");
         let t = self.op("Tanh", &[&scaled], vec![], "colour.blend.tanh");
         let logits = self.op("Mul", &[&t, &bound], vec![], "colour.blend.bounded");
-        // The sources' RGBA at the tile: [B*D, V, 4, th, tw].
+        // The sources' RGBA (and cue) at the tile: [B*D, V, C_v, th, tw].
         let x = self.crop_to_tile(&level0, [p, p], 0, [4, 5], "colour.blend.rgba6");
-        let four = self.const_i64(&[4], "four");
-        let shape = self.concat(&[&lead, &v, &four, &tile], 0, "rgba_shape");
-        let x = self.op("Reshape", &[&x, &shape], vec![], "colour.blend.rgba"); // [B*D, V, 4, th, tw]
+        let cv = self.const_i64(&[pool.view_channels() as i64], "view_channels");
+        let shape = self.concat(&[&lead, &v, &cv, &tile], 0, "rgba_shape");
+        let x = self.op("Reshape", &[&x, &shape], vec![], "colour.blend.rgba"); // [B*D, V, C_v, th, tw]
         let rgb = self.slice_axis(&x, 2, 0, 3, "colour.blend.rgb");
         let a = self.slice_axis(&x, 2, 3, 4, "colour.blend.alpha");
         let ex = self.op("Exp", &[&logits], vec![], "colour.blend.exp");

@@ -41,7 +41,7 @@ pub const TARGET_NAME: &str = "target";
 #[command(
     after_help = "Shard b holds batch b of `deepstereo train` with the same scenes, \
 --seed, --views, --augment, --synthetic-percent, --view-stride, --skip-flat and --batch = \
---shard-size: tensors `level0..level{L-1}` ([K, D, 4V, H_l, W_l], or [K, D, V, 4, H_l, W_l] for the \
+--shard-size: tensors `level0..level{L-1}` ([K, D, 4V, H_l, W_l], or [K, D, V, C_v, H_l, W_l] (C_v 4, or 9 with the per-view cue) for the \
 any-number-of-views family) and `target` ([K, 3, t, t]), f32; metadata `deepstereo.config` \
 (the model config JSON), `views` (V, the same for every sample of a shard), `shard`, \
 `samples`, `format` = deepstereo-samples-v1 and `deepstereo.samples` (the options). A shard \

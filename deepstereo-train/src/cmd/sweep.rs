@@ -34,7 +34,8 @@ pub struct Args {
     pub out: PathBuf,
     /// Also write every input of this model's network (and of its ONNX export) for one
     /// tile covering the whole target image: `level0..level{L-1}` [1, D, 4V, H_l, W_l] f32
-    /// (the image size rounded up to the model's alignment, plus the border the network
+    /// (any-number-of-views models: [1, D, V, 4, H_l, W_l], or [1, D, V, 9, H_l, W_l] with
+    /// each view's geometric cue after its RGBA; the image size rounded up to the model's alignment, plus the border the network
     /// reads), `tile_origin` [2] i64 (y0, x0) = (0, 0) and `tile_size` [2] i64 (th, tw).
     /// The network's output is then [1, 3, th, tw]; crop it to the image size.
     /// `embedded` names the embedded model.

@@ -229,7 +229,7 @@ fn augmentation_scales_colours_and_flips_consistently() {
     let (plane, w) = (6, 3);
     let mut vol: Vec<f32> = (0..8 * plane).map(|i| i as f32).collect(); // 2 views
     let orig = vol.clone();
-    augment_planes(&mut vol, plane, w, &[2.0, 3.0, 4.0], true);
+    augment_planes(&mut vol, (plane, w, 4), &[2.0, 3.0, 4.0], true);
     for (i, (a, o)) in vol
         .chunks_exact(plane)
         .zip(orig.chunks_exact(plane))
@@ -244,8 +244,34 @@ fn augmentation_scales_colours_and_flips_consistently() {
         assert_eq!(a[3], o[5] * g);
     }
     let mut target: Vec<f32> = (0..3 * plane).map(|i| i as f32).collect();
-    augment_planes(&mut target, plane, w, &[2.0, 3.0, 4.0], false);
+    augment_planes(&mut target, (plane, w, 3), &[2.0, 3.0, 4.0], false);
     assert_eq!(target[2 * plane + 1], (2 * plane + 1) as f32 * 4.0);
+}
+
+/// With the per-view cue (9 channels per view): the gains touch R, G, B only, and a flip
+/// mirrors every channel and negates the cue's horizontal direction (channel 4) alone.
+#[test]
+fn augmentation_flips_the_cue_direction() {
+    let (plane, w, cycle) = (6, 3, 9);
+    let mut vol: Vec<f32> = (0..2 * cycle * plane).map(|i| i as f32 + 1.0).collect();
+    let orig = vol.clone();
+    augment_planes(&mut vol, (plane, w, cycle), &[2.0, 3.0, 4.0], true);
+    for (i, (a, o)) in vol
+        .chunks_exact(plane)
+        .zip(orig.chunks_exact(plane))
+        .enumerate()
+    {
+        let g = match i % cycle {
+            c @ 0..=2 => [2.0, 3.0, 4.0][c],
+            4 => -1.0,
+            _ => 1.0,
+        };
+        assert_eq!(a[0], o[2] * g, "plane {i} (channel {})", i % cycle);
+        assert_eq!(a[5], o[3] * g, "plane {i} (channel {})", i % cycle);
+    }
+    let mut again = orig.clone();
+    augment_planes(&mut again, (plane, w, cycle), &[1.0, 1.0, 1.0], false);
+    assert_eq!(again, orig, "unit gains without a flip change nothing");
 }
 
 #[test]
