@@ -380,6 +380,35 @@ def sweep_case(p: Parity, model: Model, name: str, scene: Path, planes: int | No
     print(f"  {name}: image range [{img.min():.3f}, {img.max():.3f}]", flush=True)
 
 
+def add_cue_check(p: Parity, weights: Path, rng: np.random.Generator) -> None:
+    """`python/add_cue.py` on a model without the cue: the new model, fed the same RGBA
+    with any cue beside it, renders exactly what the old one does (its cue weights are
+    zero), in candle (`deepstereo forward`); and the file's config reads the cue."""
+    out = p.work / "with_cue" / "model.safetensors"
+    out.parent.mkdir(exist_ok=True)
+    run([sys.executable, ROOT / "python" / "add_cue.py", weights, out], "add_cue.py")
+    cfg = ref.read_config(str(out))
+    if cfg.pool is None or not cfg.pool.cue:
+        p.fail(f"add_cue.py: {out} does not read the cue")
+        return
+    old = ref.read_config(str(weights))
+    t = old.tile
+    psv = lambda s, r: rgb_alpha(s, r, r.random, lambda s2: np.clip(r.random(s2) * 1.6 - 0.3, 0, 1))  # noqa: E731
+    x = make_inputs(old, 1, old.planes, t, t, psv, rng, 5)
+    xc = {k: np.concatenate([a, (rng.random(a.shape[:3] + (5,) + a.shape[4:]) * 12 - 7).astype(np.float32)], 3) for k, a in x.items()}
+    images = []
+    for model, inputs, name in ((weights, x, "without"), (out, xc, "with")):
+        f = p.work / f"add_cue_{name}.safetensors"
+        save_file(inputs, str(f))
+        run([p.bin, "forward", "--model", model, "--inputs", f, "--out", p.work / f"add_cue_{name}_out.safetensors"], "forward")
+        images.append(load_file(str(p.work / f"add_cue_{name}_out.safetensors"))["image"])
+    d = float(np.abs(images[0] - images[1]).max())
+    status = "ok" if d <= 1e-6 else "FAIL"
+    print(f"  add_cue.py: the model with zero cue weights against the model without the cue: image max |diff| {d:.2e} {status}", flush=True)
+    if d > 1e-6:
+        p.fail(f"add_cue.py changed what the model renders: {d}")
+
+
 # --- main ------------------------------------------------------------------------------
 
 
@@ -495,6 +524,8 @@ def main() -> int:
         for extra in args.weights:
             models.append(p.load_model(extra.stem, extra))
         reference_loader_checks(p, models[0].weights)
+        if models[0].cfg.pool is not None and not models[0].cfg.pool.cue:
+            add_cue_check(p, models[0].weights, np.random.default_rng(8))
 
         for m in models:
             print(f"== cases for {m.name}", flush=True)

@@ -10,11 +10,14 @@
 //! `SWEEP_BENCH_PY=0` skips Python.
 
 use deepstereo_core::camera::{Camera, Intrinsics, WorldToCamera};
+use deepstereo_core::config::CUE_CHANNELS;
 use deepstereo_core::geometry::{inverse_depths, plane_homography};
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::scene::npy::{read_npy, write_npy_f32, write_npy_f64};
-use deepstereo_core::sweep::{sweep_into, Region, Source, CHANNELS};
+use deepstereo_core::sweep::cue::{centre_in, cue_slice};
+use deepstereo_core::sweep::{sweep_into, target_rays, Region, Source, CHANNELS};
 use glam::{DMat3, DVec3};
+use rayon::prelude::*;
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
@@ -131,6 +134,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         rust_s * 1e3,
         rust_cpu * 1e3,
         rust_s * 1e9 / (PLANES * VIEWS * hw) as f64
+    );
+
+    // The per-view cue of the same (plane, view) slices (`sweep::cue`), which models with
+    // `pool.cue` compute beside the sweep: its cost against the sweep's.
+    let rays = target_rays(&target.intrinsics, region);
+    let centres: Vec<DVec3> = sources.iter().map(|s| centre_in(&target, s)).collect();
+    let mut cue = vec![0.0f32; PLANES * VIEWS * CUE_CHANNELS * hw];
+    let (cue_s, cue_cpu) = timed(5, || {
+        cue.par_chunks_mut(CUE_CHANNELS * hw)
+            .enumerate()
+            .for_each(|(i, o)| cue_slice(&rays, inv[i / VIEWS], centres[i % VIEWS], o))
+    });
+    println!(
+        "  rust cue_slice, the same slices: {:8.1} ms wall, {:8.1} ms CPU  ({:.2}x the sweep's wall time)",
+        cue_s * 1e3,
+        cue_cpu * 1e3,
+        cue_s / rust_s
     );
 
     if std::env::var("SWEEP_BENCH_PY").as_deref() == Ok("0") {

@@ -280,6 +280,9 @@ impl Config {
         c
     }
 
+    /// The presets' names, as [`Self::preset`] takes them.
+    pub const PRESETS: [&'static str; 4] = ["tiny", "paper", "nviews", "nviews-cue"];
+
     /// A preset by name.
     pub fn preset(name: &str) -> Option<Self> {
         match name {
@@ -606,6 +609,15 @@ mod tests {
         for l in 0..4 {
             // Every level covers at least the level-0 footprint.
             assert!((p.input_size(l, 8) << l) >= 26, "level {l}");
+        }
+    }
+
+    #[test]
+    fn every_preset_name_is_a_valid_preset() {
+        for name in Config::PRESETS {
+            let c = Config::preset(name).unwrap();
+            assert_eq!(c.name, name);
+            c.validate().unwrap();
         }
     }
 

@@ -17,8 +17,8 @@ pub struct Args {
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Input safetensors with `level0..level{L-1}`, each [B, D, 4V, H_l, W_l] f32
-    /// ([B, D, V, 4, H_l, W_l] for the any-number-of-views family) (as
-    /// `deepstereo sweep --model` writes them).
+    /// ([B, D, V, 4, H_l, W_l] for the any-number-of-views family, [B, D, V, 9, H_l, W_l]
+    /// with the per-view cue) (as `deepstereo sweep --model` writes them).
     #[arg(long)]
     pub inputs: PathBuf,
     /// Output safetensors: `image` [B, 3, th, tw] and `selection` [B, D, th, tw] f32.

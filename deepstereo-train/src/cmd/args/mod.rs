@@ -59,7 +59,10 @@ pub fn load_config(s: &str) -> anyhow::Result<Config> {
     }
     let p = Path::new(s);
     let text = std::fs::read_to_string(p).with_context(|| {
-        format!("--config '{s}' is neither a preset (tiny, paper, nviews) nor a readable file")
+        format!(
+            "--config '{s}' is neither a preset ({}) nor a readable file",
+            Config::PRESETS.join(", ")
+        )
     })?;
     let c: Config = serde_json::from_str(&text)
         .with_context(|| format!("{}: invalid config JSON", p.display()))?;
