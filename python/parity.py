@@ -524,8 +524,12 @@ def main() -> int:
         for extra in args.weights:
             models.append(p.load_model(extra.stem, extra))
         reference_loader_checks(p, models[0].weights)
-        if models[0].cfg.pool is not None and not models[0].cfg.pool.cue:
-            add_cue_check(p, models[0].weights, np.random.default_rng(8))
+        # add_cue.py on the first pooled model without the cue (the shipped one, when it has none).
+        plain = [m for m in models if m.cfg.pool is not None and not m.cfg.pool.cue]
+        if plain:
+            add_cue_check(p, plain[0].weights, np.random.default_rng(8))
+        else:
+            p.fail("no pooled model without the cue to check add_cue.py on")
 
         for m in models:
             print(f"== cases for {m.name}", flush=True)

@@ -14,7 +14,7 @@ use deepstereo_core::config::CUE_CHANNELS;
 use deepstereo_core::geometry::{inverse_depths, plane_homography};
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::scene::npy::{read_npy, write_npy_f32, write_npy_f64};
-use deepstereo_core::sweep::cue::{centre_in, cue_slice};
+use deepstereo_core::sweep::cue::{centre_in, cue_slice, CueRays};
 use deepstereo_core::sweep::{sweep_into, target_rays, Region, Source, CHANNELS};
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
@@ -138,7 +138,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     // The per-view cue of the same (plane, view) slices (`sweep::cue`), which models with
     // `pool.cue` compute beside the sweep: its cost against the sweep's.
-    let rays = target_rays(&target.intrinsics, region);
+    let rays = CueRays::new(&target_rays(&target.intrinsics, region));
     let centres: Vec<DVec3> = sources.iter().map(|s| centre_in(&target, s)).collect();
     let mut cue = vec![0.0f32; PLANES * VIEWS * CUE_CHANNELS * hw];
     let (cue_s, cue_cpu) = timed(5, || {

@@ -11,7 +11,7 @@ use crate::camera::Camera;
 use crate::config::{Config, CUE_CHANNELS, MAX_VIEWS};
 use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
-use crate::sweep::cue::{centre_in, cue_slice};
+use crate::sweep::cue::{centre_in, cue_slice, CueRays};
 use crate::sweep::{sweep_into, target_rays, Region, Source, CHANNELS};
 use crate::view_weights::view_weights;
 use glam::DVec3;
@@ -188,7 +188,7 @@ fn with_cue(
 ) -> Vec<f32> {
     use rayon::prelude::*;
     let (hw, v) = (region.len(), centres.len());
-    let rays = target_rays(&target.intrinsics, region);
+    let rays = CueRays::new(&target_rays(&target.intrinsics, region));
     let per_view = (CHANNELS + CUE_CHANNELS) * hw;
     let mut out = vec![0.0f32; inv_depths.len() * v * per_view];
     out.par_chunks_mut(per_view)

@@ -1,6 +1,6 @@
-//! Branch-free f32 `exp` and `tanh`, written so that a loop over a slice vectorises (no
-//! libm call per element); the blend's bounded exponential (`fused/fastmath.rs`) is built
-//! on them. Rendering only: training and the candle composition keep libm's `tanh` and
+//! Branch-free f32 `exp`, `tanh` and `ln`, written so that a loop over a slice vectorises
+//! (no libm call per element); the blend's bounded exponential (`fused/fastmath.rs`) is
+//! built on them, the per-view cue's logarithms (`sweep/cue.rs`) on `ln`. Rendering only: training and the candle composition keep libm's `tanh` and
 //! `exp`; the tests bound the difference.
 //!
 //! `exp` is Cephes' `expf` (range reduction by `ln 2` split in two parts, a degree-5
@@ -66,6 +66,38 @@ pub(crate) fn tanh_f32(x: f32) -> f32 {
     t.copysign(x)
 }
 
+/// `sqrt(2)`: mantissas above it are halved (and the exponent raised) so that the series
+/// variable stays within `+-0.172`.
+const SQRT2: f32 = std::f32::consts::SQRT_2;
+/// Coefficients of `ln(m) = 2 f (1 + f^2 / 3 + f^4 / 5 + ...)`, `f = (m - 1) / (m + 1)`,
+/// highest degree first (the next term is below 3e-10).
+const LN_SERIES: [f32; 5] = [1.0 / 9.0, 1.0 / 7.0, 1.0 / 5.0, 1.0 / 3.0, 1.0];
+
+/// `ln(x)` for `x` clamped to the positive normal range `[f32::MIN_POSITIVE, f32::MAX]` (so
+/// 0 gives `ln(MIN_POSITIVE) ~ -87.3` and infinity `ln(MAX) ~ 88.7`; NaN stays NaN): the
+/// exponent from the bits, and the series of `atanh` on the mantissa.
+#[inline(always)]
+pub(crate) fn ln_f32(x: f32) -> f32 {
+    let nan = x.is_nan();
+    let x = x.clamp(f32::MIN_POSITIVE, f32::MAX);
+    let bits = x.to_bits();
+    let e = ((bits >> 23) & 0xff) as i32 - 127;
+    let m = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000); // [1, 2)
+    let high = m > SQRT2;
+    let (m, e) = if high { (m * 0.5, e + 1) } else { (m, e) };
+    let f = (m - 1.0) / (m + 1.0);
+    let f2 = f * f;
+    let p = LN_SERIES[1..]
+        .iter()
+        .fold(LN_SERIES[0], |acc, &c| acc * f2 + c);
+    let r = e as f32 * std::f32::consts::LN_2 + 2.0 * f * p;
+    if nan {
+        f32::NAN
+    } else {
+        r
+    }
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -86,6 +118,28 @@ pub(crate) mod tests {
         assert_eq!(exp_f32(0.0), 1.0);
         assert!(exp_f32(f32::NAN).is_nan());
         assert!(exp_f32(-1e30) > 0.0 && exp_f32(1e30).is_finite());
+    }
+
+    #[test]
+    fn ln_is_close_to_the_exact_value_from_the_smallest_to_the_largest_float() {
+        let mut worst = 0f64;
+        for i in 0..400_000 {
+            // 1e-37 .. 3e38, logarithmically, and every mantissa near sqrt(2) and 1.
+            let x = 10f32.powf(-37.0 + 75.4 * i as f32 / 400_000.0);
+            let want = (x as f64).ln();
+            let err = (ln_f32(x) as f64 - want).abs() / want.abs().max(1.0);
+            worst = worst.max(err);
+        }
+        for i in 0..100_000 {
+            let x = 0.5 + 1.5 * i as f32 / 100_000.0;
+            let want = (x as f64).ln();
+            worst = worst.max((ln_f32(x) as f64 - want).abs() / want.abs().max(1.0));
+        }
+        assert!(worst < 3e-7, "worst error {worst:e}");
+        assert_eq!(ln_f32(1.0), 0.0);
+        assert!((ln_f32(0.0) - f32::MIN_POSITIVE.ln()).abs() < 1e-4);
+        assert!((ln_f32(f32::INFINITY) - f32::MAX.ln()).abs() < 1e-4);
+        assert!(ln_f32(f32::NAN).is_nan());
     }
 
     #[test]
