@@ -201,9 +201,10 @@ impl DeepStereo {
         &self.cfg
     }
 
-    /// `inputs[l]`: `[B, D, 4V, H_l, W_l]` (paper family) or `[B, D, V, 4, H_l, W_l]`
-    /// (any-number-of-views family, `V >= 1`) with `H_l = Config::input_size(l, th)`, for
-    /// `l < Config::levels`. `th`, `tw` multiples of `Config::tile_align()`.
+    /// `inputs[l]`: `[B, D, 4V, H_l, W_l]` (paper family) or `[B, D, V, C_v, H_l, W_l]`
+    /// (any-number-of-views family, `V >= 1`, `C_v` = `Config::view_channels()`) with
+    /// `H_l = Config::input_size(l, th)`, for `l < Config::levels`. `th`, `tw` multiples of
+    /// `Config::tile_align()`.
     pub fn forward(&self, inputs: &[Tensor]) -> Result<Output> {
         self.run(inputs, false)
     }

@@ -113,7 +113,7 @@ impl ViewEncoder {
         Ok(Some(c.reshape((n * v, CUE_CHANNELS, h, w))?))
     }
 
-    /// Steps 1-3 of the module doc for one level `x` `[B, D, V, 4, H, W]`: fused passes
+    /// Steps 1-3 of the module doc for one level `x` `[B, D, V, C_v, H, W]`: fused passes
     /// on the CPU (`fused/pool.rs`), else candle ops ([`Self::forward_reference`]).
     /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain and the
     /// pooled statistics are written in one buffer ([`fused::pooled_stats`]).
