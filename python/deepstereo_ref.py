@@ -12,8 +12,8 @@ Shapes: input level `l` is `[B, D, 4V, H_l, W_l]` (the paper's family) or
 `[B, D, V, 4, H_l, W_l]` (the any-number-of-views family, config `pool`, any V: its view
 pooling and colour blend mirror `deepstereo-core/src/pool.rs`, tensors `views.encode.{i}.*`
 and `colour.blend.{i}.*`; with `pool.cue`, `[B, D, V, 4 + 5, H_l, W_l]`: each view's
-geometric cue after its RGBA, read by the encoder, `deepstereo-core/src/sweep/cue.rs`); outputs `image` `[B, 3, th, tw]` and `selection`
-`[B, D, th, tw]`, with `th = H_0 - 2 pad(0)`.
+geometric cue after its RGBA, read by the encoder, `deepstereo-core/src/sweep/cue.rs`);
+outputs `image` `[B, 3, th, tw]` and `selection` `[B, D, th, tw]`, with `th = H_0 - 2 pad(0)`.
 """
 
 from __future__ import annotations
