@@ -6,6 +6,7 @@
 # `mpi --target`), one without it (`--exclude-own-photo`), and three without, blended.
 # Writes OUT/NAME.SETTING/eval.json and prints a markdown table (python3, stdlib only).
 # Usage: bash deepstereo-train/scripts/mpi_eval.sh [OUT] [MODEL]
+#        SPEED_ONLY=1 runs only the camera-path timing at the end.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${1:-/tmp/deepstereo-mpi-eval}"
@@ -19,6 +20,7 @@ SETTINGS=(
   "other1|--eval-mpis 1 --exclude-own-photo"
   "other3|--eval-mpis 3 --exclude-own-photo"
 )
+[ -n "${SPEED_ONLY:-}" ] && EVAL_SCENES=()
 for entry in "${EVAL_SCENES[@]}"; do
   dir="${entry%%|*}"; flags="${entry#*|}"; name="$(basename "$dir")"
   if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
