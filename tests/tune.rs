@@ -9,30 +9,10 @@ use std::path::{Path, PathBuf};
 const W: u32 = 64;
 const H: u32 = 48;
 
-/// A procedural scene of 8 views at W x H in `dir/scene_0000`. With `auto_bounds` its
+/// A procedural scene of 8 views at W x H ([`synth_scene`]). With `auto_bounds` its
 /// transforms.json loses near/far, so the bounds are estimated from the images.
 fn scene(dir: &Path, auto_bounds: bool) -> PathBuf {
-    let size = format!("{W}x{H}");
-    let out = dir.to_string_lossy();
-    let res = run_deepstereo([
-        "synth",
-        "--out",
-        &out,
-        "--scenes",
-        "1",
-        "--views",
-        "8",
-        "--seed",
-        "5",
-        "--size",
-        &size,
-        "--rig",
-        "forward",
-        "--supersample",
-        "1",
-    ]);
-    assert_eq!(res.code, Some(0), "synth failed: {}", res.stderr);
-    let s = dir.join("scene_0000");
+    let s = synth_scene(dir, (W as usize, H as usize), 8, 5, &["--rig", "forward"]);
     if auto_bounds {
         let path = s.join("transforms.json");
         let mut json: serde_json::Value =

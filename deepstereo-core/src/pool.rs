@@ -44,8 +44,9 @@ pub use crate::config::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 #[derive(Debug, Clone)]
 pub struct ViewEncoder {
     convs: Vec<Conv2d>,
-    /// Whether the input levels carry each view's cue after its RGBA.
-    cue: bool,
+    /// Channels of one view in an input level ([`ViewPool::view_channels`]): 4, or with
+    /// the cue after the RGBA 4 + [`CUE_CHANNELS`].
+    view_channels: usize,
 }
 
 /// One level's pooled tower input and, for the colour blend, the views' features.
@@ -93,19 +94,19 @@ impl ViewEncoder {
         }
         Ok(Self {
             convs,
-            cue: pool.cue,
+            view_channels: pool.view_channels(),
         })
     }
 
     /// Channels of one view in an input level.
     pub fn view_channels(&self) -> usize {
-        4 + if self.cue { CUE_CHANNELS } else { 0 }
+        self.view_channels
     }
 
     /// The cue of every view of an input level `[B, D, V, 4 + K, H, W]` as
     /// `[B * D * V, K, H, W]` (`None` without the cue).
     fn cue_of(&self, x: &Tensor) -> Result<Option<Tensor>> {
-        if !self.cue {
+        if self.view_channels == 4 {
             return Ok(None);
         }
         let (n, v, h, w, _) = view_dims(x, self.view_channels())?;

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Render time of two models side by side: ROUNDS alternated runs of `deepstereo eval` on
-# a 504x378 procedural scene (seed 987654, as eval_default.sh and eval_views.sh make it;
+# the first procedural evaluation scene (eval_scenes.sh: 504x378, seed 987654;
 # its held-out views 0 and 8, every 8th), VIEWS source views, default pruning; prints the
 # seconds per view of each run and the ratio B / A per round and their median
 # (python3, stdlib only). Run it with nothing else on the machine.
@@ -14,9 +14,9 @@ VIEWS="${4:-4}"
 OUT="${5:-/tmp/deepstereo-bench-render}"
 BIN=target/release/deepstereo
 mkdir -p "$OUT"
-if [ ! -d "$OUT/procedural/scene_0000" ]; then
-  "$BIN" synth --out "$OUT/procedural" --scenes 1 --seed 987654 --size 504x378 --views 12 > /dev/null
-fi
+# shellcheck source=eval_scenes.sh
+source deepstereo-train/scripts/eval_scenes.sh
+procedural_scenes "$OUT" 1
 for r in $(seq 1 "$ROUNDS"); do
   for tag in a b; do
     m="$A"; [ "$tag" = b ] && m="$B"

@@ -17,11 +17,7 @@ source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
 TINY=deepstereo-train/assets/tiny.safetensors
 mkdir -p "$OUT"
-# Two procedural scenes of seeds no run trains on (training draws its procedural scenes
-# from --seed 1 and validation from 1 ^ VALIDATION_SALT), 504x378, 12 views each.
-if [ ! -d "$OUT/procedural/scene_0001" ]; then
-  "$BIN" synth --out "$OUT/procedural" --scenes 2 --seed 987654 --size 504x378 --views 12 > /dev/null
-fi
+procedural_scenes "$OUT"
 # scene directory | extra flags
 SCENES=(
   "${EVAL_SCENES[@]}"

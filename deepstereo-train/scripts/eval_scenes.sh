@@ -1,6 +1,7 @@
 # The real evaluation scenes (never trained on) and the flags each is read with, as
-# "DIR|FLAGS": sourced by eval_default.sh, tune_curves.sh and mpi_eval.sh after they cd
-# to the repository root (../shared/data beside it).
+# "DIR|FLAGS", and the procedural evaluation scenes: sourced by eval_default.sh,
+# eval_views.sh, bench_render.sh, tune_curves.sh and mpi_eval.sh after they cd to the
+# repository root (../shared/data beside it).
 DATA="${DATA:-../shared/data}"
 EVAL_SCENES=(
   "$DATA/val/juicebox|"
@@ -10,3 +11,14 @@ EVAL_SCENES=(
   "$DATA/templeRing|--downscale 2"
   "$DATA/ethiopianHead|--downscale 4"
 )
+
+# The first N (default 2) procedural evaluation scenes, of a seed no run trains on
+# (training draws its procedural scenes from --seed 1 and validation from
+# 1 ^ VALIDATION_SALT), 504x378, 12 views each, in DIR/procedural/scene_000K (made once).
+procedural_scenes() {
+  local dir="$1" n="${2:-2}"
+  if [ ! -d "$dir/procedural/scene_$(printf %04d $((n - 1)))" ]; then
+    target/release/deepstereo synth --out "$dir/procedural" --scenes "$n" --seed 987654 \
+      --size 504x378 --views 12 > /dev/null
+  fi
+}

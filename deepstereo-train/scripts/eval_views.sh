@@ -18,10 +18,7 @@ VIEWS=(2 4 8 10)
 source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
 mkdir -p "$OUT"
-# Procedural scenes of seeds no run trains on (as eval_default.sh).
-if [ ! -d "$OUT/procedural/scene_0001" ]; then
-  "$BIN" synth --out "$OUT/procedural" --scenes 2 --seed 987654 --size 504x378 --views 12 > /dev/null
-fi
+procedural_scenes "$OUT"
 SCENES=("${EVAL_SCENES[@]}" "$OUT/procedural/scene_0000|" "$OUT/procedural/scene_0001|")
 TAGS=()
 case "${ONLY:-}" in
