@@ -30,6 +30,10 @@ pub trait Backend: Sync {
             self.name()
         )))
     }
+    /// Whether [`Backend::run_layers`] works.
+    fn has_layers(&self) -> bool {
+        false
+    }
 }
 
 /// The candle backend (CPU, f32).
@@ -50,6 +54,9 @@ impl Backend for CandleBackend {
     }
     fn run_layers(&self, inputs: &TileInputs, planes: usize) -> Result<(Vec<f32>, Vec<f32>)> {
         self.infer(inputs, planes, |out| &out.colours)
+    }
+    fn has_layers(&self) -> bool {
+        true
     }
 }
 

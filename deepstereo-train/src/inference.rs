@@ -174,7 +174,7 @@ pub fn render_camera(
     // pixels apart in every (real) source: a subset of the requested planes.
     let cams: Vec<&Camera> = srcs[..k].iter().map(|s| &s.cameras[0]).collect();
     let step = max_plane_step(target, &cams, &requested);
-    let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step)
+    let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step, cfg.planes)
         .into_iter()
         .map(|z| requested[z])
         .collect();
@@ -192,6 +192,7 @@ pub fn render_camera(
             pruner.range(),
             settings.prune.guide_level,
             settings.tile,
+            cfg.planes,
         )?;
         if let Some(g) = guide {
             pruner = pruner.with_guide(g, t0.elapsed().as_secs_f64());

@@ -1,6 +1,6 @@
-//! The network's own coarse pass: the selection of a render at `1 / 2^level` resolution
-//! over the planes of the depth range, telling each block of the full render which
-//! planes carry its probability mass.
+//! The network's own coarse pass: the selection (and, where the backend gives them, the
+//! per-plane colours) of a render at `1 / 2^level` resolution over the planes of the
+//! depth range, telling each block of the full render which planes its image needs.
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
@@ -11,22 +11,33 @@ use crate::render::Backend;
 const MIN_GUIDE_SIDE: usize = 8;
 
 /// Selection probabilities of a coarse render: `sel[(z * height + y) * width + x]` for
-/// the planes `first..=last` of the full render (`z` counted from `first`).
+/// the guide planes `planes[z]` (planes of the full render, every `k`-th of the depth
+/// range `first..=last`, so that at most the model's own plane count is run).
 #[derive(Clone, Debug)]
 pub struct Guide {
     /// Pyramid level of the coarse render (its pixels are `2^level` full-resolution pixels).
     pub level: usize,
     pub width: usize,
     pub height: usize,
-    /// The planes rendered, `first..=last` of the full render's planes.
+    /// The depth range, `first..=last` of the full render's planes.
     pub range: (usize, usize),
+    /// The planes rendered (full-render indices, increasing, within `range`).
+    pub planes: Vec<usize>,
+    /// Full-render planes up to this many away from a guide plane are represented by it
+    /// (`k / 2` for every `k`-th plane; 0 when every plane of the range was rendered).
+    pub spread: usize,
     pub sel: Vec<f32>,
+    /// Per-plane colours `rgb[((z * 3 + c) * height + y) * width + x]`, when the backend
+    /// returns them ([`Backend::has_layers`]).
+    pub rgb: Option<Vec<f32>>,
 }
 
 /// Renders the guide: the network on `target` at pyramid level `level` (clamped so that
-/// the image keeps at least one aligned tile), on the planes `range` of `inv_depths`,
-/// from the sources' level-`level` images. `None` when the target is too small for a
-/// coarse level.
+/// the image keeps at least one aligned tile), on the planes `range` of `inv_depths`
+/// (every `k`-th of them and the last, `k = ceil(planes / max_planes)`; `max_planes` 0:
+/// all), from the sources' level-`level` images. `None` when the target is too small
+/// for a coarse level.
+#[allow(clippy::too_many_arguments)]
 pub fn network_guide(
     backend: &dyn Backend,
     target: &Camera,
@@ -35,6 +46,7 @@ pub fn network_guide(
     range: (usize, usize),
     level: usize,
     tile: usize,
+    max_planes: usize,
 ) -> Result<Option<Guide>> {
     let cfg = backend.config();
     let a = cfg.tile_align();
@@ -73,21 +85,45 @@ pub fn network_guide(
             inv_depths.len()
         )));
     }
-    let band = &inv_depths[z0..=z1];
+    let all = z1 + 1 - z0;
+    let k = if max_planes == 0 {
+        1
+    } else {
+        all.div_ceil(max_planes).max(1)
+    };
+    let mut planes: Vec<usize> = (z0..=z1).step_by(k).collect();
+    if planes.last() != Some(&z1) {
+        planes.push(z1);
+    }
+    let band: Vec<f64> = planes.iter().map(|&z| inv_depths[z]).collect();
     let nz = band.len();
     // Tiles no larger than the (small) guide image needs, so little is computed outside.
     let tile = tile.max(1).div_ceil(a) * a;
     let (th, tw) = (tile.min(h.div_ceil(a) * a), tile.min(w.div_ceil(a) * a));
+    let layers = backend.has_layers();
     let mut sel = vec![0f32; nz * w * h];
+    let mut rgb = vec![0f32; if layers { nz * 3 * w * h } else { 0 }];
     for y0 in (0..h).step_by(th) {
         for x0 in (0..w).step_by(tw) {
-            let inputs = tile_inputs(cfg, &cam, &srcs, band, (x0 as i64, y0 as i64), (th, tw))?;
-            let (_, s) = backend.run(&inputs, nz)?; // [nz, th, tw]
+            let inputs = tile_inputs(cfg, &cam, &srcs, &band, (x0 as i64, y0 as i64), (th, tw))?;
+            // s: [nz, th, tw]; c: [nz, 3, th, tw] with layers.
+            let (c, s) = if layers {
+                backend.run_layers(&inputs, nz)?
+            } else {
+                backend.run(&inputs, nz)?
+            };
             for z in 0..nz {
                 for y in y0..(y0 + th).min(h) {
                     for x in x0..(x0 + tw).min(w) {
                         let v = s[(z * th + y - y0) * tw + x - x0];
                         sel[(z * h + y) * w + x] = if v.is_finite() { v } else { 1.0 };
+                        if layers {
+                            for ch in 0..3 {
+                                let v = c[((z * 3 + ch) * th + y - y0) * tw + x - x0];
+                                rgb[((z * 3 + ch) * h + y) * w + x] =
+                                    if v.is_finite() { v } else { 0.5 };
+                            }
+                        }
                     }
                 }
             }
@@ -98,15 +134,19 @@ pub fn network_guide(
         width: w,
         height: h,
         range,
+        planes,
+        spread: k / 2,
         sel,
+        rgb: layers.then_some(rgb),
     }))
 }
 
 impl Guide {
     /// The planes (of the full render) the block at `(x0, y0)` of side `size` needs: for
     /// every guide pixel under the block (and `dilate` guide pixels around it), the most
-    /// probable planes holding `mass` of its selection; their union. `None` when the block
-    /// lies outside the guide.
+    /// probable planes, as few as hold `mass` of its selection or leave its colour within
+    /// `max_error` of the colour of all planes (see [`needed_prefix`]); their union.
+    /// `None` when the block lies outside the guide.
     pub fn planes(
         &self,
         x0: usize,
@@ -114,6 +154,7 @@ impl Guide {
         size: usize,
         dilate: usize,
         mass: f32,
+        max_error: f32,
     ) -> Option<Vec<bool>> {
         let l = self.level;
         let (gx0, gy0) = (
@@ -125,26 +166,81 @@ impl Guide {
         if gx0 >= gx1 || gy0 >= gy1 {
             return None;
         }
-        let nz = self.range.1 + 1 - self.range.0;
+        let nz = self.planes.len();
         let mut want = vec![false; self.range.1 + 1];
         let mut probs: Vec<(f32, usize)> = Vec::with_capacity(nz);
+        let mut colours: Vec<[f32; 3]> = Vec::with_capacity(nz);
+        let plane = self.height * self.width;
         for y in gy0..gy1 {
             for x in gx0..gx1 {
+                let px = y * self.width + x;
                 probs.clear();
-                probs
-                    .extend((0..nz).map(|z| (self.sel[(z * self.height + y) * self.width + x], z)));
+                probs.extend((0..nz).map(|z| (self.sel[z * plane + px], z)));
                 probs.sort_by(|a, b| b.0.total_cmp(&a.0));
-                let total: f32 = probs.iter().map(|p| p.0).sum();
-                let mut acc = 0f32;
-                for &(p, z) in &probs {
-                    want[self.range.0 + z] = true;
-                    acc += p;
-                    if acc >= mass * total {
-                        break;
+                colours.clear();
+                if let Some(rgb) = self.rgb.as_ref().filter(|_| max_error > 0.0) {
+                    colours.extend(
+                        probs
+                            .iter()
+                            .map(|&(_, z)| [0, 1, 2].map(|c| rgb[(z * 3 + c) * plane + px])),
+                    );
+                }
+                let k = needed_prefix(&probs, &colours, mass, max_error);
+                for &(_, z) in &probs[..k] {
+                    let g = self.planes[z];
+                    let lo = g.saturating_sub(self.spread).max(self.range.0);
+                    for w in &mut want[lo..=(g + self.spread).min(self.range.1)] {
+                        *w = true;
                     }
                 }
             }
         }
         Some(want)
     }
+}
+
+/// How many of the planes `probs` (selection probability and plane, most probable
+/// first; `colours` their colours in the same order, or empty) one pixel needs: the
+/// shortest prefix that holds `mass` of the total probability, or (with colours) whose
+/// renormalized blend `sum_kept s_z c_z / sum_kept s_z` is within `max_error` (in every
+/// channel) of the blend of all planes `sum_z s_z c_z / sum_z s_z`. Leaving out planes of
+/// mass `m` moves the colour by `m (c_kept - c_left)`, the difference of the two groups'
+/// mean colours: planes may be left out when they are improbable or when they agree with
+/// the rest.
+pub fn needed_prefix(
+    probs: &[(f32, usize)],
+    colours: &[[f32; 3]],
+    mass: f32,
+    max_error: f32,
+) -> usize {
+    let total: f32 = probs.iter().map(|p| p.0).sum();
+    let use_colour = colours.len() == probs.len() && total > 0.0;
+    let mut all = [0f64; 3];
+    if use_colour {
+        for (&(p, _), c) in probs.iter().zip(colours) {
+            for ch in 0..3 {
+                all[ch] += p as f64 * c[ch] as f64;
+            }
+        }
+        all = all.map(|v| v / total as f64);
+    }
+    let (mut acc, mut kept) = (0f32, [0f64; 3]);
+    for (k, &(p, _)) in probs.iter().enumerate() {
+        acc += p;
+        if acc >= mass * total {
+            return k + 1;
+        }
+        if use_colour && acc > 0.0 {
+            let c = &colours[k];
+            let mut worst = 0f64;
+            for ch in 0..3 {
+                kept[ch] += p as f64 * c[ch] as f64;
+                worst = worst.max((kept[ch] / acc as f64 - all[ch]).abs());
+            }
+            if worst <= max_error as f64 {
+                return k + 1;
+            }
+        }
+    }
+    probs.len()
 }

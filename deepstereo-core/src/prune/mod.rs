@@ -135,10 +135,12 @@ pub const DEFAULT_WINDOW: usize = 2;
 pub const DEFAULT_STANDOUT: f32 = 0.1;
 /// Default of [`PruneOptions::flat`].
 pub const DEFAULT_FLAT: f32 = 1.0 / 255.0;
+/// Default of [`PruneOptions::error`].
+pub const DEFAULT_ERROR: f32 = 0.0;
 /// Default of [`PruneOptions::keep`].
 pub const DEFAULT_KEEP: f32 = 0.95;
 /// Default of [`PruneOptions::max_step`].
-pub const DEFAULT_MAX_STEP: f64 = 1.0;
+pub const DEFAULT_MAX_STEP: f64 = 6.0;
 /// Default of [`PruneOptions::guide_level`].
 pub const DEFAULT_GUIDE_LEVEL: usize = 2;
 
@@ -182,6 +184,10 @@ pub struct PruneOptions {
     /// [`CoarsePass::Network`]: per coarse pixel, the fraction of its selection
     /// probability the kept planes must hold (1 keeps every plane).
     pub keep: f32,
+    /// [`CoarsePass::Network`] with a backend that returns per-plane colours: a coarse
+    /// pixel needs no more planes once leaving out the rest moves its colour by at most
+    /// this (0-1, every channel; 0: `keep` alone decides).
+    pub error: f32,
     /// [`CoarsePass::Network`]: pyramid level of the coarse render (2: a quarter of the
     /// resolution, 1/16 of the pixels).
     pub guide_level: usize,
@@ -226,6 +232,7 @@ impl Default for PruneOptions {
             mode: PruneMode::Off,
             coarse: CoarsePass::Network,
             keep: DEFAULT_KEEP,
+            error: DEFAULT_ERROR,
             guide_level: DEFAULT_GUIDE_LEVEL,
             max_step: DEFAULT_MAX_STEP,
             mass: DEFAULT_MASS,
@@ -268,6 +275,12 @@ impl PruneOptions {
         }
         if !(self.keep > 0.0 && self.keep <= 1.0) {
             return bad(format!("--prune-keep must be in (0, 1], got {}", self.keep));
+        }
+        if !(self.error >= 0.0 && self.error.is_finite()) {
+            return bad(format!(
+                "--prune-error must be a finite number >= 0, got {}",
+                self.error
+            ));
         }
         if !(self.max_step >= 0.0 && self.max_step.is_finite()) {
             return bad(format!(

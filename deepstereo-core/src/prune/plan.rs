@@ -264,7 +264,7 @@ impl<'a> Pruner<'a> {
     /// guide.
     fn split_guided(&self, g: &Guide, x0: usize, y0: usize, size: usize) -> (f64, Vec<Block>) {
         let (z0, z1) = self.range;
-        let planes = match g.planes(x0, y0, size, GUIDE_DILATE, self.opts.keep) {
+        let planes = match g.planes(x0, y0, size, GUIDE_DILATE, self.opts.keep, self.opts.error) {
             Some(want) => self.widen(&want),
             None => (z0..=z1).collect(),
         };

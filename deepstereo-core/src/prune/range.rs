@@ -160,19 +160,30 @@ pub fn max_plane_step(target: &Camera, sources: &[&Camera], inv_depths: &[f64]) 
     best
 }
 
-/// Every `k`-th plane of `d` (and the last), `k` the largest whole factor that keeps the
-/// disparity step at most `max_step_px` when the grid's step is `step_px`: the planes a
-/// scene with a small disparity range needs. All planes when `max_step_px` is 0 or the
-/// step is unknown.
-pub fn thin_planes(d: usize, step_px: f64, max_step_px: f64) -> Vec<usize> {
-    let k = if max_step_px > 0.0 && step_px > 0.0 && step_px.is_finite() {
-        ((max_step_px / step_px).floor() as usize).max(1)
-    } else {
-        1
+/// Disparity step, in pixels, below which planes add nothing the image can show:
+/// [`thin_planes`] thins planes closer than this regardless of how many remain.
+pub const SUBPIXEL_STEP: f64 = 1.0;
+
+/// Every `k`-th plane of `d` (and the last): the planes a scene with a small disparity
+/// range needs. `k` is the largest whole factor that keeps the disparity step at most
+/// `max_step_px` when the grid's step is `step_px`, and, where that step exceeds
+/// [`SUBPIXEL_STEP`], that still leaves at least `min_planes` planes (the model's own
+/// plane count: the spacing it was trained at). All planes when `max_step_px` is 0 or
+/// the step is unknown.
+pub fn thin_planes(d: usize, step_px: f64, max_step_px: f64, min_planes: usize) -> Vec<usize> {
+    let every = |k: usize| -> Vec<usize> {
+        let mut out: Vec<usize> = (0..d).step_by(k).collect();
+        if d > 0 && out.last() != Some(&(d - 1)) {
+            out.push(d - 1);
+        }
+        out
     };
-    let mut out: Vec<usize> = (0..d).step_by(k).collect();
-    if d > 0 && out.last() != Some(&(d - 1)) {
-        out.push(d - 1);
+    if !(max_step_px > 0.0 && step_px > 0.0 && step_px.is_finite()) {
+        return every(1);
     }
-    out
+    let mut k = ((max_step_px / step_px).floor() as usize).max(1);
+    while k > 1 && step_px * k as f64 > SUBPIXEL_STEP && every(k).len() < min_planes {
+        k -= 1;
+    }
+    every(k)
 }

@@ -157,9 +157,18 @@ pub(super) fn check_bands_guided(
     let inv = inverse_depths(s.near, s.far, planes);
     let mut pruner = Pruner::new(&cfg, cam, &refs, &inv, None, opts);
     if let Some(b) = guide {
-        let g = network_guide(b, cam, &refs, &inv, pruner.range(), opts.guide_level, tile)
-            .expect("guide")
-            .expect("image large enough for a guide");
+        let g = network_guide(
+            b,
+            cam,
+            &refs,
+            &inv,
+            pruner.range(),
+            opts.guide_level,
+            tile,
+            cfg.planes,
+        )
+        .expect("guide")
+        .expect("image large enough for a guide");
         pruner = pruner.with_guide(g, 0.0);
     }
     let (w, h) = (
@@ -236,19 +245,23 @@ fn prune_keeps_the_true_surface_plane_of_known_pixels() {
         margin: PHOTO_MARGIN,
         ..PruneOptions::auto()
     };
-    assert_keeps_true_planes(&opts, None);
+    assert_keeps_true_planes(&opts, None, 32);
 }
 
 /// Over a procedural scene of every rig (240x180, 32 planes, 64-pixel tiles): at least
 /// [`MIN_KEPT_KNOWN`] of the known pixels keep their true plane (and those away from
 /// depth edges all do, see [`check_bands_guided`]), while pruning leaves out at least
 /// 10% of the planes x pixels. `guide`: the model of the network-guided pass.
-pub(super) fn assert_keeps_true_planes(opts: &PruneOptions, guide: Option<&dyn Backend>) {
+pub(super) fn assert_keeps_true_planes(
+    opts: &PruneOptions,
+    guide: Option<&dyn Backend>,
+    planes: usize,
+) {
     let (mut misses, mut checked, mut kept, mut total) = (0, 0, 0, 0);
     for (i, rig) in Rig::CONCRETE.into_iter().enumerate() {
         let s = scene_sized(9100 + i as u64, rig, 240, 180);
         let target = s.cameras.len() / 2;
-        let (m, n, k, t) = check_bands_guided(&s, target, 32, 64, opts, guide);
+        let (m, n, k, t) = check_bands_guided(&s, target, planes, 64, opts, guide);
         println!(
             "{rig}: {m} of {n} known pixels lost their plane; {:.0}% of planes x pixels kept",
             100.0 * k as f64 / t as f64

@@ -24,7 +24,16 @@ fn trained_tiny() -> CandleBackend {
 
 #[test]
 fn prune_network_guide_keeps_the_true_surface_plane_of_known_pixels() {
-    assert_keeps_true_planes(&PruneOptions::auto(), Some(&trained_tiny()));
+    assert_keeps_true_planes(&PruneOptions::auto(), Some(&trained_tiny()), 32);
+}
+
+/// At twice the model's planes the guide runs on every second plane (its own count) and
+/// each of its planes stands for its neighbours: the same guarantee holds.
+#[test]
+fn prune_thinned_network_guide_keeps_the_true_surface_plane_of_known_pixels() {
+    let tiny = trained_tiny();
+    let planes = 2 * tiny.config().planes;
+    assert_keeps_true_planes(&PruneOptions::auto(), Some(&tiny), planes);
 }
 
 #[test]
@@ -55,7 +64,7 @@ fn prune_plane_step_is_focal_times_baseline_times_inverse_depth_step() {
 #[test]
 fn prune_thin_planes_keeps_every_kth_and_the_last() {
     let every4: Vec<usize> = (0..96).step_by(4).chain([95]).collect();
-    assert_eq!(thin_planes(96, 0.25, 1.0), every4);
+    assert_eq!(thin_planes(96, 0.25, 1.0, 64), every4);
     // Steps already at or above the limit, unknown steps and a zero limit keep all.
     for (step, max) in [
         (1.0, 1.0),
@@ -65,13 +74,21 @@ fn prune_thin_planes_keeps_every_kth_and_the_last() {
         (0.1, 0.0),
     ] {
         assert_eq!(
-            thin_planes(7, step, max),
+            thin_planes(7, step, max, 1),
             (0..7).collect::<Vec<_>>(),
             "{step} {max}"
         );
     }
-    assert_eq!(thin_planes(1, 0.01, 1.0), vec![0]);
-    assert!(thin_planes(0, 0.5, 1.0).is_empty());
+    assert_eq!(thin_planes(1, 0.01, 1.0, 1), vec![0]);
+    assert!(thin_planes(0, 0.5, 1.0, 1).is_empty());
+    // Beyond a pixel of disparity, thinning stops at the model's plane count: 64 planes
+    // 0.75 px apart may go to every 2nd (1.5 px, 33 planes) but not every 3rd (22).
+    let every2: Vec<usize> = (0..64).step_by(2).chain([63]).collect();
+    assert_eq!(thin_planes(64, 0.75, 3.0, 32), every2);
+    assert_eq!(thin_planes(64, 0.75, 3.0, 40), (0..64).collect::<Vec<_>>());
+    assert_eq!(thin_planes(64, 0.75, 3.0, 20).len(), 22);
+    // Sub-pixel thinning ignores the floor.
+    assert_eq!(thin_planes(96, 0.25, 1.0, 96), every4);
 }
 
 #[test]
@@ -99,7 +116,7 @@ fn prune_constant_tiles_take_their_colour_without_the_network() -> TestResult {
         };
         let mut pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
         if coarse == CoarsePass::Network {
-            let g = network_guide(&backend, &cam, &refs, &inv, pruner.range(), 2, 32)?
+            let g = network_guide(&backend, &cam, &refs, &inv, pruner.range(), 2, 32, 0)?
                 .ok_or("no guide")?;
             pruner = pruner.with_guide(g, 0.0);
         }

@@ -3,8 +3,8 @@
 use crate::inference::{BackendKind, RenderSettings};
 use anyhow::{bail, Result};
 use deepstereo_core::prune::{
-    CoarsePass, PruneMode, PruneOptions, DEFAULT_GUIDE_LEVEL, DEFAULT_KEEP, DEFAULT_MARGIN,
-    DEFAULT_MASS, DEFAULT_MAX_STEP, DEFAULT_TOLERANCE, DEFAULT_WINDOW,
+    CoarsePass, PruneMode, PruneOptions, DEFAULT_ERROR, DEFAULT_GUIDE_LEVEL, DEFAULT_KEEP,
+    DEFAULT_MARGIN, DEFAULT_MASS, DEFAULT_MAX_STEP, DEFAULT_TOLERANCE, DEFAULT_WINDOW,
 };
 use deepstereo_core::render::Backend;
 use std::path::PathBuf;
@@ -45,6 +45,11 @@ pub struct ModelArgs {
     /// the kept planes must hold (1 keeps every plane; lower is faster).
     #[arg(long, default_value_t = DEFAULT_KEEP)]
     pub prune_keep: f32,
+    /// --prune auto, network pass (candle): a coarse pixel also needs no more planes once
+    /// leaving out the rest moves its colour by at most this (0-1 scale, every channel; 0:
+    /// the selection probability alone decides).
+    #[arg(long, default_value_t = DEFAULT_ERROR)]
+    pub prune_error: f32,
     /// --prune auto, network pass: pyramid level of the coarse render (1: half resolution,
     /// 2: a quarter).
     #[arg(long, default_value_t = DEFAULT_GUIDE_LEVEL)]
@@ -87,6 +92,7 @@ impl ModelArgs {
             mode: self.prune,
             coarse: self.prune_coarse,
             keep: self.prune_keep,
+            error: self.prune_error,
             guide_level: self.prune_guide_level,
             max_step: self.prune_max_step,
             mass: self.prune_mass,
