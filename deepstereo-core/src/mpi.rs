@@ -142,6 +142,7 @@ impl Mpi {
             camera.intrinsics.height as usize,
         );
         let rel = camera.pose.relative_to(&self.camera.pose);
+        let planes = self.plane_maps(rel.translation);
         let mut img = RgbImage::new(w as u32, h as u32);
         let mut alpha = vec![0f32; w * h];
         img.data
@@ -153,7 +154,7 @@ impl Mpi {
                     let uv = DVec2::new(x as f64 + 0.5, y as f64 + 0.5);
                     let n = camera.intrinsics.unproject_pixel(uv);
                     let rr = rel.rotation * DVec3::new(n.x, n.y, 1.0);
-                    let (c, a) = self.ray(rr, rel.translation);
+                    let (c, a) = self.ray(&planes, rr);
                     row[x * 3..x * 3 + 3].copy_from_slice(&c);
                     arow[x] = a;
                 }
@@ -161,23 +162,42 @@ impl Mpi {
         (img, alpha)
     }
 
-    /// One ray, `rr` its direction in the reference camera's coordinates and `t` the
-    /// other camera's centre there: premultiplied colour and accumulated alpha.
-    fn ray(&self, rr: DVec3, t: DVec3) -> ([f32; 3], f32) {
+    /// Per plane, for a camera whose centre is `t` in the reference's coordinates: the
+    /// factor `alpha_z = 1 - rho_z t_z` and the affine map from a ray's slopes
+    /// `(a, b) = ((R r)_x, (R r)_y) / (R r)_z` to the plane point's reference pixel,
+    /// `u = fx (alpha_z a + rho_z t_x) + cx`, `v = fy (alpha_z b + rho_z t_y) + cy` (the
+    /// point `q` of the module docs has `q_z = 1`): `[alpha, su, ou, sv, ov]`.
+    fn plane_maps(&self, t: DVec3) -> Vec<[f64; 5]> {
         let k = &self.camera.intrinsics;
+        (self.inv_depths.iter())
+            .map(|&rho| {
+                let al = 1.0 - rho * t.z;
+                [
+                    al,
+                    k.fx * al,
+                    k.fx * rho * t.x + k.cx,
+                    k.fy * al,
+                    k.fy * rho * t.y + k.cy,
+                ]
+            })
+            .collect()
+    }
+
+    /// One ray, `rr` its direction in the reference camera's coordinates, `maps` from
+    /// [`Self::plane_maps`]: premultiplied colour and accumulated alpha. A plane is hit
+    /// when `alpha_z / (R r)_z` is positive (the point lies ahead of the camera).
+    fn ray(&self, maps: &[[f64; 5]], rr: DVec3) -> ([f32; 3], f32) {
         let (mut c, mut trans) = ([0f32; 3], 1f32);
-        for (plane, &rho) in self.planes.iter().zip(&self.inv_depths) {
-            let s = (1.0 - rho * t.z) / rr.z;
-            if !(s > 0.0 && s.is_finite()) {
+        let (a, b) = (rr.x / rr.z, rr.y / rr.z);
+        if !(a.is_finite() && b.is_finite()) {
+            return (c, 0.0);
+        }
+        let (w, h) = (self.width(), self.height());
+        for (plane, m) in self.planes.iter().zip(maps) {
+            if !(m[0] * rr.z > 0.0) {
                 continue;
             }
-            let q = rr * s + t * rho;
-            if q.z <= 0.0 {
-                continue;
-            }
-            let u = k.fx * q.x / q.z + k.cx;
-            let v = k.fy * q.y / q.z + k.cy;
-            let px = sample(plane, self.width(), self.height(), u, v);
+            let px = sample(plane, w, h, m[1] * a + m[2], m[3] * b + m[4]);
             let wgt = trans * px[3];
             for ch in 0..3 {
                 c[ch] += wgt * px[ch];
@@ -197,6 +217,7 @@ pub const OPAQUE_T: f32 = 1.0 / 2560.0;
 
 /// Bilinear RGBA at pixel coordinate `(u, v)` (centres at `i + 0.5`); transparent
 /// outside the image (edge pixels extend half a pixel).
+#[inline]
 fn sample(plane: &[f32], w: usize, h: usize, u: f64, v: f64) -> [f32; 4] {
     if !(u >= 0.0 && v >= 0.0 && u <= w as f64 && v <= h as f64) {
         return [0.0; 4];
@@ -204,15 +225,23 @@ fn sample(plane: &[f32], w: usize, h: usize, u: f64, v: f64) -> [f32; 4] {
     let (fx, fy) = (u - 0.5, v - 0.5);
     let (x0, y0) = (fx.floor(), fy.floor());
     let (ax, ay) = ((fx - x0) as f32, (fy - y0) as f32);
-    let clampi = |i: f64, n: usize| (i.max(0.0) as usize).min(n - 1);
-    let (xa, xb) = (clampi(x0, w), clampi(x0 + 1.0, w));
-    let (ya, yb) = (clampi(y0, h), clampi(y0 + 1.0, h));
-    let at = |x: usize, y: usize| &plane[(y * w + x) * 4..(y * w + x) * 4 + 4];
+    // x0 >= -1 and x0 + 1 <= w here, so only the two edges clamp.
+    let (xi, yi) = (x0 as isize, y0 as isize);
+    let xa = xi.max(0) as usize;
+    let xb = ((xi + 1) as usize).min(w - 1);
+    let ya = yi.max(0) as usize;
+    let yb = ((yi + 1) as usize).min(h - 1);
+    let (ra, rb) = (
+        &plane[ya * w * 4..(ya + 1) * w * 4],
+        &plane[yb * w * 4..(yb + 1) * w * 4],
+    );
+    let (p00, p01) = (&ra[xa * 4..xa * 4 + 4], &ra[xb * 4..xb * 4 + 4]);
+    let (p10, p11) = (&rb[xa * 4..xa * 4 + 4], &rb[xb * 4..xb * 4 + 4]);
     let mut out = [0f32; 4];
     for (ch, o) in out.iter_mut().enumerate() {
-        let top = at(xa, ya)[ch] * (1.0 - ax) + at(xb, ya)[ch] * ax;
-        let bottom = at(xa, yb)[ch] * (1.0 - ax) + at(xb, yb)[ch] * ax;
-        *o = top * (1.0 - ay) + bottom * ay;
+        let top = p00[ch] + (p01[ch] - p00[ch]) * ax;
+        let bottom = p10[ch] + (p11[ch] - p10[ch]) * ax;
+        *o = top + (bottom - top) * ay;
     }
     out
 }

@@ -7,6 +7,10 @@ use crate::error::{Error, Result};
 use crate::inputs::{level_camera, tile_inputs, PyramidSource};
 use crate::render::Backend;
 
+/// The colour bound of [`needed_prefix`] stops only once the kept planes hold at least
+/// this share of the selection (the most probable planes are always kept).
+pub const COLOUR_MIN_MASS: f32 = 0.7;
+
 /// Smallest side, in guide pixels, of a guide image (a smaller level is used otherwise).
 const MIN_GUIDE_SIDE: usize = 8;
 
@@ -230,7 +234,7 @@ pub fn needed_prefix(
         if acc >= mass * total {
             return k + 1;
         }
-        if use_colour && acc > 0.0 {
+        if use_colour && acc >= COLOUR_MIN_MASS * total {
             let c = &colours[k];
             let mut worst = 0f64;
             for ch in 0..3 {

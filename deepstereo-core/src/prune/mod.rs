@@ -11,15 +11,23 @@
 //!   The plane grid (uniform in inverse depth between the scene's near and far) is not
 //!   changed, so every plane the network runs on is a plane of the unpruned render.
 //! - **Plane spacing** ([`max_plane_step`], [`thin_planes`]): when the requested planes
-//!   are closer than [`PruneOptions::max_step`] pixels of disparity apart in every
-//!   source (measured on a grid of target pixels), only every k-th plane is run: 96
-//!   planes over a scene whose disparity range is 25 pixels need 25 of them.
+//!   are closer than a pixel of disparity apart in every source (measured on a grid of
+//!   target pixels), only every k-th plane is run: 96 planes over a scene whose
+//!   disparity range is 25 pixels need 25 of them. Beyond a pixel, more planes than the
+//!   model's own count (the spacing it was trained at) are thinned toward that count
+//!   while the step stays within [`PruneOptions::max_step`] pixels: the default model
+//!   renders as well from its own 32 planes as from 64 or 96 on the scenes measured
+//!   (`docs/performance.md`), and 64 planes cost twice as much.
+//!   The coarse pass below likewise runs at most the model's plane count (every k-th plane
+//!   of the range, each standing for its neighbours).
 //! - **Planes per block** ([`Pruner::plan`]): a coarse pass says which planes each block
 //!   of a tile needs. By default ([`CoarsePass::Network`], [`network_guide`]) it is the
 //!   network itself, run at `1 / 2^guide_level` resolution (1/16 of the pixels) on every
 //!   plane of the depth range: each block keeps, for every coarse pixel under it (and
 //!   one around it), the most probable planes holding [`PruneOptions::keep`] of its
-//!   selection, and [`PruneOptions::margin`] planes on each side.
+//!   selection (or, with [`PruneOptions::error`] above 0, as few as leave its colour
+//!   within that of the colour of all planes), and [`PruneOptions::margin`] planes on
+//!   each side.
 //!   [`CoarsePass::Photo`] instead scores planes by photo-consistency: every second
 //!   pixel of the tile at pyramid level 1, on every plane of the range, scored by the
 //!   smallest mean squared colour difference between two sources over a window of
@@ -74,7 +82,7 @@ pub use guide::{network_guide, Guide};
 pub use plan::{Block, Pruner, TilePlan};
 pub use range::{
     max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_planes, BOUNDS_MARGIN,
-    MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES,
+    MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES, SUBPIXEL_STEP,
 };
 pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
 
@@ -136,11 +144,11 @@ pub const DEFAULT_STANDOUT: f32 = 0.1;
 /// Default of [`PruneOptions::flat`].
 pub const DEFAULT_FLAT: f32 = 1.0 / 255.0;
 /// Default of [`PruneOptions::error`].
-pub const DEFAULT_ERROR: f32 = 0.0;
+pub const DEFAULT_ERROR: f32 = 0.0025;
 /// Default of [`PruneOptions::keep`].
 pub const DEFAULT_KEEP: f32 = 0.95;
 /// Default of [`PruneOptions::max_step`].
-pub const DEFAULT_MAX_STEP: f64 = 6.0;
+pub const DEFAULT_MAX_STEP: f64 = 8.0;
 /// Default of [`PruneOptions::guide_level`].
 pub const DEFAULT_GUIDE_LEVEL: usize = 2;
 
@@ -191,9 +199,10 @@ pub struct PruneOptions {
     /// [`CoarsePass::Network`]: pyramid level of the coarse render (2: a quarter of the
     /// resolution, 1/16 of the pixels).
     pub guide_level: usize,
-    /// Largest disparity step, in source pixels, between the planes kept: when the
-    /// requested planes are closer than that in every source, only every k-th is run (0:
-    /// never thin).
+    /// Largest disparity step, in source pixels, between the planes kept: requested
+    /// planes closer than [`SUBPIXEL_STEP`] in every source are thinned to every k-th, and
+    /// beyond that down to the model's own plane count (the spacing it was trained at)
+    /// while the step stays within this (0: never thin; see [`thin_planes`]).
     pub max_step: f64,
     /// Fraction of the coarse samples' support (each informative sample spreads one unit
     /// over its plausible planes) the kept planes must hold, most supported planes first
