@@ -185,7 +185,8 @@ impl Mpi {
 
     /// One ray, `rr` its direction in the reference camera's coordinates, `maps` from
     /// [`Self::plane_maps`]: premultiplied colour and accumulated alpha. A plane is hit
-    /// when `alpha_z / (R r)_z` is positive (the point lies ahead of the camera).
+    /// when `alpha_z / (R r)_z` is positive (the point lies ahead of the camera; both are
+    /// finite here).
     fn ray(&self, maps: &[[f64; 5]], rr: DVec3) -> ([f32; 3], f32) {
         let (mut c, mut trans) = ([0f32; 3], 1f32);
         let (a, b) = (rr.x / rr.z, rr.y / rr.z);
@@ -194,7 +195,7 @@ impl Mpi {
         }
         let (w, h) = (self.width(), self.height());
         for (plane, m) in self.planes.iter().zip(maps) {
-            if !(m[0] * rr.z > 0.0) {
+            if m[0] * rr.z <= 0.0 {
                 continue;
             }
             let px = sample(plane, w, h, m[1] * a + m[2], m[3] * b + m[4]);

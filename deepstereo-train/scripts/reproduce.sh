@@ -66,6 +66,11 @@ $DS report "${TINY[@]}" --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --pl
 $DS report "${TINY[@]}" --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --downscale-grid 1,2,4 --backends ort --prune-grid off --out "$OUT/report_scale"
 $DS report "${TINY[@]}" --scene "$OUT/eval_scenes/scene_0000" --holdout 2,5 --planes-grid 32 --views-grid 1,2,3,4 --backends ort --prune-grid off --out "$OUT/report_views"
 cp "$OUT/report_procedural/report.png" "$FIG/report_procedural.png"
+if [ -d "$DATA" ]; then
+  echo "== error against run time with the embedded model, with and without pruning"
+  $DS report --scene "$DATA/val/juicebox" --llffhold 8 --planes-grid 16,32,64,96 --backends candle --prune-grid off,auto --out "$OUT/report_juicebox"
+  cp "$OUT/report_juicebox/report.png" "$FIG/report_juicebox.png"
+fi
 echo "== speed benchmarks (whole network against onnxruntime and PyTorch)"
 cargo bench -p deepstereo-train --bench network | tee "$OUT/bench_network.txt"
 echo "== convolution layers against onnxruntime and PyTorch"

@@ -205,8 +205,8 @@ impl Guide {
 
 /// How many of the planes `probs` (selection probability and plane, most probable
 /// first; `colours` their colours in the same order, or empty) one pixel needs: the
-/// shortest prefix that holds `mass` of the total probability, or (with colours) whose
-/// renormalized blend `sum_kept s_z c_z / sum_kept s_z` is within `max_error` (in every
+/// shortest prefix that holds `mass` of the total probability, or (with colours) that
+/// holds [`COLOUR_MIN_MASS`] of it and whose renormalized blend `sum_kept s_z c_z / sum_kept s_z` is within `max_error` (in every
 /// channel) of the blend of all planes `sum_z s_z c_z / sum_z s_z`. Leaving out planes of
 /// mass `m` moves the colour by `m (c_kept - c_left)`, the difference of the two groups'
 /// mean colours: planes may be left out when they are improbable or when they agree with
@@ -234,13 +234,16 @@ pub fn needed_prefix(
         if acc >= mass * total {
             return k + 1;
         }
-        if use_colour && acc >= COLOUR_MIN_MASS * total {
-            let c = &colours[k];
-            let mut worst = 0f64;
-            for ch in 0..3 {
-                kept[ch] += p as f64 * c[ch] as f64;
-                worst = worst.max((kept[ch] / acc as f64 - all[ch]).abs());
-            }
+        if !use_colour {
+            continue;
+        }
+        for ch in 0..3 {
+            kept[ch] += p as f64 * colours[k][ch] as f64;
+        }
+        if acc >= COLOUR_MIN_MASS * total {
+            let worst = (0..3)
+                .map(|ch| (kept[ch] / acc as f64 - all[ch]).abs())
+                .fold(0f64, f64::max);
             if worst <= max_error as f64 {
                 return k + 1;
             }

@@ -15,9 +15,10 @@
 //!   target pixels), only every k-th plane is run: 96 planes over a scene whose
 //!   disparity range is 25 pixels need 25 of them. Beyond a pixel, more planes than the
 //!   model's own count (the spacing it was trained at) are thinned toward that count
-//!   while the step stays within [`PruneOptions::max_step`] pixels: the default model
-//!   renders as well from its own 32 planes as from 64 or 96 on the scenes measured
-//!   (`docs/performance.md`), and 64 planes cost twice as much.
+//!   while the step stays within [`PruneOptions::max_step`] pixels: with the rest of
+//!   pruning, the default model renders such thinned planes within 0.2 dB of (and mostly
+//!   above) the unpruned render at 64 and 96 planes on every scene measured
+//!   (`docs/performance.md`, `prune_eval.sh`), at half the cost or less.
 //!   The coarse pass below likewise runs at most the model's plane count (every k-th plane
 //!   of the range, each standing for its neighbours).
 //! - **Planes per block** ([`Pruner::plan`]): a coarse pass says which planes each block
@@ -25,9 +26,9 @@
 //!   network itself, run at `1 / 2^guide_level` resolution (1/16 of the pixels) on every
 //!   plane of the depth range: each block keeps, for every coarse pixel under it (and
 //!   one around it), the most probable planes holding [`PruneOptions::keep`] of its
-//!   selection (or, with [`PruneOptions::error`] above 0, as few as leave its colour
-//!   within that of the colour of all planes), and [`PruneOptions::margin`] planes on
-//!   each side.
+//!   selection (or, once they hold [`COLOUR_MIN_MASS`] of it, as few as leave its
+//!   colour within [`PruneOptions::error`] of the colour of all planes, where the
+//!   backend gives per-plane colours), and [`PruneOptions::margin`] planes on each side.
 //!   [`CoarsePass::Photo`] instead scores planes by photo-consistency: every second
 //!   pixel of the tile at pyramid level 1, on every plane of the range, scored by the
 //!   smallest mean squared colour difference between two sources over a window of
@@ -78,7 +79,7 @@ mod tests;
 mod tests_guide;
 mod views;
 
-pub use guide::{network_guide, Guide};
+pub use guide::{needed_prefix, network_guide, Guide, COLOUR_MIN_MASS};
 pub use plan::{Block, Pruner, TilePlan};
 pub use range::{
     max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_planes, BOUNDS_MARGIN,
@@ -144,7 +145,7 @@ pub const DEFAULT_STANDOUT: f32 = 0.1;
 /// Default of [`PruneOptions::flat`].
 pub const DEFAULT_FLAT: f32 = 1.0 / 255.0;
 /// Default of [`PruneOptions::error`].
-pub const DEFAULT_ERROR: f32 = 0.0025;
+pub const DEFAULT_ERROR: f32 = 0.0;
 /// Default of [`PruneOptions::keep`].
 pub const DEFAULT_KEEP: f32 = 0.95;
 /// Default of [`PruneOptions::max_step`].
@@ -193,8 +194,9 @@ pub struct PruneOptions {
     /// probability the kept planes must hold (1 keeps every plane).
     pub keep: f32,
     /// [`CoarsePass::Network`] with a backend that returns per-plane colours: a coarse
-    /// pixel needs no more planes once leaving out the rest moves its colour by at most
-    /// this (0-1, every channel; 0: `keep` alone decides).
+    /// pixel needs no more planes once those kept hold [`COLOUR_MIN_MASS`] of its
+    /// selection and leaving out the rest moves its colour by at most this (0-1, every
+    /// channel; 0: `keep` alone decides).
     pub error: f32,
     /// [`CoarsePass::Network`]: pyramid level of the coarse render (2: a quarter of the
     /// resolution, 1/16 of the pixels).

@@ -167,3 +167,64 @@ fn prune_constant_tiles_take_their_colour_without_the_network() -> TestResult {
     }
     Ok(())
 }
+
+/// The colour bound: the prefix `needed_prefix` returns is the shortest one that holds
+/// `mass` of the selection, or holds `COLOUR_MIN_MASS` of it with its renormalized blend
+/// within the bound of the full blend, computed here directly in f64.
+#[test]
+fn prune_needed_prefix_is_the_shortest_within_the_colour_bound() {
+    // Equal colours: leaving planes out changes nothing once 70% is kept.
+    let probs = [(0.5, 0), (0.3, 1), (0.2, 2)];
+    assert_eq!(needed_prefix(&probs, &[[0.4; 3]; 3], 0.95, 0.01), 2);
+    // Without colours only the mass decides.
+    assert_eq!(needed_prefix(&probs, &[], 0.95, 0.01), 3);
+    assert_eq!(needed_prefix(&probs, &[], 0.8, 0.01), 2);
+    // The last plane differs: leaving it out moves the colour by 0.2 (> 0.01).
+    let c = [[0.0; 3], [0.0; 3], [1.0, 0.0, 0.0]];
+    assert_eq!(needed_prefix(&probs, &c, 0.95, 0.01), 3);
+    assert_eq!(needed_prefix(&probs, &c, 0.95, 0.25), 2);
+    let mut seed = 12345u64;
+    let mut rnd = || {
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (seed >> 33) as f32 / (1u64 << 31) as f32
+    };
+    for _ in 0..500 {
+        let n = 1 + (rnd() * 12.0) as usize;
+        let mut probs: Vec<(f32, usize)> = (0..n).map(|z| (rnd().powi(3), z)).collect();
+        probs.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let colours: Vec<[f32; 3]> = (0..n).map(|_| [rnd(), rnd(), rnd()]).collect();
+        let (mass, err) = (0.5 + 0.5 * rnd(), 0.05 * rnd());
+        let total: f64 = probs.iter().map(|p| p.0 as f64).sum();
+        let blend = |k: usize| -> [f64; 3] {
+            let s: f64 = probs[..k].iter().map(|p| p.0 as f64).sum();
+            [0, 1, 2].map(|ch| {
+                (probs[..k].iter().zip(&colours))
+                    .map(|(p, c)| p.0 as f64 * c[ch] as f64)
+                    .sum::<f64>()
+                    / s
+            })
+        };
+        let all = blend(n);
+        let ok = |k: usize| {
+            let held: f64 = probs[..k].iter().map(|p| p.0 as f64).sum();
+            let b = blend(k);
+            held >= mass as f64 * total - 1e-6
+                || (held >= COLOUR_MIN_MASS as f64 * total - 1e-6
+                    && (0..3).all(|ch| (b[ch] - all[ch]).abs() <= err as f64 + 1e-6))
+        };
+        let k = needed_prefix(&probs, &colours, mass, err);
+        assert!(k >= 1 && k <= n);
+        assert!(k == n || ok(k), "prefix {k} of {n} outside the bound");
+        // Nothing shorter would do (up to rounding at the thresholds).
+        if k > 1 {
+            let held: f64 = probs[..k - 1].iter().map(|p| p.0 as f64).sum();
+            let b = blend(k - 1);
+            let clearly = held >= mass as f64 * total + 1e-4
+                || (held >= COLOUR_MIN_MASS as f64 * total + 1e-4
+                    && (0..3).all(|ch| (b[ch] - all[ch]).abs() <= err as f64 - 1e-4));
+            assert!(!clearly, "prefix {} of {n} would do", k - 1);
+        }
+    }
+}

@@ -46,8 +46,8 @@ pub struct ModelArgs {
     #[arg(long, default_value_t = DEFAULT_KEEP)]
     pub prune_keep: f32,
     /// --prune auto, network pass (candle): a coarse pixel also needs no more planes once
-    /// leaving out the rest moves its colour by at most this (0-1 scale, every channel; 0:
-    /// the selection probability alone decides).
+    /// those kept hold 70% of its selection and leaving out the rest moves its colour by
+    /// at most this (0-1 scale, every channel; 0: the selection probability alone decides).
     #[arg(long, default_value_t = DEFAULT_ERROR)]
     pub prune_error: f32,
     /// --prune auto, network pass: pyramid level of the coarse render (1: half resolution,
