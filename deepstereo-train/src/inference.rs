@@ -193,6 +193,7 @@ pub fn render_camera(
             settings.prune.guide_level,
             settings.tile,
             cfg.planes,
+            settings.prune.error > 0.0,
         )?;
         if let Some(g) = guide {
             pruner = pruner.with_guide(g, t0.elapsed().as_secs_f64());

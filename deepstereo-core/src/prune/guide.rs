@@ -39,8 +39,8 @@ pub struct Guide {
 /// Renders the guide: the network on `target` at pyramid level `level` (clamped so that
 /// the image keeps at least one aligned tile), on the planes `range` of `inv_depths`
 /// (every `k`-th of them and the last, `k = ceil(planes / max_planes)`; `max_planes` 0:
-/// all), from the sources' level-`level` images. `None` when the target is too small
-/// for a coarse level.
+/// all), from the sources' level-`level` images; with every plane's colour when `colours`
+/// and the backend gives them. `None` when the target is too small for a coarse level.
 #[allow(clippy::too_many_arguments)]
 pub fn network_guide(
     backend: &dyn Backend,
@@ -51,6 +51,7 @@ pub fn network_guide(
     level: usize,
     tile: usize,
     max_planes: usize,
+    colours: bool,
 ) -> Result<Option<Guide>> {
     let cfg = backend.config();
     let a = cfg.tile_align();
@@ -104,7 +105,7 @@ pub fn network_guide(
     // Tiles no larger than the (small) guide image needs, so little is computed outside.
     let tile = tile.max(1).div_ceil(a) * a;
     let (th, tw) = (tile.min(h.div_ceil(a) * a), tile.min(w.div_ceil(a) * a));
-    let layers = backend.has_layers();
+    let layers = colours && backend.has_layers();
     let mut sel = vec![0f32; nz * w * h];
     let mut rgb = vec![0f32; if layers { nz * 3 * w * h } else { 0 }];
     for y0 in (0..h).step_by(th) {

@@ -166,6 +166,7 @@ pub(super) fn check_bands_guided(
             opts.guide_level,
             tile,
             cfg.planes,
+            opts.error > 0.0,
         )
         .expect("guide")
         .expect("image large enough for a guide");

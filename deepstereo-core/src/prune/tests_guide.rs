@@ -116,7 +116,7 @@ fn prune_constant_tiles_take_their_colour_without_the_network() -> TestResult {
         };
         let mut pruner = Pruner::new(backend.config(), &cam, &refs, &inv, None, &opts);
         if coarse == CoarsePass::Network {
-            let g = network_guide(&backend, &cam, &refs, &inv, pruner.range(), 2, 32, 0)?
+            let g = network_guide(&backend, &cam, &refs, &inv, pruner.range(), 2, 32, 0, false)?
                 .ok_or("no guide")?;
             pruner = pruner.with_guide(g, 0.0);
         }
