@@ -17,17 +17,10 @@ source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
 TINY=deepstereo-train/assets/tiny.safetensors
 mkdir -p "$OUT"
-procedural_scenes "$OUT"
-# scene directory | extra flags
-SCENES=(
-  "${EVAL_SCENES[@]}"
-  "$OUT/procedural/scene_0000|"
-  "$OUT/procedural/scene_0001|"
-)
-for entry in "${SCENES[@]}"; do
+all_eval_scenes "$OUT"
+for entry in "${ALL_SCENES[@]}"; do
   dir="${entry%%|*}"; flags="${entry#*|}"
-  name="$(basename "$dir")"
-  case "$dir" in "$OUT/procedural/"*) name="procedural-${name#scene_}" ;; esac
+  name="$(scene_name "$dir")"
   if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
   # shellcheck disable=SC2086
   nice "$BIN" eval --scene "$dir" $flags --llffhold 8 --views 4 --model "$TINY" \

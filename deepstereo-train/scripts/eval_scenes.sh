@@ -1,7 +1,7 @@
 # The real evaluation scenes (never trained on) and the flags each is read with, as
 # "DIR|FLAGS", and the procedural evaluation scenes: sourced by eval_default.sh,
-# eval_views.sh, bench_render.sh, tune_curves.sh and mpi_eval.sh after they cd to the
-# repository root (../shared/data beside it).
+# eval_views.sh, prune_eval.sh, bench_render.sh, tune_curves.sh and mpi_eval.sh after
+# they cd to the repository root (../shared/data beside it).
 DATA="${DATA:-../shared/data}"
 EVAL_SCENES=(
   "$DATA/val/juicebox|"
@@ -21,4 +21,20 @@ procedural_scenes() {
     target/release/deepstereo synth --out "$dir/procedural" --scenes "$n" --seed 987654 \
       --size 504x378 --views 12 > /dev/null
   fi
+}
+
+# ALL_SCENES: the real evaluation scenes and the first two procedural ones in DIR (made
+# once), as "DIR|FLAGS".
+all_eval_scenes() {
+  procedural_scenes "$1" 2
+  ALL_SCENES=("${EVAL_SCENES[@]}" "$1/procedural/scene_0000|" "$1/procedural/scene_0001|")
+}
+
+# The name results are filed under: a scene directory's base name, procedural-000K for
+# the procedural scenes.
+scene_name() {
+  local name
+  name="$(basename "$1")"
+  case "$1" in */procedural/scene_*) name="procedural-${name#scene_}" ;; esac
+  echo "$name"
 }

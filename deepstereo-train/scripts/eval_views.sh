@@ -18,18 +18,16 @@ VIEWS=(2 4 8 10)
 source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
 mkdir -p "$OUT"
-procedural_scenes "$OUT"
-SCENES=("${EVAL_SCENES[@]}" "$OUT/procedural/scene_0000|" "$OUT/procedural/scene_0001|")
+all_eval_scenes "$OUT"
 TAGS=()
 case "${ONLY:-}" in
   base) TAGS=(base) ;;
   model) TAGS=(model) ;;
   *) TAGS=(model base) ;;
 esac
-for entry in "${SCENES[@]}"; do
+for entry in "${ALL_SCENES[@]}"; do
   dir="${entry%%|*}"; flags="${entry#*|}"
-  name="$(basename "$dir")"
-  case "$dir" in "$OUT/procedural/"*) name="procedural-${name#scene_}" ;; esac
+  name="$(scene_name "$dir")"
   if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
   for tag in "${TAGS[@]}"; do
     m="$MODEL"; [ "$tag" = base ] && m="$BASE"

@@ -17,12 +17,10 @@ PLANES=(${PLANES:-32 64 96})
 source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
 mkdir -p "$OUT"
-procedural_scenes "$OUT"
-SCENES=("${EVAL_SCENES[@]}" "$OUT/procedural/scene_0000|" "$OUT/procedural/scene_0001|")
-for entry in "${SCENES[@]}"; do
+all_eval_scenes "$OUT"
+for entry in "${ALL_SCENES[@]}"; do
   dir="${entry%%|*}"; flags="${entry#*|}"
-  name="$(basename "$dir")"
-  case "$dir" in "$OUT/procedural/"*) name="procedural-${name#scene_}" ;; esac
+  name="$(scene_name "$dir")"
   if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
   for p in "${PLANES[@]}"; do
     for mode in off auto; do
