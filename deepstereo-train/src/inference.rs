@@ -10,8 +10,8 @@ use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::prune::{
-    max_plane_step, network_guide, plane_range_from_bounds, plane_range_from_points, rank_views,
-    thin_planes, CoarsePass, PruneOptions, PruneStats, Pruner,
+    guide_planes, max_plane_step, network_guide, plane_range_from_bounds, plane_range_from_points,
+    rank_views, thin_planes, CoarsePass, PruneOptions, PruneStats, Pruner,
 };
 use deepstereo_core::render::{render_view, render_view_pruned, Backend, Rendered};
 use deepstereo_core::scene::{nearest_to_point, Scene};
@@ -170,8 +170,8 @@ pub fn render_camera(
         let r = render_view(backend, target, &srcs, &requested, settings.tile, progress)?;
         return Ok((r, requested));
     }
-    // Pruning runs every k-th plane when the requested ones are closer than `max_step`
-    // pixels apart in every (real) source: a subset of the requested planes.
+    // Pruning runs fewer planes, spread evenly, when the requested ones are closer than
+    // `max_step` pixels apart in every (real) source: a subset of the requested planes.
     let cams: Vec<&Camera> = srcs[..k].iter().map(|s| &s.cameras[0]).collect();
     let step = max_plane_step(target, &cams, &requested);
     let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step, cfg.planes)
@@ -192,7 +192,7 @@ pub fn render_camera(
             pruner.range(),
             settings.prune.guide_level,
             settings.tile,
-            cfg.planes,
+            guide_planes(cfg.planes, inv.len()),
             settings.prune.error > 0.0,
         )?;
         if let Some(g) = guide {

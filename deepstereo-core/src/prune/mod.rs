@@ -12,15 +12,15 @@
 //!   changed, so every plane the network runs on is a plane of the unpruned render.
 //! - **Plane spacing** ([`max_plane_step`], [`thin_planes`]): when the requested planes
 //!   are closer than a pixel of disparity apart in every source (measured on a grid of
-//!   target pixels), only every k-th plane is run: 96 planes over a scene whose
-//!   disparity range is 25 pixels need 25 of them. Beyond a pixel, more planes than the
-//!   model's own count (the spacing it was trained at) are thinned toward that count
-//!   while the step stays within [`PruneOptions::max_step`] pixels: with the rest of
+//!   target pixels), fewer planes spread evenly over the grid are run: 96 planes over a
+//!   scene whose disparity range is 19 pixels (0.2 px apart) need 20 of them. Beyond a pixel, more
+//!   planes than the model's own count (the spacing it was trained at) are thinned to
+//!   that count while the step stays within [`PruneOptions::max_step`] pixels: with the rest of
 //!   pruning, the default model renders such thinned planes within 0.2 dB of (and mostly
 //!   above) the unpruned render at 64 and 96 planes on every scene measured
 //!   (`docs/performance.md`, `prune_eval.sh`), at half the cost or less.
-//!   The coarse pass below likewise runs at most the model's plane count (every k-th plane
-//!   of the range, each standing for its neighbours).
+//!   The coarse pass below runs on every second plane of the range or sparser, at most
+//!   the model's plane count ([`guide_planes`]; each plane standing for its neighbours).
 //! - **Planes per block** ([`Pruner::plan`]): a coarse pass says which planes each block
 //!   of a tile needs. By default ([`CoarsePass::Network`], [`network_guide`]) it is the
 //!   network itself, run at `1 / 2^guide_level` resolution (1/16 of the pixels) on every
@@ -79,7 +79,7 @@ mod tests;
 mod tests_guide;
 mod views;
 
-pub use guide::{needed_prefix, network_guide, Guide, COLOUR_MIN_MASS};
+pub use guide::{guide_planes, needed_prefix, network_guide, Guide, COLOUR_MIN_MASS};
 pub use plan::{Block, Pruner, TilePlan};
 pub use range::{
     max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_planes, BOUNDS_MARGIN,
@@ -202,8 +202,8 @@ pub struct PruneOptions {
     /// resolution, 1/16 of the pixels).
     pub guide_level: usize,
     /// Largest disparity step, in source pixels, between the planes kept: requested
-    /// planes closer than [`SUBPIXEL_STEP`] in every source are thinned to every k-th, and
-    /// beyond that down to the model's own plane count (the spacing it was trained at)
+    /// planes closer than [`SUBPIXEL_STEP`] in every source are thinned (spread evenly),
+    /// and beyond that down to the model's own plane count (the spacing it was trained at)
     /// while the step stays within this (0: never thin; see [`thin_planes`]).
     pub max_step: f64,
     /// Fraction of the coarse samples' support (each informative sample spreads one unit

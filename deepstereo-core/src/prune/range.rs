@@ -164,26 +164,33 @@ pub fn max_plane_step(target: &Camera, sources: &[&Camera], inv_depths: &[f64]) 
 /// [`thin_planes`] thins planes closer than this regardless of how many remain.
 pub const SUBPIXEL_STEP: f64 = 1.0;
 
-/// Every `k`-th plane of `d` (and the last): the planes a scene with a small disparity
-/// range needs. `k` is the largest whole factor that keeps the disparity step at most
-/// `max_step_px` when the grid's step is `step_px`, and, where that step exceeds
-/// [`SUBPIXEL_STEP`], that still leaves at least `min_planes` planes (the model's own
-/// plane count: the spacing it was trained at). All planes when `max_step_px` is 0 or
-/// the step is unknown.
+/// The planes a scene with a small disparity range needs: `n` of the `d` planes spread
+/// evenly over the grid, the first and the last among them (plane `round(i (d - 1) / (n -
+/// 1))` for `i` in `0..n`, so neighbours are at most `ceil((d - 1) / (n - 1))` grid steps
+/// apart). `n` is the fewest that keep the disparity step (`step_px` per grid step) within
+/// `max_step_px`; where that step would exceed [`SUBPIXEL_STEP`], at least `min_planes` (the
+/// model's own plane count: the spacing it was trained at) or as many as keep the step
+/// within [`SUBPIXEL_STEP`], whichever is fewer. All planes when `max_step_px` is 0 or the
+/// step is unknown.
 pub fn thin_planes(d: usize, step_px: f64, max_step_px: f64, min_planes: usize) -> Vec<usize> {
-    let every = |k: usize| -> Vec<usize> {
-        let mut out: Vec<usize> = (0..d).step_by(k).collect();
-        if d > 0 && out.last() != Some(&(d - 1)) {
-            out.push(d - 1);
+    if !(max_step_px > 0.0 && step_px > 0.0 && step_px.is_finite()) || d < 2 {
+        return (0..d).collect();
+    }
+    // Fewest planes whose neighbours are at most `k` grid steps apart (all for k = 0).
+    let planes_for = |limit: f64| -> usize {
+        let k = (limit / step_px).floor();
+        if k < 1.0 {
+            d
+        } else {
+            (d - 1).div_ceil((k as usize).min(d - 1)) + 1
         }
-        out
     };
-    if !(max_step_px > 0.0 && step_px > 0.0 && step_px.is_finite()) {
-        return every(1);
+    let n = planes_for(max_step_px)
+        .max(min_planes.min(planes_for(SUBPIXEL_STEP)))
+        .clamp(2, d);
+    if n == d {
+        return (0..d).collect();
     }
-    let mut k = ((max_step_px / step_px).floor() as usize).max(1);
-    while k > 1 && step_px * k as f64 > SUBPIXEL_STEP && every(k).len() < min_planes {
-        k -= 1;
-    }
-    every(k)
+    let span = (d - 1) as f64 / (n - 1) as f64;
+    (0..n).map(|i| (i as f64 * span).round() as usize).collect()
 }

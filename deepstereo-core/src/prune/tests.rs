@@ -165,7 +165,7 @@ pub(super) fn check_bands_guided(
             pruner.range(),
             opts.guide_level,
             tile,
-            cfg.planes,
+            guide_planes(cfg.planes, inv.len()),
             opts.error > 0.0,
         )
         .expect("guide")

@@ -55,8 +55,8 @@ pub struct ModelArgs {
     #[arg(long, default_value_t = DEFAULT_GUIDE_LEVEL)]
     pub prune_guide_level: usize,
     /// --prune auto: largest disparity step, in source pixels, between the planes run:
-    /// requested planes closer than a pixel in every source are thinned to every k-th,
-    /// and beyond that down to the model's own plane count while the step stays within
+    /// requested planes closer than a pixel in every source are thinned (fewer planes
+    /// spread evenly), and beyond that down to the model's own plane count while the step stays within
     /// this (0: never thin).
     #[arg(long, default_value_t = DEFAULT_MAX_STEP)]
     pub prune_max_step: f64,
