@@ -13,12 +13,12 @@
 //! - **Plane spacing** ([`max_plane_step`], [`thin_planes`]): when the requested planes
 //!   are closer than a pixel of disparity apart in every source (measured on a grid of
 //!   target pixels), fewer planes spread evenly over the grid are run: 96 planes over a
-//!   scene whose disparity range is 19 pixels (0.2 px apart) need 20 of them. Beyond a pixel, more
-//!   planes than the model's own count (the spacing it was trained at) are thinned to
-//!   that count while the step stays within [`PruneOptions::max_step`] pixels: with the rest of
-//!   pruning, the default model renders such thinned planes within 0.2 dB of (and mostly
-//!   above) the unpruned render at 64 and 96 planes on every scene measured
-//!   (`docs/performance.md`, `prune_eval.sh`), at half the cost or less.
+//!   scene whose disparity range is 19 pixels (0.2 px apart) need 20 of them. Beyond a
+//!   pixel, planes are thinned down to three quarters of the model's own count
+//!   ([`thin_floor`]) while the step stays within [`PruneOptions::max_step`] pixels: with
+//!   the rest of pruning, the default model renders such thinned planes within 0.2 dB of
+//!   (and mostly above) the unpruned render at 32, 64 and 96 planes on every scene
+//!   measured (`docs/performance.md`, `prune_eval.sh`), at a fraction of the cost.
 //!   The coarse pass below runs on every second plane of the range or sparser, at most
 //!   the model's plane count ([`guide_planes`]; each plane standing for its neighbours).
 //! - **Planes per block** ([`Pruner::plan`]): a coarse pass says which planes each block
@@ -82,8 +82,8 @@ mod views;
 pub use guide::{guide_planes, needed_prefix, network_guide, Guide, COLOUR_MIN_MASS};
 pub use plan::{Block, Pruner, TilePlan};
 pub use range::{
-    max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_planes, BOUNDS_MARGIN,
-    MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES, SUBPIXEL_STEP,
+    max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_floor, thin_planes,
+    BOUNDS_MARGIN, MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES, SUBPIXEL_STEP,
 };
 pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
 
@@ -203,8 +203,9 @@ pub struct PruneOptions {
     pub guide_level: usize,
     /// Largest disparity step, in source pixels, between the planes kept: requested
     /// planes closer than [`SUBPIXEL_STEP`] in every source are thinned (spread evenly),
-    /// and beyond that down to the model's own plane count (the spacing it was trained at)
-    /// while the step stays within this (0: never thin; see [`thin_planes`]).
+    /// and beyond that down to three quarters of the model's own plane count
+    /// ([`thin_floor`]) while the step stays within this (0: never thin; see
+    /// [`thin_planes`]).
     pub max_step: f64,
     /// Fraction of the coarse samples' support (each informative sample spreads one unit
     /// over its plausible planes) the kept planes must hold, most supported planes first

@@ -160,6 +160,16 @@ pub fn max_plane_step(target: &Camera, sources: &[&Camera], inv_depths: &[f64]) 
     best
 }
 
+/// The fewest planes [`thin_planes`] thins to where their disparity step exceeds
+/// [`SUBPIXEL_STEP`], for a model of `model_planes` planes: three quarters of them. The
+/// model was trained at its own plane count over depth ranges of every size, so the
+/// spacing it saw, in pixels, varied widely; what the step limit allows matters more than
+/// the count. Measured with `prune_eval.sh` (docs/performance.md); half the model's
+/// planes lost up to 0.3 dB on a procedural scene where three quarters lost none.
+pub fn thin_floor(model_planes: usize) -> usize {
+    (3 * model_planes).div_ceil(4).max(1)
+}
+
 /// Disparity step, in pixels, below which planes add nothing the image can show:
 /// [`thin_planes`] thins planes closer than this regardless of how many remain.
 pub const SUBPIXEL_STEP: f64 = 1.0;
@@ -168,8 +178,8 @@ pub const SUBPIXEL_STEP: f64 = 1.0;
 /// evenly over the grid, the first and the last among them (plane `round(i (d - 1) / (n -
 /// 1))` for `i` in `0..n`, so neighbours are at most `ceil((d - 1) / (n - 1))` grid steps
 /// apart). `n` is the fewest that keep the disparity step (`step_px` per grid step) within
-/// `max_step_px`; where that step would exceed [`SUBPIXEL_STEP`], at least `min_planes` (the
-/// model's own plane count: the spacing it was trained at) or as many as keep the step
+/// `max_step_px`; where that step would exceed [`SUBPIXEL_STEP`], at least `min_planes` (see
+/// [`thin_floor`]) or as many as keep the step
 /// within [`SUBPIXEL_STEP`], whichever is fewer. All planes when `max_step_px` is 0 or the
 /// step is unknown.
 pub fn thin_planes(d: usize, step_px: f64, max_step_px: f64, min_planes: usize) -> Vec<usize> {
