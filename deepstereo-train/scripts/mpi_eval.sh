@@ -57,20 +57,34 @@ for n in names:
     row.append(f"{j['own1']['mean']['bake_seconds']:.2f}")
     print("| " + " | ".join(row) + " |")
 PY
-# Speed: a camera path through the network and through 3 MPIs, one after the other,
-# twice; whole-command wall time per frame (loading the model or the MPIs included).
+# Speed: a spiral camera path on juicebox through the network and through one and three
+# MPIs, twice, one command after the other. Seconds per frame are marginal: the wall-time
+# difference of two path lengths over the frames added (network: 2 and 6 frames; MPIs: 12
+# and 60), so loading the model or the MPIs and writing the video are not counted.
 S="$DATA/val/juicebox"
-FRAMES=12
 if [ -d "$S" ]; then
-  [ -d "$OUT/speed_mpis" ] || "$BIN" mpi --scene "$S" --targets 1,9,17 --model "$MODEL" --out "$OUT/speed_mpis" 2> /dev/null
+  [ -d "$OUT/speed_mpis3" ] || "$BIN" mpi --scene "$S" --targets 1,9,17 --model "$MODEL" --out "$OUT/speed_mpis3" 2> /dev/null
+  [ -d "$OUT/speed_mpis1" ] || "$BIN" mpi --scene "$S" --target 9 --model "$MODEL" --out "$OUT/speed_mpis1" 2> /dev/null
+  # path_seconds FRAMES ARGS...: wall seconds of one `render --path spiral`.
+  path_seconds() {
+    local frames="$1"; shift
+    rm -rf "$OUT/speed_path"
+    local t0 t1
+    t0=$(date +%s.%N)
+    "$BIN" render --scene "$S" "$@" --path spiral --frames "$frames" --out "$OUT/speed_path" 2> /dev/null
+    t1=$(date +%s.%N)
+    python3 -c "print($t1 - $t0)"
+  }
   for round in 1 2; do
-    for kind in network mpi; do
-      rm -rf "$OUT/speed_$kind$round"
-      extra=(--model "$MODEL"); [ "$kind" = mpi ] && extra=(--mpi "$OUT/speed_mpis")
-      t0=$(date +%s.%N)
-      "$BIN" render --scene "$S" "${extra[@]}" --path spiral --frames "$FRAMES" --out "$OUT/speed_$kind$round" 2> /dev/null
-      t1=$(date +%s.%N)
-      echo "$kind round $round: $(python3 -c "print(f'{($t1 - $t0) / $FRAMES:.3f}')") s per frame ($FRAMES frames of $(basename "$S"))"
-    done
+    n2=$(path_seconds 2 --model "$MODEL"); n6=$(path_seconds 6 --model "$MODEL")
+    a12=$(path_seconds 12 --mpi "$OUT/speed_mpis1"); a60=$(path_seconds 60 --mpi "$OUT/speed_mpis1")
+    b12=$(path_seconds 12 --mpi "$OUT/speed_mpis3"); b60=$(path_seconds 60 --mpi "$OUT/speed_mpis3")
+    python3 - "$round" "$n2" "$n6" "$a12" "$a60" "$b12" "$b60" <<'PY'
+import sys
+r, n2, n6, a12, a60, b12, b60 = sys.argv[1], *map(float, sys.argv[2:])
+n, m1, m3 = (n6 - n2) / 4, (a60 - a12) / 48, (b60 - b12) / 48
+print(f"round {r}: network {n:.3f} s/frame; 1 MPI {m1:.4f} s/frame ({n / m1:.0f}x); "
+      f"3 MPIs {m3:.4f} s/frame ({n / m3:.0f}x)")
+PY
   done
 fi

@@ -72,8 +72,9 @@ pub fn path_cameras(scene: &Scene, kind: PathKind, frames: usize) -> Result<Vec<
 /// Steps of the path progress bar per frame (the bar advances tile by tile).
 const BAR_STEPS_PER_FRAME: u64 = 1000;
 
-/// Renders `cams` in order, saving each as `dir/frame_NNNN.png`, with a progress bar
-/// (frames done, time left); returns the frames.
+/// Renders `cams` in order, saving each as `dir/frame_NNNN.png` (`dir`: a staged
+/// directory, put in place once complete; see [`RgbImage::save_frame_png`]), with a
+/// progress bar (frames done, time left); returns the frames.
 pub fn render_path(
     backend: &dyn Backend,
     scene: &Scene,
@@ -101,7 +102,8 @@ pub fn render_path(
         };
         let srcs = pick_sources(scene, cam, &[], views, settings);
         let (r, _) = render_camera(backend, scene, prepared, cam, &srcs, settings, &progress)?;
-        r.image.save_png(&dir.join(format!("frame_{f:04}.png")))?;
+        r.image
+            .save_frame_png(&dir.join(format!("frame_{f:04}.png")))?;
         bar.set_position(base + BAR_STEPS_PER_FRAME);
         if bar.is_hidden() {
             eprintln!("frame {}/{n}", f + 1);

@@ -145,8 +145,7 @@ fn write_path(
 ) -> Result<()> {
     let cams = path_cameras(scene, PathKind::Circle, a.path_frames)?;
     let frames_dir = a.out.join("path");
-    std::fs::create_dir_all(&frames_dir)
-        .with_context(|| format!("cannot create {}", frames_dir.display()))?;
+    let staged = crate::outdir::StagedDir::new(&frames_dir)?;
     let t1 = std::time::Instant::now();
     let frames = render_path(
         backend,
@@ -155,8 +154,9 @@ fn write_path(
         &cams,
         views,
         settings,
-        &frames_dir,
+        staged.path(),
     )?;
+    staged.commit()?;
     let video = write_video(&frames, &a.out.join("path.mp4"), DEMO_PATH_FPS)?;
     println!(
         "wrote a {}-frame camera path in {:.1} s: {} (frames in {})",

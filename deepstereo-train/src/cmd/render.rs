@@ -199,7 +199,7 @@ fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
             Some(_) => format!("frame_{f:04}.png"),
             None => "image.png".to_string(),
         };
-        img.save_png(&staged.path().join(name))?;
+        img.save_frame_png(&staged.path().join(name))?;
         frames.push(img);
         bar.inc(1);
     }
