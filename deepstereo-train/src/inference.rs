@@ -11,7 +11,7 @@ use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::prune::{
     guide_planes, max_plane_step, network_guide, plane_range_from_bounds, plane_range_from_points,
-    rank_views, thin_floor, thin_planes, CoarsePass, PruneOptions, PruneStats, Pruner,
+    rank_views, thin_planes, CoarsePass, PruneOptions, PruneStats, Pruner,
 };
 use deepstereo_core::render::{render_view, render_view_pruned, Backend, Rendered};
 use deepstereo_core::scene::{nearest_to_point, Scene};
@@ -174,8 +174,7 @@ pub fn render_camera(
     // `max_step` pixels apart in every (real) source: a subset of the requested planes.
     let cams: Vec<&Camera> = srcs[..k].iter().map(|s| &s.cameras[0]).collect();
     let step = max_plane_step(target, &cams, &requested);
-    let floor = thin_floor(cfg.planes);
-    let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step, floor)
+    let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step, cfg.planes)
         .into_iter()
         .map(|z| requested[z])
         .collect();

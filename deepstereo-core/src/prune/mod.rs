@@ -14,8 +14,9 @@
 //!   are closer than a pixel of disparity apart in every source (measured on a grid of
 //!   target pixels), fewer planes spread evenly over the grid are run: 96 planes over a
 //!   scene whose disparity range is 19 pixels (0.2 px apart) need 20 of them. Beyond a
-//!   pixel, planes are thinned down to three quarters of the model's own count
-//!   ([`thin_floor`]) while the step stays within [`PruneOptions::max_step`] pixels: with
+//!   pixel, planes are thinned down to the model's own count while the step stays within
+//!   [`PruneOptions::max_step`] pixels, and to three quarters of it ([`thin_floor`])
+//!   while it stays within [`FINE_STEP`] (2 pixels): with
 //!   the rest of pruning, the default model renders such thinned planes within 0.2 dB of
 //!   (and mostly above) the unpruned render at 32, 64 and 96 planes on every scene
 //!   measured (`docs/performance.md`, `prune_eval.sh`), at a fraction of the cost.
@@ -83,7 +84,7 @@ pub use guide::{guide_planes, needed_prefix, network_guide, Guide, COLOUR_MIN_MA
 pub use plan::{Block, Pruner, TilePlan};
 pub use range::{
     max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_floor, thin_planes,
-    BOUNDS_MARGIN, MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES, SUBPIXEL_STEP,
+    BOUNDS_MARGIN, FINE_STEP, MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES, SUBPIXEL_STEP,
 };
 pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
 
@@ -203,8 +204,8 @@ pub struct PruneOptions {
     pub guide_level: usize,
     /// Largest disparity step, in source pixels, between the planes kept: requested
     /// planes closer than [`SUBPIXEL_STEP`] in every source are thinned (spread evenly),
-    /// and beyond that down to three quarters of the model's own plane count
-    /// ([`thin_floor`]) while the step stays within this (0: never thin; see
+    /// and beyond that down to the model's own plane count while the step stays within
+    /// this (and to three quarters of it within [`FINE_STEP`]; 0: never thin; see
     /// [`thin_planes`]).
     pub max_step: f64,
     /// Fraction of the coarse samples' support (each informative sample spreads one unit

@@ -160,12 +160,9 @@ pub fn max_plane_step(target: &Camera, sources: &[&Camera], inv_depths: &[f64]) 
     best
 }
 
-/// The fewest planes [`thin_planes`] thins to where their disparity step exceeds
-/// [`SUBPIXEL_STEP`], for a model of `model_planes` planes: three quarters of them. The
-/// model was trained at its own plane count over depth ranges of every size, so the
-/// spacing it saw, in pixels, varied widely; what the step limit allows matters more than
-/// the count. Measured with `prune_eval.sh` (docs/performance.md); half the model's
-/// planes lost up to 0.3 dB on a procedural scene where three quarters lost none.
+/// The fewest planes [`thin_planes`] thins to, for a model of `model_planes` planes,
+/// where their disparity step exceeds [`SUBPIXEL_STEP`]: three quarters of them (and
+/// below the model's own count only within [`FINE_STEP`]).
 pub fn thin_floor(model_planes: usize) -> usize {
     (3 * model_planes).div_ceil(4).max(1)
 }
@@ -174,19 +171,27 @@ pub fn thin_floor(model_planes: usize) -> usize {
 /// [`thin_planes`] thins planes closer than this regardless of how many remain.
 pub const SUBPIXEL_STEP: f64 = 1.0;
 
+/// Disparity step, in pixels, within which [`thin_planes`] may run fewer planes than the
+/// model's own count (down to [`thin_floor`]). Measured with the embedded model
+/// (docs/performance.md): 32 planes thinned to 24 with neighbours 2 pixels apart or less
+/// lost nothing (procedural scenes, ethiopianHead), while 3-8 pixels apart lost up to
+/// 5.7 dB on a view of templeRing from 2 sources.
+pub const FINE_STEP: f64 = 2.0;
+
 /// The planes a scene with a small disparity range needs: `n` of the `d` planes spread
 /// evenly over the grid, the first and the last among them (plane `round(i (d - 1) / (n -
 /// 1))` for `i` in `0..n`, so neighbours are at most `ceil((d - 1) / (n - 1))` grid steps
 /// apart). `n` is the fewest that keep the disparity step (`step_px` per grid step) within
-/// `max_step_px`; where that step would exceed [`SUBPIXEL_STEP`], at least `min_planes` (see
-/// [`thin_floor`]) or as many as keep the step
-/// within [`SUBPIXEL_STEP`], whichever is fewer. All planes when `max_step_px` is 0 or the
+/// `max_step_px`, but no fewer than `model_planes` (the model's own count: the spacing it
+/// was trained at), or than [`thin_floor`] while the step stays within [`FINE_STEP`], or
+/// than keep the step within [`SUBPIXEL_STEP`]. All planes when `max_step_px` is 0 or the
 /// step is unknown.
-pub fn thin_planes(d: usize, step_px: f64, max_step_px: f64, min_planes: usize) -> Vec<usize> {
+pub fn thin_planes(d: usize, step_px: f64, max_step_px: f64, model_planes: usize) -> Vec<usize> {
     if !(max_step_px > 0.0 && step_px > 0.0 && step_px.is_finite()) || d < 2 {
         return (0..d).collect();
     }
-    // Fewest planes whose neighbours are at most `k` grid steps apart (all for k = 0).
+    // Fewest planes whose neighbours are at most `limit` pixels apart (all when one grid
+    // step is already more).
     let planes_for = |limit: f64| -> usize {
         let k = (limit / step_px).floor();
         if k < 1.0 {
@@ -195,9 +200,9 @@ pub fn thin_planes(d: usize, step_px: f64, max_step_px: f64, min_planes: usize) 
             (d - 1).div_ceil((k as usize).min(d - 1)) + 1
         }
     };
-    let n = planes_for(max_step_px)
-        .max(min_planes.min(planes_for(SUBPIXEL_STEP)))
-        .clamp(2, d);
+    let fine = planes_for(FINE_STEP).max(thin_floor(model_planes));
+    let lower = model_planes.min(fine).min(planes_for(SUBPIXEL_STEP));
+    let n = planes_for(max_step_px).max(lower).clamp(2, d);
     if n == d {
         return (0..d).collect();
     }

@@ -90,12 +90,18 @@ fn prune_thin_planes_spreads_the_fewest_planes_the_step_allows() {
     }
     assert_eq!(thin_planes(1, 0.01, 1.0, 1), vec![0]);
     assert!(thin_planes(0, 0.5, 1.0, 1).is_empty());
-    // Beyond a pixel of disparity, thinning stops at the model's plane count: 64 planes
-    // 0.75 px apart within 3 px could go to 17, but keep 32 (or 40, or 20).
+    // Beyond a pixel of disparity, thinning stops at the model's plane count, and goes
+    // below it (to three quarters) only within 2 px: 64 planes 0.75 px apart within 3 px
+    // could go to 17 but keep 32 (as every 2nd plane would be 1.5 px apart, every 3rd
+    // 2.25); 32 planes 0.9 px apart keep 24 (1.8 px apart), 1.6 px apart all 32.
     assert_eq!(thin_planes(64, 0.75, 3.0, 32), spread(64, 32));
-    assert_eq!(thin_planes(64, 0.75, 3.0, 40), spread(64, 40));
+    assert_eq!(thin_planes(64, 0.75, 3.0, 40), spread(64, 33));
     assert_eq!(thin_planes(64, 0.75, 3.0, 20), spread(64, 20));
     assert_eq!(thin_planes(64, 0.75, 3.0, 8), spread(64, 17));
+    assert_eq!(thin_planes(32, 0.9, 8.0, 32), spread(32, 24));
+    assert_eq!(thin_planes(32, 1.6, 8.0, 32), (0..32).collect::<Vec<_>>());
+    // Within a pixel the floor does not apply: 0.3 px apart, every 3rd plane (0.9 px).
+    assert_eq!(thin_planes(64, 0.3, 8.0, 32), spread(64, 22));
     // Every result: increasing, first and last kept, neighbours within the step limit.
     for (d, step, max, floor) in [(64, 0.75, 3.0, 32), (96, 0.3, 8.0, 32), (33, 0.9, 8.0, 32)] {
         let p = thin_planes(d, step, max, floor);

@@ -56,8 +56,8 @@ pub struct ModelArgs {
     pub prune_guide_level: usize,
     /// --prune auto: largest disparity step, in source pixels, between the planes run:
     /// requested planes closer than a pixel in every source are thinned (fewer planes
-    /// spread evenly), and beyond that down to three quarters of the model's own plane
-    /// count while the step stays within this (0: never thin).
+    /// spread evenly), and beyond that down to the model's own plane count while the step
+    /// stays within this (to three quarters of it within 2 pixels; 0: never thin).
     #[arg(long, default_value_t = DEFAULT_MAX_STEP)]
     pub prune_max_step: f64,
     /// --prune auto, photo pass: fraction of a tile's photo-consistency evidence the kept
