@@ -25,7 +25,7 @@ pub fn guide_planes(model_planes: usize, planes: usize) -> usize {
 
 /// Selection probabilities of a coarse render: `sel[(z * height + y) * width + x]` for
 /// the guide planes `planes[z]` (planes of the full render, every `k`-th of the depth
-/// range `first..=last`, so that at most the model's own plane count is run).
+/// range `first..=last` and its last, so that at most [`guide_planes`] are run).
 #[derive(Clone, Debug)]
 pub struct Guide {
     /// Pyramid level of the coarse render (its pixels are `2^level` full-resolution pixels).

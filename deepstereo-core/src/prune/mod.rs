@@ -16,10 +16,10 @@
 //!   scene whose disparity range is 19 pixels (0.2 px apart) need 20 of them. Beyond a
 //!   pixel, planes are thinned down to the model's own count while the step stays within
 //!   [`PruneOptions::max_step`] pixels, and to three quarters of it ([`thin_floor`])
-//!   while it stays within [`FINE_STEP`] (2 pixels): with
-//!   the rest of pruning, the default model renders such thinned planes within 0.2 dB of
-//!   (and mostly above) the unpruned render at 32, 64 and 96 planes on every scene
-//!   measured (`docs/performance.md`, `prune_eval.sh`), at a fraction of the cost.
+//!   while it stays within [`FINE_STEP`] (2 pixels): with the rest of pruning, the
+//!   default model renders such thinned planes within 0.2 dB of (and mostly above) the
+//!   unpruned render at 32, 64 and 96 planes on every scene measured
+//!   (`docs/performance.md`, `prune_eval.sh`), at a fraction of the cost.
 //!   The coarse pass below runs on every second plane of the range or sparser, at most
 //!   the model's plane count ([`guide_planes`]; each plane standing for its neighbours).
 //! - **Planes per block** ([`Pruner::plan`]): a coarse pass says which planes each block

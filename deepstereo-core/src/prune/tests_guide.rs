@@ -103,8 +103,8 @@ fn prune_thin_planes_spreads_the_fewest_planes_the_step_allows() {
     // Within a pixel the floor does not apply: 0.3 px apart, every 3rd plane (0.9 px).
     assert_eq!(thin_planes(64, 0.3, 8.0, 32), spread(64, 22));
     // Every result: increasing, first and last kept, neighbours within the step limit.
-    for (d, step, max, floor) in [(64, 0.75, 3.0, 32), (96, 0.3, 8.0, 32), (33, 0.9, 8.0, 32)] {
-        let p = thin_planes(d, step, max, floor);
+    for (d, step, max, model) in [(64, 0.75, 3.0, 32), (96, 0.3, 8.0, 32), (33, 0.9, 8.0, 32)] {
+        let p = thin_planes(d, step, max, model);
         assert_eq!((p[0], *p.last().unwrap()), (0, d - 1));
         assert!(p
             .windows(2)
