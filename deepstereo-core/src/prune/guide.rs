@@ -218,8 +218,9 @@ impl Guide {
 /// How many of the planes `probs` (selection probability and plane, most probable
 /// first; `colours` their colours in the same order, or empty) one pixel needs: the
 /// shortest prefix that holds `mass` of the total probability, or (with colours) that
-/// holds [`COLOUR_MIN_MASS`] of it and whose renormalized blend `sum_kept s_z c_z / sum_kept s_z` is within `max_error` (in every
-/// channel) of the blend of all planes `sum_z s_z c_z / sum_z s_z`. Leaving out planes of
+/// holds [`COLOUR_MIN_MASS`] of it and whose renormalized blend
+/// `sum_kept s_z c_z / sum_kept s_z` is within `max_error` (in every channel) of the
+/// blend of all planes `sum_z s_z c_z / sum_z s_z`. Leaving out planes of
 /// mass `m` moves the colour by `m (c_kept - c_left)`, the difference of the two groups'
 /// mean colours: planes may be left out when they are improbable or when they agree with
 /// the rest.
