@@ -35,7 +35,9 @@ pub struct Mpi {
     /// Inverse depths of the planes, near to far (camera z; 0 is a plane at infinity).
     pub inv_depths: Vec<f64>,
     /// Per plane, `[H, W, 4]` row-major RGBA in [0, 1], straight (not premultiplied).
-    pub planes: Vec<Vec<f32>>,
+    planes: Vec<Vec<f32>>,
+    /// Per plane, what [`Self::render`] samples.
+    textures: Vec<Texture>,
 }
 
 /// `camera` as an MPI's reference: its pinhole part at the mid-readout pose.
@@ -64,6 +66,35 @@ pub fn alphas(s: &[f32]) -> Vec<f32> {
 }
 
 impl Mpi {
+    /// An MPI of `planes` (per plane `[H, W, 4]` straight RGBA in [0, 1], near to far)
+    /// at the inverse depths `inv_depths` in the reference `camera`.
+    pub fn new(camera: Camera, inv_depths: Vec<f64>, planes: Vec<Vec<f32>>) -> Result<Self> {
+        let (w, h) = (
+            camera.intrinsics.width as usize,
+            camera.intrinsics.height as usize,
+        );
+        if planes.len() != inv_depths.len() || planes.iter().any(|p| p.len() != w * h * 4) {
+            return Err(Error::Invalid(format!(
+                "an MPI of {w}x{h} needs one RGBA plane of that size per inverse depth ({} \
+                 planes, {} inverse depths)",
+                planes.len(),
+                inv_depths.len()
+            )));
+        }
+        let textures = (planes.par_iter()).map(|p| Texture::of(p, w, h)).collect();
+        Ok(Self {
+            camera,
+            inv_depths,
+            planes,
+            textures,
+        })
+    }
+
+    /// Per plane, `[H, W, 4]` row-major RGBA in [0, 1], straight (not premultiplied).
+    pub fn planes(&self) -> &[Vec<f32>] {
+        &self.planes
+    }
+
     pub fn width(&self) -> usize {
         self.camera.intrinsics.width as usize
     }
@@ -106,11 +137,7 @@ impl Mpi {
                 px[3] = a;
             }
         }
-        Ok(Self {
-            camera,
-            inv_depths,
-            planes,
-        })
+        Self::new(camera, inv_depths, planes)
     }
 
     /// The planes composited back to front at the reference camera.
@@ -142,7 +169,7 @@ impl Mpi {
             camera.intrinsics.height as usize,
         );
         let rel = camera.pose.relative_to(&self.camera.pose);
-        let planes = self.plane_maps(rel.translation);
+        let maps = self.plane_maps(rel.translation);
         let mut img = RgbImage::new(w as u32, h as u32);
         let mut alpha = vec![0f32; w * h];
         img.data
@@ -150,16 +177,63 @@ impl Mpi {
             .zip(alpha.par_chunks_mut(w))
             .enumerate()
             .for_each(|(y, (row, arow))| {
-                for x in 0..w {
-                    let uv = DVec2::new(x as f64 + 0.5, y as f64 + 0.5);
-                    let n = camera.intrinsics.unproject_pixel(uv);
-                    let rr = rel.rotation * DVec3::new(n.x, n.y, 1.0);
-                    let (c, a) = self.ray(&planes, rr);
-                    row[x * 3..x * 3 + 3].copy_from_slice(&c);
-                    arow[x] = a;
-                }
+                let rays: Vec<DVec3> = (0..w)
+                    .map(|x| {
+                        let uv = DVec2::new(x as f64 + 0.5, y as f64 + 0.5);
+                        let n = camera.intrinsics.unproject_pixel(uv);
+                        rel.rotation * DVec3::new(n.x, n.y, 1.0)
+                    })
+                    .collect();
+                self.row(&maps, &rays, true, row, arow);
             });
         (img, alpha)
+    }
+
+    /// One row of rays, `rays` their directions in the reference camera's coordinates,
+    /// `maps` from [`Self::plane_maps`]: premultiplied colours into `row` (`[W, 3]`) and
+    /// accumulated alphas into `arow` (`[W]`, both zero on entry). Plane by plane, near
+    /// to far, so each pixel composites front to back; a ray stops once opaque. A plane is
+    /// hit when `alpha_z / (R r)_z` is positive (the point lies ahead of the camera).
+    ///
+    /// With `bisect`, when the row's slopes `a` and `b` are each monotonic and finite and
+    /// its `(R r)_z` share one sign (a pinhole row always), the rays that land inside a
+    /// plane form one run, found by bisection, and only that run is visited. Otherwise
+    /// every ray is (the same result).
+    fn row(
+        &self,
+        maps: &[[f64; 5]],
+        rays: &[DVec3],
+        bisect: bool,
+        row: &mut [f32],
+        arow: &mut [f32],
+    ) {
+        let a: Vec<f64> = rays.iter().map(|r| r.x / r.z).collect();
+        let b: Vec<f64> = rays.iter().map(|r| r.y / r.z).collect();
+        let rz: Vec<f64> = rays.iter().map(|r| r.z).collect();
+        let runs = RowRuns::of(&a, &b, &rz).filter(|_| bisect);
+        let (w, h) = (self.width() as f64, self.height() as f64);
+        let mut trans = vec![1f32; rays.len()];
+        for (tex, m) in self.textures.iter().zip(maps) {
+            let xs = match &runs {
+                Some(r) => r.inside(m, w, h),
+                None => 0..rays.len(),
+            };
+            for x in xs {
+                if trans[x] < OPAQUE_T || m[0] * rz[x] <= 0.0 {
+                    continue;
+                }
+                let Some(px) = tex.sample(m[1] * a[x] + m[2], m[3] * b[x] + m[4]) else {
+                    continue;
+                };
+                for (c, v) in row[x * 3..x * 3 + 3].iter_mut().zip(px) {
+                    *c += trans[x] * v;
+                }
+                trans[x] *= 1.0 - px[3];
+            }
+        }
+        for (a, t) in arow.iter_mut().zip(&trans) {
+            *a = 1.0 - t;
+        }
     }
 
     /// Per plane, for a camera whose centre is `t` in the reference's coordinates: the
@@ -182,69 +256,154 @@ impl Mpi {
             })
             .collect()
     }
-
-    /// One ray, `rr` its direction in the reference camera's coordinates, `maps` from
-    /// [`Self::plane_maps`]: premultiplied colour and accumulated alpha. A plane is hit
-    /// when `alpha_z / (R r)_z` is positive (the point lies ahead of the camera; both are
-    /// finite here).
-    fn ray(&self, maps: &[[f64; 5]], rr: DVec3) -> ([f32; 3], f32) {
-        let (mut c, mut trans) = ([0f32; 3], 1f32);
-        let (a, b) = (rr.x / rr.z, rr.y / rr.z);
-        if !(a.is_finite() && b.is_finite()) {
-            return (c, 0.0);
-        }
-        let (w, h) = (self.width(), self.height());
-        for (plane, m) in self.planes.iter().zip(maps) {
-            if m[0] * rr.z <= 0.0 {
-                continue;
-            }
-            let px = sample(plane, w, h, m[1] * a + m[2], m[3] * b + m[4]);
-            let wgt = trans * px[3];
-            for ch in 0..3 {
-                c[ch] += wgt * px[ch];
-            }
-            trans *= 1.0 - px[3];
-            if trans < OPAQUE_T {
-                break;
-            }
-        }
-        (c, 1.0 - trans)
-    }
 }
 
 /// Transmittance below which a ray is opaque: what is behind moves its colour by less
 /// than a tenth of an 8-bit step.
 pub const OPAQUE_T: f32 = 1.0 / 2560.0;
 
-/// Bilinear RGBA at pixel coordinate `(u, v)` (centres at `i + 0.5`); transparent
-/// outside the image (edge pixels extend half a pixel).
+/// A row of rays whose slopes `a` and `b` are each monotonic and finite and whose
+/// `(R r)_z` share one sign: the rays that land inside a plane's image are one run.
+struct RowRuns<'a> {
+    a: &'a [f64],
+    b: &'a [f64],
+    /// Whether `a`, `b` ascend (else they descend).
+    a_up: bool,
+    b_up: bool,
+    rz_sign: f64,
+}
+
+impl<'a> RowRuns<'a> {
+    /// `None` when the row lacks that shape.
+    fn of(a: &'a [f64], b: &'a [f64], rz: &[f64]) -> Option<Self> {
+        let order = |v: &[f64]| -> Option<bool> {
+            if v.iter().any(|x| !x.is_finite()) {
+                return None;
+            }
+            let up = v.windows(2).all(|p| p[0] <= p[1]);
+            let down = v.windows(2).all(|p| p[0] >= p[1]);
+            (up || down).then_some(up)
+        };
+        let rz_sign = rz.first()?.signum();
+        if rz.iter().any(|z| z.signum() != rz_sign || *z == 0.0) {
+            return None;
+        }
+        Some(Self {
+            a,
+            b,
+            a_up: order(a)?,
+            b_up: order(b)?,
+            rz_sign,
+        })
+    }
+
+    /// The run of rays that may land inside the `w x h` image of the plane with map `m`
+    /// ([`Mpi::plane_maps`]): a superset (its bounds widened by a millionth of a pixel)
+    /// of those where `0 <= u <= w` and `0 <= v <= h`; empty when the plane lies behind.
+    fn inside(&self, m: &[f64; 5], w: f64, h: f64) -> std::ops::Range<usize> {
+        if m[0] * self.rz_sign <= 0.0 {
+            return 0..0;
+        }
+        let ra = run(self.a, self.a_up, m[1], m[2], w);
+        let rb = run(self.b, self.b_up, m[3], m[4], h);
+        ra.start.max(rb.start)..ra.end.min(rb.end).max(ra.start.max(rb.start))
+    }
+}
+
+/// The run of the monotonic `v` (ascending when `up`) where `0 <= s v + o <= side`,
+/// widened by a millionth of a pixel.
+fn run(v: &[f64], up: bool, s: f64, o: f64, side: f64) -> std::ops::Range<usize> {
+    const SLACK: f64 = 1e-6;
+    let (lo, hi) = (-SLACK, side + SLACK);
+    if s == 0.0 {
+        return match o >= lo && o <= hi {
+            true => 0..v.len(),
+            false => 0..0,
+        };
+    }
+    // s v + o in [lo, hi]  <=>  v in [vlo, vhi] (the bounds swap when s < 0), widened
+    // again for the division's rounding.
+    let (p, q) = ((lo - o) / s, (hi - o) / s);
+    let (vlo, vhi) = (p.min(q), p.max(q));
+    let pad = 1e-12 * (1.0 + vlo.abs().max(vhi.abs()));
+    let (vlo, vhi) = (vlo - pad, vhi + pad);
+    let (start, end) = match up {
+        true => (
+            v.partition_point(|&x| x < vlo),
+            v.partition_point(|&x| x <= vhi),
+        ),
+        false => (
+            v.partition_point(|&x| x > vhi),
+            v.partition_point(|&x| x >= vlo),
+        ),
+    };
+    start..end.max(start)
+}
+
+/// `v` in [0, 1] rounded to 8 bits, as the plane files store it.
 #[inline]
-fn sample(plane: &[f32], w: usize, h: usize, u: f64, v: f64) -> [f32; 4] {
-    if !(u >= 0.0 && v >= 0.0 && u <= w as f64 && v <= h as f64) {
-        return [0.0; 4];
+pub(crate) fn to_u8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+/// A plane as [`Mpi::render`] samples it: its RGBA rounded to 8 bits as the plane files
+/// hold it (so an MPI read back from its files renders the same), the colour
+/// premultiplied by the alpha (so bilinear sampling does not bleed the colour of
+/// transparent texels), and a border of one texel that repeats the edge, so a sample
+/// never clamps: texel `(x, y)` of the plane is `data[(y + 1) * stride + x + 1]`.
+#[derive(Clone, Debug)]
+struct Texture {
+    width: usize,
+    height: usize,
+    stride: usize,
+    data: Vec<[f32; 4]>,
+}
+
+impl Texture {
+    /// From straight RGBA `[H, W, 4]` in [0, 1].
+    fn of(plane: &[f32], w: usize, h: usize) -> Self {
+        let stride = w + 2;
+        let texel = |x: usize, y: usize| {
+            let t = &plane[(y * w + x) * 4..][..4];
+            let [r, g, b, a] = [0, 1, 2, 3].map(|c| f32::from(to_u8(t[c])) / 255.0);
+            [r * a, g * a, b * a, a]
+        };
+        let mut data = Vec::with_capacity(stride * (h + 2));
+        for y in 0..h + 2 {
+            let sy = y.saturating_sub(1).min(h - 1);
+            data.extend((0..stride).map(|x| texel(x.saturating_sub(1).min(w - 1), sy)));
+        }
+        Self {
+            width: w,
+            height: h,
+            stride,
+            data,
+        }
     }
-    let (fx, fy) = (u - 0.5, v - 0.5);
-    let (x0, y0) = (fx.floor(), fy.floor());
-    let (ax, ay) = ((fx - x0) as f32, (fy - y0) as f32);
-    // x0 >= -1 and x0 + 1 <= w here, so only the two edges clamp.
-    let (xi, yi) = (x0 as isize, y0 as isize);
-    let xa = xi.max(0) as usize;
-    let xb = ((xi + 1) as usize).min(w - 1);
-    let ya = yi.max(0) as usize;
-    let yb = ((yi + 1) as usize).min(h - 1);
-    let (ra, rb) = (
-        &plane[ya * w * 4..(ya + 1) * w * 4],
-        &plane[yb * w * 4..(yb + 1) * w * 4],
-    );
-    let (p00, p01) = (&ra[xa * 4..xa * 4 + 4], &ra[xb * 4..xb * 4 + 4]);
-    let (p10, p11) = (&rb[xa * 4..xa * 4 + 4], &rb[xb * 4..xb * 4 + 4]);
-    let mut out = [0f32; 4];
-    for (ch, o) in out.iter_mut().enumerate() {
-        let top = p00[ch] + (p01[ch] - p00[ch]) * ax;
-        let bottom = p10[ch] + (p11[ch] - p10[ch]) * ax;
-        *o = top + (bottom - top) * ay;
+
+    /// The bilinear premultiplied RGBA at pixel coordinate `(u, v)` (centres at
+    /// `i + 0.5`; edge pixels extend half a pixel); `None` outside the image.
+    #[inline]
+    fn sample(&self, u: f64, v: f64) -> Option<[f32; 4]> {
+        if !(u >= 0.0 && v >= 0.0 && u <= self.width as f64 && v <= self.height as f64) {
+            return None;
+        }
+        // In the bordered texture the texel centres sit at i - 0.5: fx, fy >= 0.5, so
+        // truncating is the floor, and texels xi..=xi + 1, yi..=yi + 1 all exist.
+        let (fx, fy) = (u + 0.5, v + 0.5);
+        let (xi, yi) = (fx as usize, fy as usize);
+        let (ax, ay) = ((fx - xi as f64) as f32, (fy - yi as f64) as f32);
+        let i = yi * self.stride + xi;
+        let q = &self.data[i..i + self.stride + 2];
+        let (bx, by) = (1.0 - ax, 1.0 - ay);
+        let (wa, wb, wc, wd) = (bx * by, ax * by, bx * ay, ax * ay);
+        let (pa, pb, pc, pd) = (q[0], q[1], q[self.stride], q[self.stride + 1]);
+        let mut out = [0f32; 4];
+        for (c, o) in out.iter_mut().enumerate() {
+            *o = pa[c] * wa + pb[c] * wb + pc[c] * wc + pd[c] * wd;
+        }
+        Some(out)
     }
-    out
 }
 
 /// Renders several MPIs of one scene at `camera`, blended as LLFF does:
@@ -264,7 +423,7 @@ pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
         camera.intrinsics.height as usize,
     );
     let mut img = RgbImage::new(w as u32, h as u32);
-    for p in 0..w * h {
+    img.data.par_chunks_mut(3).enumerate().for_each(|(p, out)| {
         let (mut c, mut total) = ([0f64; 3], 0f64);
         for ((r, a), d) in renders.iter().zip(&dists) {
             let wgt = 1.0 / (d + eps).powi(2);
@@ -274,11 +433,11 @@ pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
             total += wgt * a[p] as f64;
         }
         if total > 1e-12 {
-            for (out, ck) in img.data[p * 3..p * 3 + 3].iter_mut().zip(c) {
-                *out = (ck / total) as f32;
+            for (o, ck) in out.iter_mut().zip(c) {
+                *o = (ck / total) as f32;
             }
         }
-    }
+    });
     img
 }
 

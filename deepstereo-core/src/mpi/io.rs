@@ -60,7 +60,7 @@ impl MpiJson {
             r,
             t,
             inverse_depths: mpi.inv_depths.clone(),
-            planes: (0..mpi.planes.len())
+            planes: (0..mpi.planes().len())
                 .map(|z| format!("plane_{z:02}.png"))
                 .collect(),
         }
@@ -96,7 +96,7 @@ pub fn write(mpi: &Mpi, dir: &Path) -> Result<MpiJson> {
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
     let json = MpiJson::of(mpi);
     let (w, h) = (mpi.width() as u32, mpi.height() as u32);
-    for (plane, name) in mpi.planes.iter().zip(&json.planes) {
+    for (plane, name) in mpi.planes().iter().zip(&json.planes) {
         let path = dir.join(name);
         write_atomic(&path, &encode_rgba_png(&path, w, h, plane)?)?;
     }
@@ -108,9 +108,7 @@ pub fn write(mpi: &Mpi, dir: &Path) -> Result<MpiJson> {
 
 /// PNG bytes of `[H, W, 4]` values in [0, 1] (rounded to 8 bits).
 pub fn encode_rgba_png(path: &Path, w: u32, h: u32, rgba: &[f32]) -> Result<Vec<u8>> {
-    let bytes: Vec<u8> = (rgba.iter())
-        .map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
-        .collect();
+    let bytes: Vec<u8> = rgba.iter().map(|&v| super::to_u8(v)).collect();
     let mut buf = Vec::new();
     let enc = image::codecs::png::PngEncoder::new(&mut buf);
     image::ImageEncoder::write_image(enc, &bytes, w, h, image::ExtendedColorType::Rgba8)
@@ -148,11 +146,7 @@ pub fn read(dir: &Path) -> Result<Mpi> {
     let planes = (json.planes.iter())
         .map(|name| read_plane(&dir.join(name), json.width, json.height))
         .collect::<Result<Vec<_>>>()?;
-    Ok(Mpi {
-        camera,
-        inv_depths: json.inverse_depths,
-        planes,
-    })
+    Mpi::new(camera, json.inverse_depths, planes).map_err(|e| Error::format(&file, e.to_string()))
 }
 
 /// The MPIs of a directory written by `deepstereo mpi`: the one in `dir` itself (its

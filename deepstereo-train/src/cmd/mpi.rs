@@ -106,7 +106,7 @@ pub fn run(a: Args) -> Result<()> {
             "baked {}x{}, {} planes, in {:.2} s from views {srcs:?} into {}",
             mpi.width(),
             mpi.height(),
-            mpi.planes.len(),
+            mpi.planes().len(),
             t0.elapsed().as_secs_f64(),
             a.out.join(&name).display()
         );

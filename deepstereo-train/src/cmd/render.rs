@@ -5,6 +5,7 @@ use crate::inference::{pick_sources, render_camera, Prepared, RenderSettings};
 use crate::outdir::StagedDir;
 use crate::path::{path_cameras, render_path, PathKind};
 use anyhow::{bail, Result};
+use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::render::{Backend, Rendered};
 use deepstereo_core::scene::npy::write_npy_f32;
 use deepstereo_core::scene::Scene;
@@ -192,17 +193,31 @@ fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
     let staged = StagedDir::new(&a.out)?;
     let bar = indicatif::ProgressBar::new(cams.len() as u64);
     let t0 = std::time::Instant::now();
-    let mut frames = Vec::with_capacity(cams.len());
-    for (f, cam) in cams.iter().enumerate() {
-        let img = deepstereo_core::mpi::render_blend(&mpis, cam);
-        let name = match a.path {
-            Some(_) => format!("frame_{f:04}.png"),
-            None => "image.png".to_string(),
-        };
-        img.save_frame_png(&staged.path().join(name))?;
-        frames.push(img);
-        bar.inc(1);
-    }
+    // Frames are written by a second thread while the next one renders.
+    let frames = std::thread::scope(|s| -> Result<Vec<RgbImage>> {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, RgbImage)>(2);
+        let writer = s.spawn(move || -> Result<Vec<RgbImage>> {
+            let mut frames = Vec::new();
+            for (path, img) in rx {
+                img.save_frame_png(&path)?;
+                frames.push(img);
+            }
+            Ok(frames)
+        });
+        for (f, cam) in cams.iter().enumerate() {
+            let img = deepstereo_core::mpi::render_blend(&mpis, cam);
+            let name = match a.path {
+                Some(_) => format!("frame_{f:04}.png"),
+                None => "image.png".to_string(),
+            };
+            if tx.send((staged.path().join(name), img)).is_err() {
+                break; // the writer failed; its error is returned below
+            }
+            bar.inc(1);
+        }
+        drop(tx);
+        (writer.join()).map_err(|_| anyhow::anyhow!("the frame writer panicked"))?
+    })?;
     bar.finish_and_clear();
     let secs = t0.elapsed().as_secs_f64();
     eprintln!(
