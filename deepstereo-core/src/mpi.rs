@@ -340,17 +340,10 @@ fn run(v: &[f64], up: bool, s: f64, o: f64, side: f64) -> std::ops::Range<usize>
     start..end.max(start)
 }
 
-/// `v` in [0, 1] rounded to 8 bits, as the plane files store it.
-#[inline]
-pub(crate) fn to_u8(v: f32) -> u8 {
-    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
-}
-
-/// A plane as [`Mpi::render`] samples it: its RGBA rounded to 8 bits as the plane files
-/// hold it (so an MPI read back from its files renders the same), the colour
-/// premultiplied by the alpha (so bilinear sampling does not bleed the colour of
-/// transparent texels), and a border of one texel that repeats the edge, so a sample
-/// never clamps: texel `(x, y)` of the plane is `data[(y + 1) * stride + x + 1]`.
+/// A plane as [`Mpi::render`] samples it: the colour premultiplied by the alpha (so
+/// bilinear sampling does not bleed the colour of transparent texels), and a border of
+/// one texel that repeats the edge, so a sample never clamps: texel `(x, y)` of the
+/// plane is `data[(y + 1) * stride + x + 1]`.
 #[derive(Clone, Debug)]
 struct Texture {
     width: usize,
@@ -365,7 +358,7 @@ impl Texture {
         let stride = w + 2;
         let texel = |x: usize, y: usize| {
             let t = &plane[(y * w + x) * 4..][..4];
-            let [r, g, b, a] = [0, 1, 2, 3].map(|c| f32::from(to_u8(t[c])) / 255.0);
+            let [r, g, b, a] = [t[0], t[1], t[2], t[3]];
             [r * a, g * a, b * a, a]
         };
         let mut data = Vec::with_capacity(stride * (h + 2));

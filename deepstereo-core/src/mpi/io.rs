@@ -108,7 +108,9 @@ pub fn write(mpi: &Mpi, dir: &Path) -> Result<MpiJson> {
 
 /// PNG bytes of `[H, W, 4]` values in [0, 1] (rounded to 8 bits).
 pub fn encode_rgba_png(path: &Path, w: u32, h: u32, rgba: &[f32]) -> Result<Vec<u8>> {
-    let bytes: Vec<u8> = rgba.iter().map(|&v| super::to_u8(v)).collect();
+    let bytes: Vec<u8> = (rgba.iter())
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
+        .collect();
     let mut buf = Vec::new();
     let enc = image::codecs::png::PngEncoder::new(&mut buf);
     image::ImageEncoder::write_image(enc, &bytes, w, h, image::ExtendedColorType::Rgba8)
