@@ -40,6 +40,7 @@ RECIPES=(
   "flat|runs/nviews-flat: the shipped weights fine-tuned with --skip-flat 0.02, cosine:100-1500"
   "weighted|runs/nviews-weighted: the shipped weights fine-tuned with --scene-weights (360-degree captures x3), cosine:100-1500"
   "cue-scratch|runs/nviews-cue-scratch: the nviews-cue architecture (cue's config) from scratch on the whole corpus (17 scenes), 2-12 views, as default: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
+  "corpus|runs/nviews-corpus: prox's architecture (its config: no cue) from scratch on the whole corpus (17 scenes), 2-12 views, as cue-scratch: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "cue|runs/nviews-cue: the shipped weights given the per-view cue (python/add_cue.py: zero columns, so step 0 renders as the shipped model), fine-tuned on the whole corpus (17 scenes) with 2-12 views, Adam 3e-4 to step 1600, then a cosine to a tenth at step 4500"
 )
 
@@ -117,6 +118,11 @@ case "$RECIPE" in
     OUT="${2:-$RUNS/nviews-cue-scratch}"
     : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
     COPY_CONFIG=$RUNS/nviews-cue/config.json
+    ;;
+  corpus)
+    OUT="${2:-$RUNS/nviews-corpus}"
+    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
+    COPY_CONFIG=$PROX_CONFIG
     ;;
   cue)
     OUT="${2:-$RUNS/nviews-cue}"
