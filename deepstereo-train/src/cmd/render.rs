@@ -193,31 +193,11 @@ fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
     let staged = StagedDir::new(&a.out)?;
     let bar = indicatif::ProgressBar::new(cams.len() as u64);
     let t0 = std::time::Instant::now();
-    // Frames are written by a second thread while the next one renders.
-    let frames = std::thread::scope(|s| -> Result<Vec<RgbImage>> {
-        let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, RgbImage)>(2);
-        let writer = s.spawn(move || -> Result<Vec<RgbImage>> {
-            let mut frames = Vec::new();
-            for (path, img) in rx {
-                img.save_frame_png(&path)?;
-                frames.push(img);
-            }
-            Ok(frames)
-        });
-        for (f, cam) in cams.iter().enumerate() {
-            let img = deepstereo_core::mpi::render_blend(&mpis, cam);
-            let name = match a.path {
-                Some(_) => format!("frame_{f:04}.png"),
-                None => "image.png".to_string(),
-            };
-            if tx.send((staged.path().join(name), img)).is_err() {
-                break; // the writer failed; its error is returned below
-            }
-            bar.inc(1);
-        }
-        drop(tx);
-        (writer.join()).map_err(|_| anyhow::anyhow!("the frame writer panicked"))?
-    })?;
+    let names = |f: usize| match a.path {
+        Some(_) => format!("frame_{f:04}.png"),
+        None => "image.png".to_string(),
+    };
+    let frames = render_mpi_frames(&mpis, &cams, staged.path(), names, &bar)?;
     bar.finish_and_clear();
     let secs = t0.elapsed().as_secs_f64();
     eprintln!(
@@ -241,6 +221,37 @@ fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// `cams` rendered from `mpis`, each frame written as PNG into `dir` under `name(f)` by a
+/// second thread while the next one renders; the frames, in order.
+fn render_mpi_frames(
+    mpis: &[deepstereo_core::mpi::Mpi],
+    cams: &[deepstereo_core::camera::Camera],
+    dir: &Path,
+    name: impl Fn(usize) -> String,
+    bar: &indicatif::ProgressBar,
+) -> Result<Vec<RgbImage>> {
+    std::thread::scope(|s| {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<(PathBuf, RgbImage)>(2);
+        let writer = s.spawn(move || -> Result<Vec<RgbImage>> {
+            let mut frames = Vec::new();
+            for (path, img) in rx {
+                img.save_frame_png(&path)?;
+                frames.push(img);
+            }
+            Ok(frames)
+        });
+        for (f, cam) in cams.iter().enumerate() {
+            let img = deepstereo_core::mpi::render_blend(mpis, cam);
+            if tx.send((dir.join(name(f)), img)).is_err() {
+                break; // the writer failed; its error is returned below
+            }
+            bar.inc(1);
+        }
+        drop(tx);
+        (writer.join()).map_err(|_| anyhow::anyhow!("the frame writer panicked"))?
+    })
 }
 
 /// Writes image, depth (picture and raw), confidence and coverage.
