@@ -1,9 +1,14 @@
 """Gives a model of the any-number-of-views family the per-view geometric cue
-(`pool.cue`, `deepstereo-core/src/sweep/cue.rs`) without changing what it computes: the
-first encoder layer gains one input column per cue channel, all zero, so the new model
-renders exactly as the old one until training moves them.
+(`deepstereo-core/src/sweep/cue.rs`) without changing what it computes, so the new model
+renders exactly as the old one until training moves the new weights:
 
-    python python/add_cue.py IN.safetensors OUT.safetensors [--name NAME]
+- by default (`pool.cue`), the first encoder layer gains one input column per cue
+  channel, all zero;
+- with `--weigh` (`pool.weigh`), the model gains the view weights `views.weigh.*`: a
+  hidden layer of `--hidden` channels (PyTorch's default initialisation, `--seed`) and a
+  1-channel layer of zeros, so every view's weight `1 + tanh(0)` is 1.
+
+    python python/add_cue.py IN.safetensors OUT.safetensors [--name NAME] [--weigh [--hidden 8] [--seed 0]]
 
 Writes OUT and its config alone beside it as `config.json` (the run directory's), each
 atomically. Needs numpy and safetensors (python/requirements.txt)."""
@@ -22,16 +27,24 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("input")
     ap.add_argument("output")
-    ap.add_argument("--name", default=None, help="the new config's name (default: the input's + '-cue')")
+    ap.add_argument("--name", default=None, help="the new config's name (default: the input's + '-cue' or '-weigh')")
+    ap.add_argument("--weigh", action="store_true", help="the cue weighs the views (pool.weigh) instead of entering the encoder")
+    ap.add_argument("--hidden", type=int, default=8, help="--weigh: channels of its hidden layer (0: none)")
+    ap.add_argument("--seed", type=int, default=0, help="--weigh: seed of the hidden layer's initialisation")
     args = ap.parse_args()
+    if args.hidden < 0 or args.hidden > 1024:
+        print(f"error: --hidden must be 0 to 1024, got {args.hidden}", file=sys.stderr)
+        return 2
     meta, tensors, cfg = model_file.load(args.input)
     pool = cfg.get("pool")
     if not pool:
         print(f"error: {args.input}: not a model of the any-number-of-views family (no pool)", file=sys.stderr)
         return 1
-    if pool.get("cue"):
+    if pool.get("cue") or pool.get("weigh") is not None:
         print(f"error: {args.input}: the model already reads the cue", file=sys.stderr)
         return 1
+    if args.weigh:
+        return add_weigh(args, meta, tensors, cfg)
     w = tensors["views.encode.0.weight"]  # [C0, 7, 1, 1]
     zeros = np.zeros((w.shape[0], CUE_CHANNELS, 1, 1), dtype=w.dtype)
     tensors["views.encode.0.weight"] = np.ascontiguousarray(np.concatenate([w, zeros], axis=1))
@@ -40,6 +53,27 @@ def main() -> int:
     out_dir = os.path.dirname(os.path.abspath(args.output))
     model_file.save(args.output, os.path.join(out_dir, "config.json"), meta, tensors, cfg)
     print(f"wrote {args.output} ({cfg['name']}: encoder input {w.shape[1]} -> {w.shape[1] + CUE_CHANNELS} channels)")
+    return 0
+
+
+def add_weigh(args: argparse.Namespace, meta: dict, tensors: dict, cfg: dict) -> int:
+    """`--weigh`: `views.weigh.0` (hidden, uniform in +-1/sqrt(fan_in) as PyTorch's
+    `nn.Conv2d`) and the zero 1-channel layer after it."""
+    rng = np.random.default_rng(args.seed)
+    dtype = tensors["views.encode.0.weight"].dtype
+    ch, i = CUE_CHANNELS, 0
+    if args.hidden > 0:
+        bound = 1.0 / np.sqrt(ch)
+        tensors["views.weigh.0.weight"] = rng.uniform(-bound, bound, (args.hidden, ch, 1, 1)).astype(dtype)
+        tensors["views.weigh.0.bias"] = rng.uniform(-bound, bound, (args.hidden,)).astype(dtype)
+        ch, i = args.hidden, 1
+    tensors[f"views.weigh.{i}.weight"] = np.zeros((1, ch, 1, 1), dtype)
+    tensors[f"views.weigh.{i}.bias"] = np.zeros((1,), dtype)
+    cfg["pool"]["weigh"] = [{"kernel": 1, "channels": args.hidden}] if args.hidden > 0 else []
+    cfg["name"] = args.name or cfg["name"] + "-weigh"
+    out_dir = os.path.dirname(os.path.abspath(args.output))
+    model_file.save(args.output, os.path.join(out_dir, "config.json"), meta, tensors, cfg)
+    print(f"wrote {args.output} ({cfg['name']}: views weighed by their cue, hidden layer {args.hidden})")
     return 0
 
 

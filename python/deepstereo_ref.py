@@ -11,8 +11,9 @@ the file's metadata under `deepstereo.config`.
 Shapes: input level `l` is `[B, D, 4V, H_l, W_l]` (the paper's family) or
 `[B, D, V, 4, H_l, W_l]` (the any-number-of-views family, config `pool`, any V: its view
 pooling and colour blend mirror `deepstereo-core/src/pool.rs`, tensors `views.encode.{i}.*`
-and `colour.blend.{i}.*`; with `pool.cue`, `[B, D, V, 4 + 5, H_l, W_l]`: each view's
-geometric cue after its RGBA, read by the encoder, `deepstereo-core/src/sweep/cue.rs`);
+and `colour.blend.{i}.*`; with `pool.cue` or `pool.weigh`, `[B, D, V, 4 + 5, H_l, W_l]`:
+each view's geometric cue after its RGBA, `deepstereo-core/src/sweep/cue.rs`, read by the
+encoder (`cue`) or by `views.weigh.{i}.*`, which weighs each view's alpha (`weigh`));
 outputs `image` `[B, 3, th, tw]` and `selection` `[B, D, th, tw]`, with `th = H_0 - 2 pad(0)`.
 """
 
@@ -103,6 +104,9 @@ class ViewPool:
     # `pool.cue`: each view's geometric cue follows its RGBA in the inputs and the encoder
     # reads it.
     cue: bool = False
+    # `pool.weigh` (hidden widths): the cue follows the RGBA in the inputs and weighs each
+    # view's alpha by `1 + tanh(g(cue) / 2)` (`views.weigh.*`); exclusive with `cue`.
+    weigh: list[Conv] | None = None
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "ViewPool":
@@ -112,6 +116,7 @@ class ViewPool:
             blend=[Conv(int(c["kernel"]), int(c["channels"])) for c in d["blend"]],
             falloff=None if f is None else {"full": int(f["full"]), "power": int(f["power"])},
             cue=bool(d.get("cue", False)),
+            weigh=None if d.get("weigh") is None else [Conv(int(c["kernel"]), int(c["channels"])) for c in d["weigh"]],
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -120,13 +125,15 @@ class ViewPool:
             d["falloff"] = dict(self.falloff)
         if self.cue:
             d["cue"] = True
+        if self.weigh is not None:
+            d["weigh"] = [c.__dict__ for c in self.weigh]
         return d
 
     def encoder_in(self) -> int:
         return ENCODER_IN + (CUE_CHANNELS if self.cue else 0)
 
     def view_channels(self) -> int:
-        return 4 + (CUE_CHANNELS if self.cue else 0)
+        return 4 + (CUE_CHANNELS if self.cue or self.weigh is not None else 0)
 
     def features(self) -> int:
         return self.encoder[-1].channels if self.encoder else self.encoder_in()
@@ -200,9 +207,11 @@ class Config:
         if self.tile <= 0 or self.tile % self.tile_align() != 0:
             raise ValueError(f"tile {self.tile} must be a positive multiple of {self.tile_align()}")
         if self.pool is not None:
-            for c in self.pool.encoder + self.pool.blend:
+            for c in self.pool.encoder + self.pool.blend + (self.pool.weigh or []):
                 if c.kernel != 1 or c.channels <= 0:
-                    raise ValueError(f"pool: encoder and blend layers must be 1x1, got {c}")
+                    raise ValueError(f"pool: encoder, blend and weigh layers must be 1x1, got {c}")
+            if self.pool.cue and self.pool.weigh is not None:
+                raise ValueError("pool: cue and weigh are exclusive")
             if self.colour_skip:
                 raise ValueError("pool: colour_skip must be false")
 
@@ -277,13 +286,28 @@ class Config:
         return c
 
     @staticmethod
+    def nviews_weigh() -> "Config":
+        c = Config.nviews()
+        c.name = "nviews-weigh"
+        assert c.pool is not None
+        c.pool.weigh = [Conv(1, 8)]
+        c.pool.falloff = {"full": 1, "power": 2}
+        return c
+
+    @staticmethod
     def preset(name: str) -> "Config | None":
         """A preset by name (`PRESETS`), or None."""
-        presets = {"paper": Config.paper, "tiny": Config.tiny, "nviews": Config.nviews, "nviews-cue": Config.nviews_cue}
+        presets = {
+            "paper": Config.paper,
+            "tiny": Config.tiny,
+            "nviews": Config.nviews,
+            "nviews-cue": Config.nviews_cue,
+            "nviews-weigh": Config.nviews_weigh,
+        }
         return presets.get(name, lambda: None)()
 
 
-PRESETS = ("tiny", "paper", "nviews", "nviews-cue")
+PRESETS = ("tiny", "paper", "nviews", "nviews-cue", "nviews-weigh")
 
 
 # --- the network (mirrors model.rs) ----------------------------------------------------
@@ -391,6 +415,27 @@ class Views(nn.Module):
         for c in pool.encoder:
             self.encode.append(nn.Conv2d(ch, c.channels, 1))
             ch = c.channels
+        if pool.weigh is not None:
+            self.weigh = nn.ModuleList()
+            ch = CUE_CHANNELS
+            for cout in [c.channels for c in pool.weigh] + [1]:
+                self.weigh.append(nn.Conv2d(ch, cout, 1))
+                ch = cout
+
+    def weigh_forward(self, x: torch.Tensor) -> torch.Tensor:
+        """`ViewWeigh::forward`: `[B, D, V, 4 + 5, H, W]` -> `[B, D, V, 4, H, W]`, each
+        view's RGB and its alpha times `1 + tanh(g(cue) / 2)`."""
+        b, d, v, cv, h, w = x.shape
+        if cv != 4 + CUE_CHANNELS:
+            raise ValueError(f"expected [B, D, V, {4 + CUE_CHANNELS}, H, W], got {tuple(x.shape)}")
+        g = x[:, :, :, 4:].reshape(b * d * v, CUE_CHANNELS, h, w)
+        last = len(self.weigh) - 1
+        for i, conv in enumerate(self.weigh):
+            g = conv(g)
+            if i < last:
+                g = F.relu(g)
+        k = (1.0 + torch.tanh(g / 2)).reshape(b, d, v, 1, h, w)
+        return torch.cat([x[:, :, :, :3], x[:, :, :, 3:4] * k], 3)
 
     def pool_forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """`ViewEncoder::forward`: `[B, D, V, C_v, H, W]` (`C_v` 4, or 4 + 5 with the cue)
@@ -441,6 +486,8 @@ class DeepStereo(nn.Module):
         cfg = self.cfg
         if len(inputs) != cfg.levels:
             raise ValueError(f"expected {cfg.levels} input levels, got {len(inputs)}")
+        if cfg.pool is not None and cfg.pool.weigh is not None:
+            inputs = [self.views.weigh_forward(x) for x in inputs]
         raw = inputs
         features = None
         if cfg.pool is not None:

@@ -380,16 +380,18 @@ def sweep_case(p: Parity, model: Model, name: str, scene: Path, planes: int | No
     print(f"  {name}: image range [{img.min():.3f}, {img.max():.3f}]", flush=True)
 
 
-def add_cue_check(p: Parity, weights: Path, rng: np.random.Generator) -> None:
-    """`python/add_cue.py` on a model without the cue: the new model, fed the same RGBA
-    with any cue beside it, renders exactly what the old one does (its cue weights are
-    zero), in candle (`deepstereo forward`); and the file's config reads the cue."""
-    out = p.work / "with_cue" / "model.safetensors"
+def add_cue_check(p: Parity, weights: Path, rng: np.random.Generator, weigh: bool) -> None:
+    """`python/add_cue.py` (with `--weigh`: the cue weighs the views) on a model without
+    the cue: the new model, fed the same RGBA with any cue beside it, renders exactly what
+    the old one does (its new weights start at zero), in candle (`deepstereo forward`);
+    and the file's config reads the cue."""
+    tag = "weigh" if weigh else "cue"
+    out = p.work / f"with_{tag}" / "model.safetensors"
     out.parent.mkdir(exist_ok=True)
-    run([sys.executable, ROOT / "python" / "add_cue.py", weights, out], "add_cue.py")
+    run([sys.executable, ROOT / "python" / "add_cue.py", weights, out] + (["--weigh"] if weigh else []), "add_cue.py")
     cfg = ref.read_config(str(out))
-    if cfg.pool is None or not cfg.pool.cue:
-        p.fail(f"add_cue.py: {out} does not read the cue")
+    if cfg.pool is None or not (cfg.pool.weigh is not None if weigh else cfg.pool.cue):
+        p.fail(f"add_cue.py: {out} does not read the cue ({tag})")
         return
     old = ref.read_config(str(weights))
     t = old.tile
@@ -398,13 +400,13 @@ def add_cue_check(p: Parity, weights: Path, rng: np.random.Generator) -> None:
     xc = {k: np.concatenate([a, (rng.random(a.shape[:3] + (5,) + a.shape[4:]) * 12 - 7).astype(np.float32)], 3) for k, a in x.items()}
     images = []
     for model, inputs, name in ((weights, x, "without"), (out, xc, "with")):
-        f = p.work / f"add_cue_{name}.safetensors"
+        f = p.work / f"add_{tag}_{name}.safetensors"
         save_file(inputs, str(f))
-        run([p.bin, "forward", "--model", model, "--inputs", f, "--out", p.work / f"add_cue_{name}_out.safetensors"], "forward")
-        images.append(load_file(str(p.work / f"add_cue_{name}_out.safetensors"))["image"])
+        run([p.bin, "forward", "--model", model, "--inputs", f, "--out", p.work / f"add_{tag}_{name}_out.safetensors"], "forward")
+        images.append(load_file(str(p.work / f"add_{tag}_{name}_out.safetensors"))["image"])
     d = float(np.abs(images[0] - images[1]).max())
     status = "ok" if d <= 1e-6 else "FAIL"
-    print(f"  add_cue.py: the model with zero cue weights against the model without the cue: image max |diff| {d:.2e} {status}", flush=True)
+    print(f"  add_cue.py{' --weigh' if weigh else ''}: the model with zero cue weights against the model without the cue: image max |diff| {d:.2e} {status}", flush=True)
     if d > 1e-6:
         p.fail(f"add_cue.py changed what the model renders: {d}")
 
@@ -521,13 +523,23 @@ def main() -> int:
         ref.init_weights(cue_cfg, str(w), seed=5)
         models.append(p.load_model("py-pooled-cue", w))
         cue_model = models[-1]
+        # The cue weighing the views: the Python variant with `pool.weigh` (all its weights
+        # random, so the weights are not 1).
+        weigh_cfg = pooled_variant_config()
+        assert weigh_cfg.pool is not None
+        weigh_cfg.name, weigh_cfg.pool.weigh = "pooled-variant-weigh", [ref.Conv(1, 5)]
+        w = work / "pooled_variant_weigh.safetensors"
+        ref.init_weights(weigh_cfg, str(w), seed=7)
+        models.append(p.load_model("py-pooled-weigh", w))
+        weigh_model = models[-1]
         for extra in args.weights:
             models.append(p.load_model(extra.stem, extra))
         reference_loader_checks(p, models[0].weights)
         # add_cue.py on the first pooled model without the cue (the shipped one, when it has none).
-        plain = [m for m in models if m.cfg.pool is not None and not m.cfg.pool.cue]
+        plain = [m for m in models if m.cfg.pool is not None and m.cfg.pool.view_channels() == 4]
         if plain:
-            add_cue_check(p, plain[0].weights, np.random.default_rng(8))
+            add_cue_check(p, plain[0].weights, np.random.default_rng(8), weigh=False)
+            add_cue_check(p, plain[0].weights, np.random.default_rng(9), weigh=True)
         else:
             p.fail("no pooled model without the cue to check add_cue.py on")
 
@@ -549,6 +561,7 @@ def main() -> int:
             sweep_case(p, main_model, "procedural", scene, None, [])
             # The cue's channels as `sweep --model` writes them, through every runtime.
             sweep_case(p, cue_model, "procedural-cue", scene, None, ["--views", "5"])
+            sweep_case(p, weigh_model, "procedural-weigh", scene, None, ["--views", "5"])
         # Real scenes: few planes so that a whole-image tile stays small.
         real = [("templeRing", 4, []), ("ethiopianHead", 2, [])]
         for name, planes, extra in real:

@@ -106,6 +106,14 @@ pub struct ViewPool {
     /// source sees each plane point. `false`: RGBA alone (models trained before it).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub cue: bool,
+    /// The cue weighs the views instead ([`crate::pool::ViewWeigh`]): each view's alpha
+    /// is multiplied by `1 + tanh(g(cue_v) / 2)` (in `(0, 2)`, 1 where `g` is 0), `g` a
+    /// chain of 1x1 layers of these hidden widths, then one channel. The pooled mean and
+    /// variance and the blend then weigh each view by how it sees the plane point, while
+    /// the features whose variance is pooled stay the colours'. Exclusive with `cue`.
+    /// `None`: views weigh by their alpha alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub weigh: Option<Vec<Conv>>,
 }
 
 /// The weight of a source view `v` at distance `d_v` from the target camera centre:
@@ -137,8 +145,17 @@ impl ViewPool {
     pub fn encoder_in(&self) -> usize {
         ENCODER_IN + if self.cue { CUE_CHANNELS } else { 0 }
     }
+    /// Whether the model reads each view's cue (in its encoder, or to weigh the views).
+    pub fn reads_cue(&self) -> bool {
+        self.cue || self.weigh.is_some()
+    }
     /// Channels of one view in an input level: RGBA, then the cue when the model reads it.
     pub fn view_channels(&self) -> usize {
+        4 + if self.reads_cue() { CUE_CHANNELS } else { 0 }
+    }
+    /// Channels of one view the encoder reads: RGBA, then the cue with [`Self::cue`]
+    /// (with [`Self::weigh`], the weighed RGBA alone).
+    pub fn encoder_view_channels(&self) -> usize {
         4 + if self.cue { CUE_CHANNELS } else { 0 }
     }
     /// Channels of one view's features `e_v`.
@@ -264,6 +281,7 @@ impl Config {
                 blend: vec![c(1, 6)],
                 falloff: Some(ViewFalloff { full: 4, power: 8 }),
                 cue: false,
+                weigh: None,
             }),
         }
     }
@@ -280,8 +298,24 @@ impl Config {
         c
     }
 
+    /// [`Self::nviews`] with views weighed by their geometric cue ([`ViewPool::weigh`]:
+    /// one hidden layer of 8) and the shipped default's proximity weights `1:2`.
+    pub fn nviews_weigh() -> Self {
+        let mut c = Self::nviews();
+        c.name = "nviews-weigh".into();
+        if let Some(p) = c.pool.as_mut() {
+            p.weigh = Some(vec![Conv {
+                kernel: 1,
+                channels: 8,
+            }]);
+            p.falloff = Some(ViewFalloff { full: 1, power: 2 });
+        }
+        c
+    }
+
     /// The presets' names, as [`Self::preset`] takes them.
-    pub const PRESETS: [&'static str; 4] = ["tiny", "paper", "nviews", "nviews-cue"];
+    pub const PRESETS: [&'static str; 5] =
+        ["tiny", "paper", "nviews", "nviews-cue", "nviews-weigh"];
 
     /// A preset by name.
     pub fn preset(name: &str) -> Option<Self> {
@@ -290,6 +324,7 @@ impl Config {
             "tiny" => Some(Self::tiny()),
             "nviews" => Some(Self::nviews()),
             "nviews-cue" => Some(Self::nviews_cue()),
+            "nviews-weigh" => Some(Self::nviews_weigh()),
             _ => None,
         }
     }
@@ -422,14 +457,19 @@ impl Config {
             }
         }
         if let Some(pool) = &self.pool {
-            for conv in pool.encoder.iter().chain(&pool.blend) {
+            let weigh = pool.weigh.as_deref().unwrap_or_default();
+            for conv in pool.encoder.iter().chain(&pool.blend).chain(weigh) {
                 if conv.kernel != 1 || conv.channels == 0 || conv.channels > MAX_CHANNELS {
                     return Err(format!(
-                        "pool: encoder and blend layers must be 1x1 with 1 to {MAX_CHANNELS} channels, got {conv:?}"
+                        "pool: encoder, blend and weigh layers must be 1x1 with 1 to {MAX_CHANNELS} channels, got {conv:?}"
                     ));
                 }
             }
-            if pool.encoder.len() > MAX_CONVS || pool.blend.len() > MAX_CONVS {
+            if pool.cue && pool.weigh.is_some() {
+                return Err("pool: cue and weigh are exclusive (the cue enters the encoder, or weighs the views)".into());
+            }
+            let lists = [&pool.encoder, &pool.blend];
+            if lists.iter().any(|l| l.len() > MAX_CONVS) || weigh.len() > MAX_CONVS {
                 return Err(format!("at most {MAX_CONVS} convolutions per list"));
             }
             if let Some(f) = pool.falloff {

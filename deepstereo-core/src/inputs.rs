@@ -162,7 +162,7 @@ pub fn tile_inputs(
         if let Some(w) = weights.as_deref().filter(|w| w.iter().any(|&g| g != 1.0)) {
             scale_alpha(&mut buf, w, region.len());
         }
-        if cfg.pool.as_ref().is_some_and(|p| p.cue) {
+        if cfg.pool.as_ref().is_some_and(|p| p.reads_cue()) {
             let centres: Vec<DVec3> = srcs.iter().map(|s| centre_in(&tcam, s.camera)).collect();
             buf = with_cue(&buf, &tcam, region, &centres, inv_depths);
         }

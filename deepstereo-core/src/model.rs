@@ -19,7 +19,7 @@ use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};
 pub use crate::fused::upsample_nearest;
 use crate::fused::{composite, pad_rows, select_softmax, upsample_cat, upsample_crop};
-use crate::pool::{rgba, view_dims, Blend, ViewEncoder};
+use crate::pool::{rgba, view_dims, Blend, ViewEncoder, ViewWeigh};
 use candle_core::Module;
 use candle_core::{DType, Result, Tensor, D};
 use candle_nn::VarBuilder;
@@ -144,6 +144,8 @@ pub struct DeepStereo {
     colour_out: Conv2d,
     /// The any-number-of-views family's encoder and blend.
     pool: Option<(ViewEncoder, Blend)>,
+    /// The cue's view weights ([`crate::config::ViewPool::weigh`]).
+    weigh: Option<ViewWeigh>,
 }
 
 /// Pixels per depth row at which rows alias in the caches (128 floats = 512 bytes).
@@ -186,6 +188,10 @@ impl DeepStereo {
             )),
             None => None,
         };
+        let weigh = match cfg.pool.as_ref().and_then(|p| p.weigh.as_deref()) {
+            Some(hidden) => Some(ViewWeigh::new(hidden, vb.pp("views").pp("weigh"))?),
+            None => None,
+        };
         Ok(Self {
             cfg: cfg.clone(),
             select,
@@ -194,6 +200,7 @@ impl DeepStereo {
             colour,
             colour_out,
             pool,
+            weigh,
         })
     }
 
@@ -228,6 +235,22 @@ impl DeepStereo {
         if inputs.len() != cfg.levels {
             candle_core::bail!("expected {} input levels, got {}", cfg.levels, inputs.len());
         }
+        // With the cue's view weights, every level's alpha weighed first: [B, D, V, 4, H_l, W_l].
+        let weighed = match &self.weigh {
+            Some(weigh) => Some(
+                (inputs.iter())
+                    .map(|x| {
+                        if fuse {
+                            weigh.infer(x)
+                        } else {
+                            weigh.forward(x)
+                        }
+                    })
+                    .collect::<Result<Vec<_>>>()?,
+            ),
+            None => None,
+        };
+        let inputs = weighed.as_deref().unwrap_or(inputs);
         let (towers_in, features) = self.towers_input(inputs, fuse)?;
         let (b, d, cin, h0, w0) = towers_in[0].dims5()?;
         let (th, tw) = (h0 - 2 * cfg.pad(0), w0 - 2 * cfg.pad(0));

@@ -29,8 +29,19 @@
 //! [`BLEND_LOGIT_BOUND`] so that `exp` never overflows, whatever a view that is not there
 //! computes).
 //!
+//! With [`ViewPool::weigh`], the cue weighs the views before all of this
+//! ([`ViewWeigh`]): each view's alpha becomes `a_v k_v` with
+//! `k_v = 1 + tanh(g(cue_v) / 2)` (`= 2 sigmoid(g)`, in `(0, 2)`; `g`: 1x1 layers, ReLU
+//! between; `python/add_cue.py --weigh` starts the last one at zero, so that `k_v = 1`
+//! and the model renders as it did without), and steps 1-3 and the
+//! blend read that alpha. The cue thus sets how much each view counts in the mean, the
+//! variance and the blend, without entering the features whose variance is pooled; a
+//! view that is not there still has alpha 0, and `k_v` depends on its own cue alone, so
+//! the order of the views still does not matter.
+//!
 //! Parameter names (equal to the PyTorch reference's): `views.encode.{i}.{weight,bias}`,
-//! `colour.blend.{i}.{weight,bias}` (the last one the 1-channel logit layer).
+//! `colour.blend.{i}.{weight,bias}` (the last one the 1-channel logit layer),
+//! `views.weigh.{i}.{weight,bias}` (the last one the 1-channel `g`).
 
 use crate::config::{ViewPool, CUE_CHANNELS, ENCODER_IN};
 use crate::conv::{pointwise_chain, Conv2d};
@@ -94,7 +105,7 @@ impl ViewEncoder {
         }
         Ok(Self {
             convs,
-            view_channels: pool.view_channels(),
+            view_channels: pool.encoder_view_channels(),
         })
     }
 
@@ -118,8 +129,13 @@ impl ViewEncoder {
     /// on the CPU (`fused/pool.rs`), else candle ops ([`Self::forward_reference`]).
     /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain and the
     /// pooled statistics are written in one buffer ([`fused::pooled_stats`]).
+    /// Where `x` carries a gradient (its alpha weighed by [`ViewWeigh`] in training):
+    /// [`Self::forward_tracked`].
     pub fn forward(&self, x: &Tensor, fuse: bool) -> Result<Pooled> {
         let (n, v, h, w, b) = view_dims(x, self.view_channels())?;
+        if x.track_op() {
+            return self.forward_tracked(x);
+        }
         let xp = rgba(x)?.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
         let Some((enc, front)) = fused::pool_front(&xp)? else {
             return self.forward_reference(x);
@@ -188,6 +204,34 @@ impl ViewEncoder {
         Ok(e)
     }
 
+    /// [`Self::forward`] for sources whose alphas carry a gradient ([`ViewWeigh`]): the
+    /// mean colour and the encoder input as candle ops ([`fused::pool_front`] treats the
+    /// sweep as data), the moments fused ([`fused::view_stats`], which has their gradient
+    /// to the alphas).
+    fn forward_tracked(&self, x_in: &Tensor) -> Result<Pooled> {
+        let (n, v, h, w, b) = view_dims(x_in, 4)?;
+        let x = x_in.reshape((n, v, 4, h, w))?; // [N, V, 4, H, W]
+        let (rgb, a) = (x.narrow(2, 0, 3)?, x.narrow(2, 3, 1)?); // [N, V, 3 | 1, H, W]
+        let asum = a.sum_keepdim(1)?; // [N, 1, 1, H, W]
+        let den = (&asum + POOL_EPS)?;
+        let mean_rgb = weighted_mean(&rgb, &a, &den)?; // [N, 1, 3, H, W]
+        let diff = rgb.broadcast_sub(&mean_rgb)?; // [N, V, 3, H, W]
+        let e_in = Tensor::cat(&[&x, &diff], 2)?.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
+        let e = self.encode(e_in)?; // [N*V, C_f, H, W]
+        let cf = e.dim(1)?;
+        let e4 = e.reshape((n, v, cf, h * w))?; // [N, V, C_f, P]
+        let xp = x.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
+        let Some(moments) = fused::view_stats(&e4, &xp)? else {
+            return self.forward_reference(x_in);
+        }; // [N, 2 C_f, P]
+        let cover = asum.div(&(&asum + 1.0)?)?; // [N, 1, 1, H, W]
+        let front = Tensor::cat(&[&mean_rgb, &cover], 2)?.reshape((n, 4, h * w))?; // [N, 4, P]
+        let stats = Tensor::cat(&[&front, &moments], 1)? // [N, 4 + 2 C_f, P]
+            .reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
+        let features = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
+        Ok(Pooled { stats, features })
+    }
+
     /// [`Self::forward`] as candle ops (the fused passes' reference and fallback).
     pub fn forward_reference(&self, x_in: &Tensor) -> Result<Pooled> {
         let (n, v, h, w, b) = view_dims(x_in, self.view_channels())?;
@@ -212,6 +256,67 @@ impl ViewEncoder {
         let stats = Tensor::cat(&[&mean_rgb, &cover, &mean_e, &var_e], 2)? // [N, 1, 4 + 2 C_f, H, W]
             .reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
         Ok(Pooled { stats, features: e })
+    }
+}
+
+/// The cue's view weights (`views.weigh.*`, [`ViewPool::weigh`]; module doc).
+#[derive(Debug, Clone)]
+pub struct ViewWeigh {
+    /// Hidden layers, then the 1-channel `g` (zero from [`Self::new`]'s initialiser;
+    /// `weights::init_seeded` redraws it like every layer).
+    layers: Vec<Conv2d>,
+}
+
+impl ViewWeigh {
+    /// `hidden`: the hidden layers' widths ([`ViewPool::weigh`]).
+    pub fn new(hidden: &[crate::config::Conv], vb: VarBuilder) -> Result<Self> {
+        let mut ch = CUE_CHANNELS;
+        let mut layers = Vec::with_capacity(hidden.len() + 1);
+        for (i, c) in hidden.iter().enumerate() {
+            layers.push(Conv2d::new(ch, c.channels, (1, 1), vb.pp(i))?);
+            ch = c.channels;
+        }
+        layers.push(Conv2d::zeros(ch, 1, (1, 1), vb.pp(hidden.len()))?);
+        Ok(Self { layers })
+    }
+
+    /// Each view's weight `k_v = 1 + tanh(g(cue_v) / 2)` from an input level `x`
+    /// `[B, D, V, 4 + K, H, W]`: `[B, D, V, 1, H, W]`.
+    pub fn weights(&self, x: &Tensor) -> Result<Tensor> {
+        let (n, v, h, w, b) = view_dims(x, 4 + CUE_CHANNELS)?;
+        let mut g = x.narrow(3, 4, CUE_CHANNELS)?.contiguous()?; // [B, D, V, K, H, W]
+        g = g.reshape((n * v, CUE_CHANNELS, h, w))?; // [N*V, K, H, W]
+        let last = self.layers.len() - 1;
+        for (i, conv) in self.layers.iter().enumerate() {
+            g = match i < last {
+                true => conv.forward_relu(&g)?,
+                false => conv.forward(&g)?,
+            };
+        } // [N*V, 1, H, W]
+        let k = ((g * 0.5)?.tanh()? + 1.0)?;
+        k.reshape((b, n / b.max(1), v, 1, h, w)) // [B, D, V, 1, H, W]
+    }
+
+    /// [`Self::forward`] for rendering, in one fused pass where it runs
+    /// ([`fused::weigh_views`]; equal to rounding, since its sums run in another order).
+    pub fn infer(&self, x: &Tensor) -> Result<Tensor> {
+        let fused = match dense_layers(&self.layers)? {
+            Some(dense) => fused::weigh_views(x, &dense)?,
+            None => None,
+        };
+        match fused {
+            Some(y) => Ok(y),
+            None => self.forward(x),
+        }
+    }
+
+    /// The weighed level: `x` `[B, D, V, 4 + K, H, W]` -> `[B, D, V, 4, H, W]`, each
+    /// view's RGB and its alpha times [`Self::weights`].
+    pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let k = self.weights(x)?; // [B, D, V, 1, H, W]
+        let rgb = x.narrow(3, 0, 3)?; // [B, D, V, 3, H, W]
+        let a = x.narrow(3, 3, 1)?.mul(&k)?; // [B, D, V, 1, H, W]
+        Tensor::cat(&[&rgb, &a], 3) // [B, D, V, 4, H, W]
     }
 }
 
@@ -354,6 +459,7 @@ mod tests {
             blend: vec![],
             falloff: None,
             cue: false,
+            weigh: None,
         };
         let vm = candle_nn::VarMap::new();
         let enc = ViewEncoder::new(
@@ -408,5 +514,46 @@ mod tests {
         let d = (ta - tb)?.abs()?.max_all()?.to_scalar::<f64>()?;
         assert!(d < 1e-10, "blend gradients differ by {d}");
         Ok(())
+    }
+
+    /// Sources that carry a gradient (alphas weighed by the cue): the fused moments and
+    /// blend give the same gradients to them as the candle ops (f64).
+    #[test]
+    fn fused_gradients_to_the_sources_equal_the_candle_ops() -> Result<()> {
+        let (n, v, c, p) = (3, 4, 5, 7);
+        let x = Var::from_tensor(&rand(&[n, v, 4, p], 21, true)?)?;
+        let e = rand(&[n, v, c, p], 23, false)?;
+        let y = ((rand(&[n, v, p], 25, false)? - 0.5)? * 6.0)?;
+        let grad_of = |out: &Tensor, seed: u64| -> Result<Tensor> {
+            let r = rand(out.dims(), seed, false)?;
+            let g = (out * &r)?.sum_all()?.backward()?;
+            g.get(x.as_tensor())
+                .cloned()
+                .ok_or_else(|| candle_core::Error::msg("no gradient for the sources"))
+        };
+        let close = |a: &Tensor, b: &Tensor, what: &str| -> Result<()> {
+            let d = (a - b)?.abs()?.max_all()?.to_scalar::<f64>()?;
+            let m = b.abs()?.max_all()?.to_scalar::<f64>()?;
+            assert!(
+                m > 1e-3 && d < 1e-10,
+                "{what}: gradients differ by {d} (max {m})"
+            );
+            Ok(())
+        };
+        // Moments: candle ops as in `forward_reference`.
+        let fused = fused::view_stats(&e, x.as_tensor())?
+            .ok_or_else(|| candle_core::Error::msg("fused moments did not run"))?;
+        let (e5, x5) = (e.reshape((n, v, c, 1, p))?, x.reshape((n, v, 4, 1, p))?);
+        let a = x5.narrow(2, 3, 1)?;
+        let den = (a.sum_keepdim(1)? + POOL_EPS)?;
+        let mean = weighted_mean(&e5, &a, &den)?;
+        let var = weighted_mean(&e5.broadcast_sub(&mean)?.sqr()?, &a, &den)?;
+        let reference = Tensor::cat(&[&mean, &var], 2)?.reshape((n, 2 * c, p))?;
+        close(&grad_of(&fused, 27)?, &grad_of(&reference, 27)?, "moments")?;
+        // Blend.
+        let fused = fused::blend_colours(&y, x.as_tensor())?
+            .ok_or_else(|| candle_core::Error::msg("fused blend did not run"))?;
+        let reference = blend_reference(&y.reshape((n, v, 1, 1, p))?, &x5)?.reshape((n, 3, p))?;
+        close(&grad_of(&fused, 29)?, &grad_of(&reference, 29)?, "blend")
     }
 }

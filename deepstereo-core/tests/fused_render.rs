@@ -76,6 +76,7 @@ fn encoder_with(channels: &[usize], cue: bool) -> Result<(ViewEncoder, VarMap)> 
         blend: vec![],
         falloff: None,
         cue,
+        weigh: None,
     };
     let vm = VarMap::new();
     let enc = ViewEncoder::new(

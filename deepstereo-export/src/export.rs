@@ -178,7 +178,7 @@ fn graph_inputs(cfg: &Config) -> Vec<ValueInfoProto> {
                 dim(&format!("level{l}_width")),
             );
             let (dims, layout) = match &cfg.pool {
-                Some(p) if p.cue => (
+                Some(p) if p.reads_cue() => (
                     vec![
                         dim("batch"),
                         dim("planes"),
@@ -343,6 +343,9 @@ struct Graph<'w> {
     bd: String,
     /// `[th, tw]` (int64) of the output tile.
     tile: String,
+    /// The levels the view pooling and the blend read, where they are not the inputs
+    /// themselves (the weighed levels with `pool.weigh`).
+    view_levels: Vec<String>,
 }
 
 impl<'w> Graph<'w> {
@@ -383,6 +386,7 @@ impl<'w> Graph<'w> {
             count: 0,
             bd: String::new(),
             tile: String::new(),
+            view_levels: Vec::new(),
         };
         // (B, D) and (th, tw) = (H_0 - 2 pad_0, W_0 - 2 pad_0), read from level 0.
         let level0 = input_name(0);
@@ -679,6 +683,9 @@ impl<'w> Graph<'w> {
         // The towers' inputs: the sweep itself, or the pooled statistics.
         let (towers_in, features) = match &cfg.pool {
             Some(pool) => {
+                if let Some(hidden) = &pool.weigh {
+                    self.view_levels = self.weighed_levels(cfg, hidden)?;
+                }
                 let (stats, features) = self.pooled(cfg, pool)?;
                 (stats, Some(features))
             }

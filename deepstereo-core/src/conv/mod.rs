@@ -128,6 +128,19 @@ impl Conv2d {
         Ok(Self { weight, bias })
     }
 
+    /// A layer whose weight and bias start at zero (its output is 0 until training moves it).
+    pub fn zeros(
+        cin: usize,
+        cout: usize,
+        (kh, kw): (usize, usize),
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let init = candle_nn::Init::Const(0.0);
+        let weight = vb.get_with_hints((cout, cin, kh, kw), "weight", init)?;
+        let bias = vb.get_with_hints(cout, "bias", init)?;
+        Ok(Self { weight, bias })
+    }
+
     pub fn weight(&self) -> &Tensor {
         &self.weight
     }

@@ -2,7 +2,8 @@
 //! over the pixels each, with gradients:
 //!
 //! - [`blend_colours`]: the blend of the source colours from the raw logits `y`
-//!   `[N, V, P]` -> `[N, 3, P]`, with its gradient to `y`;
+//!   `[N, V, P]` -> `[N, 3, P]`, with its gradient to `y`, and to the sources `x` where
+//!   they carry one (alphas weighed by the cue);
 //! - [`add_views_relu`]: the blend's first layer, `relu(a + b)` with `b` broadcast over
 //!   the views.
 //!
@@ -121,6 +122,43 @@ impl BlendColours {
         });
         dy
     }
+
+    /// `dx` `[N, V, 4, P]` from the output gradient `g` (the alphas weighed by the cue
+    /// carry a gradient): with `E_v = exp(L(y_v))`, `d out_c / d rgb_vc = w_v` and
+    /// `d out_c / d a_v = E_v (rgb_vc - out_c) / den`.
+    fn bwd_x<T: Float + NumAssignOps + Send + Sync + AsPrimitive<f64>>(
+        y: &[T],
+        x: &[T],
+        g: &[T],
+        (_, v, p): (usize, usize, usize),
+    ) -> Vec<T> {
+        let mut dx = vec![T::zero(); x.len()];
+        dx.par_chunks_mut(v * 4 * p).enumerate().for_each(|(i, d)| {
+            let (yi, xi) = (&y[i * v * p..][..v * p], &x[i * v * 4 * p..][..v * 4 * p]);
+            let gi = &g[i * 3 * p..][..3 * p];
+            let mut ex = vec![T::zero(); v];
+            for j in 0..p {
+                let den = Self::weights(yi, xi, (v, p, j), &mut ex);
+                let mut out = [0f64; 3];
+                for (ch, o) in out.iter_mut().enumerate() {
+                    for (k, &w) in ex.iter().enumerate() {
+                        *o += wide(w) * wide(xi[(k * 4 + ch) * p + j]);
+                    }
+                    *o /= den;
+                }
+                for (k, &w) in ex.iter().enumerate() {
+                    let mut ga = 0f64;
+                    for (ch, &o) in out.iter().enumerate() {
+                        let gc = wide(gi[ch * p + j]);
+                        d[(k * 4 + ch) * p + j] = cast(gc * wide(w) / den);
+                        ga += gc * (wide(xi[(k * 4 + ch) * p + j]) - o);
+                    }
+                    d[(k * 4 + 3) * p + j] = cast(ga * wide(bounded_exp(yi[k * p + j])) / den);
+                }
+            }
+        });
+        dx
+    }
 }
 
 impl CustomOp2 for BlendColours {
@@ -166,26 +204,32 @@ impl CustomOp2 for BlendColours {
             x: &Tensor,
             g: &Tensor,
             dims: (usize, usize, usize),
-        ) -> Result<Tensor> {
-            let dy = {
-                let (ys, yl) = y.storage_and_layout();
-                let (xs, xl) = x.storage_and_layout();
-                let (gs, gl) = g.storage_and_layout();
-                BlendColours::bwd(
-                    data::<T>(&ys, yl)?,
-                    data::<T>(&xs, xl)?,
-                    data::<T>(&gs, gl)?,
-                    dims,
-                )
+        ) -> Result<(Tensor, Option<Tensor>)> {
+            let (ys, yl) = y.storage_and_layout();
+            let (xs, xl) = x.storage_and_layout();
+            let (gs, gl) = g.storage_and_layout();
+            let (yd, xd, gd) = (
+                data::<T>(&ys, yl)?,
+                data::<T>(&xs, xl)?,
+                data::<T>(&gs, gl)?,
+            );
+            let dy = BlendColours::bwd(yd, xd, gd, dims);
+            // `dx` only where the sources carry a gradient (their alphas weighed by the cue).
+            let dx = match x.track_op() {
+                true => {
+                    let dx = BlendColours::bwd_x(yd, xd, gd, dims);
+                    Some(Tensor::from_vec(dx, x.shape(), x.device())?)
+                }
+                false => None,
             };
-            Tensor::from_vec(dy, y.shape(), y.device())
+            Ok((Tensor::from_vec(dy, y.shape(), y.device())?, dx))
         }
-        let dy = match y.dtype() {
+        let (dy, dx) = match y.dtype() {
             DType::F32 => run::<f32>(y, x, &g, dims)?,
             DType::F64 => run::<f64>(y, x, &g, dims)?,
             dt => bail!("blend_colours: f32 or f64 only, got {dt:?}"),
         };
-        Ok((Some(dy), None))
+        Ok((Some(dy), dx))
     }
 }
 

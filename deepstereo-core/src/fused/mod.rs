@@ -9,7 +9,8 @@
 //! - [`pool_front`], [`view_stats`], [`pooled_stats`], [`blend_colours`]: the
 //!   any-number-of-views family's steps across views (`pool.rs` there), and
 //!   [`encode_pool`] and [`blend_infer`], its per-view encoder with the pooling, and its
-//!   whole colour blend, each in one pass when rendering;
+//!   whole colour blend, each in one pass when rendering, and [`weigh_views`], the cue's
+//!   view weights (rendering);
 //! - [`pad_rows`]: zero rows above and below (the depth convolutions' padding) and
 //!   optionally zero columns on the right, reading a transposed view directly (no
 //!   separate transpose copy).
@@ -27,6 +28,7 @@ mod pool;
 #[cfg(test)]
 mod tests;
 mod upsample;
+mod weigh;
 
 pub use blend::{add_views_relu, blend_colours};
 pub use blend_infer::{blend_infer, Dense};
@@ -35,6 +37,7 @@ pub use head::{composite, select_softmax};
 pub use pad::pad_rows;
 pub use pool::{pool_front, pooled_stats, view_stats};
 pub use upsample::{upsample_cat, upsample_crop, upsample_nearest};
+pub use weigh::weigh_views;
 
 use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};
 use rayon::prelude::*;

@@ -7,7 +7,8 @@
 //!   input's first channels `[N, 4, P]` (the mean colour and the coverage `s / (1 + s)`).
 //!   The sweep is data: no gradient flows to it.
 //! - [`view_stats`]: alpha-weighted mean and variance over views of the features `e`
-//!   `[N, V, C, P]` -> `[N, 2C, P]`, with its gradient to `e` (alphas read from `x`).
+//!   `[N, V, C, P]` -> `[N, 2C, P]`, with its gradient to `e` (alphas read from `x`), and
+//!   to the alphas where `x` carries a gradient (weighed by the cue).
 //! - [`pooled_stats`]: the same moments written after `front` into the whole pooled input
 //!   `[N, 4 + 2C, P]` (rendering: no gradient, and no concatenation copy).
 //!
@@ -311,6 +312,58 @@ impl ViewStats {
             });
         de
     }
+
+    /// `dx` `[N, V, 4, P]` from the output gradient `g` (the alphas weighed by the cue
+    /// carry a gradient; the colours do not enter the moments, so their rows are 0): with
+    /// `u_v = e_v - m`, `d mean / d a_v = u_v / den` and
+    /// `d var / d a_v = (u_v^2 - var - 2 m eps u_v / den) / den`.
+    fn bwd_x<T: Float + NumAssignOps + Send + Sync + AsPrimitive<f64>>(
+        e: &[T],
+        x: &[T],
+        g: &[T],
+        (n, v, c, p): (usize, usize, usize, usize),
+    ) -> Vec<T> {
+        let mut dx = vec![T::zero(); n * v * 4 * p];
+        dx.par_chunks_mut(v * 4 * p)
+            .enumerate()
+            .for_each(|(i, dxi)| {
+                let den = alpha_sum(x, (i, v, p));
+                let mut da = vec![0f64; v * p];
+                for ch in 0..c {
+                    let mean = weighted_mean(e, x, &den, (i, ch, v, c, p));
+                    let mut var = sum_views(v, p, 0.0, |k| {
+                        let (ak, ek) = (alpha(x, (i, k, v, p)), feature(e, (i, k, ch, v, c, p)));
+                        ak.iter().zip(ek).zip(&mean).map(|((&a, &e), &m)| {
+                            let u = wide(e) - m;
+                            wide(a) * u * u
+                        })
+                    });
+                    for (s, d) in var.iter_mut().zip(&den) {
+                        *s /= d;
+                    }
+                    let gm = &g[(i * 2 * c + ch) * p..][..p];
+                    let gv = &g[(i * 2 * c + c + ch) * p..][..p];
+                    for k in 0..v {
+                        let ek = feature(e, (i, k, ch, v, c, p));
+                        for j in 0..p {
+                            let (m, d) = (mean[j], den[j]);
+                            let u = wide(ek[j]) - m;
+                            let dvar = (u * u - var[j] - 2.0 * m * POOL_EPS * u / d) / d;
+                            da[k * p + j] += wide(gm[j]) * u / d + wide(gv[j]) * dvar;
+                        }
+                    }
+                }
+                for k in 0..v {
+                    for (o, &d) in dxi[(k * 4 + 3) * p..][..p]
+                        .iter_mut()
+                        .zip(&da[k * p..][..p])
+                    {
+                        *o = cast(d);
+                    }
+                }
+            });
+        dx
+    }
 }
 
 impl CustomOp2 for ViewStats {
@@ -351,30 +404,36 @@ impl CustomOp2 for ViewStats {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let dims = e.dims4()?;
         let g = g.contiguous()?;
+        // `dx` only where the sources carry a gradient (their alphas weighed by the cue).
         fn run<T: WithDType + Float + NumAssignOps + AsPrimitive<f64>>(
             e: &Tensor,
             x: &Tensor,
             g: &Tensor,
             dims: (usize, usize, usize, usize),
-        ) -> Result<Tensor> {
-            let de = {
-                let (es, el) = e.storage_and_layout();
-                let (xs, xl) = x.storage_and_layout();
-                let (gs, gl) = g.storage_and_layout();
-                ViewStats::bwd(
-                    data::<T>(&es, el)?,
-                    data::<T>(&xs, xl)?,
-                    data::<T>(&gs, gl)?,
-                    dims,
-                )
+        ) -> Result<(Tensor, Option<Tensor>)> {
+            let (es, el) = e.storage_and_layout();
+            let (xs, xl) = x.storage_and_layout();
+            let (gs, gl) = g.storage_and_layout();
+            let (ed, xd, gd) = (
+                data::<T>(&es, el)?,
+                data::<T>(&xs, xl)?,
+                data::<T>(&gs, gl)?,
+            );
+            let de = Tensor::from_vec(ViewStats::bwd(ed, xd, gd, dims), e.shape(), e.device())?;
+            let dx = match x.track_op() {
+                true => {
+                    let dx = ViewStats::bwd_x(ed, xd, gd, dims);
+                    Some(Tensor::from_vec(dx, x.shape(), x.device())?)
+                }
+                false => None,
             };
-            Tensor::from_vec(de, e.shape(), e.device())
+            Ok((de, dx))
         }
-        let de = match e.dtype() {
+        let (de, dx) = match e.dtype() {
             DType::F32 => run::<f32>(e, x, &g, dims)?,
             DType::F64 => run::<f64>(e, x, &g, dims)?,
             dt => bail!("view_stats: f32 or f64 only, got {dt:?}"),
         };
-        Ok((Some(de), None))
+        Ok((Some(de), dx))
     }
 }

@@ -4,7 +4,7 @@
 
 use super::{attr_int, input_name, Graph};
 use crate::error::Result;
-use deepstereo_core::config::{Config, ViewPool, CUE_CHANNELS};
+use deepstereo_core::config::{Config, Conv, ViewPool, CUE_CHANNELS};
 use deepstereo_core::pool::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 
 impl Graph<'_> {
@@ -44,6 +44,53 @@ impl Graph<'_> {
         self.op("Div", &[&s, den], vec![], hint)
     }
 
+    /// Level `l` as the view pooling and the blend read it: the graph's input, or its
+    /// weighed copy ([`Self::weighed_levels`]).
+    fn view_level(&self, l: usize) -> String {
+        self.view_levels
+            .get(l)
+            .cloned()
+            .unwrap_or_else(|| input_name(l))
+    }
+
+    /// `ViewWeigh::forward` on every level: `[B, D, V, 4, H, W]`, each view's RGB and its
+    /// alpha times `1 + tanh(g(cue) / 2)`.
+    pub(super) fn weighed_levels(&mut self, cfg: &Config, hidden: &[Conv]) -> Result<Vec<String>> {
+        let mut out = Vec::with_capacity(cfg.levels);
+        for l in 0..cfg.levels {
+            let p = format!("views.weigh.level{l}");
+            let level = input_name(l); // [B, D, V, 4 + K, H, W]
+            let rgb = self.slice_axis(&level, 3, 0, 3, &format!("{p}.rgb"));
+            let a = self.slice_axis(&level, 3, 3, 4, &format!("{p}.alpha"));
+            let k = (4 + CUE_CHANNELS) as i64;
+            let cue = self.slice_axis(&level, 3, 4, k, &format!("{p}.cue")); // [B, D, V, K, H, W]
+            let hw = self.shape_of(&level, 4, 6, &format!("{p}.hw"));
+            let lead = self.const_i64(&[-1, CUE_CHANNELS as i64], "fold_lead");
+            let shape = self.concat(&[&lead, &hw], 0, "fold_shape");
+            let mut g = self.op("Reshape", &[&cue, &shape], vec![], &format!("{p}.folded")); // [B*D*V, K, H, W]
+            let mut ch = CUE_CHANNELS;
+            let widths = hidden.iter().map(|c| c.channels).chain([1]);
+            for (i, cout) in widths.enumerate() {
+                g = self.conv(&g, &format!("views.weigh.{i}"), (ch, cout), (1, 1), [0; 4])?;
+                if i < hidden.len() {
+                    g = self.relu(&g);
+                }
+                ch = cout;
+            } // [B*D*V, 1, H, W]
+            let half = self.const_f32(&[], &[0.5], "half");
+            let g = self.op("Mul", &[&g, &half], vec![], &format!("{p}.half"));
+            let t = self.op("Tanh", &[&g], vec![], &format!("{p}.tanh"));
+            let wk = self.add_scalar(&t, 1.0, &format!("{p}.weight"));
+            let bdv = self.shape_of(&level, 0, 3, &format!("{p}.bdv"));
+            let one = self.const_i64(&[1], "one");
+            let shape = self.concat(&[&bdv, &one, &hw], 0, "unfold_shape");
+            let wk = self.op("Reshape", &[&wk, &shape], vec![], &format!("{p}.weights")); // [B, D, V, 1, H, W]
+            let a = self.op("Mul", &[&a, &wk], vec![], &format!("{p}.weighed_alpha"));
+            out.push(self.concat(&[&rgb, &a], 3, &format!("{p}.rgba"))); // [B, D, V, 4, H, W]
+        }
+        Ok(out)
+    }
+
     /// `ViewEncoder::forward` on every level: the towers' inputs `[B, D, 4 + 2 C_f, H, W]`
     /// and level 0's view features `[B*D*V, C_f, H_0, W_0]`.
     pub(super) fn pooled(
@@ -55,8 +102,8 @@ impl Graph<'_> {
         let mut features0 = String::new();
         for l in 0..cfg.levels {
             let p = format!("views.level{l}");
-            let level = input_name(l); // [B, D, V, C_v, H, W]
-                                       // With the cue: RGBA and cue apart ([B, D, V, 4, H, W], [B, D, V, K, H, W]).
+            let level = self.view_level(l); // [B, D, V, C_v, H, W]
+                                            // With the cue: RGBA and cue apart ([B, D, V, 4, H, W], [B, D, V, K, H, W]).
             let (x, cue) = match pool.cue {
                 true => (
                     self.slice_axis(&level, 3, 0, 4, &format!("{p}.rgba")),
@@ -137,7 +184,7 @@ impl Graph<'_> {
         let p = cfg.pad(0) as i64;
         let cf = pool.features();
         let cc = cfg.colour.out_channels(cfg.tower_in_channels());
-        let level0 = input_name(0);
+        let level0 = self.view_level(0);
         let v = self.shape_of(&level0, 2, 3, "views");
         let tile = self.tile.clone();
         let e = self.crop_to_tile(e0, [p, p], 0, [2, 3], "colour.blend.features"); // [B*D*V, C_f, th, tw]
@@ -198,7 +245,7 @@ impl Graph<'_> {
         let logits = self.op("Mul", &[&t, &bound], vec![], "colour.blend.bounded");
         // The sources' RGBA (and cue) at the tile: [B*D, V, C_v, th, tw].
         let x = self.crop_to_tile(&level0, [p, p], 0, [4, 5], "colour.blend.rgba6");
-        let cv = self.const_i64(&[pool.view_channels() as i64], "view_channels");
+        let cv = self.const_i64(&[pool.encoder_view_channels() as i64], "view_channels");
         let shape = self.concat(&[&lead, &v, &cv, &tile], 0, "rgba_shape");
         let x = self.op("Reshape", &[&x, &shape], vec![], "colour.blend.rgba"); // [B*D, V, C_v, th, tw]
         let rgb = self.slice_axis(&x, 2, 0, 3, "colour.blend.rgb");
