@@ -3,7 +3,7 @@
     python python/ddp_check.py --bin target/release/deepstereo
 
 For `tiny` (the paper's family), `nviews` (any number of views, 2-5 per shard) and
-`nviews-cue` (the same with each view's geometric cue in the shards), from
+`nviews-cue` and `nviews-weigh` (the same with each view's geometric cue in the shards), from
 the same Rust-initialised weights (`deepstereo train --steps 0`) and the shards of
 `deepstereo samples` with the trainer's seed and a shard size equal to its batch:
 
@@ -73,7 +73,12 @@ LR = 1e-4
 GRAD_TOL = 1e-4
 # Scenes and sampling shared by `train` and `samples` (small, to keep the check short).
 SCENES = ["--synthetic", "2", "--synth-size", "64x48", "--synth-views", "6"]
-FAMILIES = {"tiny": [], "nviews": ["--views", "2-5"], "nviews-cue": ["--views", "2-5"]}
+FAMILIES = {
+    "tiny": [],
+    "nviews": ["--views", "2-5"],
+    "nviews-cue": ["--views", "2-5"],
+    "nviews-weigh": ["--views", "2-5"],
+}
 # What a rank prints when gloo's teardown aborts it after its work is done.
 TEARDOWN_ABORT = "terminate called without an active exception"
 
