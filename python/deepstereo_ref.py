@@ -38,6 +38,7 @@ BLEND_EPS = 1e-12
 BLEND_LOGIT_BOUND = 20.0
 ENCODER_IN = 7
 CUE_CHANNELS = 5
+WEIGH_SCALE = 4.0  # config.rs: the cue's view weights are 1 + tanh(WEIGH_SCALE g)
 
 
 # --- configuration (mirrors config.rs) -------------------------------------------------
@@ -105,7 +106,7 @@ class ViewPool:
     # reads it.
     cue: bool = False
     # `pool.weigh` (hidden widths): the cue follows the RGBA in the inputs and weighs each
-    # view's alpha by `1 + tanh(g(cue) / 2)` (`views.weigh.*`); exclusive with `cue`.
+    # view's alpha by `1 + tanh(WEIGH_SCALE g(cue))` (`views.weigh.*`); exclusive with `cue`.
     weigh: list[Conv] | None = None
 
     @staticmethod
@@ -424,7 +425,7 @@ class Views(nn.Module):
 
     def weigh_forward(self, x: torch.Tensor) -> torch.Tensor:
         """`ViewWeigh::forward`: `[B, D, V, 4 + 5, H, W]` -> `[B, D, V, 4, H, W]`, each
-        view's RGB and its alpha times `1 + tanh(g(cue) / 2)`."""
+        view's RGB and its alpha times `1 + tanh(WEIGH_SCALE g(cue))`."""
         b, d, v, cv, h, w = x.shape
         if cv != 4 + CUE_CHANNELS:
             raise ValueError(f"expected [B, D, V, {4 + CUE_CHANNELS}, H, W], got {tuple(x.shape)}")
@@ -434,7 +435,7 @@ class Views(nn.Module):
             g = conv(g)
             if i < last:
                 g = F.relu(g)
-        k = (1.0 + torch.tanh(g / 2)).reshape(b, d, v, 1, h, w)
+        k = (1.0 + torch.tanh(g * WEIGH_SCALE)).reshape(b, d, v, 1, h, w)
         return torch.cat([x[:, :, :, :3], x[:, :, :, 3:4] * k], 3)
 
     def pool_forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

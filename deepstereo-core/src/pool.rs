@@ -31,7 +31,8 @@
 //!
 //! With [`ViewPool::weigh`], the cue weighs the views before all of this
 //! ([`ViewWeigh`]): each view's alpha becomes `a_v k_v` with
-//! `k_v = 1 + tanh(g(cue_v) / 2)` (`= 2 sigmoid(g)`, in `(0, 2)`; `g`: 1x1 layers, ReLU
+//! `k_v = 1 + tanh(S g(cue_v))` (`= 2 sigmoid(2 S g)`, in `(0, 2)`, `S` = [`WEIGH_SCALE`];
+//! `g`: 1x1 layers, ReLU
 //! between; `python/add_cue.py --weigh` starts the last one at zero, so that `k_v = 1`
 //! and the model renders as it did without), and steps 1-3 and the
 //! blend read that alpha. The cue thus sets how much each view counts in the mean, the
@@ -43,7 +44,7 @@
 //! `colour.blend.{i}.{weight,bias}` (the last one the 1-channel logit layer),
 //! `views.weigh.{i}.{weight,bias}` (the last one the 1-channel `g`).
 
-use crate::config::{ViewPool, CUE_CHANNELS, ENCODER_IN};
+use crate::config::{ViewPool, CUE_CHANNELS, ENCODER_IN, WEIGH_SCALE};
 use crate::conv::{pointwise_chain, Conv2d};
 use crate::fused;
 use candle_core::{DType, Module, Result, Tensor};
@@ -280,7 +281,7 @@ impl ViewWeigh {
         Ok(Self { layers })
     }
 
-    /// Each view's weight `k_v = 1 + tanh(g(cue_v) / 2)` from an input level `x`
+    /// Each view's weight `k_v = 1 + tanh(WEIGH_SCALE g(cue_v))` from an input level `x`
     /// `[B, D, V, 4 + K, H, W]`: `[B, D, V, 1, H, W]`.
     pub fn weights(&self, x: &Tensor) -> Result<Tensor> {
         let (n, v, h, w, b) = view_dims(x, 4 + CUE_CHANNELS)?;
@@ -293,7 +294,7 @@ impl ViewWeigh {
                 false => conv.forward(&g)?,
             };
         } // [N*V, 1, H, W]
-        let k = ((g * 0.5)?.tanh()? + 1.0)?;
+        let k = ((g * WEIGH_SCALE)?.tanh()? + 1.0)?;
         k.reshape((b, n / b.max(1), v, 1, h, w)) // [B, D, V, 1, H, W]
     }
 

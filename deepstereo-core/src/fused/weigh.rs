@@ -2,12 +2,12 @@
 //! pixels, instead of a slice copy, two convolutions, `tanh` and a concatenation.
 
 use super::{data, Dense};
-use crate::config::CUE_CHANNELS;
+use crate::config::{CUE_CHANNELS, WEIGH_SCALE};
 use candle_core::{bail, DType, Result, Tensor};
 use rayon::prelude::*;
 
 /// `x` `[B, D, V, 4 + K, H, W]` -> `[B, D, V, 4, H, W]`: each view's RGB, and its alpha
-/// times `1 + tanh(g / 2)`, with `g` the dense `layers` (ReLU between them) on the view's
+/// times `1 + tanh(WEIGH_SCALE g)`, with `g` the dense `layers` (ReLU between them) on the view's
 /// cue at that pixel. `None` where it does not apply (not f32 on the CPU, or layers that
 /// do not chain from `K` channels to 1): the caller runs the candle ops.
 pub fn weigh_views(x: &Tensor, layers: &[Dense]) -> Result<Option<Tensor>> {
@@ -30,6 +30,7 @@ pub fn weigh_views(x: &Tensor, layers: &[Dense]) -> Result<Option<Tensor>> {
     let p = h * w;
     let width = layers.iter().map(|l| l.cin.max(l.cout)).max().unwrap_or(1);
     let mut out = vec![0f32; b * d * v * 4 * p];
+    let scale = WEIGH_SCALE as f32;
     out.par_chunks_mut(4 * p)
         .zip(xs.par_chunks(c * p))
         .for_each(|(o, xi)| {
@@ -47,7 +48,7 @@ pub fn weigh_views(x: &Tensor, layers: &[Dense]) -> Result<Option<Tensor>> {
                     }
                     std::mem::swap(&mut a, &mut z);
                 }
-                o[3 * p + j] = xi[3 * p + j] * (1.0 + (0.5 * a[0]).tanh());
+                o[3 * p + j] = xi[3 * p + j] * (1.0 + (scale * a[0]).tanh());
             }
         });
     Tensor::from_vec(out, (b, d, v, 4, h, w), x.device()).map(Some)

@@ -4,7 +4,7 @@
 
 use super::{attr_int, input_name, Graph};
 use crate::error::Result;
-use deepstereo_core::config::{Config, Conv, ViewPool, CUE_CHANNELS};
+use deepstereo_core::config::{Config, Conv, ViewPool, CUE_CHANNELS, WEIGH_SCALE};
 use deepstereo_core::pool::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 
 impl Graph<'_> {
@@ -54,7 +54,7 @@ impl Graph<'_> {
     }
 
     /// `ViewWeigh::forward` on every level: `[B, D, V, 4, H, W]`, each view's RGB and its
-    /// alpha times `1 + tanh(g(cue) / 2)`.
+    /// alpha times `1 + tanh(WEIGH_SCALE g(cue))`.
     pub(super) fn weighed_levels(&mut self, cfg: &Config, hidden: &[Conv]) -> Result<Vec<String>> {
         let mut out = Vec::with_capacity(cfg.levels);
         for l in 0..cfg.levels {
@@ -77,8 +77,8 @@ impl Graph<'_> {
                 }
                 ch = cout;
             } // [B*D*V, 1, H, W]
-            let half = self.const_f32(&[], &[0.5], "half");
-            let g = self.op("Mul", &[&g, &half], vec![], &format!("{p}.half"));
+            let scale = self.const_f32(&[], &[WEIGH_SCALE as f32], "weigh_scale");
+            let g = self.op("Mul", &[&g, &scale], vec![], &format!("{p}.scaled"));
             let t = self.op("Tanh", &[&g], vec![], &format!("{p}.tanh"));
             let wk = self.add_scalar(&t, 1.0, &format!("{p}.weight"));
             let bdv = self.shape_of(&level, 0, 3, &format!("{p}.bdv"));
