@@ -64,6 +64,24 @@ impl BlendColours {
         den
     }
 
+    /// The blended colour of pixel `j` (f64) from its views' weights `ex` and their sum
+    /// `den` ([`Self::weights`]).
+    fn blended<T: Float + AsPrimitive<f64>>(
+        xi: &[T],
+        ex: &[T],
+        den: f64,
+        (p, j): (usize, usize),
+    ) -> [f64; 3] {
+        let mut out = [0f64; 3];
+        for (ch, o) in out.iter_mut().enumerate() {
+            for (k, &w) in ex.iter().enumerate() {
+                *o += wide(w) * wide(xi[(k * 4 + ch) * p + j]);
+            }
+            *o /= den;
+        }
+        out
+    }
+
     fn fwd<T: Float + NumAssignOps + Send + Sync + AsPrimitive<f64>>(
         y: &[T],
         x: &[T],
@@ -75,12 +93,8 @@ impl BlendColours {
             let mut ex = vec![T::zero(); v];
             for j in 0..p {
                 let den = Self::weights(yi, xi, (v, p, j), &mut ex);
-                for ch in 0..3 {
-                    let mut s = 0f64;
-                    for (k, &w) in ex.iter().enumerate() {
-                        s += wide(w) * wide(xi[(k * 4 + ch) * p + j]);
-                    }
-                    o[ch * p + j] = cast(s / den);
+                for (ch, c) in Self::blended(xi, &ex, den, (p, j)).into_iter().enumerate() {
+                    o[ch * p + j] = cast(c);
                 }
             }
         });
@@ -103,13 +117,7 @@ impl BlendColours {
             let mut ex = vec![T::zero(); v];
             for j in 0..p {
                 let den = Self::weights(yi, xi, (v, p, j), &mut ex);
-                let mut out = [0f64; 3];
-                for (ch, o) in out.iter_mut().enumerate() {
-                    for (k, &w) in ex.iter().enumerate() {
-                        *o += wide(w) * wide(xi[(k * 4 + ch) * p + j]);
-                    }
-                    *o /= den;
-                }
+                let out = Self::blended(xi, &ex, den, (p, j));
                 for (k, &w) in ex.iter().enumerate() {
                     let mut gl = 0f64;
                     for ch in 0..3 {
@@ -139,13 +147,7 @@ impl BlendColours {
             let mut ex = vec![T::zero(); v];
             for j in 0..p {
                 let den = Self::weights(yi, xi, (v, p, j), &mut ex);
-                let mut out = [0f64; 3];
-                for (ch, o) in out.iter_mut().enumerate() {
-                    for (k, &w) in ex.iter().enumerate() {
-                        *o += wide(w) * wide(xi[(k * 4 + ch) * p + j]);
-                    }
-                    *o /= den;
-                }
+                let out = Self::blended(xi, &ex, den, (p, j));
                 for (k, &w) in ex.iter().enumerate() {
                     let mut ga = 0f64;
                     for (ch, &o) in out.iter().enumerate() {
