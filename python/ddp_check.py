@@ -100,15 +100,31 @@ def run(cmd: list, what: str, env: dict | None = None) -> subprocess.CompletedPr
 WEIGHT_SCALE_FLOOR = 0.25
 
 
-def worst(a: Path, b: Path, floor: float) -> tuple[float, str]:
+# Adagrad's step is `lr g / (|g| + eps)` on the first step (eps = 1e-10, optim.rs): for a
+# gradient within a few orders of eps (a nearly dead unit: 1.4e-10 was seen in
+# `colour.blend.0.weight` of a fresh `nviews-weigh`), the two runtimes' rounding of g, a
+# few percent there, becomes a few percent of the step. Such elements are left out of the
+# end-to-end Adagrad comparison (their gradients are compared with the rest above, and
+# optim_ref.py's update on candle's gradients is compared exactly). At |g| >= 100 eps a
+# relative rounding r of g moves the step by at most r / 100 of it: 3e-7 of a weight at
+# r = 3% and lr 1e-3, within the tolerance.
+ADAGRAD_EPS = 1e-10
+ILL_CONDITIONED = 100 * ADAGRAD_EPS
+
+
+def worst(a: Path, b: Path, floor: float, skip: dict | None = None) -> tuple[float, str]:
     """The largest per-tensor difference of two weights files, relative to the tensor's
-    largest magnitude (at least `floor`), and the tensor's name."""
+    largest magnitude (at least `floor`), and the tensor's name; `skip` (name -> bool
+    mask) leaves elements out."""
     x, y = load_file(str(a)), load_file(str(b))
     if set(x) != set(y):
         return float("inf"), f"different tensors: {sorted(set(x) ^ set(y))}"
     out = (0.0, "")
     for k in sorted(x):
-        d = float((x[k].double() - y[k].double()).abs().max()) / max(float(y[k].double().abs().max()), floor)
+        diff = (x[k].double() - y[k].double()).abs()
+        if skip is not None and k in skip:
+            diff = diff.masked_fill(skip[k], 0.0)
+        d = float(diff.max()) / max(float(y[k].double().abs().max()), floor)
         out = max(out, (d, k))
     return out
 
@@ -126,11 +142,12 @@ class Check:
         if not ok:
             self.failures.append(msg)
 
-    def same_weights(self, what: str, a: Path, b: Path, tol: float = WEIGHT_TOL, floor: float = WEIGHT_SCALE_FLOOR) -> None:
+    def same_weights(self, what: str, a: Path, b: Path, tol: float = WEIGHT_TOL, floor: float = WEIGHT_SCALE_FLOOR, skip: dict | None = None) -> None:
         """Compares at the scale of initialised weights (the runs being compared sum in
         other orders); `floor=1e-12` for exact-arithmetic checks."""
-        d, name = worst(a, b, floor)
-        self.expect(d <= tol, f"{what}: worst tensor {name} differs by {d:.2e} relative (tolerance {tol:.0e})")
+        d, name = worst(a, b, floor, skip)
+        left = f"; {sum(int(m.sum()) for m in skip.values())} elements with |g| < {ILL_CONDITIONED:.0e} left out" if skip else ""
+        self.expect(d <= tol, f"{what}: worst tensor {name} differs by {d:.2e} relative (tolerance {tol:.0e}{left})")
 
     def same_gradients(self, preset: str, net: ref.DeepStereo, x: dict, candle: dict) -> None:
         net.zero_grad()
@@ -192,7 +209,11 @@ class Check:
             hyper = ["--optimizer", opt, "--lr", LR, "--steps", 1]
             run([self.bin, "train", *common, *hyper, "--batch", BATCH, "--val-scenes", "0", "--val-batches", "0", "--no-progress", "--out", w / f"candle-{opt}"], "train")
             self.ddp(["--shards", shards, "--init", init, *hyper, "--batch", BATCH, "--out", w / f"torch-{opt}"])
-            self.same_weights(f"{preset} {opt}: one step of `deepstereo train` and of train_ddp.py", w / f"torch-{opt}" / "model.safetensors", w / f"candle-{opt}" / "model.safetensors")
+            skip = None
+            if opt == "adagrad":
+                g0 = load_file(str(w / "example-adagrad" / "grads-0.safetensors"))
+                skip = {k: g.abs() < ILL_CONDITIONED for k, g in g0.items()}
+            self.same_weights(f"{preset} {opt}: one step of `deepstereo train` and of train_ddp.py", w / f"torch-{opt}" / "model.safetensors", w / f"candle-{opt}" / "model.safetensors", skip=skip)
         # (b) two processes against one, the same global batch.
         hyper = ["--shards", shards, "--init", init, "--optimizer", "adam", "--lr", LR, "--batch", BATCH // 2]
         steps = STEPS + 1

@@ -33,8 +33,9 @@
 //! ([`ViewWeigh`]): each view's alpha becomes `a_v k_v` with
 //! `k_v = 1 + tanh(S g(cue_v))` (`= 2 sigmoid(2 S g)`, in `(0, 2)`, `S` = [`WEIGH_SCALE`];
 //! `g`: 1x1 layers, ReLU
-//! between; `python/add_cue.py --weigh` starts the last one at zero, so that `k_v = 1`
-//! and the model renders as it did without), and steps 1-3 and the
+//! between; the last one starts at zero, so that `k_v = 1`, and `python/add_cue.py
+//! --weigh` adds them so to a trained model, which then renders as it did), and steps
+//! 1-3 and the
 //! blend read that alpha. The cue thus sets how much each view counts in the mean, the
 //! variance and the blend, without entering the features whose variance is pooled; a
 //! view that is not there still has alpha 0, and `k_v` depends on its own cue alone, so
@@ -263,8 +264,8 @@ impl ViewEncoder {
 /// The cue's view weights (`views.weigh.*`, [`ViewPool::weigh`]; module doc).
 #[derive(Debug, Clone)]
 pub struct ViewWeigh {
-    /// Hidden layers, then the 1-channel `g` (zero from [`Self::new`]'s initialiser;
-    /// `weights::init_seeded` redraws it like every layer).
+    /// Hidden layers, then the 1-channel `g` (starting at zero, in [`Self::new`] and
+    /// `weights::init_seeded`).
     layers: Vec<Conv2d>,
 }
 

@@ -47,7 +47,22 @@ pub fn init_seeded(cfg: &Config, dtype: DType, device: &Device, seed: u64) -> Re
     if cfg.colour_skip || cfg.pool.is_some() {
         init_colour_mean(cfg, &varmap)?;
     }
+    if let Some(hidden) = cfg.pool.as_ref().and_then(|p| p.weigh.as_ref()) {
+        zero_layer(&varmap, &format!("views.weigh.{}", hidden.len()))?;
+    }
     Ok(Trainable { model, varmap })
+}
+
+/// Sets a layer's weight and bias to zero: the cue's view-weight layer starts there, so
+/// every view's factor starts at 1 (a random start saturates `tanh`, which leaves some
+/// pixels one view and the blend no gradient).
+fn zero_layer(varmap: &VarMap, stem: &str) -> Result<()> {
+    for (name, var) in named_vars(varmap) {
+        if name == format!("{stem}.weight") || name == format!("{stem}.bias") {
+            var.set(&var.as_tensor().zeros_like()?)?;
+        }
+    }
+    Ok(())
 }
 
 fn splitmix(z: &mut u64) -> u64 {
