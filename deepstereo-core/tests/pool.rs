@@ -83,6 +83,18 @@ fn init(cfg: &Config, dtype: DType, seed: u64) -> Result<deepstereo_core::weight
     Ok(t)
 }
 
+/// [`with_weigh`] with a hidden layer of 3 (as `nviews-weigh`'s 8): the fused rendering
+/// pass against the training forward.
+fn with_weigh_hidden(mut cfg: Config) -> Config {
+    if let Some(p) = cfg.pool.as_mut() {
+        p.weigh = Some(vec![Conv {
+            kernel: 1,
+            channels: 3,
+        }]);
+    }
+    cfg
+}
+
 /// Deterministic pseudo-random values in [lo, hi).
 fn rand_vec(n: usize, seed: u64, lo: f64, hi: f64) -> Vec<f64> {
     let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
@@ -221,7 +233,8 @@ fn a_view_that_sees_nothing_changes_nothing() -> Result<()> {
 
 #[test]
 fn every_view_count_from_1_to_16_runs() -> Result<()> {
-    for cfg in [small(), with_cue(small()), with_weigh(small())] {
+    let weighs = [with_weigh(small()), with_weigh_hidden(small())];
+    for cfg in [small(), with_cue(small())].into_iter().chain(weighs) {
         every_view_count(&cfg)?;
     }
     Ok(())
