@@ -42,6 +42,7 @@ RECIPES=(
   "cue-scratch|runs/nviews-cue-scratch: the nviews-cue architecture (cue's config) from scratch on the whole corpus (17 scenes), 2-12 views, as default: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "corpus|runs/nviews-corpus: prox's architecture (its config: no cue) from scratch on the whole corpus (17 scenes), 2-12 views, as cue-scratch: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "weigh|runs/nviews-weigh: corpus's weights at step 8600 with the views weighed by their cue (python/add_cue.py --weigh: the weights start at 1, so step 0 renders as corpus), fine-tuned on the whole corpus with 2-12 views, Adam 2e-4, cosine:300-2500 to a tenth"
+  "weigh-scratch|runs/nviews-weigh-scratch: weigh's architecture (its config) from scratch on the whole corpus, 2-12 views, as corpus: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "cue|runs/nviews-cue: the shipped weights given the per-view cue (python/add_cue.py: zero columns, so step 0 renders as the shipped model), fine-tuned on the whole corpus (17 scenes) with 2-12 views, Adam 3e-4 to step 1600, then a cosine to a tenth at step 4500"
 )
 
@@ -130,6 +131,11 @@ case "$RECIPE" in
     # init.safetensors and config.json: python/add_cue.py --weigh on runs/nviews-corpus/model.safetensors.
     : "${INIT:=$RUNS/nviews-weigh/init.safetensors}" "${STEPS:=2500}" "${LR_SCHEDULE:=cosine:300-2500}"
     : "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
+    ;;
+  weigh-scratch)
+    OUT="${2:-$RUNS/nviews-weigh-scratch}"
+    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
+    COPY_CONFIG=$RUNS/nviews-weigh/config.json
     ;;
   cue)
     OUT="${2:-$RUNS/nviews-cue}"
