@@ -107,8 +107,8 @@ pub struct ViewPool {
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub cue: bool,
     /// The cue weighs the views instead ([`crate::pool::ViewWeigh`]): each view's alpha
-    /// is multiplied by `1 + tanh(WEIGH_SCALE g(cue_v))` (in `(0, 2)`, 1 where `g` is 0), `g` a
-    /// chain of 1x1 layers of these hidden widths, then one channel. The pooled mean and
+    /// is multiplied by `1 + tanh(WEIGH_SCALE g(cue_v))` (in `(0, 2)`, 1 where `g` is 0),
+    /// `g` a chain of 1x1 layers of these hidden widths, then one channel. The pooled mean and
     /// variance and the blend then weigh each view by how it sees the plane point, while
     /// the features whose variance is pooled stay the colours'. Exclusive with `cue`.
     /// `None`: views weigh by their alpha alone.

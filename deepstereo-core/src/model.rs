@@ -13,7 +13,8 @@
 //! `select.levels.{l}.{i}.{weight,bias}`, `select.merge.{i}.*`, `select.depth.{i}.*`
 //! (weights `[C_out, C_in, k, 1]`: convolutions along depth), `select.log_scale` `[1]`,
 //! `colour.levels.{l}.{i}.*`, `colour.merge.{i}.*`, `colour.out.*`; the
-//! any-number-of-views family adds `views.encode.{i}.*` and `colour.blend.{i}.*`.
+//! any-number-of-views family adds `views.encode.{i}.*` and `colour.blend.{i}.*`, and with
+//! the cue as view weights (`pool.weigh`) `views.weigh.{i}.*`.
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};

@@ -32,14 +32,12 @@
 //! With [`ViewPool::weigh`], the cue weighs the views before all of this
 //! ([`ViewWeigh`]): each view's alpha becomes `a_v k_v` with
 //! `k_v = 1 + tanh(S g(cue_v))` (`= 2 sigmoid(2 S g)`, in `(0, 2)`, `S` = [`WEIGH_SCALE`];
-//! `g`: 1x1 layers, ReLU
-//! between; the last one starts at zero, so that `k_v = 1`, and `python/add_cue.py
-//! --weigh` adds them so to a trained model, which then renders as it did), and steps
-//! 1-3 and the
-//! blend read that alpha. The cue thus sets how much each view counts in the mean, the
-//! variance and the blend, without entering the features whose variance is pooled; a
-//! view that is not there still has alpha 0, and `k_v` depends on its own cue alone, so
-//! the order of the views still does not matter.
+//! `g`: 1x1 layers, ReLU between; the last one starts at zero, so that `k_v = 1`, and
+//! `python/add_cue.py --weigh` adds them so to a trained model, which then renders as it
+//! did), and steps 1-3 and the blend read that alpha. The cue thus sets how much each
+//! view counts in the mean, the variance and the blend, without entering the features
+//! whose variance is pooled; a view that is not there still has alpha 0, and `k_v`
+//! depends on its own cue alone, so the order of the views still does not matter.
 //!
 //! Parameter names (equal to the PyTorch reference's): `views.encode.{i}.{weight,bias}`,
 //! `colour.blend.{i}.{weight,bias}` (the last one the 1-channel logit layer),
@@ -132,11 +130,14 @@ impl ViewEncoder {
     /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain and the
     /// pooled statistics are written in one buffer ([`fused::pooled_stats`]).
     /// Where `x` carries a gradient (its alpha weighed by [`ViewWeigh`] in training):
-    /// [`Self::forward_tracked`].
+    /// [`Self::forward_tracked`] (the candle ops with the cue in the encoder).
     pub fn forward(&self, x: &Tensor, fuse: bool) -> Result<Pooled> {
         let (n, v, h, w, b) = view_dims(x, self.view_channels())?;
         if x.track_op() {
-            return self.forward_tracked(x);
+            return match self.view_channels {
+                4 => self.forward_tracked(x),
+                _ => self.forward_reference(x),
+            };
         }
         let xp = rgba(x)?.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
         let Some((enc, front)) = fused::pool_front(&xp)? else {
