@@ -186,24 +186,38 @@ fn moments<T: Float + AsPrimitive<f64>>(
     let den = alpha_sum(x, (i, v, p));
     let planes = means.chunks_exact_mut(p).zip(vars.chunks_exact_mut(p));
     for (ch, (mean, var)) in planes.enumerate() {
-        let mean64 = weighted_mean(e, x, &den, (i, ch, v, c, p));
-        let var64 = sum_views(v, p, 0.0, |k| {
-            let (ak, ek) = (alpha(x, (i, k, v, p)), feature(e, (i, k, ch, v, c, p)));
-            ak.iter().zip(ek).zip(&mean64).map(|((&a, &e), &m)| {
-                let dev = wide(e) - m;
-                wide(a) * dev * dev
-            })
-        });
-        for (((mo, vo), &m), (&s, &d)) in mean
+        let (mean64, var64) = mean_var(e, x, &den, (i, ch, v, c, p));
+        for ((mo, vo), (&m, &s)) in mean
             .iter_mut()
             .zip(var.iter_mut())
-            .zip(&mean64)
-            .zip(var64.iter().zip(&den))
+            .zip(mean64.iter().zip(&var64))
         {
             *mo = cast(m);
-            *vo = cast(s / d);
+            *vo = cast(s);
         }
     }
+}
+
+/// The alpha-weighted mean and variance over views of channel `ch` of item `i` (f64),
+/// given `den` ([`alpha_sum`]).
+fn mean_var<T: Float + AsPrimitive<f64>>(
+    e: &[T],
+    x: &[T],
+    den: &[f64],
+    (i, ch, v, c, p): (usize, usize, usize, usize, usize),
+) -> (Vec<f64>, Vec<f64>) {
+    let mean = weighted_mean(e, x, den, (i, ch, v, c, p));
+    let mut var = sum_views(v, p, 0.0, |k| {
+        let (ak, ek) = (alpha(x, (i, k, v, p)), feature(e, (i, k, ch, v, c, p)));
+        ak.iter().zip(ek).zip(&mean).map(|((&a, &e), &m)| {
+            let dev = wide(e) - m;
+            wide(a) * dev * dev
+        })
+    });
+    for (s, d) in var.iter_mut().zip(den) {
+        *s /= d;
+    }
+    (mean, var)
 }
 
 /// [`view_stats`] written after `front` `[N, F, P]` (the mean colour and coverage from
@@ -330,17 +344,7 @@ impl ViewStats {
                 let den = alpha_sum(x, (i, v, p));
                 let mut da = vec![0f64; v * p];
                 for ch in 0..c {
-                    let mean = weighted_mean(e, x, &den, (i, ch, v, c, p));
-                    let mut var = sum_views(v, p, 0.0, |k| {
-                        let (ak, ek) = (alpha(x, (i, k, v, p)), feature(e, (i, k, ch, v, c, p)));
-                        ak.iter().zip(ek).zip(&mean).map(|((&a, &e), &m)| {
-                            let u = wide(e) - m;
-                            wide(a) * u * u
-                        })
-                    });
-                    for (s, d) in var.iter_mut().zip(&den) {
-                        *s /= d;
-                    }
+                    let (mean, var) = mean_var(e, x, &den, (i, ch, v, c, p));
                     let gm = &g[(i * 2 * c + ch) * p..][..p];
                     let gv = &g[(i * 2 * c + c + ch) * p..][..p];
                     for k in 0..v {
