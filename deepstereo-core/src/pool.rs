@@ -129,18 +129,22 @@ impl ViewEncoder {
     /// on the CPU (`fused/pool.rs`), else candle ops ([`Self::forward_reference`]).
     /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain and the
     /// pooled statistics are written in one buffer ([`fused::pooled_stats`]).
-    /// Where `x` carries a gradient (its alpha weighed by [`ViewWeigh`] in training):
-    /// [`Self::forward_tracked`] (the candle ops with the cue in the encoder).
+    /// Where `x` carries a gradient (its alpha weighed by [`ViewWeigh`] in training), the
+    /// passes that return it ([`fused::pool_front_tracked`], [`fused::view_stats`]), and
+    /// no `fuse`.
     pub fn forward(&self, x: &Tensor, fuse: bool) -> Result<Pooled> {
         let (n, v, h, w, b) = view_dims(x, self.view_channels())?;
-        if x.track_op() {
-            return match self.view_channels {
-                4 => self.forward_tracked(x),
-                _ => self.forward_reference(x),
-            };
+        let tracked = x.track_op();
+        if tracked && self.view_channels != 4 {
+            return self.forward_reference(x);
         }
+        let fuse = fuse && !tracked;
         let xp = rgba(x)?.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
-        let Some((enc, front)) = fused::pool_front(&xp)? else {
+        let front = match tracked {
+            true => fused::pool_front_tracked(&xp)?,
+            false => fused::pool_front(&xp)?,
+        };
+        let Some((enc, front)) = front else {
             return self.forward_reference(x);
         };
         let enc = enc.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
@@ -207,30 +211,7 @@ impl ViewEncoder {
         Ok(e)
     }
 
-    /// [`Self::forward`] for sources whose alphas carry a gradient ([`ViewWeigh`]): the
-    /// mean colour and the encoder as candle ops ([`fused::pool_front`] treats the sweep as
-    /// data), the moments fused ([`fused::view_stats`], which has their gradient to the
-    /// alphas).
-    fn forward_tracked(&self, x_in: &Tensor) -> Result<Pooled> {
-        let (n, v, h, w, b) = view_dims(x_in, self.view_channels())?;
-        let f = self.encode_reference(x_in)?;
-        let cf = f.e.dim(2)?;
-        let e4 = f.e.reshape((n, v, cf, h * w))?; // [N, V, C_f, P]
-        let xp = f.x.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
-        let Some(moments) = fused::view_stats(&e4, &xp)? else {
-            return self.forward_reference(x_in);
-        }; // [N, 2 C_f, P]
-        let front = Tensor::cat(&[&f.mean_rgb, &f.cover()?], 2)?.reshape((n, 4, h * w))?; // [N, 4, P]
-        let stats = Tensor::cat(&[&front, &moments], 1)? // [N, 4 + 2 C_f, P]
-            .reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
-        Ok(Pooled {
-            stats,
-            features: f.e,
-        })
-    }
-
-    /// Steps 1 and 2 as candle ops, for [`Self::forward_reference`] and
-    /// [`Self::forward_tracked`].
+    /// Steps 1 and 2 as candle ops, for [`Self::forward_reference`].
     fn encode_reference(&self, x_in: &Tensor) -> Result<Encoded> {
         let (n, v, h, w, _) = view_dims(x_in, self.view_channels())?;
         let x = rgba(x_in)?.reshape((n, v, 4, h, w))?; // [N, V, 4, H, W]
@@ -249,7 +230,6 @@ impl ViewEncoder {
         let cf = e.dim(1)?;
         let e = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
         Ok(Encoded {
-            x,
             a,
             asum,
             den,
@@ -276,8 +256,6 @@ impl ViewEncoder {
 
 /// Steps 1 and 2 of the module doc as candle ops ([`ViewEncoder::encode_reference`]).
 struct Encoded {
-    /// The sources' RGBA, `[N, V, 4, H, W]`.
-    x: Tensor,
     /// Their alphas, `[N, V, 1, H, W]`.
     a: Tensor,
     /// `sum_v a_v` and that plus [`POOL_EPS`], `[N, 1, 1, H, W]`.

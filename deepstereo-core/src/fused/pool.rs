@@ -19,7 +19,9 @@
 
 use super::{data, on_cpu, slice};
 use crate::config::POOL_EPS;
-use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
+use candle_core::{
+    bail, CpuStorage, CustomOp1, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType,
+};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
 
@@ -57,35 +59,8 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
         let mut front = vec![T::zero(); n * 4 * p];
         enc.par_chunks_mut(v * 7 * p)
             .zip(front.par_chunks_mut(4 * p))
-            .enumerate()
-            .for_each(|(i, (enc, front))| {
-                let xi = &xs[i * v * 4 * p..][..v * 4 * p];
-                // sum_v a_v rgb_v and sum_v a_v (in f64), then the mean and the coverage.
-                let plane = |k: usize, ch: usize| &xi[(k * 4 + ch) * p..][..p];
-                let cover64 = sum_views(v, p, 0.0, |k| plane(k, 3).iter().map(|&a| wide(a)));
-                let (m, rest) = front.split_at_mut(3 * p);
-                for (ch, mc) in m.chunks_exact_mut(p).enumerate() {
-                    let m64 = sum_views(v, p, 0.0, |k| {
-                        let (a, rgb) = (plane(k, 3), plane(k, ch));
-                        a.iter().zip(rgb).map(|(&a, &c)| wide(a) * wide(c))
-                    });
-                    for ((m, s), c) in mc.iter_mut().zip(&m64).zip(&cover64) {
-                        *m = cast(s / (c + POOL_EPS));
-                    }
-                }
-                for (cv, &c) in rest[..p].iter_mut().zip(&cover64) {
-                    *cv = cast(c / (c + 1.0));
-                }
-                for k in 0..v {
-                    let (xk, ek) = (&xi[k * 4 * p..][..4 * p], &mut enc[k * 7 * p..][..7 * p]);
-                    ek[..4 * p].copy_from_slice(xk);
-                    for ch in 0..3 {
-                        for j in 0..p {
-                            ek[(4 + ch) * p + j] = xk[ch * p + j] - m[ch * p + j];
-                        }
-                    }
-                }
-            });
+            .zip(xs.par_chunks(v * 4 * p))
+            .for_each(|((enc, front), xi)| front_item(xi, (v, p), enc, front));
         let dev = x.device();
         Ok((
             Tensor::from_vec(enc, (n * v, 7, p), dev)?,
@@ -96,6 +71,175 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
         DType::F32 => run::<f32>(&x, (n, v, p)).map(Some),
         DType::F64 => run::<f64>(&x, (n, v, p)).map(Some),
         _ => Ok(None),
+    }
+}
+
+/// [`pool_front`] of one item: its sweep `xi` `[V, 4, P]` -> the encoder's input `enc`
+/// `[V, 7, P]` and `front` `[4, P]` (every value written).
+fn front_item<T: Float + AsPrimitive<f64>>(
+    xi: &[T],
+    (v, p): (usize, usize),
+    enc: &mut [T],
+    front: &mut [T],
+) {
+    // sum_v a_v rgb_v and sum_v a_v (in f64), then the mean and the coverage.
+    let plane = |k: usize, ch: usize| &xi[(k * 4 + ch) * p..][..p];
+    let cover64 = sum_views(v, p, 0.0, |k| plane(k, 3).iter().map(|&a| wide(a)));
+    let (m, rest) = front.split_at_mut(3 * p);
+    for (ch, mc) in m.chunks_exact_mut(p).enumerate() {
+        let m64 = sum_views(v, p, 0.0, |k| {
+            let (a, rgb) = (plane(k, 3), plane(k, ch));
+            a.iter().zip(rgb).map(|(&a, &c)| wide(a) * wide(c))
+        });
+        for ((m, s), c) in mc.iter_mut().zip(&m64).zip(&cover64) {
+            *m = cast(s / (c + POOL_EPS));
+        }
+    }
+    for (cv, &c) in rest[..p].iter_mut().zip(&cover64) {
+        *cv = cast(c / (c + 1.0));
+    }
+    for k in 0..v {
+        let (xk, ek) = (&xi[k * 4 * p..][..4 * p], &mut enc[k * 7 * p..][..7 * p]);
+        ek[..4 * p].copy_from_slice(xk);
+        for ch in 0..3 {
+            for j in 0..p {
+                ek[(4 + ch) * p + j] = xk[ch * p + j] - m[ch * p + j];
+            }
+        }
+    }
+}
+
+/// [`pool_front`] for a sweep whose alphas carry a gradient (weighed by the cue): one op
+/// with its backward ([`PoolFront`]); `(enc [N * V, 7, P], front [N, 4, P])`, `None` off
+/// the CPU.
+pub fn pool_front_tracked(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
+    let (n, v, c, p) = x.dims4()?;
+    if c != 4 {
+        bail!("pool_front: expected [N, V, 4, P], got {:?}", x.dims());
+    }
+    if !on_cpu(&[x]) {
+        return Ok(None);
+    }
+    let y = x.contiguous()?.apply_op1(PoolFront)?; // [N, 7V + 4, P]
+    let enc = y.narrow(1, 0, 7 * v)?.reshape((n * v, 7, p))?; // [N*V, 7, P]
+    let front = y.narrow(1, 7 * v, 4)?; // [N, 4, P]
+    Ok(Some((enc, front)))
+}
+
+/// [`pool_front`] as a differentiable op: `x` `[N, V, 4, P]` -> `[N, 7V + 4, P]`, per
+/// item the encoder's input `[V, 7, P]` then the front `[4, P]`.
+struct PoolFront;
+
+impl PoolFront {
+    fn fwd<T: Float + Send + Sync + AsPrimitive<f64>>(
+        x: &[T],
+        (n, v, p): (usize, usize, usize),
+    ) -> Vec<T> {
+        let mut y = vec![T::zero(); n * (7 * v + 4) * p];
+        y.par_chunks_mut((7 * v + 4) * p)
+            .zip(x.par_chunks(v * 4 * p))
+            .for_each(|(yi, xi)| {
+                let (enc, front) = yi.split_at_mut(7 * v * p);
+                front_item(xi, (v, p), enc, front);
+            });
+        y
+    }
+
+    /// `dx` `[N, V, 4, P]` from `g` `[N, 7V + 4, P]` (`g_e` the encoder input's part,
+    /// `g_f` the front's). With `A = sum_v a_v`, `D = A + eps`, `m = sum_v a_v rgb_v / D`:
+    /// `dm = g_f[rgb] - sum_v g_e[v, diff]`, `dA = g_f[cover] / (A + 1)^2 - dm . m / D`,
+    /// `d rgb_v = g_e[v, rgb] + g_e[v, diff] + a_v dm / D` and
+    /// `d a_v = g_e[v, a] + rgb_v . dm / D + dA`.
+    fn bwd<T: Float + Send + Sync + AsPrimitive<f64>>(
+        x: &[T],
+        g: &[T],
+        (n, v, p): (usize, usize, usize),
+    ) -> Vec<T> {
+        let mut dx = vec![T::zero(); n * v * 4 * p];
+        dx.par_chunks_mut(v * 4 * p)
+            .zip(x.par_chunks(v * 4 * p))
+            .zip(g.par_chunks((7 * v + 4) * p))
+            .for_each(|((dxi, xi), gi)| {
+                let plane = |k: usize, ch: usize| &xi[(k * 4 + ch) * p..][..p];
+                let ge = |k: usize, ch: usize| &gi[(k * 7 + ch) * p..][..p];
+                let gf = |ch: usize| &gi[(7 * v + ch) * p..][..p];
+                let asum = sum_views(v, p, 0.0, |k| plane(k, 3).iter().map(|&a| wide(a)));
+                // Per colour channel: dm / D; and dA.
+                let mut dm_d = vec![0f64; 3 * p];
+                let mut da: Vec<f64> = (gf(3).iter().zip(&asum))
+                    .map(|(&g, &a)| wide(g) / ((a + 1.0) * (a + 1.0)))
+                    .collect();
+                for ch in 0..3 {
+                    let s = sum_views(v, p, 0.0, |k| {
+                        let (a, rgb) = (plane(k, 3), plane(k, ch));
+                        a.iter().zip(rgb).map(|(&a, &c)| wide(a) * wide(c))
+                    });
+                    let gdiff = sum_views(v, p, 0.0, |k| ge(k, 4 + ch).iter().map(|&g| wide(g)));
+                    let dm = &mut dm_d[ch * p..][..p];
+                    for j in 0..p {
+                        let d = asum[j] + POOL_EPS;
+                        let m = s[j] / d;
+                        dm[j] = (wide(gf(ch)[j]) - gdiff[j]) / d;
+                        da[j] -= dm[j] * m;
+                    }
+                }
+                for k in 0..v {
+                    let (a, dxk) = (plane(k, 3), &mut dxi[k * 4 * p..][..4 * p]);
+                    let mut dak: Vec<f64> = (ge(k, 3).iter().zip(&da))
+                        .map(|(&g, &d)| wide(g) + d)
+                        .collect();
+                    for ch in 0..3 {
+                        let (rgb, dm) = (plane(k, ch), &dm_d[ch * p..][..p]);
+                        let (gr, gd) = (ge(k, ch), ge(k, 4 + ch));
+                        let out = &mut dxk[ch * p..][..p];
+                        for j in 0..p {
+                            out[j] = cast(wide(gr[j]) + wide(gd[j]) + wide(a[j]) * dm[j]);
+                            dak[j] += wide(rgb[j]) * dm[j];
+                        }
+                    }
+                    for (o, d) in dxk[3 * p..].iter_mut().zip(dak) {
+                        *o = cast(d);
+                    }
+                }
+            });
+        dx
+    }
+}
+
+impl CustomOp1 for PoolFront {
+    fn name(&self) -> &'static str {
+        "deepstereo-pool-front"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let (n, v, _, p) = l.shape().dims4()?;
+        let y = match s {
+            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(slice::<f32>(s, l)?, (n, v, p))),
+            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(slice::<f64>(s, l)?, (n, v, p))),
+            _ => bail!("pool_front: f32 or f64 only"),
+        };
+        Ok((y, Shape::from((n, 7 * v + 4, p))))
+    }
+
+    fn bwd(&self, x: &Tensor, _y: &Tensor, g: &Tensor) -> Result<Option<Tensor>> {
+        let (n, v, _, p) = x.dims4()?;
+        let g = g.contiguous()?;
+        let (xs, xl) = x.storage_and_layout();
+        let (gs, gl) = g.storage_and_layout();
+        let dx = match x.dtype() {
+            DType::F32 => Tensor::from_vec(
+                Self::bwd(data::<f32>(&xs, xl)?, data::<f32>(&gs, gl)?, (n, v, p)),
+                x.shape(),
+                x.device(),
+            )?,
+            DType::F64 => Tensor::from_vec(
+                Self::bwd(data::<f64>(&xs, xl)?, data::<f64>(&gs, gl)?, (n, v, p)),
+                x.shape(),
+                x.device(),
+            )?,
+            dt => bail!("pool_front: f32 or f64 only, got {dt:?}"),
+        };
+        Ok(Some(dx))
     }
 }
 

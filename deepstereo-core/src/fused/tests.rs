@@ -162,3 +162,66 @@ fn pooled_stats_equals_front_then_view_stats() -> Result<()> {
     }
     Ok(())
 }
+
+/// [`pool_front`] as candle ops: `(enc [N*V, 7, P], front [N, 4, P])`.
+fn pool_front_ops(x: &Tensor) -> Result<(Tensor, Tensor)> {
+    let (n, v, _, p) = x.dims4()?;
+    let (rgb, a) = (x.narrow(2, 0, 3)?, x.narrow(2, 3, 1)?); // [N, V, 3, P], [N, V, 1, P]
+    let asum = a.sum_keepdim(1)?; // [N, 1, 1, P]
+    let mean = rgb
+        .broadcast_mul(&a)?
+        .sum_keepdim(1)?
+        .broadcast_div(&(&asum + crate::config::POOL_EPS)?)?; // [N, 1, 3, P]
+    let enc = Tensor::cat(&[x, &rgb.broadcast_sub(&mean)?], 2)?.reshape((n * v, 7, p))?;
+    let cover = asum.div(&(&asum + 1.0)?)?; // [N, 1, 1, P]
+    let front = Tensor::cat(&[&mean, &cover], 2)?.reshape((n, 4, p))?;
+    Ok((enc, front))
+}
+
+#[test]
+fn pool_front_tracked_matches_composition_and_its_gradient() -> Result<()> {
+    let dev = &Device::Cpu;
+    for dt in [DType::F32, DType::F64] {
+        let tol = if dt == DType::F32 { 1e-5 } else { 1e-12 };
+        let (n, v, p) = (3, 4, 37);
+        // Alphas in [0, 2] (weighed by the cue), one view empty at some pixels.
+        let mut flat = Tensor::rand(0f64, 2., (n, v, 4, p), dev)?
+            .flatten_all()?
+            .to_vec1::<f64>()?;
+        for i in 0..n {
+            flat[((i * v + 1) * 4 + 3) * p..][..5].fill(0.0);
+        }
+        let x = Var::from_tensor(&Tensor::from_vec(flat, (n, v, 4, p), dev)?.to_dtype(dt)?)?;
+        let (r1, r2) = (
+            Tensor::randn(0f64, 1., (n * v, 7, p), dev)?.to_dtype(dt)?,
+            Tensor::randn(0f64, 1., (n, 4, p), dev)?.to_dtype(dt)?,
+        );
+        let Some((enc, front)) = pool_front_tracked(x.as_tensor())? else {
+            candle_core::bail!("pool_front_tracked did not run");
+        };
+        let (enc_w, front_w) = pool_front_ops(x.as_tensor())?;
+        assert!(max_diff(&enc, &enc_w)? < tol && max_diff(&front, &front_w)? < tol);
+        let Some((enc_u, front_u)) = pool_front(x.as_tensor())? else {
+            candle_core::bail!("pool_front did not run");
+        };
+        assert_eq!(max_diff(&enc, &enc_u)?, 0.0);
+        assert_eq!(max_diff(&front, &front_u)?, 0.0);
+        let loss = |e: &Tensor, f: &Tensor| -> Result<Tensor> {
+            (e * &r1)?.sum_all()? + (f * &r2)?.sum_all()?
+        };
+        let got = loss(&enc, &front)?.backward()?;
+        let want = loss(&enc_w, &front_w)?.backward()?;
+        let (g, w) = (
+            got.get(x.as_tensor()).expect("a gradient"),
+            want.get(x.as_tensor()).expect("a gradient"),
+        );
+        let scale = w
+            .abs()?
+            .max_all()?
+            .to_dtype(DType::F64)?
+            .to_scalar::<f64>()?;
+        let e = max_diff(g, w)?;
+        assert!(e < tol * scale.max(1.0), "{dt:?}: gradient differs by {e}");
+    }
+    Ok(())
+}
