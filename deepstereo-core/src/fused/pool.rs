@@ -5,7 +5,8 @@
 //! - [`pool_front`]: from the sweep `x` `[N, V, 4, P]`, the encoder's input
 //!   `[N * V, 7, P]` (RGBA and colour minus the alpha-weighted mean) and the pooled
 //!   input's first channels `[N, 4, P]` (the mean colour and the coverage `s / (1 + s)`).
-//!   The sweep is data: no gradient flows to it.
+//!   The sweep is data: no gradient flows to it. [`pool_front_tracked`]: the same as one
+//!   op with its gradient to the sweep, for sweeps whose alphas are weighed by the cue.
 //! - [`view_stats`]: alpha-weighted mean and variance over views of the features `e`
 //!   `[N, V, C, P]` -> `[N, 2C, P]`, with its gradient to `e` (alphas read from `x`), and
 //!   to the alphas where `x` carries a gradient (weighed by the cue).
