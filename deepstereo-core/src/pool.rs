@@ -130,8 +130,7 @@ impl ViewEncoder {
     /// With `fuse` (rendering: no gradients), the encoder runs as one fused chain and the
     /// pooled statistics are written in one buffer ([`fused::pooled_stats`]).
     /// Where `x` carries a gradient (its alpha weighed by [`ViewWeigh`] in training), the
-    /// passes that return it ([`fused::pool_front_tracked`], [`fused::view_stats`]), and
-    /// no `fuse`.
+    /// passes return it ([`fused::pool_front`], [`fused::view_stats`]), and no `fuse`.
     pub fn forward(&self, x: &Tensor, fuse: bool) -> Result<Pooled> {
         let (n, v, h, w, b) = view_dims(x, self.view_channels())?;
         let tracked = x.track_op();
@@ -140,11 +139,7 @@ impl ViewEncoder {
         }
         let fuse = fuse && !tracked;
         let xp = rgba(x)?.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
-        let front = match tracked {
-            true => fused::pool_front_tracked(&xp)?,
-            false => fused::pool_front(&xp)?,
-        };
-        let Some((enc, front)) = front else {
+        let Some((enc, front)) = fused::pool_front(&xp)? else {
             return self.forward_reference(x);
         };
         let enc = enc.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]

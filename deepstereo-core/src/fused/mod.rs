@@ -35,7 +35,7 @@ pub use blend_infer::{blend_infer, Dense};
 pub use encode::encode_pool;
 pub use head::{composite, select_softmax};
 pub use pad::pad_rows;
-pub use pool::{pool_front, pool_front_tracked, pooled_stats, view_stats};
+pub use pool::{pool_front, pooled_stats, view_stats};
 pub use upsample::{upsample_cat, upsample_crop, upsample_nearest};
 pub use weigh::weigh_views;
 

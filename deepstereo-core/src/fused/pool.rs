@@ -5,8 +5,7 @@
 //! - [`pool_front`]: from the sweep `x` `[N, V, 4, P]`, the encoder's input
 //!   `[N * V, 7, P]` (RGBA and colour minus the alpha-weighted mean) and the pooled
 //!   input's first channels `[N, 4, P]` (the mean colour and the coverage `s / (1 + s)`).
-//!   The sweep is data: no gradient flows to it. [`pool_front_tracked`]: the same as one
-//!   op with its gradient to the sweep, for sweeps whose alphas are weighed by the cue.
+//!   Where the sweep carries a gradient (its alphas weighed by the cue), it returns it.
 //! - [`view_stats`]: alpha-weighted mean and variance over views of the features `e`
 //!   `[N, V, C, P]` -> `[N, 2C, P]`, with its gradient to `e` (alphas read from `x`), and
 //!   to the alphas where `x` carries a gradient (weighed by the cue).
@@ -40,7 +39,8 @@ pub(super) fn wide<T: AsPrimitive<f64>>(v: T) -> f64 {
 }
 
 /// `(encoder input [N*V, 7, P], front [N, 4, P])` from `x` `[N, V, 4, P]`; `None` off
-/// the CPU.
+/// the CPU. Where `x` carries a gradient (its alphas weighed by the cue), one op with
+/// its backward ([`PoolFront`]); else two buffers written directly, with no graph.
 pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
     let (n, v, c, p) = x.dims4()?;
     if c != 4 {
@@ -50,6 +50,12 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
         return Ok(None);
     }
     let x = x.contiguous()?;
+    if x.track_op() {
+        let y = x.apply_op1(PoolFront)?; // [N, 7V + 4, P]
+        let enc = y.narrow(1, 0, 7 * v)?.reshape((n * v, 7, p))?; // [N*V, 7, P]
+        let front = y.narrow(1, 7 * v, 4)?; // [N, 4, P]
+        return Ok(Some((enc, front)));
+    }
     fn run<T: WithDType + Float + NumAssignOps + AsPrimitive<f64>>(
         x: &Tensor,
         (n, v, p): (usize, usize, usize),
@@ -108,23 +114,6 @@ fn front_item<T: Float + AsPrimitive<f64>>(
             }
         }
     }
-}
-
-/// [`pool_front`] for a sweep whose alphas carry a gradient (weighed by the cue): one op
-/// with its backward ([`PoolFront`]); `(enc [N * V, 7, P], front [N, 4, P])`, `None` off
-/// the CPU.
-pub fn pool_front_tracked(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
-    let (n, v, c, p) = x.dims4()?;
-    if c != 4 {
-        bail!("pool_front: expected [N, V, 4, P], got {:?}", x.dims());
-    }
-    if !on_cpu(&[x]) {
-        return Ok(None);
-    }
-    let y = x.contiguous()?.apply_op1(PoolFront)?; // [N, 7V + 4, P]
-    let enc = y.narrow(1, 0, 7 * v)?.reshape((n * v, 7, p))?; // [N*V, 7, P]
-    let front = y.narrow(1, 7 * v, 4)?; // [N, 4, P]
-    Ok(Some((enc, front)))
 }
 
 /// [`pool_front`] as a differentiable op: `x` `[N, V, 4, P]` -> `[N, 7V + 4, P]`, per
