@@ -206,9 +206,9 @@ impl ViewEncoder {
         Ok(e)
     }
 
-    /// Steps 1 and 2 as candle ops, for [`Self::forward_reference`].
-    fn encode_reference(&self, x_in: &Tensor) -> Result<Encoded> {
-        let (n, v, h, w, _) = view_dims(x_in, self.view_channels())?;
+    /// [`Self::forward`] as candle ops (the fused passes' reference and fallback).
+    pub fn forward_reference(&self, x_in: &Tensor) -> Result<Pooled> {
+        let (n, v, h, w, b) = view_dims(x_in, self.view_channels())?;
         let x = rgba(x_in)?.reshape((n, v, 4, h, w))?; // [N, V, 4, H, W]
         let rgb = x.narrow(2, 0, 3)?; // [N, V, 3, H, W]
         let a = x.narrow(2, 3, 1)?; // [N, V, 1, H, W]
@@ -224,48 +224,12 @@ impl ViewEncoder {
         let e = self.encode(e_in)?;
         let cf = e.dim(1)?;
         let e = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
-        Ok(Encoded {
-            a,
-            asum,
-            den,
-            mean_rgb,
-            e,
-        })
-    }
-
-    /// [`Self::forward`] as candle ops (the fused passes' reference and fallback).
-    pub fn forward_reference(&self, x_in: &Tensor) -> Result<Pooled> {
-        let (n, _, h, w, b) = view_dims(x_in, self.view_channels())?;
-        let f = self.encode_reference(x_in)?;
-        let cf = f.e.dim(2)?;
-        let mean_e = weighted_mean(&f.e, &f.a, &f.den)?; // [N, 1, C_f, H, W]
-        let var_e = weighted_mean(&f.e.broadcast_sub(&mean_e)?.sqr()?, &f.a, &f.den)?; // [N, 1, C_f, H, W]
-        let stats = Tensor::cat(&[&f.mean_rgb, &f.cover()?, &mean_e, &var_e], 2)? // [N, 1, 4 + 2 C_f, H, W]
+        let mean_e = weighted_mean(&e, &a, &den)?; // [N, 1, C_f, H, W]
+        let var_e = weighted_mean(&e.broadcast_sub(&mean_e)?.sqr()?, &a, &den)?; // [N, 1, C_f, H, W]
+        let cover = asum.div(&(&asum + 1.0)?)?; // [N, 1, 1, H, W]
+        let stats = Tensor::cat(&[&mean_rgb, &cover, &mean_e, &var_e], 2)? // [N, 1, 4 + 2 C_f, H, W]
             .reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
-        Ok(Pooled {
-            stats,
-            features: f.e,
-        })
-    }
-}
-
-/// Steps 1 and 2 of the module doc as candle ops ([`ViewEncoder::encode_reference`]).
-struct Encoded {
-    /// Their alphas, `[N, V, 1, H, W]`.
-    a: Tensor,
-    /// `sum_v a_v` and that plus [`POOL_EPS`], `[N, 1, 1, H, W]`.
-    asum: Tensor,
-    den: Tensor,
-    /// `[N, 1, 3, H, W]`.
-    mean_rgb: Tensor,
-    /// The view features, `[N, V, C_f, H, W]`.
-    e: Tensor,
-}
-
-impl Encoded {
-    /// The coverage `s / (1 + s)`, `[N, 1, 1, H, W]`.
-    fn cover(&self) -> Result<Tensor> {
-        self.asum.div(&(&self.asum + 1.0)?)
+        Ok(Pooled { stats, features: e })
     }
 }
 
