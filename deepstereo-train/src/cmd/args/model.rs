@@ -34,7 +34,8 @@ pub struct ModelArgs {
     /// planes a coarse pass finds surfaces on, picks the source views that see the
     /// target, and skips tiles no source covers or that are constant; `off` runs every
     /// plane of every tile from the nearest views (the plain renderer). `auto` is the
-    /// default: on every scene measured it lost no quality (README).
+    /// default: at the model's own plane count it lost no quality on any scene measured
+    /// (docs/performance.md, which also lists where thinning more planes costs some).
     #[arg(long, default_value_t = PruneMode::Auto)]
     pub prune: PruneMode,
     /// --prune auto: the coarse pass: `network` (the model itself at low resolution) or
