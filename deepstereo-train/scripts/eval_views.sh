@@ -7,7 +7,8 @@
 # (python3, stdlib only). Runs already in OUT are kept (rerun to continue).
 # Usage: bash deepstereo-train/scripts/eval_views.sh MODEL [OUT] [BASE]
 #        ONLY=base|model restricts the runs to one of the two models; BASE_VIEWS (default
-#        "2 4 8 10") the base's view counts.
+#        "2 4 8 10") the base's view counts; EXTRA flags for every run (e.g. "--planes
+#        64"; give each EXTRA its own OUT).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 MODEL="${1:?usage: eval_views.sh MODEL [OUT] [BASE]}"
@@ -39,7 +40,7 @@ for entry in "${ALL_SCENES[@]}"; do
       [ -f "$json" ] && continue
       # shellcheck disable=SC2086
       "$BIN" eval --scene "$dir" $flags --llffhold 8 --model "$m" --views "$v" \
-        --json "$json.tmp" > /dev/null && mv "$json.tmp" "$json"
+        ${EXTRA:-} --json "$json.tmp" > /dev/null && mv "$json.tmp" "$json"
     done
   done
   echo "done: $name"
