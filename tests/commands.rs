@@ -446,6 +446,23 @@ fn train_refuses_bad_data_before_writing_anything() {
             vec!["--init", "not a safetensors file"],
         ),
         (&data, &["--resume"][..], vec!["--resume", "cannot read"]),
+        (&data, &["--mpi-loss", "0"][..], vec!["MPI loss weight"]),
+        (&data, &["--mpi-loss", "nan"][..], vec!["MPI loss weight"]),
+        (
+            &data,
+            &["--mpi-loss", "1", "--mpi-tile", "64x33"][..],
+            vec!["MPI tile's sides must be multiples of"],
+        ),
+        (
+            &data,
+            &["--mpi-loss", "1", "--mpi-neighbours", "0"][..],
+            vec!["nearest views"],
+        ),
+        (
+            &data,
+            &["--mpi-loss", "1", "--augment"][..],
+            vec!["MPI loss takes neither augmentation"],
+        ),
     ] {
         let mut args = vec![
             "train".to_string(),

@@ -26,6 +26,7 @@ use rayon::prelude::*;
 
 pub mod io;
 pub mod viewer;
+pub mod warp;
 
 /// A multiplane image: straight-alpha RGBA planes in a pinhole reference camera.
 #[derive(Clone, Debug)]
@@ -236,26 +237,32 @@ impl Mpi {
         }
     }
 
-    /// Per plane, for a camera whose centre is `t` in the reference's coordinates: the
-    /// factor `alpha_z = 1 - rho_z t_z` and the affine map from a ray's slopes
-    /// `(a, b) = ((R r)_x, (R r)_y) / (R r)_z` to the plane point's reference pixel,
-    /// `u = fx (alpha_z a + rho_z t_x) + cx`, `v = fy (alpha_z b + rho_z t_y) + cy` (the
-    /// point `q` of the module docs has `q_z = 1`): `[alpha, su, ou, sv, ov]`.
+    /// [`plane_maps`] of this MPI's planes.
     fn plane_maps(&self, t: DVec3) -> Vec<[f64; 5]> {
-        let k = &self.camera.intrinsics;
-        (self.inv_depths.iter())
-            .map(|&rho| {
-                let al = 1.0 - rho * t.z;
-                [
-                    al,
-                    k.fx * al,
-                    k.fx * rho * t.x + k.cx,
-                    k.fy * al,
-                    k.fy * rho * t.y + k.cy,
-                ]
-            })
-            .collect()
+        plane_maps(&self.camera.intrinsics, &self.inv_depths, t)
     }
+}
+
+/// Per plane of inverse depth `rho_z` in a reference camera of intrinsics `k`, for a
+/// camera whose centre is `t` in the reference's coordinates: the factor
+/// `alpha_z = 1 - rho_z t_z` and the affine map from a ray's slopes
+/// `(a, b) = ((R r)_x, (R r)_y) / (R r)_z` to the plane point's reference pixel,
+/// `u = fx (alpha_z a + rho_z t_x) + cx`, `v = fy (alpha_z b + rho_z t_y) + cy` (the point
+/// `q` of the module docs has `q_z = 1`): `[alpha, su, ou, sv, ov]`. The ray hits the
+/// plane ahead of that camera when `alpha_z (R r)_z > 0`.
+pub fn plane_maps(k: &Intrinsics, inv_depths: &[f64], t: DVec3) -> Vec<[f64; 5]> {
+    (inv_depths.iter())
+        .map(|&rho| {
+            let al = 1.0 - rho * t.z;
+            [
+                al,
+                k.fx * al,
+                k.fx * rho * t.x + k.cx,
+                k.fy * al,
+                k.fy * rho * t.y + k.cy,
+            ]
+        })
+        .collect()
 }
 
 /// Transmittance below which a ray is opaque: what is behind moves its colour by less

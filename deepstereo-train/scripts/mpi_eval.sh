@@ -6,7 +6,8 @@
 # `mpi --target`), one without it (`--exclude-own-photo`), and three without, blended.
 # Writes OUT/NAME.SETTING/eval.json and prints a markdown table (python3, stdlib only).
 # Usage: bash deepstereo-train/scripts/mpi_eval.sh [OUT] [MODEL]
-#        SPEED_ONLY=1 runs only the camera-path timing at the end.
+#        SPEED_ONLY=1 runs only the camera-path timing at the end; ONLY="other1 ..." runs
+#        only those settings; EXTRA="--views 8 --planes 64" adds options to every `mpi`.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${1:-/tmp/deepstereo-mpi-eval}"
@@ -27,8 +28,9 @@ for entry in "${EVAL_SCENES[@]}"; do
   for s in "${SETTINGS[@]}"; do
     tag="${s%%|*}"; opts="${s#*|}"
     [ -f "$OUT/$name.$tag/eval.json" ] && continue
+    if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $tag "* ]]; then continue; fi
     # shellcheck disable=SC2086
-    "$BIN" mpi --scene "$dir" $flags --llffhold 8 --model "$MODEL" --eval $opts \
+    "$BIN" mpi --scene "$dir" $flags --llffhold 8 --model "$MODEL" --eval $opts ${EXTRA:-} \
       --out "$OUT/$name.$tag" 2> "$OUT/$name.$tag.log"
   done
   echo "done: $name"
@@ -36,14 +38,14 @@ done
 python3 - "$OUT" <<'PY'
 import json, sys, pathlib
 out = pathlib.Path(sys.argv[1])
-names = sorted({p.name.split(".")[0] for p in out.glob("*.own1")})
+names = sorted({p.parent.name.split(".")[0] for p in out.glob("*.*/eval.json")})
 tags = [("own1", "1 MPI, own photo"), ("other1", "1 MPI, other views"), ("other3", "3 MPIs, other views")]
 print("| scene | network PSNR / SSIM, s/view | " + " | ".join(f"{t}: PSNR / SSIM (vs network)" for _, t in tags) + " | MPI frame s (1 / 3 MPIs) | bake s per MPI |")
 print("|---|---|" + "---|" * len(tags) + "---|---|")
 for n in names:
     j = {t: json.loads((out / f"{n}.{t}/eval.json").read_text()) for t, _ in tags if (out / f"{n}.{t}/eval.json").exists()}
-    if "own1" not in j: continue
-    m = j["own1"]["mean"]
+    if not j: continue
+    m = next(iter(j.values()))["mean"]
     row = [n, f"{m['network_psnr']:.2f} / {m['network_ssim']:.3f}, {m['network_seconds']:.2f}"]
     for t, _ in tags:
         if t in j:
@@ -54,7 +56,7 @@ for n in names:
     f1 = j["other1"]["mean"]["mpi_render_seconds"] if "other1" in j else float("nan")
     f3 = j["other3"]["mean"]["mpi_render_seconds"] if "other3" in j else float("nan")
     row.append(f"{f1:.3f} / {f3:.3f}")
-    row.append(f"{j['own1']['mean']['bake_seconds']:.2f}")
+    row.append(f"{m['bake_seconds']:.2f}")
     print("| " + " | ".join(row) + " |")
 PY
 # Speed: a spiral camera path on juicebox through the network and through one and three

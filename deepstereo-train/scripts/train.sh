@@ -43,6 +43,7 @@ RECIPES=(
   "corpus|runs/nviews-corpus: prox's architecture (its config: no cue) from scratch on the whole corpus (17 scenes), 2-12 views, as cue-scratch: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "weigh|runs/nviews-weigh: corpus's weights at step 8600 with the views weighed by their cue (python/add_cue.py --weigh: the weights start at 1, so step 0 renders as corpus), fine-tuned on the whole corpus with 2-12 views, Adam 2e-4, cosine:300-2500 to a tenth"
   "weigh-scratch|runs/nviews-weigh-scratch: weigh's architecture (its config) from scratch on the whole corpus, 2-12 views, as corpus: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
+  "mpi|runs/nviews-mpi: the shipped weights (weigh-scratch's config) fine-tuned for MPIs with --mpi-loss 1 (224x64 tiles, the target one of the reference's 3 nearest views, 4 source views, no augmentation), batch 4, Adam 5e-4, cosine:100-300 to a tenth"
   "cue|runs/nviews-cue: the shipped weights given the per-view cue (python/add_cue.py: zero columns, so step 0 renders as the shipped model), fine-tuned on the whole corpus (17 scenes) with 2-12 views, Adam 3e-4 to step 1600, then a cosine to a tenth at step 4500"
 )
 
@@ -74,6 +75,7 @@ experiment() {
 # 5e-5 (a twentieth), validation every 200 steps.
 COPY_CONFIG=
 CONFIG=
+EXTRA=()
 case "$RECIPE" in
   default)
     OUT="${2:-$RUNS/nviews-real}"
@@ -146,6 +148,14 @@ case "$RECIPE" in
     # at once: cosine:1600-4500.
     : "${LR:=3e-4}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
     ;;
+  mpi)
+    OUT="${2:-$RUNS/nviews-mpi}"
+    : "${INIT:=deepstereo-train/assets/nviews-real.safetensors}" "${STEPS:=300}" "${LR_SCHEDULE:=cosine:100-300}"
+    : "${VIEW_RANGE:=4}" "${CORPUS:=all}" "${BATCH:=4}" "${VALIDATE_EVERY:=100}" "${LR:=5e-4}"
+    COPY_CONFIG=$RUNS/nviews-weigh-scratch/config.json
+    NO_AUGMENT=1
+    EXTRA=(--mpi-loss 1 --mpi-tile 224x64 --mpi-neighbours 3)
+    ;;
   wide | encoder3 | levels)
     echo "error: recipe '$RECIPE' changed the architecture with a Python tool first; it is at commit fda1758 (deepstereo-train/scripts/train_$RECIPE.sh)" >&2
     exit 2
@@ -166,12 +176,12 @@ fi
 # shellcheck source=deepstereo-train/scripts/default_data.sh
 source deepstereo-train/scripts/default_data.sh
 CMD=(nice -n 19 target/release/deepstereo train --config "$CONFIG" ${INIT:+--init "$INIT"} "${SAMPLING[@]}"
-  --steps "$STEPS" --batch 8 --optimizer adam --lr "$LR" --seed "$SEED"
+  --steps "$STEPS" --batch "${BATCH:-8}" --optimizer adam --lr "$LR" --seed "$SEED"
   --lr-schedule "$LR_SCHEDULE" --lr-final "$LR_FINAL"
   --checkpoint-every 100 --validate-every "$VALIDATE_EVERY" --log-every 20 --no-progress
   ${LOSS:+--loss "$LOSS"} ${VIEW_STRIDE:+--view-stride "$VIEW_STRIDE"}
   ${SKIP_FLAT:+--skip-flat "$SKIP_FLAT"} ${SCENE_WEIGHTS:+--scene-weights "$SCENE_WEIGHTS"}
-  --out "$OUT" "${RESUME[@]}")
+  "${EXTRA[@]}" --out "$OUT" "${RESUME[@]}")
 if [ -n "${DRY_RUN:-}" ]; then
   if [ -n "$COPY_CONFIG" ] && [ ! -f "$CONFIG" ]; then echo "# would copy $COPY_CONFIG to $CONFIG"; fi
   printf '%q ' "${CMD[@]}"

@@ -20,6 +20,10 @@ use rayon::prelude::*;
 use std::path::Path;
 use std::sync::mpsc::{sync_channel, Receiver};
 
+pub mod pairs;
+pub use pairs::MpiPairs;
+use pairs::{sample_pair, PairSample};
+
 /// Salt mixed into the seed of validation scenes so they never repeat training scenes.
 pub const VALIDATION_SALT: u64 = 0x005e_ed0f_7a11_da7e;
 
@@ -146,6 +150,19 @@ pub struct Batch {
     pub views: usize,
     pub target: Vec<f32>,
     pub target_shape: [usize; 4],
+    /// With the loss through the MPI renderer ([`Sampling::mpi`]): the warp of each
+    /// sample's tile to its neighbouring view and that view's photographs.
+    pub mpi: Option<PairBatch>,
+}
+
+/// The MPI part of a batch ([`pairs`]).
+pub struct PairBatch {
+    /// Per sample, its tile's warp to the target crop.
+    pub plans: Vec<deepstereo_core::mpi::warp::WarpPlan>,
+    /// `[B, 3, N_t]`, the target crops' photographs.
+    pub target: Vec<f32>,
+    /// `N_t`, pixels per target crop.
+    pub pixels: usize,
 }
 
 /// How samples are drawn beyond what the model's config fixes.
@@ -169,6 +186,8 @@ pub struct Sampling {
     pub skip_flat: Option<f32>,
     /// Relative weights of named real scenes ([`SceneWeights`]; empty: all equally likely).
     pub scene_weights: SceneWeights,
+    /// Samples for the loss through the MPI renderer instead of plain tiles ([`pairs`]).
+    pub mpi: Option<MpiPairs>,
 }
 
 /// Most redraws of a flat tile ([`Sampling::skip_flat`]).
@@ -192,6 +211,7 @@ impl Sampling {
             view_stride: (1, 1),
             skip_flat: None,
             scene_weights: SceneWeights::default(),
+            mpi: None,
         }
     }
 
@@ -211,6 +231,14 @@ impl Sampling {
             );
         }
         self.scene_weights.check()?;
+        if let Some(p) = &self.mpi {
+            p.check(cfg)?;
+            if self.augment || self.skip_flat.is_some() || self.view_stride != (1, 1) {
+                bail!(
+                    "the MPI loss takes neither augmentation, flat-tile skipping nor a view stride"
+                );
+            }
+        }
         if self.synthetic_percent.is_some_and(|p| p > 100) {
             bail!("the share of procedural samples is a percentage (0 to 100)");
         }
@@ -420,6 +448,9 @@ pub fn make_batch(
     }
     sampling.check(cfg)?;
     let views = sampling.views_of(seed, b);
+    if let Some(pairs) = &sampling.mpi {
+        return pair_batch(cfg, sampling, pairs, scenes, (seed, b, batch), views);
+    }
     let samples: Vec<(Vec<Vec<f32>>, Vec<f32>)> = (0..batch)
         .into_par_iter()
         .map(|k| sample(cfg, sampling, scenes, (seed, b, k), views))
@@ -448,6 +479,57 @@ pub fn make_batch(
         views,
         target,
         target_shape: [batch, 3, t, t],
+        mpi: None,
+    })
+}
+
+/// [`make_batch`] of pair samples.
+fn pair_batch(
+    cfg: &Config,
+    sampling: &Sampling,
+    pairs: &MpiPairs,
+    scenes: &[SceneData],
+    (seed, b, batch): (u64, u64, usize),
+    views: usize,
+) -> anyhow::Result<Batch> {
+    let samples: Vec<PairSample> = (0..batch)
+        .into_par_iter()
+        .map(|k| sample_pair(cfg, sampling, pairs, scenes, (seed, b, k), views))
+        .collect::<anyhow::Result<_>>()?;
+    let (tw, th) = pairs.tile;
+    let level_shapes: Vec<Vec<usize>> = (0..cfg.levels)
+        .map(|l| {
+            let (h, w) = (cfg.input_size(l, th), cfg.input_size(l, tw));
+            cfg.input_shape(batch, cfg.planes, views, h, w)
+        })
+        .collect();
+    let levels = (0..cfg.levels)
+        .map(|l| {
+            (samples.iter())
+                .flat_map(|s| s.levels[l].iter().copied())
+                .collect()
+        })
+        .collect();
+    let target = samples
+        .iter()
+        .flat_map(|s| s.reference.iter().copied())
+        .collect();
+    let mpi_target = samples
+        .iter()
+        .flat_map(|s| s.target.iter().copied())
+        .collect();
+    Ok(Batch {
+        index: b,
+        levels,
+        level_shapes,
+        views,
+        target,
+        target_shape: [batch, 3, th, tw],
+        mpi: Some(PairBatch {
+            plans: samples.into_iter().map(|s| s.plan).collect(),
+            target: mpi_target,
+            pixels: th * tw,
+        }),
     })
 }
 

@@ -6,7 +6,8 @@
 //! `checkpoint.safetensors` (weights, optimizer state, step, run options), `log.jsonl`.
 
 use crate::data::{
-    make_batch, spawn_loader, synth_scenes, Batch, Sampling, SceneData, VALIDATION_SALT,
+    make_batch, spawn_loader, synth_scenes, Batch, MpiPairs, PairBatch, Sampling, SceneData,
+    VALIDATION_SALT,
 };
 use crate::lr::LrSchedule;
 use crate::optim::{Optimizer, OptimizerKind};
@@ -100,6 +101,10 @@ pub struct RunOptions {
     /// Weights of named real scenes (`None`: every scene equally likely, as runs before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub scene_weights: Option<SceneWeights>,
+    /// The loss through the MPI renderer at a neighbouring view (`None`: the plain
+    /// tiles, as runs before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mpi_loss: Option<MpiPairs>,
 }
 
 impl RunOptions {
@@ -112,6 +117,7 @@ impl RunOptions {
             view_stride: self.view_stride.unwrap_or((1, 1)),
             skip_flat: self.skip_flat,
             scene_weights: self.scene_weights.clone().unwrap_or_default(),
+            mpi: self.mpi_loss,
         }
     }
 }
@@ -137,6 +143,10 @@ pub struct LogLine {
     pub val_psnr: Option<f64>,
     pub skipped: bool,
     pub seconds: f64,
+    /// With `--mpi-loss`: the loss through the MPI renderer alone (unweighted), which
+    /// `loss` includes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mpi_loss: Option<f64>,
 }
 
 /// Batch tensors on `device`: inputs per level and the target.
@@ -322,7 +332,7 @@ pub fn train(
         let batch = rx.recv().context("the sample loader stopped")??;
         step += 1;
         window_n += run.batch;
-        let (loss_v, gnorm, skipped) = optimize(run, &t, &mut opt, &batch, &device, step)?;
+        let (loss_v, mpi_v, gnorm, skipped) = optimize(run, &t, &mut opt, &batch, &device, step)?;
         if skipped {
             bad += 1;
             if bad >= MAX_CONSECUTIVE_BAD_STEPS {
@@ -347,6 +357,7 @@ pub fn train(
                 },
                 skipped,
                 seconds: t0.elapsed().as_secs_f64(),
+                mpi_loss: mpi_v.filter(|v| v.is_finite()),
             };
             writeln!(log, "{}", serde_json::to_string(&line)?)?;
             log.flush()?;
@@ -426,8 +437,9 @@ fn open_run(
     Ok(0)
 }
 
-/// Step `step` on `batch`: the loss, the gradient norm, and whether the step was skipped
-/// (a non-finite loss or gradient norm; the weights are then left as they are).
+/// Step `step` on `batch`: the loss, its part through the MPI renderer (unweighted; with
+/// `--mpi-loss`), the gradient norm, and whether the step was skipped (a non-finite loss
+/// or gradient norm; the weights are then left as they are).
 fn optimize(
     run: &RunOptions,
     t: &Trainable,
@@ -435,10 +447,16 @@ fn optimize(
     batch: &Batch,
     device: &Device,
     step: u64,
-) -> Result<(f64, f64, bool)> {
+) -> Result<(f64, Option<f64>, f64, bool)> {
     let (x, y) = batch_tensors(batch, device)?;
     let pred = t.model.forward(&x)?;
-    let loss = run.loss.of(&pred.image, &y)?;
+    let mut loss = run.loss.of(&pred.image, &y)?;
+    let mut mpi_v = None;
+    if let (Some(pairs), Some(p)) = (&run.mpi_loss, &batch.mpi) {
+        let m = mpi_loss(&pred, p, device)?;
+        mpi_v = Some(m.to_scalar::<f32>()? as f64);
+        loss = (loss + (m * pairs.weight as f64)?)?;
+    }
     let loss_v = loss.to_scalar::<f32>()? as f64;
     let grads = loss.backward()?;
     let gnorm = opt.grad_norm(&grads)?;
@@ -449,7 +467,26 @@ fn optimize(
         opt.lr = run.lr_schedule.lr_at(run.lr, opt.steps);
         opt.step(&grads)?;
     }
-    Ok((loss_v, gnorm, skipped))
+    Ok((loss_v, mpi_v, gnorm, skipped))
+}
+
+/// The L1 loss of the network's layers `pred` (at the reference tiles), made MPIs and
+/// rendered at the pair batch's target crops, over the pixels that see the tile on every
+/// plane ([`deepstereo_core::mpi::warp`]).
+fn mpi_loss(
+    pred: &deepstereo_core::model::Output,
+    p: &PairBatch,
+    device: &Device,
+) -> Result<Tensor> {
+    use deepstereo_core::mpi::warp::{masked_l1, plan_tensors, render_warped};
+    let (b, d, th, tw) = pred.selection.dims4()?;
+    let sel = pred.selection.reshape((b, d, th * tw))?; // [B, D, N_r]
+    let col = pred.colours.reshape((b, d, 3, th * tw))?; // [B, D, 3, N_r]
+    let plans: Vec<_> = p.plans.iter().collect();
+    let (index, weight, mask) = plan_tensors(&plans, th * tw, sel.dtype(), device)?;
+    let out = render_warped(&sel, &col, &index, &weight)?; // [B, 3, N_t]
+    let target = Tensor::from_slice(&p.target, (b, 3, p.pixels), device)?;
+    Ok(masked_l1(&out, &target, &mask)?)
 }
 
 /// Shows a log line: as the progress bar's message, and without a bar as a line on
@@ -701,6 +738,11 @@ mod tests {
             view_stride: Some((1, 3)),
             skip_flat: Some(0.02),
             scene_weights: Some(SceneWeights(vec![("maryrose".into(), 3.0)])),
+            mpi_loss: Some(MpiPairs {
+                weight: 1.0,
+                tile: (224, 64),
+                neighbours: 2,
+            }),
         };
         let mut v = serde_json::to_value(&run)?;
         assert_eq!(v["loss"], "l2");
@@ -710,11 +752,13 @@ mod tests {
         obj.remove("view_stride");
         obj.remove("skip_flat");
         obj.remove("scene_weights");
+        obj.remove("mpi_loss");
         let old: RunOptions = serde_json::from_value(v)?;
         assert_eq!(
             (old.loss, old.view_stride, old.skip_flat, &old.scene_weights),
             (Loss::L1, None, None, &None)
         );
+        assert_eq!((old.mpi_loss, old.sampling().mpi), (None, None));
         assert_eq!(old.sampling().view_stride, (1, 1));
         assert!(old.sampling().scene_weights.is_empty());
         assert_eq!(
@@ -723,6 +767,7 @@ mod tests {
                 view_stride: Some((1, 3)),
                 skip_flat: Some(0.02),
                 scene_weights: Some(SceneWeights(vec![("maryrose".into(), 3.0)])),
+                mpi_loss: run.mpi_loss,
                 ..old
             },
             run

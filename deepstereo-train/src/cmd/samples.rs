@@ -264,6 +264,7 @@ fn sampling_of(a: &Args, cfg: &Config) -> anyhow::Result<Sampling> {
         view_stride: sa.view_stride_range()?.unwrap_or((1, 1)),
         skip_flat: sa.skip_flat,
         scene_weights: sa.weights()?.unwrap_or_default(),
+        mpi: None,
     };
     sampling.check(cfg)?;
     if !sampling.scene_weights.is_empty() {

@@ -1,6 +1,7 @@
 //! `deepstereo train`: train a model on procedural and/or real scenes.
 
 use super::args::{load_config, size_of, SamplingArgs};
+use crate::data::MpiPairs;
 use crate::lr::{LrSchedule, DEFAULT_LR_FINAL};
 use crate::optim::OptimizerKind;
 use crate::training::{train, Loss, RunOptions, Schedule};
@@ -90,10 +91,24 @@ pub struct Args {
     /// How samples are drawn.
     #[command(flatten)]
     pub sampling: SamplingArgs,
+    /// Train for MPIs: besides its own loss, each sample's layers, made a multiplane
+    /// image, are rendered at a neighbouring view (never a source) and compared with its
+    /// photograph; this weighs that loss (e.g. 1). Samples are then `--mpi-tile` tiles.
+    #[arg(long)]
+    pub mpi_loss: Option<f32>,
+    /// With --mpi-loss: the size of the reference tile and the target crop, WxH pixels
+    /// (a target pixel counts when its ray meets every plane inside the tile: wide tiles
+    /// for the sideways motion of most captures).
+    #[arg(long, default_value = "224x64")]
+    pub mpi_tile: String,
+    /// With --mpi-loss: the target is one of the reference's N nearest views.
+    #[arg(long, default_value_t = 2)]
+    pub mpi_neighbours: usize,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let (w, h) = size_of("--synth-size", &a.synth_size)?;
+    let (tile_w, tile_h) = size_of("--mpi-tile", &a.mpi_tile)?;
     for (name, v) in [
         ("--checkpoint-every", a.checkpoint_every),
         ("--validate-every", a.validate_every),
@@ -126,6 +141,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         view_stride: a.sampling.view_stride_range()?,
         skip_flat: a.sampling.skip_flat,
         scene_weights: a.sampling.weights()?,
+        mpi_loss: a.mpi_loss.map(|weight| MpiPairs {
+            weight,
+            tile: (tile_w as usize, tile_h as usize),
+            neighbours: a.mpi_neighbours,
+        }),
     };
     let sched = Schedule {
         steps: a.steps,
