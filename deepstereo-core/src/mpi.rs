@@ -50,6 +50,26 @@ pub fn reference_camera(camera: &Camera) -> Camera {
     }
 }
 
+/// `camera` with `margin` pixels added on every side of its image (the principal point
+/// moves with them): the same rays through its pixels, and more around them. An MPI baked
+/// at it covers what a camera moved away from the reference sees beyond the reference's
+/// image, which the sources often do.
+pub fn with_margin(camera: &Camera, margin: u32) -> Camera {
+    let k = &camera.intrinsics;
+    let m = margin as f64;
+    Camera {
+        intrinsics: Intrinsics::pinhole(
+            k.fx,
+            k.fy,
+            k.cx + m,
+            k.cy + m,
+            k.width + 2 * margin,
+            k.height + 2 * margin,
+        ),
+        ..*camera
+    }
+}
+
 /// The alphas of one pixel's planes (near to far) from its selection `s` (near to far).
 pub fn alphas(s: &[f32]) -> Vec<f32> {
     let mut out = vec![0f32; s.len()];

@@ -6,7 +6,7 @@ use crate::inference::{pick_sources, render_held_out, source_inputs, Prepared, R
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::metrics::{psnr, ssim};
-use deepstereo_core::mpi::{bake, io, render_blend, viewer, Mpi};
+use deepstereo_core::mpi::{bake, io, reference_camera, render_blend, viewer, with_margin, Mpi};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
 use serde::Serialize;
@@ -74,6 +74,8 @@ pub struct MpiEvalOptions {
     pub mpis: usize,
     /// Each MPI's reference photograph among its sources.
     pub own_photo: bool,
+    /// Pixels added on every side of each MPI's reference image ([`with_margin`]).
+    pub margin: u32,
 }
 
 /// One held-out view rendered by the network and through MPIs baked at its nearest
@@ -127,7 +129,7 @@ pub fn eval_through_mpi(
         let mut mpis = Vec::new();
         for &r in &references {
             let ref_srcs = reference_sources(scene, r, holdout, opts.own_photo, k, settings)?;
-            let camera = &scene.views[r].camera;
+            let camera = &with_margin(&reference_camera(&scene.views[r].camera), opts.margin);
             let none = &|_, _| {};
             mpis.push(bake_camera(
                 backend,

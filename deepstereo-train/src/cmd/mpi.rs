@@ -8,7 +8,7 @@ use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::imageio::write_atomic;
-use deepstereo_core::mpi::{io, viewer};
+use deepstereo_core::mpi::{io, reference_camera, viewer, with_margin};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
 use std::path::{Path, PathBuf};
@@ -44,6 +44,12 @@ pub struct Args {
     /// docs/results.md: better from cameras away from the reference.
     #[arg(long)]
     pub exclude_own_photo: bool,
+    /// Pixels added on every side of each MPI's image beyond its reference camera's (the
+    /// principal point moves with them; the network fills them from the sources): an
+    /// MPI then covers what cameras moved away from the reference see beyond its image.
+    /// `?fit=native` in the viewer then shows the larger image.
+    #[arg(long, default_value_t = 0)]
+    pub margin: u32,
     /// Instead of writing MPIs: render every held-out view through an MPI baked at its
     /// nearest view that is not held out, beside the network's render of it; writes
     /// eval.json into --out.
@@ -86,6 +92,7 @@ pub fn run(a: Args) -> Result<()> {
             bar.set_length(total as u64);
             bar.set_position(done as u64);
         };
+        let cam = &with_margin(&reference_camera(cam), a.margin);
         let mpi = bake_camera(
             backend.as_ref(),
             &scene,
@@ -188,6 +195,7 @@ fn run_eval(
     let opts = MpiEvalOptions {
         mpis: a.eval_mpis,
         own_photo: !a.exclude_own_photo,
+        margin: a.margin,
     };
     let per_view = eval_through_mpi(backend, scene, holdout, opts, settings, |r| {
         eprintln!(
@@ -226,6 +234,7 @@ fn run_eval(
         "planes": settings.planes.unwrap_or(backend.config().planes),
         "views": settings.source_count(backend.config())?,
         "own_photo": !a.exclude_own_photo,
+        "margin": a.margin,
         "mpis_per_view": a.eval_mpis,
         "per_view": per_view,
         "mean": mean,
