@@ -1,6 +1,7 @@
 //! `deepstereo mpi` end to end on a small generated scene: an MPI composited at its
 //! reference camera is the network's render there (`render --pose`, >= 40 dB); the
-//! viewer in headless Chromium shows it pixel for pixel at `?fit=native` (>= 30 dB), and
+//! viewer in headless Chromium shows it pixel for pixel at `?fit=native` (>= 30 dB; the
+//! default margin of 64 pixels around the view left out), and
 //! moved (`?offset=`) as `render --mpi` does on the CPU; several MPIs render a path and
 //! a video; bad input is refused with nothing written.
 
@@ -309,8 +310,12 @@ fn an_mpi_with_a_margin_is_larger_and_still_exact_at_its_reference() {
     )
     .expect("mpi.json is JSON");
     assert_eq!(
-        (desc["width"].as_u64(), desc["height"].as_u64()),
-        (Some(W as u64 + 16), Some(H as u64 + 16))
+        (
+            desc["width"].as_u64(),
+            desc["height"].as_u64(),
+            desc["margin"].as_u64()
+        ),
+        (Some(W as u64 + 16), Some(H as u64 + 16), Some(8))
     );
     let pose = pose_file(
         tmp.path().join("scenes/scene_0000").as_path(),

@@ -39,6 +39,9 @@ pub struct Mpi {
     planes: Vec<Vec<f32>>,
     /// Per plane, what [`Self::render`] samples.
     textures: Vec<Texture>,
+    /// Pixels of its image on every side beyond the view it was baked for
+    /// ([`with_margin`]; 0: none). The viewer's `?fit=native` leaves them out.
+    pub margin: u32,
 }
 
 /// `camera` as an MPI's reference: its pinhole part at the mid-readout pose.
@@ -108,6 +111,7 @@ impl Mpi {
             inv_depths,
             planes,
             textures,
+            margin: 0,
         })
     }
 

@@ -4,7 +4,10 @@
 //! `mpi.json`: `version` 1, `width`, `height`, `fx`, `fy`, `cx`, `cy` (pixel centres at
 //! `i + 0.5`), `R` (9 values, row-major) and `t` (3) with `p_cam = R p_world + t` (as
 //! `inspect --json` writes a camera), `inverse_depths` (1/z along the camera's axis, near
-//! to far, 0 for a plane at infinity) and `planes` (file names in the same order).
+//! to far, 0 for a plane at infinity) and `planes` (file names in the same order); and,
+//! when the image extends beyond the view it was baked for (`mpi --margin`), `margin`:
+//! the pixels added on every side (the view is the camera with `width - 2 margin`,
+//! `height - 2 margin`, `cx - margin`, `cy - margin`).
 //! Planes are 8-bit RGBA PNGs with straight alpha, colours encoded as the photographs.
 
 use super::Mpi;
@@ -35,6 +38,13 @@ pub struct MpiJson {
     pub t: Vec<f64>,
     pub inverse_depths: Vec<f64>,
     pub planes: Vec<String>,
+    /// Pixels added on every side beyond the view it was baked for (absent: 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub margin: u32,
+}
+
+fn is_zero(m: &u32) -> bool {
+    *m == 0
 }
 
 impl MpiJson {
@@ -63,6 +73,7 @@ impl MpiJson {
             planes: (0..mpi.planes().len())
                 .map(|z| format!("plane_{z:02}.png"))
                 .collect(),
+            margin: mpi.margin,
         }
     }
 
@@ -80,6 +91,12 @@ impl MpiJson {
         }
         let k = Intrinsics::pinhole(self.fx, self.fy, self.cx, self.cy, self.width, self.height);
         k.validate().map_err(bad)?;
+        if 2 * self.margin as u64 >= self.width.min(self.height) as u64 {
+            return Err(bad(format!(
+                "a margin of {} leaves nothing of a {}x{} image",
+                self.margin, self.width, self.height
+            )));
+        }
         let mut cols = [0f64; 9];
         cols.copy_from_slice(&self.r);
         let rotation = DMat3::from_cols_array(&cols).transpose();
@@ -148,7 +165,10 @@ pub fn read(dir: &Path) -> Result<Mpi> {
     let planes = (json.planes.iter())
         .map(|name| read_plane(&dir.join(name), json.width, json.height))
         .collect::<Result<Vec<_>>>()?;
-    Mpi::new(camera, json.inverse_depths, planes).map_err(|e| Error::format(&file, e.to_string()))
+    let mut mpi = Mpi::new(camera, json.inverse_depths, planes)
+        .map_err(|e| Error::format(&file, e.to_string()))?;
+    mpi.margin = json.margin;
+    Ok(mpi)
 }
 
 /// The MPIs of a directory written by `deepstereo mpi`: the one in `dir` itself (its

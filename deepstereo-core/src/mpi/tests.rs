@@ -189,11 +189,12 @@ fn the_directory_format_round_trips() -> Result<()> {
     let (colours, sel) = layers(d, w * h);
     let inv = vec![0.5, 0.25, 0.0];
     let cam = camera(w as u32, h as u32, DVec3::new(0.1, -0.2, 0.3));
-    let mpi = Mpi::from_layers(cam, inv, &colours, &sel)?;
+    let mut mpi = Mpi::from_layers(cam, inv, &colours, &sel)?;
+    mpi.margin = 1;
     let dir = tempfile::tempdir().map_err(|e| Error::io(Path::new("tmp"), e))?;
     io::write(&mpi, dir.path())?;
     let back = io::read(dir.path())?;
-    assert_eq!(back.inv_depths, mpi.inv_depths);
+    assert_eq!((&back.inv_depths, back.margin), (&mpi.inv_depths, 1));
     assert!((back.camera.pose.translation - cam.pose.translation).length() < 1e-12);
     for (a, b) in back.planes().iter().zip(mpi.planes()) {
         assert!(a
@@ -210,6 +211,18 @@ fn the_directory_format_round_trips() -> Result<()> {
     crate::imageio::save_rgb8_png(&dir.path().join("plane_02.png"), 2, 2, &[0; 12])?;
     let err = io::read(dir.path()).expect_err("a 2x2 plane").to_string();
     assert!(err.contains("plane_02.png") && err.contains("2x2"), "{err}");
+    // A margin that leaves nothing of the image is refused, naming the file.
+    let json = dir.path().join(io::JSON_NAME);
+    let text = std::fs::read_to_string(&json).map_err(|e| Error::io(&json, e))?;
+    let text = text.replace("\"margin\": 1", "\"margin\": 2");
+    std::fs::write(&json, text).map_err(|e| Error::io(&json, e))?;
+    let err = io::read(dir.path())
+        .expect_err("a margin of 2 on 4 rows")
+        .to_string();
+    assert!(
+        err.contains("mpi.json") && err.contains("margin of 2"),
+        "{err}"
+    );
     Ok(())
 }
 

@@ -46,9 +46,10 @@ pub struct Args {
     pub exclude_own_photo: bool,
     /// Pixels added on every side of each MPI's image beyond its reference camera's (the
     /// principal point moves with them; the network fills them from the sources): an
-    /// MPI then covers what cameras moved away from the reference see beyond its image.
-    /// `?fit=native` in the viewer then shows the larger image.
-    #[arg(long, default_value_t = 0)]
+    /// MPI then covers what cameras moved away from the reference see beyond its image
+    /// (measured in docs/results.md). `mpi.json` records it; the viewer's `?fit=native`
+    /// leaves it out. 0: the reference image only.
+    #[arg(long, default_value_t = 64)]
     pub margin: u32,
     /// Instead of writing MPIs: render every held-out view through an MPI baked at its
     /// nearest view that is not held out, beside the network's render of it; writes
@@ -93,7 +94,7 @@ pub fn run(a: Args) -> Result<()> {
             bar.set_position(done as u64);
         };
         let cam = &with_margin(&reference_camera(cam), a.margin);
-        let mpi = bake_camera(
+        let mut mpi = bake_camera(
             backend.as_ref(),
             &scene,
             &mut prepared,
@@ -102,6 +103,7 @@ pub fn run(a: Args) -> Result<()> {
             &settings,
             &progress,
         )?;
+        mpi.margin = a.margin;
         bar.finish_and_clear();
         let name = if targets.len() == 1 {
             ".".to_string()
