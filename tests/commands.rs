@@ -463,6 +463,18 @@ fn train_refuses_bad_data_before_writing_anything() {
             &["--mpi-loss", "1", "--augment"][..],
             vec!["MPI loss takes neither augmentation"],
         ),
+        (
+            &data,
+            &[
+                "--mpi-loss",
+                "1",
+                "--synthetic",
+                "2",
+                "--synth-size",
+                "160x120",
+            ][..],
+            vec!["smaller than the 224x64 MPI tile"],
+        ),
     ] {
         let mut args = vec![
             "train".to_string(),

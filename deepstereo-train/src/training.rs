@@ -393,6 +393,16 @@ fn check_run(run: &RunOptions) -> Result<Sampling> {
     }
     let sampling = run.sampling();
     sampling.check(&run.config)?;
+    if let Some(p) = run.mpi_loss.filter(|_| run.synthetic > 0) {
+        let (w, h) = p.tile;
+        if (run.synth_width as usize) < w || (run.synth_height as usize) < h {
+            bail!(
+                "the procedural scenes' images ({}x{}) are smaller than the {w}x{h} MPI tile: pass a larger --synth-size or a smaller --mpi-tile",
+                run.synth_width,
+                run.synth_height
+            );
+        }
+    }
     check_data(&run.data, run.scene_weights.as_ref())?;
     Ok(sampling)
 }
