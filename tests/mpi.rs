@@ -84,6 +84,31 @@ fn screenshot(page: &str, dir: &Path, name: &str) -> Option<RgbImage> {
     Some(img)
 }
 
+/// At view 2's camera of the scene `s` in `dir`: the network's render (`render --pose`
+/// with the model options `common`) and the render of the MPI in `mpi` (`render --mpi`),
+/// in `dir/net` and `dir/via`.
+fn at_reference(dir: &Path, s: &str, mpi: &str, common: &[&str]) -> (RgbImage, RgbImage) {
+    let pose = pose_file(
+        dir.join("scenes/scene_0000").as_path(),
+        2,
+        [0.0; 3],
+        &dir.join("pose.json"),
+    );
+    let pose = pose.to_string_lossy().into_owned();
+    let t = |p: &str| dir.join(p).to_string_lossy().into_owned();
+    let (net, via) = (t("net"), t("via"));
+    let mut args = vec!["render", "--scene", s, "--pose", &pose, "--out", &net];
+    args.extend(common);
+    ok(&args);
+    ok(&[
+        "render", "--scene", s, "--mpi", mpi, "--pose", &pose, "--out", &via,
+    ]);
+    (
+        load(&dir.join("net/image.png")),
+        load(&dir.join("via/image.png")),
+    )
+}
+
 #[test]
 fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -108,24 +133,7 @@ fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
     let js = std::fs::read_to_string(tmp.path().join("mpi/mpi.js")).expect("mpi.js");
     assert!(js.contains("data:image/png;base64,") && !js.contains("http"));
 
-    let pose = pose_file(
-        tmp.path().join("scenes/scene_0000").as_path(),
-        2,
-        [0.0; 3],
-        &tmp.path().join("pose.json"),
-    );
-    let pose = pose.to_string_lossy().into_owned();
-    let (net, via) = (t("net"), t("via"));
-    let mut args = vec!["render", "--scene", &s, "--pose", &pose, "--out", &net];
-    args.extend(common);
-    ok(&args);
-    ok(&[
-        "render", "--scene", &s, "--mpi", &m, "--pose", &pose, "--out", &via,
-    ]);
-    let (net_img, via_img) = (
-        load(&tmp.path().join("net/image.png")),
-        load(&tmp.path().join("via/image.png")),
-    );
+    let (net_img, via_img) = at_reference(tmp.path(), &s, &m, &common);
     let db = psnr(&via_img, &net_img);
     assert!(
         db >= 40.0,
@@ -317,24 +325,8 @@ fn an_mpi_with_a_margin_is_larger_and_still_exact_at_its_reference() {
         ),
         (Some(W as u64 + 16), Some(H as u64 + 16), Some(8))
     );
-    let pose = pose_file(
-        tmp.path().join("scenes/scene_0000").as_path(),
-        2,
-        [0.0; 3],
-        &tmp.path().join("pose.json"),
-    );
-    let pose = pose.to_string_lossy().into_owned();
-    let (net, via) = (t("net"), t("via"));
-    let mut args = vec!["render", "--scene", &s, "--pose", &pose, "--out", &net];
-    args.extend(common);
-    ok(&args);
-    ok(&[
-        "render", "--scene", &s, "--mpi", &m, "--pose", &pose, "--out", &via,
-    ]);
-    let db = psnr(
-        &load(&tmp.path().join("via/image.png")),
-        &load(&tmp.path().join("net/image.png")),
-    );
+    let (net_img, via_img) = at_reference(tmp.path(), &s, &m, &common);
+    let db = psnr(&via_img, &net_img);
     assert!(
         db >= 40.0,
         "MPI with a margin at its reference vs render --pose: {db:.1} dB"

@@ -91,6 +91,14 @@ impl SceneData {
         })
     }
 
+    /// A target view from the random `r`: one of [`Self::targets`], or any view.
+    pub fn draw_target(&self, r: u64) -> usize {
+        match &self.targets {
+            Some(t) if !t.is_empty() => t[(r % t.len() as u64) as usize],
+            _ => (r % self.cameras.len() as u64) as usize,
+        }
+    }
+
     /// The `k` views nearest to view `target` (excluding it), nearest first.
     pub fn sources(&self, target: usize, k: usize) -> Vec<usize> {
         let views: Vec<View> = self
@@ -299,10 +307,7 @@ fn sample(
             s.name,
         );
     }
-    let target = match &s.targets {
-        Some(t) if !t.is_empty() => t[(next() % t.len() as u64) as usize],
-        _ => (next() % n as u64) as usize,
-    };
+    let target = s.draw_target(next());
     // A stride range of one value draws nothing (the samples of runs before it).
     let stride = match sampling.view_stride {
         (lo, hi) if lo < hi => lo + (next() % (hi - lo + 1) as u64) as usize,
@@ -320,8 +325,8 @@ fn sample(
         );
     }
     let mut draw = || {
-        let x0 = (next() % ((w - t as u64) / a + 1)) * a;
-        (x0, (next() % ((h - t as u64) / a + 1)) * a)
+        let x0 = aligned_offset(next(), w, t, a);
+        (x0, aligned_offset(next(), h, t, a))
     };
     let (mut x0, mut y0) = draw();
     if let Some(min_std) = sampling.skip_flat {
@@ -339,16 +344,11 @@ fn sample(
     let mut srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
     srcs.resize(views, &empty);
     let mut inputs = tile_inputs(cfg, cam, &srcs, &inv, (x0 as i64, y0 as i64), (t, t))?;
-    let img = &s.pyramids[target].images[0];
-    let mut patch = vec![0f32; 3 * t * t];
-    for y in 0..t {
-        for x in 0..t {
-            let p = img.pixel(x0 as u32 + x as u32, y0 as u32 + y as u32);
-            for c in 0..3 {
-                patch[(c * t + y) * t + x] = p[c];
-            }
-        }
-    }
+    let mut patch = patch(
+        &s.pyramids[target].images[0],
+        (x0 as u32, y0 as u32),
+        (t, t),
+    );
     if sampling.augment {
         let unit = |r: u64| (r >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0;
         let exposure = (AUGMENT_EXPOSURE * unit(next())).exp();
@@ -363,6 +363,48 @@ fn sample(
         augment_planes(&mut patch, (t * t, t, 3), &gains, flip);
     }
     Ok((inputs.levels, patch))
+}
+
+/// A tile's offset along a side of `size` pixels from the random `r`: a multiple of `a`
+/// that leaves the `side`-pixel tile inside (`size >= side`).
+fn aligned_offset(r: u64, size: u64, side: usize, a: u64) -> u64 {
+    (r % ((size - side as u64) / a + 1)) * a
+}
+
+/// The `w x h` patch of `img` at `(x0, y0)`, `[3, h, w]`.
+fn patch(img: &RgbImage, (x0, y0): (u32, u32), (w, h): (usize, usize)) -> Vec<f32> {
+    let mut out = vec![0f32; 3 * w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let p = img.pixel(x0 + x as u32, y0 + y as u32);
+            for c in 0..3 {
+                out[(c * h + y) * w + x] = p[c];
+            }
+        }
+    }
+    out
+}
+
+/// The batch's input shapes per level for `th x tw` tiles.
+fn level_shapes(
+    cfg: &Config,
+    batch: usize,
+    views: usize,
+    (th, tw): (usize, usize),
+) -> Vec<Vec<usize>> {
+    (0..cfg.levels)
+        .map(|l| {
+            let (h, w) = (cfg.input_size(l, th), cfg.input_size(l, tw));
+            cfg.input_shape(batch, cfg.planes, views, h, w)
+        })
+        .collect()
+}
+
+/// Per level, the samples' inputs (`samples[k][l]`) one after the other.
+fn stack_levels(samples: &[&[Vec<f32>]], levels: usize) -> Vec<Vec<f32>> {
+    (0..levels)
+        .map(|l| samples.iter().flat_map(|s| s[l].iter().copied()).collect())
+        .collect()
 }
 
 /// The standard deviation of the luminance (Rec. 601 weights) over the `t x t` tile at
@@ -456,26 +498,13 @@ pub fn make_batch(
         .map(|k| sample(cfg, sampling, scenes, (seed, b, k), views))
         .collect::<anyhow::Result<_>>()?;
     let t = cfg.tile;
-    let d = cfg.planes;
-    let level_shapes: Vec<Vec<usize>> = (0..cfg.levels)
-        .map(|l| {
-            let s = cfg.input_size(l, t);
-            cfg.input_shape(batch, d, views, s, s)
-        })
-        .collect();
-    let levels = (0..cfg.levels)
-        .map(|l| {
-            samples
-                .iter()
-                .flat_map(|s| s.0[l].iter().copied())
-                .collect()
-        })
-        .collect();
+    let parts: Vec<&[Vec<f32>]> = samples.iter().map(|s| s.0.as_slice()).collect();
+    let levels = stack_levels(&parts, cfg.levels);
     let target = samples.iter().flat_map(|s| s.1.iter().copied()).collect();
     Ok(Batch {
         index: b,
         levels,
-        level_shapes,
+        level_shapes: level_shapes(cfg, batch, views, (t, t)),
         views,
         target,
         target_shape: [batch, 3, t, t],
@@ -497,19 +526,8 @@ fn pair_batch(
         .map(|k| sample_pair(cfg, sampling, pairs, scenes, (seed, b, k), views))
         .collect::<anyhow::Result<_>>()?;
     let (tw, th) = pairs.tile;
-    let level_shapes: Vec<Vec<usize>> = (0..cfg.levels)
-        .map(|l| {
-            let (h, w) = (cfg.input_size(l, th), cfg.input_size(l, tw));
-            cfg.input_shape(batch, cfg.planes, views, h, w)
-        })
-        .collect();
-    let levels = (0..cfg.levels)
-        .map(|l| {
-            (samples.iter())
-                .flat_map(|s| s.levels[l].iter().copied())
-                .collect()
-        })
-        .collect();
+    let parts: Vec<&[Vec<f32>]> = samples.iter().map(|s| s.levels.as_slice()).collect();
+    let levels = stack_levels(&parts, cfg.levels);
     let target = samples
         .iter()
         .flat_map(|s| s.reference.iter().copied())
@@ -521,7 +539,7 @@ fn pair_batch(
     Ok(Batch {
         index: b,
         levels,
-        level_shapes,
+        level_shapes: level_shapes(cfg, batch, views, (th, tw)),
         views,
         target,
         target_shape: [batch, 3, th, tw],

@@ -13,8 +13,8 @@ fn camera(w: u32, h: u32, centre: DVec3) -> Camera {
     )
 }
 
-/// Deterministic values in [0, 1).
-fn values(n: usize, seed: u64) -> Vec<f32> {
+/// Deterministic values in [0, 1) (the warp's tests too).
+pub(super) fn values(n: usize, seed: u64) -> Vec<f32> {
     let mut s = seed;
     (0..n)
         .map(|_| {

@@ -5,11 +5,10 @@
 //! ([`deepstereo_core::mpi::warp`]). Neither `r` nor `t` is a source, as when an MPI
 //! baked at a kept view is judged at a held-out one (`mpi --exclude-own-photo`).
 
-use super::{mix, pick_scene, Sampling, SceneData};
+use super::{aligned_offset, mix, patch, pick_scene, Sampling, SceneData};
 use anyhow::bail;
 use deepstereo_core::config::Config;
 use deepstereo_core::geometry::inverse_depths;
-use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::{tile_inputs, PyramidSource};
 use deepstereo_core::mpi::reference_camera;
 use deepstereo_core::mpi::warp::WarpPlan;
@@ -84,11 +83,7 @@ fn draw(
     inv: &[f64],
     next: &mut impl FnMut() -> u64,
 ) -> anyhow::Result<Pair> {
-    let n = s.cameras.len();
-    let r = match &s.targets {
-        Some(t) if !t.is_empty() => t[(next() % t.len() as u64) as usize],
-        _ => (next() % n as u64) as usize,
-    };
+    let r = s.draw_target(next());
     let near = s.sources(r, pairs.neighbours);
     let t = near[(next() % near.len() as u64) as usize];
     let (tw, th) = pairs.tile;
@@ -109,8 +104,8 @@ fn draw(
         cam_r.intrinsics.width as u64,
         cam_r.intrinsics.height as u64,
     );
-    let x0 = ((next() % ((w - tw as u64) / a + 1)) * a) as i64;
-    let y0 = ((next() % ((h - th as u64) / a + 1)) * a) as i64;
+    let x0 = aligned_offset(next(), w, tw, a) as i64;
+    let y0 = aligned_offset(next(), h, th, a) as i64;
     // The target crop is centred where the tile's centre at the middle plane appears.
     let mid = inv[inv.len() / 2].max(1e-9);
     let centre = DVec2::new((x0 as usize + tw / 2) as f64, (y0 as usize + th / 2) as f64);
@@ -212,18 +207,4 @@ pub fn sample_pair(
         plan,
         target: patch(&s.pyramids[t].images[0], (tx0 as u32, ty0 as u32), (tw, th)),
     })
-}
-
-/// The `w x h` patch of `img` at `(x0, y0)`, `[3, h, w]`.
-fn patch(img: &RgbImage, (x0, y0): (u32, u32), (w, h): (usize, usize)) -> Vec<f32> {
-    let mut out = vec![0f32; 3 * w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let p = img.pixel(x0 + x as u32, y0 + y as u32);
-            for c in 0..3 {
-                out[(c * h + y) * w + x] = p[c];
-            }
-        }
-    }
-    out
 }

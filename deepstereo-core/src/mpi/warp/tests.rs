@@ -1,5 +1,6 @@
 use super::*;
 use crate::camera::{Intrinsics, WorldToCamera};
+use crate::mpi::tests::values;
 use crate::mpi::{Mpi, OPAQUE_T};
 use candle_core::{Device, Var};
 use glam::DMat3;
@@ -14,19 +15,6 @@ fn camera(w: u32, h: u32, centre: DVec3, angle: f64) -> Camera {
             translation: -(rotation * centre),
         },
     )
-}
-
-/// Deterministic values in [0, 1).
-fn values(n: usize, seed: u64) -> Vec<f32> {
-    let mut s = seed;
-    (0..n)
-        .map(|_| {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (s >> 40) as f32 / (1u64 << 24) as f32
-        })
-        .collect()
 }
 
 /// Random layers: colours `[D, 3, N]` in [-0.1, 1.1) (some clamped) and a selection
@@ -155,34 +143,34 @@ fn gradients_match_finite_differences() -> Result<()> {
         let c = Tensor::from_vec(c.to_vec(), (1, d, 3, n), &dev)?;
         loss(&l, &c)?.to_scalar::<f64>()
     };
-    let eps = 1e-6;
-    let (mut checked, mut nonzero) = (0, 0);
-    for i in (0..d * n).step_by(7) {
-        let (mut up, mut down) = (logits.clone(), logits.clone());
-        up[i] += eps;
-        down[i] -= eps;
-        let fd = (eval(&up, &cols)? - eval(&down, &cols)?) / (2.0 * eps);
-        assert!(
-            (fd - gl[i]).abs() < 1e-6 + 1e-5 * fd.abs(),
-            "logit {i}: {fd} vs {}",
-            gl[i]
-        );
-        checked += 1;
-        nonzero += usize::from(fd.abs() > 1e-4);
-    }
-    for i in (0..d * 3 * n).step_by(11) {
-        let (mut up, mut down) = (cols.clone(), cols.clone());
-        up[i] += eps;
-        down[i] -= eps;
-        let fd = (eval(&logits, &up)? - eval(&logits, &down)?) / (2.0 * eps);
-        assert!(
-            (fd - gc[i]).abs() < 1e-6 + 1e-5 * fd.abs(),
-            "colour {i}: {fd} vs {}",
-            gc[i]
-        );
-        checked += 1;
-        nonzero += usize::from(fd.abs() > 1e-4);
-    }
+    // Central differences of every `step`-th entry of `base` against `grad`; returns
+    // how many were checked and how many are non-zero.
+    let check = |name: &str,
+                 base: &[f64],
+                 grad: &[f64],
+                 step: usize,
+                 eval_at: &dyn Fn(&[f64]) -> Result<f64>|
+     -> Result<(usize, usize)> {
+        let eps = 1e-6;
+        let (mut checked, mut nonzero) = (0, 0);
+        for i in (0..base.len()).step_by(step) {
+            let (mut up, mut down) = (base.to_vec(), base.to_vec());
+            up[i] += eps;
+            down[i] -= eps;
+            let fd = (eval_at(&up)? - eval_at(&down)?) / (2.0 * eps);
+            assert!(
+                (fd - grad[i]).abs() < 1e-6 + 1e-5 * fd.abs(),
+                "{name} {i}: {fd} vs {}",
+                grad[i]
+            );
+            checked += 1;
+            nonzero += usize::from(fd.abs() > 1e-4);
+        }
+        Ok((checked, nonzero))
+    };
+    let (c1, n1) = check("logit", &logits, &gl, 7, &|l| eval(l, &cols))?;
+    let (c2, n2) = check("colour", &cols, &gc, 11, &|c| eval(&logits, c))?;
+    let (checked, nonzero) = (c1 + c2, n1 + n2);
     assert!(
         nonzero > checked / 4,
         "{nonzero} of {checked} derivatives are non-zero"
