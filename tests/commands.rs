@@ -460,6 +460,27 @@ fn train_refuses_bad_data_before_writing_anything() {
         ),
         (
             &data,
+            &["--mpi-loss", "1", "--mpi-scale", "3"][..],
+            vec!["scale is 1 or 2"],
+        ),
+        (
+            &data,
+            &[
+                "--mpi-loss",
+                "1",
+                "--mpi-scale",
+                "2",
+                "--mpi-tile",
+                "96x64",
+                "--synthetic",
+                "2",
+                "--synth-size",
+                "160x120",
+            ][..],
+            vec!["smaller than the 96x64 MPI tile at scale 2"],
+        ),
+        (
+            &data,
             &["--mpi-loss", "1", "--augment"][..],
             vec!["MPI loss takes neither augmentation"],
         ),

@@ -38,6 +38,15 @@ impl PyramidSource {
 }
 
 impl PyramidSource {
+    /// The pyramid of `levels` levels whose level 0 is this one's level `l` (the same
+    /// image and camera, downscaled by `2^l`; fewer levels where this one has fewer).
+    pub fn from_level(&self, l: usize, levels: usize) -> Self {
+        match (self.images.get(l), self.cameras.get(l)) {
+            (Some(img), Some(cam)) => Self::new(cam, img, levels),
+            _ => self.clone(),
+        }
+    }
+
     /// A source that sees nothing: `levels` empty images, so every sample of it has alpha
     /// 0 (the network's input for a view that is not there). `camera` only fills the
     /// slot.

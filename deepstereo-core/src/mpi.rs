@@ -189,6 +189,20 @@ impl Mpi {
     /// `C += T a c`, `T *= 1 - a` (the same sum as "over" back to front), and a ray stops
     /// once its transmittance `T` is below [`OPAQUE_T`].
     pub fn render(&self, camera: &Camera) -> (RgbImage, Vec<f32>) {
+        let (img, alpha, _) = self.render_parts(camera, false);
+        (img, alpha)
+    }
+
+    /// [`Self::render`], and the render of the view the MPI was baked for alone, its
+    /// margin left out (samples outside the view are absent, as for an MPI baked without
+    /// a margin): `[H, W, 4]`, premultiplied colour and accumulated alpha per pixel (the
+    /// same as [`Self::render`]'s without a margin).
+    pub fn render_with_core(&self, camera: &Camera) -> (RgbImage, Vec<f32>, Vec<f32>) {
+        let (img, alpha, core) = self.render_parts(camera, true);
+        (img, alpha, core.unwrap_or_default())
+    }
+
+    fn render_parts(&self, camera: &Camera, core: bool) -> (RgbImage, Vec<f32>, Option<Vec<f32>>) {
         let (w, h) = (
             camera.intrinsics.width as usize,
             camera.intrinsics.height as usize,
@@ -197,11 +211,17 @@ impl Mpi {
         let maps = self.plane_maps(rel.translation);
         let mut img = RgbImage::new(w as u32, h as u32);
         let mut alpha = vec![0f32; w * h];
+        let mut kept = vec![0f32; if core { w * h * 4 } else { 0 }];
+        let mut krows: Vec<Option<&mut [f32]>> = match core {
+            true => kept.chunks_mut(w * 4).map(Some).collect(),
+            false => (0..h).map(|_| None).collect(),
+        };
         img.data
             .par_chunks_mut(w * 3)
             .zip(alpha.par_chunks_mut(w))
+            .zip(krows.par_iter_mut())
             .enumerate()
-            .for_each(|(y, (row, arow))| {
+            .for_each(|(y, ((row, arow), krow))| {
                 let rays: Vec<DVec3> = (0..w)
                     .map(|x| {
                         let uv = DVec2::new(x as f64 + 0.5, y as f64 + 0.5);
@@ -209,9 +229,19 @@ impl Mpi {
                         rel.rotation * DVec3::new(n.x, n.y, 1.0)
                     })
                     .collect();
-                self.row(&maps, &rays, true, row, arow);
+                self.row(&maps, &rays, true, row, arow, krow.as_deref_mut());
             });
-        (img, alpha)
+        drop(krows);
+        (img, alpha, core.then_some(kept))
+    }
+
+    /// Whether reference pixel coordinate `(u, v)` lies in the view the MPI was baked for
+    /// (inside the margin; pixel edges, as [`Texture::sample`] bounds the image).
+    #[inline]
+    fn in_core(&self, u: f64, v: f64) -> bool {
+        let m = self.margin as f64;
+        let (w, h) = (self.width() as f64, self.height() as f64);
+        u >= m && v >= m && u <= w - m && v <= h - m
     }
 
     /// One row of rays, `rays` their directions in the reference camera's coordinates,
@@ -223,7 +253,9 @@ impl Mpi {
     /// With `bisect`, when the row's slopes `a` and `b` are each monotonic and finite and
     /// its `(R r)_z` share one sign (a pinhole row always), the rays that land inside a
     /// plane form one run, found by bisection, and only that run is visited. Otherwise
-    /// every ray is (the same result).
+    /// every ray is (the same result). With `krow` (`[W, 4]`, zero on entry), also the
+    /// composite of the samples inside the view the MPI was baked for ([`Self::in_core`]),
+    /// premultiplied colour and alpha, with its own transmittance.
     fn row(
         &self,
         maps: &[[f64; 5]],
@@ -231,6 +263,7 @@ impl Mpi {
         bisect: bool,
         row: &mut [f32],
         arow: &mut [f32],
+        mut krow: Option<&mut [f32]>,
     ) {
         let a: Vec<f64> = rays.iter().map(|r| r.x / r.z).collect();
         let b: Vec<f64> = rays.iter().map(|r| r.y / r.z).collect();
@@ -238,18 +271,30 @@ impl Mpi {
         let runs = RowRuns::of(&a, &b, &rz).filter(|_| bisect);
         let (w, h) = (self.width() as f64, self.height() as f64);
         let mut trans = vec![1f32; rays.len()];
+        // The core's transmittance (all 0 without a core composite: never consulted).
+        let mut core_t = vec![if krow.is_some() { 1f32 } else { 0.0 }; rays.len()];
         for (tex, m) in self.textures.iter().zip(maps) {
             let xs = match &runs {
                 Some(r) => r.inside(m, w, h),
                 None => 0..rays.len(),
             };
             for x in xs {
-                if trans[x] < OPAQUE_T || m[0] * rz[x] <= 0.0 {
+                if (trans[x] < OPAQUE_T && core_t[x] < OPAQUE_T) || m[0] * rz[x] <= 0.0 {
                     continue;
                 }
-                let Some(px) = tex.sample(m[1] * a[x] + m[2], m[3] * b[x] + m[4]) else {
+                let (u, v) = (m[1] * a[x] + m[2], m[3] * b[x] + m[4]);
+                let Some(px) = tex.sample(u, v) else {
                     continue;
                 };
+                if let Some(k) = krow.as_deref_mut().filter(|_| self.in_core(u, v)) {
+                    for (c, v) in k[x * 4..x * 4 + 4].iter_mut().zip(px) {
+                        *c += core_t[x] * v;
+                    }
+                    core_t[x] *= 1.0 - px[3];
+                }
+                if trans[x] < OPAQUE_T {
+                    continue;
+                }
                 for (c, v) in row[x * 3..x * 3 + 3].iter_mut().zip(px) {
                     *c += trans[x] * v;
                 }
@@ -430,18 +475,37 @@ impl Texture {
     }
 }
 
-/// Renders several MPIs of one scene at `camera`, blended as LLFF does:
-/// `C = sum_i w_i C_i / sum_i w_i A_i`, with `C_i` MPI `i`'s render (composited over
-/// black, so premultiplied by its accumulated alpha `A_i`) and `w_i = 1 / (d_i + eps)^2`,
-/// `d_i` the distance of its reference camera's centre to `camera`'s (`eps`: a
-/// thousandth of the largest). Black where no MPI covers the ray.
+/// The weight of a blended MPI's margin against the views the MPIs were baked for
+/// ([`render_blend`]'s `delta`).
+pub const MARGIN_BLEND_WEIGHT: f64 = 0.05;
+
+/// Renders several MPIs of one scene at `camera`, blended as LLFF does, each MPI's
+/// margin only where no MPI's own view covers the ray:
+/// `C = sum_i w_i (C'_i + delta C_i) / sum_i w_i (A'_i + delta A_i)`, with `C_i` MPI
+/// `i`'s render (composited over black, so premultiplied by its accumulated alpha `A_i`),
+/// `C'_i`, `A'_i` the render of the view it was baked for alone, its margin left out
+/// ([`Mpi::render_with_core`]), `w_i = 1 / (d_i + eps)^2`, `d_i` the distance of its
+/// reference camera's centre to `camera`'s (`eps`: a thousandth of the largest) and
+/// `delta` [`MARGIN_BLEND_WEIGHT`]. A margin is the network's extrapolation: where a
+/// farther MPI photographed what a nearer one's margin shows, the farther one wins.
+/// Without margins `C' = C`, LLFF's blend. Black where no MPI covers the ray.
 pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
     let centre = camera.pose.centre();
     let dists: Vec<f64> = (mpis.iter())
         .map(|m| (m.camera.pose.centre() - centre).length())
         .collect();
     let eps = 1e-3 * dists.iter().cloned().fold(1e-9, f64::max);
-    let renders: Vec<(RgbImage, Vec<f32>)> = mpis.iter().map(|m| m.render(camera)).collect();
+    // One MPI, or none with a margin: C' = C (and `render` is faster).
+    let core = mpis.len() > 1 && mpis.iter().any(|m| m.margin > 0);
+    let renders: Vec<(RgbImage, Vec<f32>, Vec<f32>)> = (mpis.iter())
+        .map(|m| match core {
+            true => m.render_with_core(camera),
+            false => {
+                let (img, a) = m.render(camera);
+                (img, a, Vec::new())
+            }
+        })
+        .collect();
     let (w, h) = (
         camera.intrinsics.width as usize,
         camera.intrinsics.height as usize,
@@ -449,12 +513,17 @@ pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
     let mut img = RgbImage::new(w as u32, h as u32);
     img.data.par_chunks_mut(3).enumerate().for_each(|(p, out)| {
         let (mut c, mut total) = ([0f64; 3], 0f64);
-        for ((r, a), d) in renders.iter().zip(&dists) {
+        for ((r, a, k), d) in renders.iter().zip(&dists) {
             let wgt = 1.0 / (d + eps).powi(2);
-            for (ck, &rk) in c.iter_mut().zip(&r.data[p * 3..p * 3 + 3]) {
-                *ck += wgt * rk as f64;
+            let (own, own_a) = match core {
+                true => (&k[p * 4..p * 4 + 3], k[p * 4 + 3] as f64),
+                false => (&r.data[p * 3..p * 3 + 3], a[p] as f64),
+            };
+            let full = &r.data[p * 3..p * 3 + 3];
+            for ((ck, &o), &f) in c.iter_mut().zip(own).zip(full) {
+                *ck += wgt * (o as f64 + MARGIN_BLEND_WEIGHT * f as f64);
             }
-            total += wgt * a[p] as f64;
+            total += wgt * (own_a + MARGIN_BLEND_WEIGHT * a[p] as f64);
         }
         if total > 1e-12 {
             for (o, ck) in out.iter_mut().zip(c) {

@@ -91,6 +91,24 @@ impl SceneData {
         })
     }
 
+    /// The scene's cameras at pyramid level 1 (half the resolution), without images:
+    /// what the pair sampler draws from at `--mpi-scale 2` (it builds the pyramids of
+    /// the views it uses with [`PyramidSource::from_level`]).
+    pub fn halved_cameras(&self) -> Self {
+        Self {
+            name: self.name.clone(),
+            synthetic: self.synthetic,
+            cameras: (self.pyramids.iter())
+                .zip(&self.cameras)
+                .map(|(p, c)| p.cameras.get(1).copied().unwrap_or(*c))
+                .collect(),
+            pyramids: Vec::new(),
+            near: self.near,
+            far: self.far,
+            targets: self.targets.clone(),
+        }
+    }
+
     /// A target view from the random `r`: one of [`Self::targets`], or any view.
     pub fn draw_target(&self, r: u64) -> usize {
         match &self.targets {

@@ -13,21 +13,26 @@ use serde::Serialize;
 use std::path::Path;
 use std::time::Instant;
 
-/// Bakes the MPI of `camera` from the scene's views `sources` (the first `k` of them,
-/// `k` from `settings`) at the settings' planes; every plane is kept (`--prune` does not
-/// apply: an MPI is seen from other cameras).
+/// Bakes the MPI of `camera` (made a pinhole at its mid-readout pose, with `margin`
+/// pixels more on every side: [`with_margin`]) from the scene's views `sources` (the
+/// first `k` of them, `k` from `settings`) at the settings' planes; every plane is kept
+/// (`--prune` does not apply: an MPI is seen from other cameras).
 pub fn bake_camera(
     backend: &dyn Backend,
     scene: &Scene,
     prepared: &mut Prepared,
-    camera: &Camera,
+    (camera, margin): (&Camera, u32),
     sources: &[usize],
     settings: &RenderSettings,
     progress: &dyn Fn(usize, usize),
 ) -> Result<Mpi> {
     let cfg = backend.config().clone();
     let (srcs, inv) = source_inputs(&cfg, scene, prepared, sources, settings)?;
-    Ok(bake(backend, camera, &srcs, &inv, settings.tile, progress)?)
+    // The margin is added to the pinhole at the mid-readout pose (its height decides it).
+    let camera = with_margin(&reference_camera(camera), margin);
+    let mut mpi = bake(backend, &camera, &srcs, &inv, settings.tile, progress)?;
+    mpi.margin = margin;
+    Ok(mpi)
 }
 
 /// The sources of an MPI baked at view `reference`: `k` views that are not held out,
@@ -129,13 +134,12 @@ pub fn eval_through_mpi(
         let mut mpis = Vec::new();
         for &r in &references {
             let ref_srcs = reference_sources(scene, r, holdout, opts.own_photo, k, settings)?;
-            let camera = &with_margin(&reference_camera(&scene.views[r].camera), opts.margin);
             let none = &|_, _| {};
             mpis.push(bake_camera(
                 backend,
                 scene,
                 &mut prepared,
-                camera,
+                (&scene.views[r].camera, opts.margin),
                 &ref_srcs,
                 settings,
                 none,

@@ -395,9 +395,10 @@ fn check_run(run: &RunOptions) -> Result<Sampling> {
     sampling.check(&run.config)?;
     if let Some(p) = run.mpi_loss.filter(|_| run.synthetic > 0) {
         let (w, h) = p.tile;
-        if (run.synth_width as usize) < w || (run.synth_height as usize) < h {
+        let s = p.scale.max(1) as usize;
+        if (run.synth_width as usize) < w * s || (run.synth_height as usize) < h * s {
             bail!(
-                "the procedural scenes' images ({}x{}) are smaller than the {w}x{h} MPI tile: pass a larger --synth-size or a smaller --mpi-tile",
+                "the procedural scenes' images ({}x{}) are smaller than the {w}x{h} MPI tile at scale {s}: pass a larger --synth-size or a smaller --mpi-tile",
                 run.synth_width,
                 run.synth_height
             );
@@ -752,6 +753,7 @@ mod tests {
                 weight: 1.0,
                 tile: (224, 64),
                 neighbours: 2,
+                scale: 1,
             }),
         };
         let mut v = serde_json::to_value(&run)?;

@@ -77,7 +77,9 @@ fn rows_visit_by_bisection_exactly_as_ray_by_ray() -> Result<()> {
         }
     }
     let inv = crate::geometry::inverse_depths(0.5, f64::INFINITY, d);
-    let mpi = Mpi::from_layers(camera(w as u32, h as u32, DVec3::ZERO), inv, &colours, &sel)?;
+    let mut mpi = Mpi::from_layers(camera(w as u32, h as u32, DVec3::ZERO), inv, &colours, &sel)?;
+    // A margin, so that the composite of the core (the view within it) differs.
+    mpi.margin = 6;
     for (angle, centre) in [
         (0.0, DVec3::new(0.3, -0.2, 0.1)),
         (0.2, DVec3::new(-0.4, 0.3, -0.2)),
@@ -100,11 +102,18 @@ fn rows_visit_by_bisection_exactly_as_ray_by_ray() -> Result<()> {
                     rel.rotation * DVec3::new(n.x, n.y, 1.0)
                 })
                 .collect();
-            let (mut c1, mut a1) = (vec![0f32; w * 3], vec![0f32; w]);
-            let (mut c2, mut a2) = (vec![0f32; w * 3], vec![0f32; w]);
-            mpi.row(&maps, &rays, true, &mut c1, &mut a1);
-            mpi.row(&maps, &rays, false, &mut c2, &mut a2);
-            assert_eq!((c1, &a1), (c2, &a2), "row {y} at angle {angle}");
+            let (mut c1, mut a1, mut k1) = (vec![0f32; w * 3], vec![0f32; w], vec![0f32; w * 4]);
+            let (mut c2, mut a2, mut k2) = (vec![0f32; w * 3], vec![0f32; w], vec![0f32; w * 4]);
+            let (mut c3, mut a3) = (vec![0f32; w * 3], vec![0f32; w]);
+            mpi.row(&maps, &rays, true, &mut c1, &mut a1, Some(&mut k1));
+            mpi.row(&maps, &rays, false, &mut c2, &mut a2, Some(&mut k2));
+            mpi.row(&maps, &rays, true, &mut c3, &mut a3, None);
+            assert_eq!((&c1, &a1, &k1), (&c2, &a2, &k2), "row {y} at angle {angle}");
+            assert_eq!(
+                (&c1, &a1),
+                (&c3, &a3),
+                "the core's composite changed the render"
+            );
             hits += a1.iter().filter(|&&a| a > 0.0).count();
         }
         assert!(
@@ -270,3 +279,107 @@ fn blending_copies_of_one_mpi_gives_it_back_and_8_bits_keep_40_db() -> Result<()
 }
 
 use std::path::Path;
+
+/// An MPI of one opaque plane at inverse depth 1 in `camera`, all of colour `rgb`.
+fn flat(camera: Camera, rgb: [f32; 3]) -> Result<Mpi> {
+    let n = camera.intrinsics.width as usize * camera.intrinsics.height as usize;
+    let colours: Vec<f32> = rgb.iter().flat_map(|&c| vec![c; n]).collect();
+    Mpi::from_layers(camera, vec![1.0], &colours, &vec![1.0; n])
+}
+
+#[test]
+fn the_core_render_leaves_the_margin_out() -> Result<()> {
+    let (w, h, m) = (24u32, 16u32, 8u32);
+    let base = camera(w, h, DVec3::ZERO);
+    let mut mpi = flat(with_margin(&base, m), [0.2, 0.4, 0.6])?;
+    mpi.margin = m;
+    let (img, alpha, core) = mpi.render_with_core(&mpi.camera);
+    let (mw, mh) = ((w + 2 * m) as usize, (h + 2 * m) as usize);
+    let mut inside = 0;
+    for y in 0..mh {
+        for x in 0..mw {
+            let p = y * mw + x;
+            let own = (m as usize..(m + w) as usize).contains(&x)
+                && (m as usize..(m + h) as usize).contains(&y);
+            assert!((alpha[p] - 1.0).abs() < 1e-6, "alpha at ({x}, {y})");
+            let want = if own { 1.0 } else { 0.0 };
+            assert!(
+                (core[p * 4 + 3] - want).abs() < 1e-6,
+                "core alpha at ({x}, {y})"
+            );
+            for c in 0..3 {
+                let v = img.data[p * 3 + c] * want;
+                assert!(
+                    (core[p * 4 + c] - v).abs() < 1e-6,
+                    "core colour at ({x}, {y})"
+                );
+            }
+            inside += own as usize;
+        }
+    }
+    assert_eq!(inside, (w * h) as usize);
+    mpi.margin = 0;
+    let (img, alpha, core) = mpi.render_with_core(&mpi.camera);
+    for p in 0..alpha.len() {
+        assert_eq!(
+            core[p * 4 + 3],
+            alpha[p],
+            "without a margin the core is all"
+        );
+        assert_eq!(core[p * 4..p * 4 + 3], img.data[p * 3..p * 3 + 3]);
+    }
+    Ok(())
+}
+
+#[test]
+fn a_blend_prefers_a_farther_view_to_a_nearer_margin() -> Result<()> {
+    let (w, h, m) = (24u32, 16u32, 8u32);
+    let (red, blue) = ([1.0, 0.0, 0.0], [0.0, 0.0, 1.0]);
+    let mut a = flat(with_margin(&camera(w, h, DVec3::ZERO), m), red)?;
+    a.margin = m;
+    let b = flat(camera(w, h, DVec3::new(0.4, 0.0, 0.0)), blue)?;
+    // Nearer to a than to b; 8 pixels of parallax to a on the plane at depth 1.
+    let view = camera(w, h, DVec3::new(0.2, 0.0, 0.0));
+    let (da, db) = (0.2f64, 0.2f64);
+    let img = render_blend(&[a.clone(), b.clone()], &view);
+    let (_, aa, ka) = a.render_with_core(&view);
+    let (_, ab, _) = b.render_with_core(&view);
+    let (wa, wb) = (1.0 / da.powi(2), 1.0 / db.powi(2));
+    let delta = MARGIN_BLEND_WEIGHT;
+    let mut margin_only = 0;
+    for p in 0..(w * h) as usize {
+        let px = &img.data[p * 3..p * 3 + 3];
+        assert!(px.iter().all(|v| v.is_finite() && (0.0..=1.0).contains(v)));
+        let (own_a, full_a) = (ka[p * 4 + 3] as f64, aa[p] as f64);
+        if full_a > 0.99 && own_a < 1e-6 && ab[p] > 0.99 {
+            // a's margin against b's view: b wins.
+            margin_only += 1;
+            let want = wb * (1.0 + delta) / (wb * (1.0 + delta) + wa * delta);
+            assert!(
+                (px[2] as f64 - want).abs() < 1e-4,
+                "pixel {p}: {px:?}, want blue {want}"
+            );
+            assert!(px[2] > 0.9, "pixel {p}: {px:?}: the nearer margin won");
+        }
+        if own_a > 0.99 && ab[p] > 0.99 {
+            assert!(
+                (px[0] - 0.5).abs() < 1e-4,
+                "both views, equal distance: {px:?}"
+            );
+        }
+    }
+    assert!(
+        margin_only > 0,
+        "no pixel sees only a's margin and b's view"
+    );
+    Ok(())
+}
+
+#[test]
+fn the_viewer_blends_with_the_cpus_margin_weight() {
+    let want = format!("const DELTA = \"{MARGIN_BLEND_WEIGHT}\";");
+    assert!(
+        viewer::INDEX_HTML.contains(&want),
+        "viewer.html lacks {want}"
+    );
+}

@@ -8,7 +8,7 @@ use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::imageio::write_atomic;
-use deepstereo_core::mpi::{io, reference_camera, viewer, with_margin};
+use deepstereo_core::mpi::{io, viewer};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
 use std::path::{Path, PathBuf};
@@ -93,17 +93,15 @@ pub fn run(a: Args) -> Result<()> {
             bar.set_length(total as u64);
             bar.set_position(done as u64);
         };
-        let cam = &with_margin(&reference_camera(cam), a.margin);
-        let mut mpi = bake_camera(
+        let mpi = bake_camera(
             backend.as_ref(),
             &scene,
             &mut prepared,
-            cam,
+            (cam, a.margin),
             &srcs,
             &settings,
             &progress,
         )?;
-        mpi.margin = a.margin;
         bar.finish_and_clear();
         let name = if targets.len() == 1 {
             ".".to_string()

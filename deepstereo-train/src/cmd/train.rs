@@ -104,6 +104,11 @@ pub struct Args {
     /// With --mpi-loss: the target is one of the reference's N nearest views.
     #[arg(long, default_value_t = 2)]
     pub mpi_neighbours: usize,
+    /// With --mpi-loss: draw the pairs from the images downscaled by this factor (1 or
+    /// 2): at 2 the same tile spans twice the disparity, for pairs as far apart as a
+    /// held-out view and its nearest kept one.
+    #[arg(long, default_value_t = 1)]
+    pub mpi_scale: u32,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
@@ -145,6 +150,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             weight,
             tile: (tile_w as usize, tile_h as usize),
             neighbours: a.mpi_neighbours,
+            scale: a.mpi_scale,
         }),
     };
     let sched = Schedule {

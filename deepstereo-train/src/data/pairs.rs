@@ -27,6 +27,15 @@ pub struct MpiPairs {
     pub tile: (usize, usize),
     /// The target is one of the reference's `neighbours` nearest views.
     pub neighbours: usize,
+    /// Pair samples are drawn from the images downscaled by this factor (1 or 2;
+    /// pyramid level 1 for 2): the same tile then spans twice the disparity, so pairs
+    /// as far apart as an evaluation's held-out views and their nearest kept ones fit.
+    #[serde(default = "one")]
+    pub scale: u32,
+}
+
+fn one() -> u32 {
+    1
 }
 
 impl MpiPairs {
@@ -44,6 +53,12 @@ impl MpiPairs {
         }
         if self.neighbours == 0 {
             bail!("the MPI target is one of the reference's nearest views: 1 or more");
+        }
+        if !matches!(self.scale, 1 | 2) || (self.scale == 2 && cfg.levels < 2) {
+            bail!(
+                "the MPI pairs' scale is 1 or 2 (2 needs a model of 2 or more levels), not {}",
+                self.scale
+            );
         }
         Ok(())
     }
@@ -158,7 +173,9 @@ pub fn sample_pair(
         state = mix(state);
         state
     };
-    let s = pick_scene(scenes, sampling, next(), next());
+    let full = pick_scene(scenes, sampling, next(), next());
+    let halved = (pairs.scale == 2).then(|| full.halved_cameras());
+    let s = halved.as_ref().unwrap_or(full);
     let n = s.cameras.len();
     if n < 3 {
         bail!(
@@ -197,14 +214,26 @@ pub fn sample_pair(
         );
     }
     let cam_r = &s.cameras[r];
+    // At scale 2, the pyramids of the views used, from level 1 of the scene's own.
+    let level = if halved.is_some() { 1 } else { 0 };
+    let scaled: Vec<PyramidSource> = match level {
+        0 => Vec::new(),
+        _ => (src.iter())
+            .map(|&i| full.pyramids[i].from_level(level, cfg.levels))
+            .collect(),
+    };
     let empty = PyramidSource::empty(cam_r, cfg.levels);
-    let mut srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
+    let mut srcs: Vec<&PyramidSource> = match level {
+        0 => src.iter().map(|&i| &s.pyramids[i]).collect(),
+        _ => scaled.iter().collect(),
+    };
     srcs.resize(views, &empty);
     let inputs = tile_inputs(cfg, cam_r, &srcs, &inv, (x0, y0), (th, tw))?;
+    let image = |i: usize| &full.pyramids[i].images[level];
     Ok(PairSample {
         levels: inputs.levels,
-        reference: patch(&s.pyramids[r].images[0], (x0 as u32, y0 as u32), (tw, th)),
+        reference: patch(image(r), (x0 as u32, y0 as u32), (tw, th)),
         plan,
-        target: patch(&s.pyramids[t].images[0], (tx0 as u32, ty0 as u32), (tw, th)),
+        target: patch(image(t), (tx0 as u32, ty0 as u32), (tw, th)),
     })
 }

@@ -290,7 +290,7 @@ fn the_target_is_never_a_source() {
 /// Pair samples for the loss through the MPI ([`pairs`]): every view of a scene one flat
 /// colour of its own, so a sample's colours tell which views it read. Neither the
 /// reference (the tile's target) nor the neighbouring view (the MPI's target) is ever a
-/// source, and the warps count pixels.
+/// source, and the warps count pixels, at full and at half resolution (`scale` 2).
 #[test]
 fn pair_samples_leave_the_reference_and_its_neighbour_out() -> anyhow::Result<()> {
     let cfg = Config::nviews();
@@ -303,57 +303,72 @@ fn pair_samples_leave_the_reference_and_its_neighbour_out() -> anyhow::Result<()
             s.pyramids[i] = PyramidSource::new(cam, &img, cfg.levels);
         }
     }
+    // At scale 2 the pairs come from pyramid level 1 (flat colours too).
+    for (scale, (tw, th)) in [(1, (40, 24)), (2, (24, 16))] {
+        let pairs = MpiPairs {
+            weight: 1.0,
+            tile: (tw, th),
+            neighbours: 2,
+            scale,
+        };
+        let sampling = Sampling {
+            views: (3, 3),
+            mpi: Some(pairs),
+            ..Sampling::fixed(&cfg)
+        };
+        let (mut counted, mut samples) = (0, 0);
+        for b in 0..6 {
+            let batch = make_batch(&cfg, &sampling, &sc, 4, b, 2)?;
+            let again = make_batch(&cfg, &sampling, &sc, 4, b, 2)?;
+            let Some(p) = &batch.mpi else {
+                anyhow::bail!("a pair batch without its MPI part");
+            };
+            assert!(batch.levels == again.levels && again.mpi.is_some_and(|q| q.plans == p.plans));
+            let (h, w) = (cfg.input_size(0, th), cfg.input_size(0, tw));
+            let c = cfg.view_channels();
+            assert_eq!(batch.level_shapes[0], [2, cfg.planes, 3, c, h, w]);
+            assert_eq!(p.pixels, tw * th);
+            let per_sample = batch.levels[0].len() / 2;
+            for k in 0..2 {
+                let own = batch.target[k * 3 * p.pixels];
+                let neighbour = p.target[k * 3 * p.pixels];
+                assert!(
+                    own != neighbour,
+                    "the reference and its neighbour are two views"
+                );
+                let input = &batch.levels[0][k * per_sample..(k + 1) * per_sample];
+                let plane = h * w;
+                let chunks: Vec<&[f32]> = input.chunks_exact(plane).collect();
+                for i in (0..chunks.len()).step_by(c) {
+                    // Red of some view on some plane where it sees the pixel fully (at its
+                    // border, bilinear sampling blends its colour with black).
+                    for (&v, &a) in chunks[i].iter().zip(chunks[i + 3]) {
+                        assert!(
+                            a < 1.0 || ((v - own).abs() > 1e-4 && (v - neighbour).abs() > 1e-4),
+                            "a source holds the colour {v} of the reference or its neighbour"
+                        );
+                    }
+                }
+                counted += p.plans[k].count();
+                samples += 1;
+            }
+        }
+        assert!(
+            counted > 0,
+            "no target pixel sees its tile in {samples} samples"
+        );
+    }
     let pairs = MpiPairs {
         weight: 1.0,
         tile: (40, 24),
         neighbours: 2,
+        scale: 1,
     };
     let sampling = Sampling {
         views: (3, 3),
         mpi: Some(pairs),
         ..Sampling::fixed(&cfg)
     };
-    let (mut counted, mut samples) = (0, 0);
-    for b in 0..6 {
-        let batch = make_batch(&cfg, &sampling, &sc, 4, b, 2)?;
-        let again = make_batch(&cfg, &sampling, &sc, 4, b, 2)?;
-        let Some(p) = &batch.mpi else {
-            anyhow::bail!("a pair batch without its MPI part");
-        };
-        assert!(batch.levels == again.levels && again.mpi.is_some_and(|q| q.plans == p.plans));
-        let (h, w) = (cfg.input_size(0, 24), cfg.input_size(0, 40));
-        let c = cfg.view_channels();
-        assert_eq!(batch.level_shapes[0], [2, cfg.planes, 3, c, h, w]);
-        assert_eq!(p.pixels, 40 * 24);
-        let per_sample = batch.levels[0].len() / 2;
-        for k in 0..2 {
-            let own = batch.target[k * 3 * p.pixels];
-            let neighbour = p.target[k * 3 * p.pixels];
-            assert!(
-                own != neighbour,
-                "the reference and its neighbour are two views"
-            );
-            let input = &batch.levels[0][k * per_sample..(k + 1) * per_sample];
-            let plane = h * w;
-            let chunks: Vec<&[f32]> = input.chunks_exact(plane).collect();
-            for i in (0..chunks.len()).step_by(c) {
-                // Red of some view on some plane where it sees the pixel fully (at its
-                // border, bilinear sampling blends its colour with black).
-                for (&v, &a) in chunks[i].iter().zip(chunks[i + 3]) {
-                    assert!(
-                        a < 1.0 || ((v - own).abs() > 1e-4 && (v - neighbour).abs() > 1e-4),
-                        "a source holds the colour {v} of the reference or its neighbour"
-                    );
-                }
-            }
-            counted += p.plans[k].count();
-            samples += 1;
-        }
-    }
-    assert!(
-        counted > 0,
-        "no target pixel sees its tile in {samples} samples"
-    );
     let augmented = Sampling {
         augment: true,
         ..sampling
