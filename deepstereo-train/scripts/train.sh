@@ -44,6 +44,7 @@ RECIPES=(
   "weigh|runs/nviews-weigh: corpus's weights at step 8600 with the views weighed by their cue (python/add_cue.py --weigh: the weights start at 1, so step 0 renders as corpus), fine-tuned on the whole corpus with 2-12 views, Adam 2e-4, cosine:300-2500 to a tenth"
   "weigh-scratch|runs/nviews-weigh-scratch: weigh's architecture (its config) from scratch on the whole corpus, 2-12 views, as corpus: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "mpi|runs/nviews-mpi: the shipped weights (weigh-scratch's config) fine-tuned for MPIs with --mpi-loss 1 (224x64 tiles, the target one of the reference's 3 nearest views, 4 source views, no augmentation), batch 4, Adam 5e-4, cosine:100-300 to a tenth"
+  "mpi2|runs/nviews-mpi2: as mpi, with the pairs drawn at half resolution (--mpi-scale 2, 96x64 tiles: 192x128 pixels of the full images), 200 steps, cosine:50-200"
   "cue|runs/nviews-cue: the shipped weights given the per-view cue (python/add_cue.py: zero columns, so step 0 renders as the shipped model), fine-tuned on the whole corpus (17 scenes) with 2-12 views, Adam 3e-4 to step 1600, then a cosine to a tenth at step 4500"
 )
 
@@ -155,6 +156,14 @@ case "$RECIPE" in
     COPY_CONFIG=$RUNS/nviews-weigh-scratch/config.json
     NO_AUGMENT=1
     EXTRA=(--mpi-loss 1 --mpi-tile 224x64 --mpi-neighbours 3)
+    ;;
+  mpi2)
+    OUT="${2:-$RUNS/nviews-mpi2}"
+    : "${INIT:=deepstereo-train/assets/nviews-real.safetensors}" "${STEPS:=200}" "${LR_SCHEDULE:=cosine:50-200}"
+    : "${VIEW_RANGE:=4}" "${CORPUS:=all}" "${BATCH:=4}" "${VALIDATE_EVERY:=100}" "${LR:=5e-4}"
+    COPY_CONFIG=$RUNS/nviews-weigh-scratch/config.json
+    NO_AUGMENT=1
+    EXTRA=(--mpi-loss 1 --mpi-tile 96x64 --mpi-neighbours 3 --mpi-scale 2)
     ;;
   wide | encoder3 | levels)
     echo "error: recipe '$RECIPE' changed the architecture with a Python tool first; it is at commit fda1758 (deepstereo-train/scripts/train_$RECIPE.sh)" >&2
