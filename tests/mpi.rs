@@ -236,8 +236,8 @@ fn several_mpis_render_a_path_and_bad_input_is_refused() {
     }
     assert!(tmp.path().join("path.gif").is_file());
 
-    // The viewer blends two MPIs, each margin only where no MPI's own view covers the
-    // ray, as `render --mpi` does. Recoloured red and blue (alphas kept), so that every
+    // The viewer blends two MPIs, each margin weighed down against the MPIs' own views,
+    // as `render --mpi` does. Recoloured red and blue (alphas kept), so that every
     // pixel shows the blend's weights; the view is moved so that it sees part of the
     // first MPI's margin.
     let dir = tmp.path().join("mpis");
@@ -279,7 +279,7 @@ fn several_mpis_render_a_path_and_bad_input_is_refused() {
         let db = psnr(&shot, &cpu);
         eprintln!("viewer, two MPIs, moved: {db:.1} dB");
         // Flat colours: the viewer's 8-bit layers agree with the CPU to about 50 dB here;
-        // a blend that takes the first MPI's margin as its view scores about 25.
+        // a blend that takes the first MPI's margin as its view scores about 27.
         assert!(
             db >= 40.0,
             "viewer blending two MPIs vs render --mpi: {db:.1} dB"

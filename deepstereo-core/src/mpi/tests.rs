@@ -359,7 +359,7 @@ fn a_blend_prefers_a_farther_view_to_a_nearer_margin() -> Result<()> {
                 (px[2] as f64 - want).abs() < 1e-4,
                 "pixel {p}: {px:?}, want blue {want}"
             );
-            assert!(px[2] > 0.9, "pixel {p}: {px:?}: the nearer margin won");
+            assert!(px[2] > 0.8, "pixel {p}: {px:?}: the nearer margin won");
         }
         if own_a > 0.99 && ab[p] > 0.99 {
             assert!(
