@@ -52,31 +52,43 @@ fn screenshot(page: &str, dir: &Path, name: &str) -> Option<RgbImage> {
         );
         return None;
     };
-    let res = Command::new(browser)
-        .args([
-            "--headless",
-            "--no-sandbox",
-            "--disable-dev-shm-usage",
-            "--use-angle=swiftshader",
-            "--enable-unsafe-swiftshader",
-            "--force-device-scale-factor=1",
-            "--virtual-time-budget=20000",
-            "--dump-dom",
-        ])
-        .arg(format!("--user-data-dir={}", dir.join("profile").display()))
-        .arg(format!("--window-size={W},{H}"))
-        .arg(format!("{page}&capture=1"))
-        .output()
-        .expect("run chromium");
-    let dom = String::from_utf8_lossy(&res.stdout);
+    // A headless browser now and then ends before the page is ready on a loaded machine:
+    // one more try, with a profile of its own, before the check fails.
     let key = "data-capture=\"data:image/png;base64,";
-    let Some(at) = dom.find(key) else {
-        panic!(
+    let mut dom = String::new();
+    for attempt in 0..2 {
+        let res = Command::new(browser)
+            .args([
+                "--headless",
+                "--no-sandbox",
+                "--disable-dev-shm-usage",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--force-device-scale-factor=1",
+                "--virtual-time-budget=20000",
+                "--dump-dom",
+            ])
+            .arg(format!(
+                "--user-data-dir={}",
+                dir.join(format!("profile-{name}-{attempt}")).display()
+            ))
+            .arg(format!("--window-size={W},{H}"))
+            .arg(format!("{page}&capture=1"))
+            .output()
+            .expect("run chromium");
+        dom = String::from_utf8_lossy(&res.stdout).into_owned();
+        if dom.contains(key) {
+            break;
+        }
+        let why = format!(
             "{browser}: no capture in the page:\n{}\n{}",
             dom.chars().take(600).collect::<String>(),
             String::from_utf8_lossy(&res.stderr)
         );
-    };
+        assert!(attempt == 0, "{why}");
+        eprintln!("trying again: {why}");
+    }
+    let at = dom.find(key).expect("a capture");
     let b64 = dom[at + key.len()..].split('"').next().unwrap_or_default();
     let png = base64_decode(b64).expect("base64 PNG");
     let path = dir.join(format!("{name}.png"));

@@ -202,6 +202,17 @@ fn marker(img: &mut RgbImage, (x, y): (i32, i32), shape: Shape, r: i32, c: [f32;
     }
 }
 
+/// Room around the data range `[lo, hi]` of an axis: `share` of its span, or, when the
+/// span is nil next to the values (one point, or all equal), 5% of their magnitude (at
+/// least 0.05), so that the axis still shows distinct round ticks.
+fn pad(lo: f64, hi: f64, share: f64) -> f64 {
+    let size = lo.abs().max(hi.abs()).max(1.0);
+    match hi - lo > 1e-9 * size {
+        true => (hi - lo) * share,
+        false => 0.05 * size,
+    }
+}
+
 /// Round tick values (1, 2 or 5 times a power of ten apart) inside `[lo, hi]`, at least
 /// 1 apart when `integer`.
 pub fn nice_ticks(lo: f64, hi: f64, integer: bool) -> (Vec<f64>, f64) {
@@ -328,7 +339,7 @@ impl Frame {
         if x0 > x1 {
             (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
         }
-        let (px, py) = ((x1 - x0).max(1e-9) * 0.05, (y1 - y0).max(1e-9) * 0.08);
+        let (px, py) = (pad(x0, x1, 0.05), pad(y0, y1, 0.08));
         Self {
             log_x,
             integer_x,
@@ -587,6 +598,27 @@ mod tests {
         let mut dedup = lt.clone();
         dedup.dedup();
         assert_eq!(dedup, lt);
+    }
+
+    #[test]
+    fn one_point_gets_distinct_ticks() {
+        let s = Series {
+            label: "a".into(),
+            colour: [1.0, 0.0, 0.0],
+            points: vec![(200.0, 24.03)],
+            line: true,
+            marker: 2,
+            labels: Vec::new(),
+        };
+        let f = Frame::fit(&[s], false, 500);
+        for (lo, hi, integer, v) in [(f.x0, f.x1, f.integer_x, 200.0), (f.y0, f.y1, false, 24.03)] {
+            assert!(lo < v && v < hi, "[{lo}, {hi}] around {v}");
+            let ticks = nice_ticks(lo, hi, integer).0;
+            let labels = tick_labels(&ticks);
+            let mut dedup = labels.clone();
+            dedup.dedup();
+            assert!(labels.len() >= 2 && dedup == labels, "{labels:?}");
+        }
     }
 
     #[test]
