@@ -39,7 +39,8 @@ impl PyramidSource {
 
 impl PyramidSource {
     /// The pyramid of `levels` levels whose level 0 is this one's level `l` (the same
-    /// image and camera, downscaled by `2^l`; fewer levels where this one has fewer).
+    /// image and camera, downscaled by `2^l`); this one unchanged when it has no level
+    /// `l` (callers check the level exists: `train --mpi-scale 2` needs 2 levels).
     pub fn from_level(&self, l: usize, levels: usize) -> Self {
         match (self.images.get(l), self.cameras.get(l)) {
             (Some(img), Some(cam)) => Self::new(cam, img, levels),
