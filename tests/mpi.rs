@@ -123,6 +123,38 @@ fn at_reference(dir: &Path, s: &str, mpi: &str, common: &[&str]) -> (RgbImage, R
     )
 }
 
+/// At view `view`'s camera of the scene `s` in `dir`, moved by `off` in its own axes:
+/// `render --mpi` of the MPIs in the directory `mpi` (into `dir/NAME_cpu`), and the
+/// first frame of the viewer beside them opened there (`index.html?fit=native&offset=`;
+/// None when no Chromium runs and none is required).
+fn moved(
+    dir: &Path,
+    s: &str,
+    mpi: &str,
+    view: usize,
+    off: [f64; 3],
+    name: &str,
+) -> (RgbImage, Option<RgbImage>) {
+    let json = dir.join(format!("{name}.json"));
+    let pose = pose_file(dir.join("scenes/scene_0000").as_path(), view, off, &json);
+    let out = dir.join(format!("{name}_cpu"));
+    ok(&[
+        "render",
+        "--scene",
+        s,
+        "--mpi",
+        mpi,
+        "--pose",
+        &pose.to_string_lossy(),
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    let cpu = load(&out.join("image.png"));
+    let [x, y, z] = off;
+    let page = format!("file://{mpi}/index.html?fit=native&offset={x},{y},{z}");
+    (cpu, screenshot(&page, dir, name))
+}
+
 #[test]
 fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -166,28 +198,8 @@ fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
     eprintln!("viewer at the reference: {db:.1} dB");
 
     // Moved along the camera's x and z axes: the viewer and the CPU agree.
-    let off = [0.08, -0.03, 0.05];
-    let moved = pose_file(
-        tmp.path().join("scenes/scene_0000").as_path(),
-        2,
-        off,
-        &tmp.path().join("moved.json"),
-    );
-    let via_moved = t("via_moved");
-    ok(&[
-        "render",
-        "--scene",
-        &s,
-        "--mpi",
-        &m,
-        "--pose",
-        &moved.to_string_lossy(),
-        "--out",
-        &via_moved,
-    ]);
-    let cpu = load(&tmp.path().join("via_moved/image.png"));
-    let page = format!("{url}?fit=native&offset={},{},{}", off[0], off[1], off[2]);
-    let shot = screenshot(&page, tmp.path(), "moved").expect("chromium ran before");
+    let (cpu, shot) = moved(tmp.path(), &s, &m, 2, [0.08, -0.03, 0.05], "moved");
+    let shot = shot.expect("chromium ran before");
     let db = psnr(&shot, &cpu);
     assert!(db >= 30.0, "viewer moved vs render --mpi: {db:.1} dB");
     assert!(psnr(&cpu, &via_img) < db, "the move changed nothing");
@@ -267,27 +279,7 @@ fn several_mpis_render_a_path_and_bad_input_is_refused() {
         io::write(&mpi, &dir.join(name)).expect("write the MPI");
     }
     viewer::write(&dir, &["mpi_00", "mpi_01"], 1.0).expect("write the viewer");
-    let off = [0.3, 0.0, 0.0];
-    let moved = pose_file(
-        tmp.path().join("scenes/scene_0000").as_path(),
-        1,
-        off,
-        &tmp.path().join("moved.json"),
-    );
-    let via = t("via_moved");
-    let pose = moved.to_string_lossy().into_owned();
-    ok(&[
-        "render", "--scene", &s, "--mpi", &m, "--pose", &pose, "--out", &via,
-    ]);
-    let cpu = load(&tmp.path().join("via_moved/image.png"));
-    let page = format!(
-        "file://{}/index.html?fit=native&offset={},{},{}",
-        dir.display(),
-        off[0],
-        off[1],
-        off[2]
-    );
-    if let Some(shot) = screenshot(&page, tmp.path(), "blend") {
+    if let (cpu, Some(shot)) = moved(tmp.path(), &s, &m, 1, [0.3, 0.0, 0.0], "blend") {
         let db = psnr(&shot, &cpu);
         eprintln!("viewer, two MPIs, moved: {db:.1} dB");
         // Flat colours: the viewer's 8-bit layers agree with the CPU to about 50 dB here;

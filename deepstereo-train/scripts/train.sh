@@ -149,21 +149,20 @@ case "$RECIPE" in
     # at once: cosine:1600-4500.
     : "${LR:=3e-4}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
     ;;
-  mpi)
-    OUT="${2:-$RUNS/nviews-mpi}"
-    : "${INIT:=deepstereo-train/assets/nviews-real.safetensors}" "${STEPS:=300}" "${LR_SCHEDULE:=cosine:100-300}"
+  mpi | mpi2)
+    OUT="${2:-$RUNS/nviews-$RECIPE}"
+    if [ "$RECIPE" = mpi ]; then
+      : "${STEPS:=300}" "${LR_SCHEDULE:=cosine:100-300}"
+      PAIRS=(--mpi-tile 224x64 --mpi-neighbours 3)
+    else
+      : "${STEPS:=200}" "${LR_SCHEDULE:=cosine:50-200}"
+      PAIRS=(--mpi-tile 96x64 --mpi-neighbours 3 --mpi-scale 2)
+    fi
+    : "${INIT:=deepstereo-train/assets/nviews-real.safetensors}"
     : "${VIEW_RANGE:=4}" "${CORPUS:=all}" "${BATCH:=4}" "${VALIDATE_EVERY:=100}" "${LR:=5e-4}"
     COPY_CONFIG=$RUNS/nviews-weigh-scratch/config.json
     NO_AUGMENT=1
-    EXTRA=(--mpi-loss 1 --mpi-tile 224x64 --mpi-neighbours 3)
-    ;;
-  mpi2)
-    OUT="${2:-$RUNS/nviews-mpi2}"
-    : "${INIT:=deepstereo-train/assets/nviews-real.safetensors}" "${STEPS:=200}" "${LR_SCHEDULE:=cosine:50-200}"
-    : "${VIEW_RANGE:=4}" "${CORPUS:=all}" "${BATCH:=4}" "${VALIDATE_EVERY:=100}" "${LR:=5e-4}"
-    COPY_CONFIG=$RUNS/nviews-weigh-scratch/config.json
-    NO_AUGMENT=1
-    EXTRA=(--mpi-loss 1 --mpi-tile 96x64 --mpi-neighbours 3 --mpi-scale 2)
+    EXTRA=(--mpi-loss 1 "${PAIRS[@]}")
     ;;
   wide | encoder3 | levels)
     echo "error: recipe '$RECIPE' changed the architecture with a Python tool first; it is at commit fda1758 (deepstereo-train/scripts/train_$RECIPE.sh)" >&2
