@@ -22,6 +22,7 @@ pub mod model;
 pub mod mpi;
 pub mod plot;
 pub mod pool;
+pub mod prior;
 pub mod prune;
 pub mod render;
 pub mod sweep;

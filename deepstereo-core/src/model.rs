@@ -147,6 +147,9 @@ pub struct DeepStereo {
     pool: Option<(ViewEncoder, Blend)>,
     /// The cue's view weights ([`crate::config::ViewPool::weigh`]).
     weigh: Option<ViewWeigh>,
+    /// A scene's selection prior (`deepstereo tune`), applied by the renderers outside
+    /// the network ([`crate::prior`]); not part of the ONNX graph.
+    prior: Option<std::sync::Arc<crate::prior::PriorGrid>>,
 }
 
 /// Pixels per depth row at which rows alias in the caches (128 floats = 512 bytes).
@@ -202,11 +205,23 @@ impl DeepStereo {
             colour_out,
             pool,
             weigh,
+            prior: None,
         })
     }
 
     pub fn config(&self) -> &Config {
         &self.cfg
+    }
+
+    /// The scene prior the model carries (a tuned model), if any.
+    pub fn prior(&self) -> Option<&crate::prior::PriorGrid> {
+        self.prior.as_deref()
+    }
+
+    /// The model with `prior` (or none).
+    pub fn with_prior(mut self, prior: Option<crate::prior::PriorGrid>) -> Self {
+        self.prior = prior.map(std::sync::Arc::new);
+        self
     }
 
     /// `inputs[l]`: `[B, D, 4V, H_l, W_l]` (paper family) or `[B, D, V, C_v, H_l, W_l]`

@@ -546,8 +546,25 @@ pub fn bake(
     tile: usize,
     progress: &dyn Fn(usize, usize),
 ) -> Result<Mpi> {
-    let cfg = backend.config();
     let camera = reference_camera(camera);
+    let (colours, selection) = layers(backend, &camera, sources, inv_depths, tile, progress)?;
+    Mpi::from_layers(camera, inv_depths.to_vec(), &colours, &selection)
+}
+
+/// The network's layers at `camera` (a pinhole: [`reference_camera`]) from `sources` at
+/// `inv_depths`, tile by tile as [`bake`] runs them: colours `[D, 3, H, W]` and the
+/// selection `[D, H, W]`, row-major (finite, or an error), the selection reweighed by
+/// the backend's scene prior when it has one.
+pub fn layers(
+    backend: &dyn Backend,
+    camera: &Camera,
+    sources: &[&PyramidSource],
+    inv_depths: &[f64],
+    tile: usize,
+    progress: &dyn Fn(usize, usize),
+) -> Result<(Vec<f32>, Vec<f32>)> {
+    let cfg = backend.config();
+    let camera = *camera;
     let a = cfg.tile_align();
     let tile = tile.max(1).div_ceil(a) * a;
     let (w, h) = (
@@ -572,7 +589,10 @@ pub fn bake(
                 (x0 as i64, y0 as i64),
                 (tile, tile),
             )?;
-            let (c, s) = backend.run_layers(&inputs, d)?;
+            let (c, mut s) = backend.run_layers(&inputs, d)?;
+            if let Some(grid) = backend.prior() {
+                grid.apply_tile(&camera, inv_depths, (x0, y0), tile, &c, &mut s);
+            }
             if c.iter().chain(&s).any(|v| !v.is_finite()) {
                 return Err(Error::Invalid(format!(
                     "the network produced non-finite values in the tile at ({x0}, {y0})"
@@ -593,7 +613,7 @@ pub fn bake(
             progress(ty * ntx + tx + 1, ntx * nty);
         }
     }
-    Mpi::from_layers(camera, inv_depths.to_vec(), &colours, &selection)
+    Ok((colours, selection))
 }
 
 #[cfg(test)]

@@ -10,6 +10,7 @@ use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
 use crate::inputs::{tile_inputs, PyramidSource, TileInputs};
 use crate::model::DeepStereo;
+use crate::prior::PriorGrid;
 use crate::prune::{Block, PruneStats, Pruner, TilePlan};
 use candle_core::{Device, Tensor};
 use std::time::Instant;
@@ -34,6 +35,11 @@ pub trait Backend: Sync {
     fn has_layers(&self) -> bool {
         false
     }
+    /// The scene prior the renderers apply to the network's selection (a tuned model's;
+    /// [`crate::prior`]): it needs [`Backend::run_layers`].
+    fn prior(&self) -> Option<&PriorGrid> {
+        None
+    }
 }
 
 /// The candle backend (CPU, f32).
@@ -57,6 +63,9 @@ impl Backend for CandleBackend {
     }
     fn has_layers(&self) -> bool {
         true
+    }
+    fn prior(&self) -> Option<&PriorGrid> {
+        self.model.prior()
     }
 }
 
@@ -326,7 +335,14 @@ impl BlockJob<'_, '_> {
             (tile, tile),
         )?;
         let t2 = Instant::now();
-        let (img, sel) = self.backend.run(&inputs, nb)?;
+        let (img, sel) = match self.backend.prior() {
+            None => self.backend.run(&inputs, nb)?,
+            Some(grid) => {
+                let (c, mut s) = self.backend.run_layers(&inputs, nb)?;
+                let img = grid.apply_tile(self.target, &band, (x0, y0), tile, &c, &mut s);
+                (img, s)
+            }
+        };
         stats.warp_seconds += (t2 - t1).as_secs_f64();
         stats.network_seconds += t2.elapsed().as_secs_f64();
         if img.iter().chain(&sel).any(|x| !x.is_finite()) {

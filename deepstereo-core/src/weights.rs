@@ -183,6 +183,26 @@ pub fn save(path: &Path, cfg: &Config, varmap: &VarMap) -> Result<()> {
     write_safetensors(path, &arrays, Some(metadata(cfg, &[])?))
 }
 
+/// Saves the weights of `varmap` (a model of `cfg`), a scene `prior` when given, and the
+/// metadata entries `extra`, atomically, refusing non-finite values.
+pub fn save_with_prior(
+    path: &Path,
+    cfg: &Config,
+    varmap: &VarMap,
+    prior: Option<&crate::prior::PriorGrid>,
+    extra: &[(&str, String)],
+) -> Result<()> {
+    let mut arrays = weight_arrays(varmap)?;
+    let mut extra = extra.to_vec();
+    if let Some(grid) = prior {
+        let (array, entry) = crate::prior::io::to_file(grid);
+        arrays.push(array);
+        extra.push(entry);
+    }
+    check_finite(path, &arrays)?;
+    write_safetensors(path, &arrays, Some(metadata(cfg, &extra)?))
+}
+
 /// Errors if any f32 array holds NaN or infinity.
 pub fn check_finite(path: &Path, arrays: &[NamedArray]) -> Result<()> {
     for a in arrays {
@@ -226,12 +246,15 @@ pub fn load_bytes(path: &Path, bytes: &[u8], device: &Device) -> Result<Trainabl
     let st = SafeTensors::deserialize(bytes)
         .map_err(|e| Error::model(path, format!("not a safetensors file: {e}")))?;
     check_size(path, &cfg, &st)?;
-    let t = init(&cfg, device)?;
+    let mut t = init(&cfg, device)?;
     assign(path, &st, &t.varmap, "")?;
+    let prior = crate::prior::io::read(path, bytes, &st)?;
+    t.model = t.model.with_prior(prior);
     let expected: Vec<String> = named_vars(&t.varmap).into_iter().map(|(n, _)| n).collect();
     if let Some(extra) = st
         .names()
         .into_iter()
+        .filter(|n| *n != crate::prior::io::TENSOR)
         .find(|n| !expected.iter().any(|e| e == *n))
     {
         return Err(Error::model(

@@ -15,6 +15,7 @@ pub mod mpi;
 pub mod optim;
 pub mod outdir;
 pub mod path;
+pub mod prior;
 pub mod scene_weights;
 pub mod training;
 pub mod tune;

@@ -50,9 +50,16 @@ pub fn candle_backend(model: Option<&Path>) -> Result<CandleBackend> {
 pub fn make_backend(kind: BackendKind, model: Option<&Path>) -> Result<Box<dyn Backend>> {
     match kind {
         BackendKind::Candle => Ok(Box::new(candle_backend(model)?)),
-        BackendKind::Ort => Ok(Box::new(deepstereo_export::OrtBackend::from_model(
-            &load_model(model)?,
-        )?)),
+        BackendKind::Ort => {
+            let t = load_model(model)?;
+            if t.model.prior().is_some() {
+                anyhow::bail!(
+                    "{}: the model carries a scene prior (from `deepstereo tune`), which onnxruntime does not apply; render it with --backend candle",
+                    model_name(model)
+                );
+            }
+            Ok(Box::new(deepstereo_export::OrtBackend::from_model(&t)?))
+        }
     }
 }
 

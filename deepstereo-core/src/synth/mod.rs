@@ -36,6 +36,7 @@ mod tests_sweep;
 mod texture;
 mod write;
 
+pub use rng::Rng;
 pub use write::{
     contact_sheet, load_textures, scene_dir, write_scene, write_scenes, write_scenes_progress,
 };
@@ -44,7 +45,7 @@ use crate::camera::Camera;
 use crate::error::{Error, Result};
 use crate::imageio::{RgbImage, MAX_IMAGE_SIDE};
 use rayon::prelude::*;
-use rng::{mix64, Rng};
+use rng::mix64;
 
 /// Fewest views a scene may have (a target and one source).
 pub const MIN_VIEWS: usize = 2;

@@ -39,5 +39,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         a.out.display(),
         bytes.len()
     );
+    if t.model.prior().is_some() {
+        eprintln!(
+            "note: the model's scene prior (from `deepstereo tune`) reweighs the selection outside the network and is not part of the ONNX graph: the graph renders as the tuned network without it (render with candle to apply it)"
+        );
+    }
     Ok(())
 }

@@ -5,15 +5,16 @@
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::data::SceneData;
 use crate::inference::{evaluate, RenderSettings};
+use crate::prior::{fit_scene, PriorBudget, PriorOptions, PriorProgress, SceneFit};
 use crate::tune::{tune, validation_views, Budget, Progress, TuneOptions, TuneResult};
 use anyhow::{bail, Context, Result};
 use candle_core::Tensor;
 use deepstereo_core::config::Config;
 use deepstereo_core::imageio::write_atomic;
+use deepstereo_core::prior::PriorGrid;
 use deepstereo_core::render::CandleBackend;
 use deepstereo_core::scene::{LoadOptions, Scene};
-use deepstereo_core::tensorio::write_safetensors;
-use deepstereo_core::weights::{self, metadata, named_vars};
+use deepstereo_core::weights::{self, named_vars};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -79,6 +80,15 @@ pub struct Args {
     /// Times of the curve, in minutes (those within the budget are drawn).
     #[arg(long, default_value = "0,1,2,5,10,20")]
     pub curve_minutes: String,
+    /// Share of the budget (time, or steps) spent first fine-tuning the network's
+    /// weights; the rest fits the scene prior (a world-space grid that reweighs the
+    /// network's selection, leaving the network as it is). 0: the prior alone; 1: the
+    /// network alone, without a prior.
+    #[arg(long, default_value_t = 0.0)]
+    pub network_share: f64,
+    /// Cells along the longest side of the scene prior's grid.
+    #[arg(long, default_value_t = 64)]
+    pub prior_cells: usize,
     /// Print a line per validation instead of a progress bar (the default when standard
     /// error is not a terminal).
     #[arg(long)]
@@ -114,8 +124,13 @@ pub fn run(a: Args) -> Result<()> {
     }
     let data = SceneData::from_scene(&scene, cfg.levels)?;
     let validation = validation_views(data.cameras.len());
+    let share = a.network_share;
+    if !(share.is_finite() && (0.0..=1.0).contains(&share)) {
+        bail!("--network-share must be between 0 and 1, got {share}");
+    }
+    let (net_budget, prior_budget) = split_budget(budget, share);
     let opts = TuneOptions {
-        budget,
+        budget: net_budget.unwrap_or(Budget::Steps(1)),
         seed: a.seed,
         lr: a.lr,
         lr_final: a.lr_final,
@@ -139,27 +154,82 @@ pub fn run(a: Args) -> Result<()> {
     let flag = stop.clone();
     let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
     let bar = progress_bar(!a.no_progress);
-    let result = tune(&start, data, &validation, &opts, stop, |p| report(&bar, p))?;
+    let network = match net_budget {
+        Some(_) => {
+            let r = tune(&start, data, &validation, &opts, stop.clone(), |p| {
+                report(&bar, p)
+            })?;
+            let first = r.validation.first().map_or(f64::NAN, |v| v.psnr);
+            eprintln!(
+                "{}network: {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (the weights of step {})",
+                if r.interrupted { "interrupted: " } else { "" },
+                r.steps,
+                r.seconds,
+                r.best_psnr(),
+                r.best_step
+            );
+            Some(r)
+        }
+        None => None,
+    };
+    let interrupted = network.as_ref().is_some_and(|r| r.interrupted);
+    let prior = match prior_budget {
+        Some(pb) if !interrupted => {
+            let offset = network.as_ref().map_or(0.0, |r| r.seconds);
+            let mut po = prior_options(&a);
+            if let Budget::Steps(s) = budget {
+                po.steps = (s - net_budget.map_or(0, |b| steps_of(b))) as usize;
+            }
+            let snaps: Vec<f64> = opts.snapshots.clone();
+            let backend = CandleBackend {
+                model: start.model.clone().with_prior(None),
+                device: candle_core::Device::Cpu,
+            };
+            let train: Vec<usize> = (0..scene.views.len())
+                .filter(|i| !validation.contains(i))
+                .collect();
+            let r = fit_scene(
+                &backend,
+                &scene,
+                (&train, &validation),
+                &settings,
+                &po,
+                pb,
+                (&snaps, offset),
+                &stop,
+                |p| report_prior(&bar, p),
+            )?;
+            if let Some(f) = &r.fit {
+                let first = f.validation.first().map_or(f64::NAN, |v| v.1);
+                eprintln!(
+                    "{}scene prior: {} views, {} rays, {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (step {})",
+                    if r.interrupted { "interrupted: " } else { "" },
+                    r.views,
+                    r.rays,
+                    f.steps,
+                    r.seconds,
+                    f.best_psnr(),
+                    f.best_step
+                );
+            }
+            Some(r)
+        }
+        _ => None,
+    };
     bar.finish_and_clear();
-    let first = result.validation.first().map_or(f64::NAN, |v| v.psnr);
-    eprintln!(
-        "{}{} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (the weights of step {})",
-        if result.interrupted {
-            "interrupted: "
-        } else {
-            ""
-        },
-        result.steps,
-        result.seconds,
-        result.best_psnr(),
-        result.best_step
-    );
+    let grid = prior.as_ref().and_then(|p| p.grid.clone());
     let provenance = serde_json::json!({
         "scene": scene.root,
         "holdout": holdout,
         "seed": a.seed,
-        "steps": result.steps,
-        "best_step": result.best_step,
+        "steps": match budget { Budget::Steps(s) => Some(s), Budget::Seconds(_) => None },
+        "minutes": a.minutes,
+        "network_share": share,
+        "network_steps": network.as_ref().map(|r| r.steps),
+        "network_best_step": network.as_ref().map(|r| r.best_step),
+        "prior_views": prior.as_ref().map(|p| p.views),
+        "prior_steps": prior.as_ref().and_then(|p| p.fit.as_ref()).map(|f| f.steps),
+        "prior_best_step": prior.as_ref().and_then(|p| p.fit.as_ref()).map(|f| f.best_step),
         "lr": a.lr,
         "lr_final": a.lr_final,
         "batch": a.batch,
@@ -167,12 +237,88 @@ pub fn run(a: Args) -> Result<()> {
         "augment": a.augment,
         "start": a.model.name(),
     });
-    save_model(&a.out, &cfg, &start.varmap, &provenance.to_string())?;
+    save_model(
+        &a.out,
+        &cfg,
+        &start.varmap,
+        grid.as_ref(),
+        &provenance.to_string(),
+    )?;
     eprintln!("model: {}", a.out.display());
     if let Some(dir) = &a.curve {
-        write_curve(dir, &a, &cfg, &result, &holdout, &settings)?;
+        let snaps = curve_snapshots(&opts, &start, network.as_ref(), prior.as_ref())?;
+        write_curve(dir, &a, &cfg, &snaps, &holdout, &settings)?;
     }
     Ok(())
+}
+
+/// The budgets of the network's fine-tune (`None`: it does not run) and of the prior
+/// (`None`: it is not fitted), a share `share` of `budget` going to the network first.
+fn split_budget(budget: Budget, share: f64) -> (Option<Budget>, Option<PriorBudget>) {
+    let net = match budget {
+        Budget::Steps(s) => Some(Budget::Steps((s as f64 * share).round() as u64)),
+        Budget::Seconds(t) => Some(Budget::Seconds(t * share)),
+    }
+    .filter(|b| !matches!(b, Budget::Steps(0)) && *b != Budget::Seconds(0.0));
+    let prior = match budget {
+        _ if share >= 1.0 => None,
+        Budget::Steps(_) => Some(PriorBudget::AllViews),
+        Budget::Seconds(t) => Some(PriorBudget::Seconds(t * (1.0 - share))),
+    };
+    (net, prior)
+}
+
+fn steps_of(b: Budget) -> u64 {
+    match b {
+        Budget::Steps(s) => s,
+        Budget::Seconds(_) => 0,
+    }
+}
+
+fn prior_options(a: &Args) -> PriorOptions {
+    PriorOptions {
+        cells: a.prior_cells,
+        validate_every: a.validate_every as usize,
+        seed: a.seed,
+        ..PriorOptions::default()
+    }
+}
+
+/// Per curve time: the network's weights and the prior that a tune stopped then would
+/// have written.
+fn curve_snapshots(
+    opts: &TuneOptions,
+    start: &deepstereo_core::weights::Trainable,
+    network: Option<&TuneResult>,
+    prior: Option<&SceneFit>,
+) -> Result<Vec<(f64, Vec<Tensor>, Option<PriorGrid>)>> {
+    let now: Vec<Tensor> = named_vars(&start.varmap)
+        .iter()
+        .map(|(_, v)| v.as_tensor().copy())
+        .collect::<candle_core::Result<_>>()?;
+    let net_end = network.map_or(0.0, |r| r.seconds);
+    let end = net_end + prior.map_or(0.0, |p| p.seconds);
+    let mut out = Vec::new();
+    for &t in &opts.snapshots {
+        if t > end + 1e-9 && t > 0.0 {
+            continue;
+        }
+        let from_prior = prior.and_then(|p| p.snapshots.iter().find(|(s, _)| *s == t));
+        let from_net = network.and_then(|r| r.snapshots.iter().find(|(s, _)| *s == t));
+        out.push(match (t, from_prior, from_net) {
+            (t, _, _) if t == 0.0 => (
+                t,
+                network
+                    .and_then(|r| r.snapshots.first())
+                    .map_or(now.clone(), |s| s.1.clone()),
+                None,
+            ),
+            (t, Some((_, g)), _) => (t, now.clone(), Some(g.clone())),
+            (t, None, Some((_, w))) if t <= net_end => (t, w.clone(), None),
+            (t, _, _) => (t, now.clone(), prior.and_then(|p| p.grid.clone())),
+        });
+    }
+    Ok(out)
 }
 
 /// The scene without its held-out views, and their indices in the full scene.
@@ -226,17 +372,17 @@ fn check_out(out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// Writes the weights with the config and the tune's options, atomically.
+/// Writes the weights with the config, the scene prior and the tune's options,
+/// atomically.
 fn save_model(
     out: &Path,
     cfg: &Config,
     varmap: &candle_nn::VarMap,
+    prior: Option<&PriorGrid>,
     provenance: &str,
 ) -> Result<()> {
-    let arrays = weights::weight_arrays(varmap)?;
-    weights::check_finite(out, &arrays)?;
-    let meta = metadata(cfg, &[(TUNE_KEY, provenance.to_string())])?;
-    write_safetensors(out, &arrays, Some(meta))?;
+    let extra = [(TUNE_KEY, provenance.to_string())];
+    weights::save_with_prior(out, cfg, varmap, prior, &extra)?;
     Ok(())
 }
 
@@ -292,6 +438,19 @@ fn report(bar: &indicatif::ProgressBar, p: &Progress) {
     }
 }
 
+fn report_prior(bar: &indicatif::ProgressBar, p: &PriorProgress) {
+    bar.set_position((p.share * 1000.0).round().clamp(0.0, 1000.0) as u64);
+    let (read, total) = p.views;
+    let msg = match p.val_psnr {
+        Some(v) => format!("scene prior: fitting on {read} views, validation {v:.2} dB"),
+        None => format!("scene prior: view {read} of at most {total} read"),
+    };
+    if bar.is_hidden() {
+        eprintln!("{msg}");
+    }
+    bar.set_message(msg);
+}
+
 /// One point of the error-against-time curve.
 #[derive(serde::Serialize)]
 struct CurvePoint {
@@ -306,14 +465,14 @@ fn write_curve(
     dir: &Path,
     a: &Args,
     cfg: &Config,
-    result: &TuneResult,
+    snapshots: &[(f64, Vec<Tensor>, Option<PriorGrid>)],
     holdout: &[usize],
     settings: &RenderSettings,
 ) -> Result<()> {
     let scene = a.scene.load()?;
     let mut points = Vec::new();
-    for (secs, weights) in &result.snapshots {
-        let backend = backend_with(cfg, weights)?;
+    for (secs, weights, prior) in snapshots {
+        let backend = backend_with(cfg, weights, prior.clone())?;
         let name = format!("tuned {:.1} min", secs / 60.0);
         let r = evaluate(&backend, &name, &scene, holdout, settings, |_, _| {})?;
         eprintln!(
@@ -362,13 +521,17 @@ fn write_curve(
 }
 
 /// A candle backend running `cfg` with these weights (in `named_vars` order).
-fn backend_with(cfg: &Config, values: &[Tensor]) -> Result<CandleBackend> {
+fn backend_with(
+    cfg: &Config,
+    values: &[Tensor],
+    prior: Option<PriorGrid>,
+) -> Result<CandleBackend> {
     let t = weights::init(cfg, &candle_core::Device::Cpu)?;
     for ((_, var), v) in named_vars(&t.varmap).iter().zip(values) {
         var.set(v)?;
     }
     Ok(CandleBackend {
-        model: t.model,
+        model: t.model.with_prior(prior),
         device: candle_core::Device::Cpu,
     })
 }

@@ -1,0 +1,126 @@
+use super::*;
+use crate::camera::{Intrinsics, WorldToCamera};
+use glam::DMat3;
+
+fn grid() -> PriorGrid {
+    PriorGrid::zeros(DVec3::new(-1.0, -1.0, 1.0), DVec3::new(1.0, 1.0, 3.0), 5).unwrap()
+}
+
+#[test]
+fn zero_grid_changes_nothing() {
+    let g = grid();
+    let mut s = vec![0.1, 0.6, 0.3];
+    let cells: Vec<Cell> = [1.5, 2.0, 2.5]
+        .iter()
+        .map(|&z| g.locate(DVec3::new(0.2, -0.3, z)))
+        .collect();
+    g.reweigh(&mut s, &cells);
+    for (a, b) in s.iter().zip([0.1, 0.6, 0.3]) {
+        assert!((a - b).abs() < 1e-7, "{a} {b}");
+    }
+}
+
+#[test]
+fn trilinear_reproduces_a_linear_field() {
+    let mut g = grid();
+    let [nx, ny, _] = g.dims;
+    for (i, v) in g.values.iter_mut().enumerate() {
+        let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+        let p = g.origin + DVec3::new(x as f64, y as f64, z as f64) * g.cell;
+        *v = (0.5 * p.x - 2.0 * p.y + p.z) as f32;
+    }
+    for p in [DVec3::new(0.13, 0.77, 2.31), DVec3::new(-0.9, 0.0, 1.01)] {
+        let want = 0.5 * p.x - 2.0 * p.y + p.z;
+        let got = g.value(g.locate(p)) as f64;
+        assert!((got - want).abs() < 1e-5, "{got} {want}");
+    }
+    // Outside the box: the nearest face's value.
+    let inside = g.value(g.locate(DVec3::new(1.0, 0.0, 2.0)));
+    assert_eq!(g.value(g.locate(DVec3::new(7.0, 0.0, 2.0))), inside);
+    assert!(g
+        .value(g.locate(DVec3::new(f64::INFINITY, 0.0, 2.0)))
+        .is_finite());
+}
+
+#[test]
+fn reweigh_is_the_softmax_of_log_selection_plus_bias() {
+    let mut s = vec![0.2, 0.5, 0.3, 0.0];
+    let b = [1.0, -0.5, 0.25, 5.0];
+    reweigh_with(&mut s, &b);
+    let e: Vec<f64> = [0.2f64, 0.5, 0.3, 0.0]
+        .iter()
+        .zip(b)
+        .map(|(s, b)| s * (b as f64).exp())
+        .collect();
+    let sum: f64 = e.iter().sum();
+    for (a, w) in s.iter().zip(&e) {
+        assert!((*a as f64 - w / sum).abs() < 1e-6);
+    }
+    // Extreme log-weights stay finite and sum to 1; an all-zero selection stays zero.
+    let mut s = vec![0.5, 0.5];
+    reweigh_with(&mut s, &[1e30, -1e30]);
+    assert!((s[0] + s[1] - 1.0).abs() < 1e-6 && s.iter().all(|v| v.is_finite()));
+    let mut z = vec![0.0, 0.0];
+    reweigh_with(&mut z, &[1.0, 2.0]);
+    assert_eq!(z, vec![0.0, 0.0]);
+}
+
+/// The analytic gradient against central differences of the L1 loss.
+#[test]
+fn ray_gradient_matches_finite_differences() {
+    let mut g = grid();
+    for (i, v) in g.values.iter_mut().enumerate() {
+        *v = ((i * 37 % 11) as f32 - 5.0) * 0.1;
+    }
+    let s = [0.1f32, 0.4, 0.3, 0.2];
+    let c = [
+        [0.9f32, 0.1, 0.2],
+        [0.2, 0.8, 0.3],
+        [0.4, 0.4, 0.9],
+        [0.7, 0.6, 0.1],
+    ];
+    let cells: Vec<Cell> = [1.2, 1.7, 2.2, 2.9]
+        .iter()
+        .map(|&z| g.locate(DVec3::new(0.31, -0.42, z)))
+        .collect();
+    let truth = [0.5f32, 0.45, 0.3];
+    let mut grad = vec![0f32; g.values.len()];
+    g.ray_gradient(&s, &c, &cells, truth, 1.0, &mut grad);
+    let loss = |g: &PriorGrid| {
+        let mut scratch = vec![0f32; g.values.len()];
+        g.ray_gradient(&s, &c, &cells, truth, 1.0, &mut scratch) as f64
+    };
+    let mut checked = 0;
+    for i in 0..g.values.len() {
+        if grad[i] == 0.0 {
+            continue;
+        }
+        let h = 1e-3f32;
+        let (mut up, mut down) = (g.clone(), g.clone());
+        up.values[i] += h;
+        down.values[i] -= h;
+        let fd = (loss(&up) - loss(&down)) / (2.0 * h as f64);
+        assert!(
+            (fd - grad[i] as f64).abs() < 2e-3,
+            "cell {i}: {fd} vs {}",
+            grad[i]
+        );
+        checked += 1;
+    }
+    assert!(checked >= 8, "only {checked} cells had a gradient");
+}
+
+/// The plane points of a ray lie on it at the planes' camera depths.
+#[test]
+fn rays_are_located_at_their_plane_points() {
+    let g = PriorGrid::zeros(DVec3::splat(-4.0), DVec3::splat(4.0), 65).unwrap();
+    let pose = WorldToCamera::new_checked(DMat3::from_rotation_y(0.3), DVec3::new(0.1, -0.2, 0.5))
+        .unwrap();
+    let cam = Camera::global(Intrinsics::pinhole(50.0, 55.0, 16.0, 12.0, 32, 24), pose);
+    let inv = [0.5, 0.4, 0.3];
+    let cells = g.locate_rays(&cam, &inv, &[(7, 5)]);
+    for (z, &rho) in inv.iter().enumerate() {
+        let x = cam.unproject(DVec2::new(7.5, 5.5), 1.0 / rho);
+        assert_eq!(cells[z], g.locate(x));
+    }
+}

@@ -1,0 +1,594 @@
+//! Fitting a scene's selection prior ([`deepstereo_core::prior`]) by leaving one view out:
+//! the network renders each tuning view's layers from its other views once, and the
+//! grid's log-weights are fitted so that the reweighed layers reproduce the photographs
+//! (L1, Adam, with a smoothness term). The network's weights do not move, so the fit runs
+//! on stored layers, thousands of rays per step, without the network in the loop.
+
+use crate::inference::{pick_sources, source_inputs, Prepared, RenderSettings};
+use anyhow::{bail, Result};
+use deepstereo_core::camera::Camera;
+use deepstereo_core::mpi::{layers, reference_camera};
+use deepstereo_core::prior::{Cell, PriorGrid, MAX_LOG_WEIGHT};
+use deepstereo_core::render::Backend;
+use deepstereo_core::scene::Scene;
+use deepstereo_core::synth::Rng;
+use glam::{DVec2, DVec3};
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+/// How a prior is fitted.
+#[derive(Clone, Debug)]
+pub struct PriorOptions {
+    /// Cells along the grid's longest side.
+    pub cells: usize,
+    /// Most rays kept per view (drawn at random, without repetition).
+    pub rays_per_view: usize,
+    /// Most rays kept in all (fewer per view when many views are read).
+    pub max_rays: usize,
+    /// Most views read.
+    pub max_views: usize,
+    /// Adam steps of the final fit.
+    pub steps: usize,
+    /// Rays per step.
+    pub batch: usize,
+    /// Adam's rate (log-weight units).
+    pub lr: f32,
+    /// Weight of the squared difference of neighbouring cells.
+    pub smooth: f32,
+    /// Validation (on the views set aside) every this many steps.
+    pub validate_every: usize,
+    pub seed: u64,
+}
+
+impl Default for PriorOptions {
+    fn default() -> Self {
+        Self {
+            cells: 64,
+            rays_per_view: 16384,
+            max_rays: 600_000,
+            max_views: 96,
+            steps: 1000,
+            batch: 16384,
+            lr: 0.05,
+            smooth: 0.0,
+            validate_every: 100,
+            seed: 0,
+        }
+    }
+}
+
+/// Stored rays: per ray its plane selection and colours, the photograph's colour, and
+/// (once a grid exists) its plane points' cells.
+pub struct Rays {
+    pub planes: usize,
+    pub selection: Vec<f32>,
+    pub colours: Vec<[f32; 3]>,
+    pub truth: Vec<[f32; 3]>,
+    /// Per view read: its camera (as the layers were rendered), planes and first ray.
+    views: Vec<(Camera, Vec<f64>, usize)>,
+    /// Each ray's pixel `(x, y)`.
+    pixels: Vec<(usize, usize)>,
+    /// Expected surface point of each ray (the selection's mean inverse depth).
+    surface: Vec<DVec3>,
+    cells: Vec<Cell>,
+}
+
+impl Rays {
+    pub fn new(planes: usize) -> Self {
+        Self {
+            planes,
+            selection: Vec::new(),
+            colours: Vec::new(),
+            truth: Vec::new(),
+            views: Vec::new(),
+            pixels: Vec::new(),
+            surface: Vec::new(),
+            cells: Vec::new(),
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.truth.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.truth.is_empty()
+    }
+
+    /// Views read.
+    pub fn views(&self) -> usize {
+        self.views.len()
+    }
+}
+
+/// Renders the layers of view `t` of `scene` from its nearest other views (none of
+/// `exclude`) and keeps `count` random rays of it.
+#[allow(clippy::too_many_arguments)]
+pub fn collect_view(
+    backend: &dyn Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    t: usize,
+    exclude: &[usize],
+    settings: &RenderSettings,
+    (rng, count): (&mut Rng, usize),
+    rays: &mut Rays,
+) -> Result<()> {
+    let k = settings.source_count(backend.config())?;
+    let cam = reference_camera(&scene.views[t].camera);
+    let mut ex = exclude.to_vec();
+    ex.push(t);
+    let sources = pick_sources(scene, &cam, &ex, k, settings);
+    let (srcs, inv) = source_inputs(backend.config(), scene, prepared, &sources, settings)?;
+    if inv.len() != rays.planes {
+        bail!(
+            "{} planes where the prior expects {}",
+            inv.len(),
+            rays.planes
+        );
+    }
+    let (c, s) = layers(backend, &cam, &srcs, &inv, settings.tile, &|_, _| {})?;
+    let truth = scene.load_image(t)?;
+    let (w, h) = (truth.width as usize, truth.height as usize);
+    if (w, h)
+        != (
+            cam.intrinsics.width as usize,
+            cam.intrinsics.height as usize,
+        )
+    {
+        bail!("view {t}: its image is {w}x{h}, its camera another size");
+    }
+    let pixels = pick_pixels(rng, w * h, count);
+    rays.push(&cam, &inv, (&c, &s), &truth.data, &pixels);
+    Ok(())
+}
+
+/// `count` distinct pixels of `n`, ascending.
+fn pick_pixels(rng: &mut Rng, n: usize, count: usize) -> Vec<usize> {
+    if count >= n {
+        return (0..n).collect();
+    }
+    let mut all: Vec<usize> = (0..n).collect();
+    for i in 0..count {
+        let j = i + rng.below(n - i);
+        all.swap(i, j);
+    }
+    let mut out = all[..count].to_vec();
+    out.sort_unstable();
+    out
+}
+
+impl Rays {
+    fn push(
+        &mut self,
+        cam: &Camera,
+        inv: &[f64],
+        (colours, selection): (&[f32], &[f32]),
+        truth: &[f32],
+        pixels: &[usize],
+    ) {
+        let d = inv.len();
+        let w = cam.intrinsics.width as usize;
+        let n = selection.len() / d;
+        let centre = cam.pose.centre();
+        self.views.push((*cam, inv.to_vec(), self.len()));
+        for &p in pixels {
+            let (x, y) = (p % w, p / w);
+            let uv = DVec2::new(x as f64 + 0.5, y as f64 + 0.5);
+            let unit = cam.unproject(uv, 1.0) - centre;
+            let mut mean_rho = 0f64;
+            for (z, &rho) in inv.iter().enumerate() {
+                let s = selection[z * n + p];
+                self.selection.push(s);
+                self.colours.push(std::array::from_fn(|ch| {
+                    colours[(z * 3 + ch) * n + p].clamp(0.0, 1.0)
+                }));
+                mean_rho += s as f64 * rho;
+            }
+            self.surface.push(match mean_rho > 0.0 {
+                true => centre + unit / mean_rho,
+                false => DVec3::NAN,
+            });
+            self.pixels.push((x, y));
+            self.truth
+                .push([truth[p * 3], truth[p * 3 + 1], truth[p * 3 + 2]]);
+        }
+    }
+
+    /// A grid of zeros over the box of the rays' expected surface points (the 2nd to
+    /// 98th percentile on each axis, grown by a tenth of its size on every side).
+    pub fn grid(&self, cells: usize) -> Result<PriorGrid> {
+        let mut lo = DVec3::ZERO;
+        let mut hi = DVec3::ZERO;
+        for a in 0..3 {
+            let mut v: Vec<f64> = (self.surface.iter())
+                .map(|p| p[a])
+                .filter(|x| x.is_finite())
+                .collect();
+            if v.len() < 2 {
+                bail!("the network saw no surface to place a prior grid around");
+            }
+            v.sort_by(f64::total_cmp);
+            let top = v.len() - 1;
+            let (a0, a1) = (v[top * 2 / 100], v[top * 98 / 100]);
+            let pad = 0.1 * (a1 - a0).max(1e-6 * (1.0 + a0.abs()));
+            lo[a] = a0 - pad;
+            hi[a] = a1 + pad;
+        }
+        Ok(PriorGrid::zeros(lo, hi, cells)?)
+    }
+
+    /// Locates every ray's plane points in `grid`.
+    pub fn locate(&mut self, grid: &PriorGrid) {
+        let mut cells = Vec::with_capacity(self.len() * self.planes);
+        for (i, (cam, inv, first)) in self.views.iter().enumerate() {
+            let end = self.views.get(i + 1).map_or(self.len(), |v| v.2);
+            cells.extend(grid.locate_rays(cam, inv, &self.pixels[*first..end]));
+        }
+        self.cells = cells;
+    }
+
+    /// The PSNR of the rays rendered with `grid` (located in it) against their
+    /// photographs.
+    pub fn psnr(&self, grid: &PriorGrid) -> f64 {
+        let d = self.planes;
+        let se: f64 = (0..self.len())
+            .into_par_iter()
+            .map(|r| {
+                let mut s = self.selection[r * d..(r + 1) * d].to_vec();
+                grid.reweigh(&mut s, &self.cells[r * d..(r + 1) * d]);
+                let mut c = [0f32; 3];
+                for (w, cz) in s.iter().zip(&self.colours[r * d..(r + 1) * d]) {
+                    for k in 0..3 {
+                        c[k] += w * cz[k];
+                    }
+                }
+                (0..3)
+                    .map(|k| ((c[k].clamp(0.0, 1.0) - self.truth[r][k]) as f64).powi(2))
+                    .sum::<f64>()
+            })
+            .sum();
+        let mse = se / (3 * self.len().max(1)) as f64;
+        -10.0 * mse.max(1e-12).log10()
+    }
+}
+
+/// What a fit did.
+#[derive(Clone, Debug)]
+pub struct Fit {
+    /// Steps taken.
+    pub steps: usize,
+    /// `(step, PSNR)` of each validation on the views set aside (step 0: the grid given).
+    pub validation: Vec<(usize, f64)>,
+    /// The step whose log-weights the grid ends with.
+    pub best_step: usize,
+    /// Whether `stop` ended it.
+    pub interrupted: bool,
+}
+
+impl Fit {
+    /// The validation PSNR of the grid kept (NaN without validation).
+    pub fn best_psnr(&self) -> f64 {
+        (self.validation.iter())
+            .find(|v| v.0 == self.best_step)
+            .map_or(f64::NAN, |v| v.1)
+    }
+}
+
+/// Fits `grid` to `rays` (both located in it) with Adam on the L1 error, validating on
+/// `val` (when it has rays) every `opts.validate_every` steps and at the end; the grid
+/// ends with the log-weights that validated best (the grid given when none did better).
+pub fn fit(
+    grid: &mut PriorGrid,
+    rays: &Rays,
+    val: &Rays,
+    opts: &PriorOptions,
+    stop: &AtomicBool,
+    mut on_validate: impl FnMut(usize, f64),
+) -> Fit {
+    let d = rays.planes;
+    let nr = rays.len();
+    let (mut m, mut v) = (vec![0f32; grid.values.len()], vec![0f32; grid.values.len()]);
+    let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
+    let mut rng = Rng::new(opts.seed ^ 0xf17_9a1d);
+    let batch = opts.batch.min(nr).max(1);
+    let threads = rayon::current_num_threads().max(1);
+    let validate = |g: &PriorGrid| {
+        if val.is_empty() {
+            f64::NAN
+        } else {
+            val.psnr(g)
+        }
+    };
+    let first = validate(grid);
+    on_validate(0, first);
+    let mut out = Fit {
+        steps: 0,
+        validation: vec![(0, first)],
+        best_step: 0,
+        interrupted: false,
+    };
+    let mut best = (grid.values.clone(), first);
+    for step in 1..=opts.steps {
+        if nr == 0 {
+            break;
+        }
+        if stop.load(Ordering::SeqCst) {
+            out.interrupted = true;
+            break;
+        }
+        let picks: Vec<usize> = (0..batch).map(|_| rng.below(nr)).collect();
+        let scale = 1.0 / (3.0 * batch as f32);
+        let g: &PriorGrid = grid;
+        let parts: Vec<Vec<f32>> = picks
+            .par_chunks(batch.div_ceil(threads))
+            .map(|chunk| {
+                let mut grad = vec![0f32; g.values.len()];
+                for &r in chunk {
+                    let span = r * d..(r + 1) * d;
+                    g.ray_gradient(
+                        &rays.selection[span.clone()],
+                        &rays.colours[span.clone()],
+                        &rays.cells[span],
+                        rays.truth[r],
+                        scale,
+                        &mut grad,
+                    );
+                }
+                grad
+            })
+            .collect();
+        let mut grad = vec![0f32; grid.values.len()];
+        for p in parts {
+            grad.iter_mut().zip(p).for_each(|(a, b)| *a += b);
+        }
+        smoothness_gradient(grid, opts.smooth, &mut grad);
+        let t = step as i32;
+        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+        for i in 0..grad.len() {
+            m[i] = b1 * m[i] + (1.0 - b1) * grad[i];
+            v[i] = b2 * v[i] + (1.0 - b2) * grad[i] * grad[i];
+            let x = grid.values[i] - opts.lr * (m[i] / c1) / ((v[i] / c2).sqrt() + eps);
+            grid.values[i] = x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT);
+        }
+        out.steps = step;
+        if step % opts.validate_every.max(1) == 0 || step == opts.steps {
+            let psnr = validate(grid);
+            on_validate(step, psnr);
+            out.validation.push((step, psnr));
+            // Without validation views the last step is kept.
+            if psnr > best.1 || val.is_empty() {
+                best = (grid.values.clone(), psnr);
+                out.best_step = step;
+            }
+        }
+    }
+    grid.values = best.0;
+    out
+}
+
+/// Adds the gradient of `w * sum (b_i - b_j)^2` over neighbouring cells.
+fn smoothness_gradient(grid: &PriorGrid, w: f32, grad: &mut [f32]) {
+    if w == 0.0 {
+        return;
+    }
+    let [nx, ny, nz] = grid.dims;
+    let b = &grid.values;
+    for z in 0..nz {
+        for y in 0..ny {
+            for x in 0..nx {
+                let i = x + nx * (y + ny * z);
+                for (ok, j) in [
+                    (x + 1 < nx, i + 1),
+                    (y + 1 < ny, i + nx),
+                    (z + 1 < nz, i + nx * ny),
+                ] {
+                    if ok {
+                        let dlt = 2.0 * w * (b[i] - b[j]);
+                        grad[i] += dlt;
+                        grad[j] -= dlt;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// How long fitting a scene's prior may take.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PriorBudget {
+    /// Read every view (up to [`PriorOptions::max_views`]), then fit: the output depends
+    /// only on the inputs and the seed.
+    AllViews,
+    /// Read views until the final fit would not end within this many seconds.
+    Seconds(f64),
+}
+
+/// What fitting a scene's prior did.
+pub struct SceneFit {
+    /// The fitted grid (`None` when interrupted before any view was read).
+    pub grid: Option<PriorGrid>,
+    pub fit: Option<Fit>,
+    /// Views read, and rays kept.
+    pub views: usize,
+    pub rays: usize,
+    /// Seconds spent (the curve's snapshot fits excluded).
+    pub seconds: f64,
+    /// `(seconds, grid)`: the grid fitted on the views read by each snapshot time.
+    pub snapshots: Vec<(f64, PriorGrid)>,
+    pub interrupted: bool,
+}
+
+/// What the caller hears while a prior is fitted.
+pub struct PriorProgress {
+    /// Views read of those that will be read at most.
+    pub views: (usize, usize),
+    /// Share of the time budget used (views read without one).
+    pub share: f64,
+    /// The validation PSNR when the fit validated.
+    pub val_psnr: Option<f64>,
+}
+
+/// The order views are read in: spread over the capture, so that the views read by any
+/// time cover it (index `i` by the fractional part of `i` times the golden ratio).
+pub fn spread_order(views: &[usize]) -> Vec<usize> {
+    let mut v: Vec<(f64, usize)> = (views.iter().enumerate())
+        .map(|(i, &x)| ((i as f64 * 0.618_033_988_749_895).fract(), x))
+        .collect();
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    v.into_iter().map(|(_, x)| x).collect()
+}
+
+/// Fits the prior of `scene` (every view of it may be a source) with the views `train`
+/// as targets, validated on the views `validation`. `snapshots` are times (seconds of
+/// the whole tune, which began `clock_offset` seconds before this call) at which a grid
+/// fitted on the views read so far is kept, for a curve.
+#[allow(clippy::too_many_arguments)]
+pub fn fit_scene(
+    backend: &dyn Backend,
+    scene: &Scene,
+    (train, validation): (&[usize], &[usize]),
+    settings: &RenderSettings,
+    opts: &PriorOptions,
+    budget: PriorBudget,
+    (snapshots, clock_offset): (&[f64], f64),
+    stop: &AtomicBool,
+    mut progress: impl FnMut(&PriorProgress),
+) -> Result<SceneFit> {
+    let t0 = Instant::now();
+    let mut paused = 0f64;
+    let planes = settings.planes.unwrap_or(backend.config().planes);
+    let order: Vec<usize> = spread_order(train)
+        .into_iter()
+        .take(opts.max_views)
+        .collect();
+    let total = order.len();
+    let per_view = opts.rays_per_view.min(opts.max_rays / total.max(1)).max(1);
+    let mut prepared = Prepared::new(scene);
+    let mut rng = Rng::new(opts.seed ^ 0x5eed_0f_9a1d);
+    let mut val = Rays::new(planes);
+    for &v in validation {
+        let r = (&mut rng, per_view);
+        collect_view(backend, scene, &mut prepared, v, &[], settings, r, &mut val)?;
+    }
+    let mut rays = Rays::new(planes);
+    let mut out = SceneFit {
+        grid: None,
+        fit: None,
+        views: 0,
+        rays: 0,
+        seconds: 0.0,
+        snapshots: Vec::new(),
+        interrupted: false,
+    };
+    let mut reserve = None;
+    let never = AtomicBool::new(false);
+    for &t in &order {
+        let elapsed = t0.elapsed().as_secs_f64() - paused;
+        if let PriorBudget::Seconds(b) = budget {
+            if elapsed + reserve.unwrap_or(0.0) >= b {
+                break;
+            }
+        }
+        if stop.load(Ordering::SeqCst) {
+            out.interrupted = true;
+            break;
+        }
+        let r = (&mut rng, per_view);
+        collect_view(
+            backend,
+            scene,
+            &mut prepared,
+            t,
+            &[],
+            settings,
+            r,
+            &mut rays,
+        )?;
+        let elapsed = t0.elapsed().as_secs_f64() - paused;
+        if reserve.is_none() {
+            reserve = Some(fit_time(&rays, &val, opts)?);
+        }
+        for &s in snapshots {
+            let due = s <= clock_offset + elapsed;
+            if due && !out.snapshots.iter().any(|(x, _)| *x == s) {
+                let p0 = Instant::now();
+                let (grid, _) = fit_rays(&mut rays, &mut val, opts, &never, |_, _| {})?;
+                out.snapshots.push((s, grid));
+                paused += p0.elapsed().as_secs_f64();
+            }
+        }
+        progress(&PriorProgress {
+            views: (rays.views(), total),
+            share: match budget {
+                PriorBudget::Seconds(b) => (elapsed + reserve.unwrap_or(0.0)) / b,
+                PriorBudget::AllViews => rays.views() as f64 / total.max(1) as f64,
+            }
+            .min(1.0),
+            val_psnr: None,
+        });
+    }
+    if rays.is_empty() {
+        out.interrupted |= stop.load(Ordering::SeqCst);
+        out.seconds = t0.elapsed().as_secs_f64() - paused;
+        return Ok(out);
+    }
+    let views = (rays.views(), total);
+    let (grid, fit) = fit_rays(&mut rays, &mut val, opts, stop, |_, psnr| {
+        progress(&PriorProgress {
+            views,
+            share: 1.0,
+            val_psnr: Some(psnr),
+        })
+    })?;
+    out.interrupted |= fit.interrupted;
+    out.views = rays.views();
+    out.rays = rays.len();
+    out.grid = Some(grid);
+    out.fit = Some(fit);
+    out.seconds = t0.elapsed().as_secs_f64() - paused;
+    Ok(out)
+}
+
+/// A grid over `rays`, fitted to them.
+fn fit_rays(
+    rays: &mut Rays,
+    val: &mut Rays,
+    opts: &PriorOptions,
+    stop: &AtomicBool,
+    on_validate: impl FnMut(usize, f64),
+) -> Result<(PriorGrid, Fit)> {
+    let mut grid = rays.grid(opts.cells)?;
+    rays.locate(&grid);
+    val.locate(&grid);
+    let fit = fit(&mut grid, rays, val, opts, stop, on_validate);
+    Ok((grid, fit))
+}
+
+/// Seconds the final fit will take, estimated from a few steps on `rays` (the grid is
+/// thrown away), with a fifth more for safety.
+fn fit_time(rays: &Rays, val: &Rays, opts: &PriorOptions) -> Result<f64> {
+    let mut probe = Rays::new(rays.planes);
+    probe.selection.clone_from(&rays.selection);
+    probe.colours.clone_from(&rays.colours);
+    probe.truth.clone_from(&rays.truth);
+    probe.views.clone_from(&rays.views);
+    probe.pixels.clone_from(&rays.pixels);
+    probe.surface.clone_from(&rays.surface);
+    let mut val_probe = Rays::new(val.planes);
+    let steps = 5;
+    let t0 = Instant::now();
+    let o = PriorOptions {
+        steps,
+        validate_every: usize::MAX,
+        ..opts.clone()
+    };
+    let never = AtomicBool::new(false);
+    fit_rays(&mut probe, &mut val_probe, &o, &never, |_, _| {})?;
+    let per_step = t0.elapsed().as_secs_f64() / steps as f64;
+    // A validation renders every validation ray once, about as a step renders its batch.
+    let validations = (opts.steps / opts.validate_every.max(1) + 2) as f64;
+    let per_val = per_step * val.len() as f64 / opts.batch.max(1) as f64;
+    Ok(1.2 * (per_step * opts.steps as f64 + per_val * validations) + 2.0)
+}
