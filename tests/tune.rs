@@ -126,6 +126,65 @@ fn the_tuned_model_renders_and_names_its_tune() {
     let json: serde_json::Value = serde_json::from_str(&res.stdout).expect("eval json");
     let psnr = json["mean"]["psnr"].as_f64().expect("a mean PSNR");
     assert!(psnr.is_finite() && psnr > 10.0, "PSNR {psnr}");
+    // The scene prior is in the file; onnxruntime cannot apply it and says so.
+    assert!(
+        meta.contains_key("deepstereo.prior"),
+        "no scene prior in {meta:?}"
+    );
+    let res = run_deepstereo([
+        "eval",
+        "--scene",
+        &sc,
+        "--llffhold",
+        "4",
+        "--model",
+        &m,
+        "--backend",
+        "ort",
+    ]);
+    assert!(
+        res.code != Some(0) && res.stderr.contains("scene prior"),
+        "ort took a model with a prior:\n{}",
+        res.stderr
+    );
+}
+
+/// `--network-share`: 1 fine-tunes the network alone (no prior in the file), 0.5 both
+/// (the network's steps first), and each moves what it says.
+#[test]
+fn network_share_splits_the_steps() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = scene(dir.path(), false);
+    let start = dir.path().join("start.safetensors");
+    let prior_only = tuned(&s, &start);
+    for (share, prior) in [("1", false), ("0.5", true)] {
+        let out = dir.path().join(format!("share{share}.safetensors"));
+        let res = tune(
+            &s,
+            &out,
+            &["--llffhold", "4", "--steps", "4", "--network-share", share],
+        );
+        assert_eq!(res.code, Some(0), "tune failed:\n{}", res.stderr);
+        let meta = read_safetensors_metadata(&out);
+        assert_eq!(
+            meta.contains_key("deepstereo.prior"),
+            prior,
+            "share {share}"
+        );
+        let t: serde_json::Value =
+            serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string"))
+                .expect("json");
+        assert_eq!(
+            t["network_steps"],
+            if share == "1" { 4 } else { 2 },
+            "share {share}"
+        );
+        assert_ne!(
+            std::fs::read(&out).expect("read"),
+            prior_only,
+            "share {share}"
+        );
+    }
 }
 
 #[test]
@@ -135,7 +194,11 @@ fn bad_input_is_refused_and_writes_nothing() {
     let out = dir.path().join("out.safetensors");
     let tiny = tiny_asset();
     let tiny = tiny.to_string_lossy();
-    let cases: [(&[&str], &str); 7] = [
+    let cases: [(&[&str], &str); 8] = [
+        (
+            &["--llffhold", "4", "--steps", "2", "--network-share", "1.5"],
+            "--network-share",
+        ),
         (&["--holdout", "0,1,2,3,4,5", "--steps", "2"], "at least 3"),
         (&["--holdout", "0,9", "--steps", "2"], "out of range"),
         (&["--llffhold", "4", "--minutes", "0"], "--minutes"),

@@ -466,7 +466,7 @@ pub fn fit_scene(
     let total = order.len();
     let per_view = opts.rays_per_view.min(opts.max_rays / total.max(1)).max(1);
     let mut prepared = Prepared::new(scene);
-    let mut rng = Rng::new(opts.seed ^ 0x5eed_0f_9a1d);
+    let mut rng = Rng::new(opts.seed ^ 0x005e_ed0f_9a1d);
     let mut val = Rays::new(planes);
     for &v in validation {
         let r = (&mut rng, per_view);

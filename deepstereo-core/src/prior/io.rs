@@ -43,17 +43,18 @@ pub fn read(path: &Path, bytes: &[u8], st: &SafeTensors<'_>) -> Result<Option<Pr
         .map_err(|e| Error::model(path, format!("not a safetensors file: {e}")))?;
     let place = meta.metadata().as_ref().and_then(|m| m.get(META_KEY));
     let tensor = st.tensor(TENSOR).ok();
-    let (place, view) =
-        match (place, tensor) {
-            (None, None) => return Ok(None),
-            (Some(p), Some(v)) => (p, v),
-            _ => return Err(Error::model(
+    let (place, view) = match (place, tensor) {
+        (None, None) => return Ok(None),
+        (Some(p), Some(v)) => (p, v),
+        _ => {
+            return Err(Error::model(
                 path,
                 format!(
                     "a scene prior needs both the tensor '{TENSOR}' and the metadata '{META_KEY}'"
                 ),
-            )),
-        };
+            ))
+        }
+    };
     let bad = |m: String| Error::model(path, format!("scene prior: {m}"));
     let place: Placement =
         serde_json::from_str(place).map_err(|e| bad(format!("'{META_KEY}' is not valid: {e}")))?;

@@ -91,8 +91,8 @@ fn ray_gradient_matches_finite_differences() {
         g.ray_gradient(&s, &c, &cells, truth, 1.0, &mut scratch) as f64
     };
     let mut checked = 0;
-    for i in 0..g.values.len() {
-        if grad[i] == 0.0 {
+    for (i, &gi) in grad.iter().enumerate() {
+        if gi == 0.0 {
             continue;
         }
         let h = 1e-3f32;
@@ -123,4 +123,45 @@ fn rays_are_located_at_their_plane_points() {
         let x = cam.unproject(DVec2::new(7.5, 5.5), 1.0 / rho);
         assert_eq!(cells[z], g.locate(x));
     }
+}
+
+/// Writes `arrays` with `meta` and reads the prior back through [`io::read`].
+fn read_back(
+    arrays: &[crate::tensorio::NamedArray],
+    meta: Option<(&str, String)>,
+) -> Result<Option<PriorGrid>> {
+    let dir = tempfile::tempdir().map_err(|e| Error::Invalid(e.to_string()))?;
+    let path = dir.path().join("m.safetensors");
+    let meta = meta.map(|(k, v)| [(k.to_string(), v)].into_iter().collect());
+    crate::tensorio::write_safetensors(&path, arrays, meta)?;
+    let bytes = std::fs::read(&path).map_err(|e| Error::io(&path, e))?;
+    let st =
+        safetensors::SafeTensors::deserialize(&bytes).map_err(|e| Error::Invalid(e.to_string()))?;
+    io::read(&path, &bytes, &st)
+}
+
+#[test]
+fn a_prior_file_round_trips_and_bad_ones_are_refused() {
+    let mut g = grid();
+    g.values
+        .iter_mut()
+        .enumerate()
+        .for_each(|(i, v)| *v = i as f32 * 0.01);
+    let (array, (key, json)) = io::to_file(&g);
+    let back = read_back(std::slice::from_ref(&array), Some((key, json.clone())))
+        .expect("read")
+        .expect("a prior");
+    assert_eq!((back.dims, &back.values), (g.dims, &g.values));
+    assert!((back.origin - g.origin).length() < 1e-12 && (back.cell - g.cell).abs() < 1e-12);
+    assert_eq!(read_back(&[], None).expect("no prior"), None);
+    let err = |r: Result<Option<PriorGrid>>| r.expect_err("accepted").to_string();
+    assert!(err(read_back(std::slice::from_ref(&array), None)).contains("needs both"));
+    let mut nan = g.clone();
+    nan.values[3] = f32::NAN;
+    let (bad, _) = io::to_file(&nan);
+    assert!(err(read_back(&[bad], Some((key, json.clone())))).contains("non-finite"));
+    let flat = crate::tensorio::NamedArray::f32(io::TENSOR, &[g.values.len()], &g.values);
+    assert!(err(read_back(&[flat], Some((key, json)))).contains("shape"));
+    let cell0 = r#"{"origin":[0,0,0],"cell":0}"#.to_string();
+    assert!(err(read_back(std::slice::from_ref(&array), Some((key, cell0)))).contains("positive"));
 }

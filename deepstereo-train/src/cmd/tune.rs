@@ -178,7 +178,7 @@ pub fn run(a: Args) -> Result<()> {
             let offset = network.as_ref().map_or(0.0, |r| r.seconds);
             let mut po = prior_options(&a);
             if let Budget::Steps(s) = budget {
-                po.steps = (s - net_budget.map_or(0, |b| steps_of(b))) as usize;
+                po.steps = (s - net_budget.map_or(0, steps_of)) as usize;
             }
             let snaps: Vec<f64> = opts.snapshots.clone();
             let backend = CandleBackend {
@@ -284,6 +284,9 @@ fn prior_options(a: &Args) -> PriorOptions {
     }
 }
 
+/// A curve time, the network's weights (in `named_vars` order) and the prior.
+type Snapshot = (f64, Vec<Tensor>, Option<PriorGrid>);
+
 /// Per curve time: the network's weights and the prior that a tune stopped then would
 /// have written.
 fn curve_snapshots(
@@ -291,7 +294,7 @@ fn curve_snapshots(
     start: &deepstereo_core::weights::Trainable,
     network: Option<&TuneResult>,
     prior: Option<&SceneFit>,
-) -> Result<Vec<(f64, Vec<Tensor>, Option<PriorGrid>)>> {
+) -> Result<Vec<Snapshot>> {
     let now: Vec<Tensor> = named_vars(&start.varmap)
         .iter()
         .map(|(_, v)| v.as_tensor().copy())
@@ -465,7 +468,7 @@ fn write_curve(
     dir: &Path,
     a: &Args,
     cfg: &Config,
-    snapshots: &[(f64, Vec<Tensor>, Option<PriorGrid>)],
+    snapshots: &[Snapshot],
     holdout: &[usize],
     settings: &RenderSettings,
 ) -> Result<()> {
