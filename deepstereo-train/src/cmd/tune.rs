@@ -246,7 +246,7 @@ pub fn run(a: Args) -> Result<()> {
     )?;
     eprintln!("model: {}", a.out.display());
     if let Some(dir) = &a.curve {
-        let snaps = curve_snapshots(&opts, &start, network.as_ref(), prior.as_ref())?;
+        let snaps = curve_snapshots(&opts, budget, &start, network.as_ref(), prior.as_ref())?;
         write_curve(dir, &a, &cfg, &snaps, &holdout, &settings)?;
     }
     Ok(())
@@ -291,6 +291,7 @@ type Snapshot = (f64, Vec<Tensor>, Option<PriorGrid>);
 /// have written.
 fn curve_snapshots(
     opts: &TuneOptions,
+    budget: Budget,
     start: &deepstereo_core::weights::Trainable,
     network: Option<&TuneResult>,
     prior: Option<&SceneFit>,
@@ -301,9 +302,17 @@ fn curve_snapshots(
         .collect::<candle_core::Result<_>>()?;
     let net_end = network.map_or(0.0, |r| r.seconds);
     let end = net_end + prior.map_or(0.0, |p| p.seconds);
+    // A tune that read every view before its time was up ends with the model a longer
+    // one would also write: the curve holds it up to the budget.
+    let interrupted =
+        network.is_some_and(|r| r.interrupted) || prior.is_some_and(|p| p.interrupted);
+    let limit = match budget {
+        Budget::Seconds(b) if !interrupted => b.max(end),
+        _ => end,
+    };
     let mut out = Vec::new();
     for &t in &opts.snapshots {
-        if t > end + 1e-9 && t > 0.0 {
+        if t > limit + 1e-9 && t > 0.0 {
             continue;
         }
         let from_prior = prior.and_then(|p| p.snapshots.iter().find(|(s, _)| *s == t));
