@@ -217,7 +217,9 @@ pub fn run(a: Args) -> Result<()> {
         _ => None,
     };
     bar.finish_and_clear();
-    let grid = prior.as_ref().and_then(|p| p.grid.clone());
+    // A grid no step improved on is the model as given: no prior is written.
+    let improved = |p: &&SceneFit| p.fit.as_ref().is_some_and(|f| f.best_step > 0);
+    let grid = prior.as_ref().filter(improved).and_then(|p| p.grid.clone());
     let provenance = serde_json::json!({
         "scene": scene.root,
         "holdout": holdout,
