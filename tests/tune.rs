@@ -111,17 +111,12 @@ fn the_tuned_model_renders_and_names_its_tune() {
     assert_eq!(tune["holdout"], serde_json::json!([0, 4]));
     assert_eq!(tune["steps"], 4);
     let (m, sc) = (model.to_string_lossy(), s.to_string_lossy());
-    let res = run_deepstereo([
-        "eval",
-        "--scene",
-        &sc,
-        "--llffhold",
-        "4",
-        "--model",
-        &m,
-        "--json",
-        "-",
-    ]);
+    let eval = |extra: &[&str]| {
+        let mut args = vec!["eval", "--scene", &sc, "--llffhold", "4", "--model", &m];
+        args.extend_from_slice(extra);
+        run_deepstereo(args)
+    };
+    let res = eval(&["--json", "-"]);
     assert_eq!(res.code, Some(0), "eval --model failed:\n{}", res.stderr);
     let json: serde_json::Value = serde_json::from_str(&res.stdout).expect("eval json");
     let psnr = json["mean"]["psnr"].as_f64().expect("a mean PSNR");
@@ -131,17 +126,7 @@ fn the_tuned_model_renders_and_names_its_tune() {
         meta.contains_key("deepstereo.prior"),
         "no scene prior in {meta:?}"
     );
-    let res = run_deepstereo([
-        "eval",
-        "--scene",
-        &sc,
-        "--llffhold",
-        "4",
-        "--model",
-        &m,
-        "--backend",
-        "ort",
-    ]);
+    let res = eval(&["--backend", "ort"]);
     assert!(
         res.code != Some(0) && res.stderr.contains("scene prior"),
         "ort took a model with a prior:\n{}",
