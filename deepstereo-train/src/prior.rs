@@ -487,7 +487,8 @@ pub fn fit_scene(
     for &t in &order {
         let elapsed = t0.elapsed().as_secs_f64() - paused;
         if let PriorBudget::Seconds(b) = budget {
-            if elapsed + reserve.unwrap_or(0.0) >= b {
+            let next = rays.views() + val.views() + 1;
+            if elapsed + reserve.map_or(0.0, |r: FitTime| r.of(next)) >= b {
                 break;
             }
         }
@@ -508,7 +509,7 @@ pub fn fit_scene(
         )?;
         let elapsed = t0.elapsed().as_secs_f64() - paused;
         if reserve.is_none() {
-            reserve = Some(fit_time(&rays, &val, opts)?);
+            reserve = Some(FitTime::measure(&rays, &val, opts)?);
         }
         for &s in snapshots {
             let due = s <= clock_offset + elapsed;
@@ -522,7 +523,9 @@ pub fn fit_scene(
         progress(&PriorProgress {
             views: (rays.views(), total),
             share: match budget {
-                PriorBudget::Seconds(b) => (elapsed + reserve.unwrap_or(0.0)) / b,
+                PriorBudget::Seconds(b) => {
+                    (elapsed + reserve.map_or(0.0, |r| r.of(rays.views() + val.views()))) / b
+                }
                 PriorBudget::AllViews => rays.views() as f64 / total.max(1) as f64,
             }
             .min(1.0),
@@ -535,7 +538,13 @@ pub fn fit_scene(
         return Ok(out);
     }
     let views = (rays.views(), total);
-    let (grid, fit) = fit_rays(&mut rays, &mut val, opts, stop, |_, psnr| {
+    // With a time budget, the fit takes the steps that end within it.
+    let mut fo = opts.clone();
+    if let (PriorBudget::Seconds(b), Some(r)) = (budget, reserve) {
+        let left = b - (t0.elapsed().as_secs_f64() - paused);
+        fo.steps = r.steps_within(left, rays.views() + val.views(), opts.steps);
+    }
+    let (grid, fit) = fit_rays(&mut rays, &mut val, &fo, stop, |_, psnr| {
         progress(&PriorProgress {
             views,
             share: 1.0,
@@ -566,29 +575,70 @@ fn fit_rays(
     Ok((grid, fit))
 }
 
-/// Seconds the final fit will take, estimated from a few steps on `rays` (the grid is
-/// thrown away), with a fifth more for safety.
-fn fit_time(rays: &Rays, val: &Rays, opts: &PriorOptions) -> Result<f64> {
-    let mut probe = Rays::new(rays.planes);
-    probe.selection.clone_from(&rays.selection);
-    probe.colours.clone_from(&rays.colours);
-    probe.truth.clone_from(&rays.truth);
-    probe.views.clone_from(&rays.views);
-    probe.pixels.clone_from(&rays.pixels);
-    probe.surface.clone_from(&rays.surface);
-    let mut val_probe = Rays::new(val.planes);
-    let steps = 5;
-    let t0 = Instant::now();
-    let o = PriorOptions {
-        steps,
-        validate_every: usize::MAX,
-        ..opts.clone()
-    };
-    let never = AtomicBool::new(false);
-    fit_rays(&mut probe, &mut val_probe, &o, &never, |_, _| {})?;
-    let per_step = t0.elapsed().as_secs_f64() / steps as f64;
-    // A validation renders every validation ray once, about as a step renders its batch.
-    let validations = (opts.steps / opts.validate_every.max(1) + 2) as f64;
-    let per_val = per_step * val.len() as f64 / opts.batch.max(1) as f64;
-    Ok(1.2 * (per_step * opts.steps as f64 + per_val * validations) + 2.0)
+/// How long the final fit will take: `fixed + per_view * views` seconds for `views`
+/// views read (placing their rays in the grid grows with them), with a fifth more for
+/// safety.
+#[derive(Clone, Copy, Debug)]
+struct FitTime {
+    fixed: f64,
+    per_view: f64,
+    /// Seconds per step, its share of the validations included.
+    per_step: f64,
+}
+
+impl FitTime {
+    /// Estimated from a few steps on `rays` (one view's; the grid is thrown away).
+    fn measure(rays: &Rays, val: &Rays, opts: &PriorOptions) -> Result<Self> {
+        let mut probe = Rays::new(rays.planes);
+        probe.selection.clone_from(&rays.selection);
+        probe.colours.clone_from(&rays.colours);
+        probe.truth.clone_from(&rays.truth);
+        probe.views.clone_from(&rays.views);
+        probe.pixels.clone_from(&rays.pixels);
+        probe.surface.clone_from(&rays.surface);
+        let t0 = Instant::now();
+        let mut grid = probe.grid(opts.cells)?;
+        probe.locate(&grid);
+        let per_view = t0.elapsed().as_secs_f64() / probe.views().max(1) as f64;
+        let steps = 5;
+        let o = PriorOptions {
+            steps,
+            validate_every: usize::MAX,
+            ..opts.clone()
+        };
+        let never = AtomicBool::new(false);
+        let t1 = Instant::now();
+        fit(
+            &mut grid,
+            &probe,
+            &Rays::new(rays.planes),
+            &o,
+            &never,
+            |_, _| {},
+        );
+        // A step renders `batch` rays however many there are: scale the probe's up.
+        let probed = opts.batch.min(probe.len()).max(1) as f64;
+        let per_step = t1.elapsed().as_secs_f64() / steps as f64 * opts.batch as f64 / probed;
+        // A validation renders every validation ray once, about as a step renders its batch.
+        let validations = (opts.steps / opts.validate_every.max(1) + 2) as f64;
+        let per_val = per_step * val.len() as f64 / opts.batch.max(1) as f64;
+        let total = per_step * opts.steps as f64 + per_val * validations;
+        Ok(Self {
+            fixed: 1.2 * total + 2.0,
+            per_view: 1.2 * per_view,
+            per_step: total / opts.steps.max(1) as f64,
+        })
+    }
+
+    /// The most steps (at least 1, at most `steps`) that end within `left` seconds once
+    /// `views` views' rays are placed in the grid.
+    fn steps_within(&self, left: f64, views: usize, steps: usize) -> usize {
+        let room = (left - 2.0 - self.per_view * views as f64) / (1.2 * self.per_step);
+        (room.max(1.0) as usize).min(steps)
+    }
+
+    /// Seconds for `views` views read (and `extra` validation views).
+    fn of(&self, views: usize) -> f64 {
+        self.fixed + self.per_view * views as f64
+    }
 }
