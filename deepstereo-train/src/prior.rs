@@ -512,7 +512,8 @@ pub fn fit_scene(
             reserve = Some(FitTime::measure(&rays, &val, opts)?);
         }
         for &s in snapshots {
-            let due = s <= clock_offset + elapsed;
+            // Times before this phase began belong to the network's fine-tune.
+            let due = s >= clock_offset && s <= clock_offset + elapsed;
             if due && !out.snapshots.iter().any(|(x, _)| *x == s) {
                 let p0 = Instant::now();
                 let (grid, _) = fit_rays(&mut rays, &mut val, opts, &never, |_, _| {})?;

@@ -155,64 +155,26 @@ pub fn run(a: Args) -> Result<()> {
     let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
     let bar = progress_bar(!a.no_progress);
     let network = match net_budget {
-        Some(_) => {
-            let r = tune(&start, data, &validation, &opts, stop.clone(), |p| {
-                report(&bar, p)
-            })?;
-            let first = r.validation.first().map_or(f64::NAN, |v| v.psnr);
-            eprintln!(
-                "{}network: {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (the weights of step {})",
-                if r.interrupted { "interrupted: " } else { "" },
-                r.steps,
-                r.seconds,
-                r.best_psnr(),
-                r.best_step
-            );
-            Some(r)
-        }
+        Some(_) => Some(tune_network(&start, data, &validation, &opts, &stop, &bar)?),
         None => None,
     };
     let interrupted = network.as_ref().is_some_and(|r| r.interrupted);
     let prior = match prior_budget {
         Some(pb) if !interrupted => {
-            let offset = network.as_ref().map_or(0.0, |r| r.seconds);
             let mut po = prior_options(&a);
             if let Budget::Steps(s) = budget {
                 po.steps = (s - net_budget.map_or(0, steps_of)) as usize;
             }
-            let snaps: Vec<f64> = opts.snapshots.clone();
-            let backend = CandleBackend {
-                model: start.model.clone().with_prior(None),
-                device: candle_core::Device::Cpu,
+            let offset = network.as_ref().map_or(0.0, |r| r.seconds);
+            let phase = PriorPhase {
+                scene: &scene,
+                validation: &validation,
+                settings: &settings,
+                opts: po,
+                budget: pb,
+                snapshots: (&opts.snapshots, offset),
             };
-            let train: Vec<usize> = (0..scene.views.len())
-                .filter(|i| !validation.contains(i))
-                .collect();
-            let r = fit_scene(
-                &backend,
-                &scene,
-                (&train, &validation),
-                &settings,
-                &po,
-                pb,
-                (&snaps, offset),
-                &stop,
-                |p| report_prior(&bar, p),
-            )?;
-            if let Some(f) = &r.fit {
-                let first = f.validation.first().map_or(f64::NAN, |v| v.1);
-                eprintln!(
-                    "{}scene prior: {} views, {} rays, {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (step {})",
-                    if r.interrupted { "interrupted: " } else { "" },
-                    r.views,
-                    r.rays,
-                    f.steps,
-                    r.seconds,
-                    f.best_psnr(),
-                    f.best_step
-                );
-            }
-            Some(r)
+            Some(phase.run(&start, &stop, &bar)?)
         }
         _ => None,
     };
@@ -248,10 +210,95 @@ pub fn run(a: Args) -> Result<()> {
     )?;
     eprintln!("model: {}", a.out.display());
     if let Some(dir) = &a.curve {
-        let snaps = curve_snapshots(&opts, budget, &start, network.as_ref(), prior.as_ref())?;
+        let snaps = curve_snapshots(
+            &opts,
+            budget,
+            &start,
+            network.as_ref(),
+            prior.as_ref(),
+            grid.as_ref(),
+        )?;
         write_curve(dir, &a, &cfg, &snaps, &holdout, &settings)?;
     }
     Ok(())
+}
+
+/// Fine-tunes the network's weights in place (they end as the best found).
+fn tune_network(
+    start: &deepstereo_core::weights::Trainable,
+    data: SceneData,
+    validation: &[usize],
+    opts: &TuneOptions,
+    stop: &Arc<AtomicBool>,
+    bar: &indicatif::ProgressBar,
+) -> Result<TuneResult> {
+    let r = tune(start, data, validation, opts, stop.clone(), |p| {
+        report(bar, p)
+    })?;
+    let first = r.validation.first().map_or(f64::NAN, |v| v.psnr);
+    eprintln!(
+        "{}network: {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (the weights of step {})",
+        if r.interrupted { "interrupted: " } else { "" },
+        r.steps,
+        r.seconds,
+        r.best_psnr(),
+        r.best_step
+    );
+    Ok(r)
+}
+
+/// Fitting the scene prior on the (tuned) network.
+struct PriorPhase<'a> {
+    scene: &'a Scene,
+    /// Views set aside for validation (never targets).
+    validation: &'a [usize],
+    settings: &'a RenderSettings,
+    opts: PriorOptions,
+    budget: PriorBudget,
+    /// Curve times (seconds of the whole tune) and the seconds already spent.
+    snapshots: (&'a [f64], f64),
+}
+
+impl PriorPhase<'_> {
+    fn run(
+        &self,
+        start: &deepstereo_core::weights::Trainable,
+        stop: &AtomicBool,
+        bar: &indicatif::ProgressBar,
+    ) -> Result<SceneFit> {
+        let backend = CandleBackend {
+            model: start.model.clone().with_prior(None),
+            device: candle_core::Device::Cpu,
+        };
+        let train: Vec<usize> = (0..self.scene.views.len())
+            .filter(|i| !self.validation.contains(i))
+            .collect();
+        let r = fit_scene(
+            &backend,
+            self.scene,
+            (&train, self.validation),
+            self.settings,
+            &self.opts,
+            self.budget,
+            self.snapshots,
+            stop,
+            |p| report_prior(bar, p),
+        )?;
+        if let Some(f) = &r.fit {
+            let first = f.validation.first().map_or(f64::NAN, |v| v.1);
+            eprintln!(
+                "{}scene prior: {} views, {} rays, {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (step {})",
+                if r.interrupted { "interrupted: " } else { "" },
+                r.views,
+                r.rays,
+                f.steps,
+                r.seconds,
+                f.best_psnr(),
+                f.best_step
+            );
+        }
+        Ok(r)
+    }
 }
 
 /// The budgets of the network's fine-tune (`None`: it does not run) and of the prior
@@ -290,13 +337,14 @@ fn prior_options(a: &Args) -> PriorOptions {
 type Snapshot = (f64, Vec<Tensor>, Option<PriorGrid>);
 
 /// Per curve time: the network's weights and the prior that a tune stopped then would
-/// have written.
+/// have written (`written`: the prior this one wrote).
 fn curve_snapshots(
     opts: &TuneOptions,
     budget: Budget,
     start: &deepstereo_core::weights::Trainable,
     network: Option<&TuneResult>,
     prior: Option<&SceneFit>,
+    written: Option<&PriorGrid>,
 ) -> Result<Vec<Snapshot>> {
     let now: Vec<Tensor> = named_vars(&start.varmap)
         .iter()
@@ -327,9 +375,9 @@ fn curve_snapshots(
                     .map_or(now.clone(), |s| s.1.clone()),
                 None,
             ),
+            (t, _, Some((_, w))) if t <= net_end => (t, w.clone(), None),
             (t, Some((_, g)), _) => (t, now.clone(), Some(g.clone())),
-            (t, None, Some((_, w))) if t <= net_end => (t, w.clone(), None),
-            (t, _, _) => (t, now.clone(), prior.and_then(|p| p.grid.clone())),
+            (t, _, _) => (t, now.clone(), written.cloned()),
         });
     }
     Ok(out)
