@@ -229,3 +229,29 @@ fn bad_input_is_refused_and_writes_nothing() {
         "only the scene"
     );
 }
+
+/// `--curve` into a directory that does not exist yet: it is created, and the curve is
+/// written there.
+#[test]
+fn the_curve_goes_into_a_new_directory() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = scene(dir.path(), false);
+    let curve = dir.path().join("out/curve");
+    let c = curve.to_string_lossy();
+    let out = dir.path().join("t.safetensors");
+    let args = [
+        "--llffhold",
+        "4",
+        "--steps",
+        "2",
+        "--curve",
+        &c,
+        "--curve-minutes",
+        "0",
+    ];
+    let res = tune(&s, &out, &args);
+    assert_eq!(res.code, Some(0), "tune --curve failed:\n{}", res.stderr);
+    for f in ["curve.csv", "curve.json", "curve.png"] {
+        assert!(curve.join(f).is_file(), "no {f} in {}", curve.display());
+    }
+}

@@ -142,6 +142,10 @@ pub fn run(a: Args) -> Result<()> {
         snapshots: curve_minutes.iter().map(|m| m * 60.0).collect(),
     };
     crate::tune::check(&opts, &data)?;
+    if let Some(dir) = &a.curve {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("--curve {}: cannot create the directory", dir.display()))?;
+    }
     eprintln!(
         "tuning {} on {} views ({} held out, {} set aside for validation), {} per tile",
         a.model.name(),
