@@ -1,7 +1,7 @@
 //! Fitting a scene's selection prior ([`deepstereo_core::prior`]) by leaving one view out:
 //! the network renders each tuning view's layers from its other views once, and the
 //! grid's log-weights are fitted so that the reweighed layers reproduce the photographs
-//! (L1, Adam, with a smoothness term). The network's weights do not move, so the fit runs
+//! (L1, Adam; a smoothness term is optional and off by default). The network's weights do not move, so the fit runs
 //! on stored layers, thousands of rays per step, without the network in the loop.
 
 use crate::inference::{pick_sources, source_inputs, Prepared, RenderSettings};
