@@ -564,7 +564,6 @@ pub fn layers(
     progress: &dyn Fn(usize, usize),
 ) -> Result<(Vec<f32>, Vec<f32>)> {
     let cfg = backend.config();
-    let camera = *camera;
     let a = cfg.tile_align();
     let tile = tile.max(1).div_ceil(a) * a;
     let (w, h) = (
@@ -583,7 +582,7 @@ pub fn layers(
             let (x0, y0) = (tx * tile, ty * tile);
             let inputs = tile_inputs(
                 cfg,
-                &camera,
+                camera,
                 sources,
                 inv_depths,
                 (x0 as i64, y0 as i64),
@@ -591,7 +590,7 @@ pub fn layers(
             )?;
             let (c, mut s) = backend.run_layers(&inputs, d)?;
             if let Some(grid) = backend.prior() {
-                grid.apply_tile(&camera, inv_depths, (x0, y0), tile, &c, &mut s);
+                grid.apply_tile(camera, inv_depths, (x0, y0), tile, &c, &mut s);
             }
             if c.iter().chain(&s).any(|v| !v.is_finite()) {
                 return Err(Error::Invalid(format!(

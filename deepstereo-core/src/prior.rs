@@ -219,6 +219,21 @@ impl PriorGrid {
         reweigh_with(s, &b);
     }
 
+    /// One ray rendered with the prior: its reweighed selection `s'` and colour
+    /// `sum_z s'_z c_z` (not clamped), from its selection `s`, colours `c` (`[D][3]`) and
+    /// located plane points `cells`.
+    pub fn render_ray(&self, s: &[f32], c: &[[f32; 3]], cells: &[Cell]) -> (Vec<f32>, [f32; 3]) {
+        let mut sp = s.to_vec();
+        self.reweigh(&mut sp, cells);
+        let mut colour = [0f32; 3];
+        for (w, cz) in sp.iter().zip(c) {
+            for k in 0..3 {
+                colour[k] += w * cz[k];
+            }
+        }
+        (sp, colour)
+    }
+
     /// One ray's L1 loss gradient by the log-weights of its plane points: the rendered
     /// colour `C = sum_z s'_z c_z` of selection `s` and colours `c` (`[D][3]`) against
     /// `truth`, `g = sign(C - truth)`, `dL/db_z = s'_z (c_z - C) . g`, scattered onto the
@@ -233,14 +248,7 @@ impl PriorGrid {
         scale: f32,
         grad: &mut [f32],
     ) -> f32 {
-        let mut sp = s.to_vec();
-        self.reweigh(&mut sp, cells);
-        let mut colour = [0f32; 3];
-        for (w, cz) in sp.iter().zip(c) {
-            for k in 0..3 {
-                colour[k] += w * cz[k];
-            }
-        }
+        let (sp, colour) = self.render_ray(s, c, cells);
         let g: [f32; 3] = std::array::from_fn(|k| (colour[k] - truth[k]).signum());
         for z in 0..sp.len() {
             let dz: f32 = (0..3).map(|k| (c[z][k] - colour[k]) * g[k]).sum::<f32>() * sp[z];

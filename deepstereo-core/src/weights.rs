@@ -178,9 +178,7 @@ pub fn metadata(cfg: &Config, extra: &[(&str, String)]) -> Result<HashMap<String
 
 /// Saves the weights of `varmap` (a model of `cfg`) atomically, refusing non-finite values.
 pub fn save(path: &Path, cfg: &Config, varmap: &VarMap) -> Result<()> {
-    let arrays = weight_arrays(varmap)?;
-    check_finite(path, &arrays)?;
-    write_safetensors(path, &arrays, Some(metadata(cfg, &[])?))
+    save_with_prior(path, cfg, varmap, None, &[])
 }
 
 /// Saves the weights of `varmap` (a model of `cfg`), a scene `prior` when given, and the

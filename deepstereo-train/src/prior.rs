@@ -5,6 +5,7 @@
 //! on stored layers, thousands of rays per step, without the network in the loop.
 
 use crate::inference::{pick_sources, source_inputs, Prepared, RenderSettings};
+use crate::optim::{ADAM_BETAS, ADAM_EPS};
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::mpi::{layers, reference_camera};
@@ -236,14 +237,12 @@ impl Rays {
         let se: f64 = (0..self.len())
             .into_par_iter()
             .map(|r| {
-                let mut s = self.selection[r * d..(r + 1) * d].to_vec();
-                grid.reweigh(&mut s, &self.cells[r * d..(r + 1) * d]);
-                let mut c = [0f32; 3];
-                for (w, cz) in s.iter().zip(&self.colours[r * d..(r + 1) * d]) {
-                    for k in 0..3 {
-                        c[k] += w * cz[k];
-                    }
-                }
+                let span = r * d..(r + 1) * d;
+                let (_, c) = grid.render_ray(
+                    &self.selection[span.clone()],
+                    &self.colours[span.clone()],
+                    &self.cells[span],
+                );
                 (0..3)
                     .map(|k| ((c[k].clamp(0.0, 1.0) - self.truth[r][k]) as f64).powi(2))
                     .sum::<f64>()
@@ -290,7 +289,8 @@ pub fn fit(
     let d = rays.planes;
     let nr = rays.len();
     let (mut m, mut v) = (vec![0f32; grid.values.len()], vec![0f32; grid.values.len()]);
-    let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
+    let (b1, b2) = (ADAM_BETAS.0 as f32, ADAM_BETAS.1 as f32);
+    let eps = ADAM_EPS as f32;
     let mut rng = Rng::new(opts.seed ^ 0xf17_9a1d);
     let batch = opts.batch.min(nr).max(1);
     let threads = rayon::current_num_threads().max(1);
@@ -509,7 +509,7 @@ pub fn fit_scene(
         )?;
         let elapsed = t0.elapsed().as_secs_f64() - paused;
         if reserve.is_none() {
-            reserve = Some(FitTime::measure(&rays, &val, opts)?);
+            reserve = Some(FitTime::measure(&mut rays, &val, opts)?);
         }
         for &s in snapshots {
             // Times before this phase began belong to the network's fine-tune.
@@ -588,19 +588,13 @@ struct FitTime {
 }
 
 impl FitTime {
-    /// Estimated from a few steps on `rays` (one view's; the grid is thrown away).
-    fn measure(rays: &Rays, val: &Rays, opts: &PriorOptions) -> Result<Self> {
-        let mut probe = Rays::new(rays.planes);
-        probe.selection.clone_from(&rays.selection);
-        probe.colours.clone_from(&rays.colours);
-        probe.truth.clone_from(&rays.truth);
-        probe.views.clone_from(&rays.views);
-        probe.pixels.clone_from(&rays.pixels);
-        probe.surface.clone_from(&rays.surface);
+    /// Estimated from a few steps on `rays` (one view's; the grid is thrown away, and
+    /// the rays are placed in the final grid again before the fit).
+    fn measure(rays: &mut Rays, val: &Rays, opts: &PriorOptions) -> Result<Self> {
         let t0 = Instant::now();
-        let mut grid = probe.grid(opts.cells)?;
-        probe.locate(&grid);
-        let per_view = t0.elapsed().as_secs_f64() / probe.views().max(1) as f64;
+        let mut grid = rays.grid(opts.cells)?;
+        rays.locate(&grid);
+        let per_view = t0.elapsed().as_secs_f64() / rays.views().max(1) as f64;
         let steps = 5;
         let o = PriorOptions {
             steps,
@@ -611,14 +605,14 @@ impl FitTime {
         let t1 = Instant::now();
         fit(
             &mut grid,
-            &probe,
+            rays,
             &Rays::new(rays.planes),
             &o,
             &never,
             |_, _| {},
         );
         // A step renders `batch` rays however many there are: scale the probe's up.
-        let probed = opts.batch.min(probe.len()).max(1) as f64;
+        let probed = opts.batch.min(rays.len()).max(1) as f64;
         let per_step = t1.elapsed().as_secs_f64() / steps as f64 * opts.batch as f64 / probed;
         // A validation renders every validation ray once, about as a step renders its batch.
         let validations = (opts.steps / opts.validate_every.max(1) + 2) as f64;
