@@ -45,7 +45,7 @@ pub struct PriorOptions {
 impl Default for PriorOptions {
     fn default() -> Self {
         Self {
-            cells: 64,
+            cells: 32,
             rays_per_view: 16384,
             max_rays: 600_000,
             max_views: 96,

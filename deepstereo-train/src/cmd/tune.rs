@@ -87,7 +87,7 @@ pub struct Args {
     #[arg(long, default_value_t = 0.0)]
     pub network_share: f64,
     /// Cells along the longest side of the scene prior's grid.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = PriorOptions::default().cells)]
     pub prior_cells: usize,
     /// Print a line per validation instead of a progress bar (the default when standard
     /// error is not a terminal).
