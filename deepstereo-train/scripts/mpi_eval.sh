@@ -6,8 +6,11 @@
 # `mpi --target`), one without it (`--exclude-own-photo`), and three without, blended.
 # Writes OUT/NAME.SETTING/eval.json and prints a markdown table (python3, stdlib only).
 # Usage: bash deepstereo-train/scripts/mpi_eval.sh [OUT] [MODEL]
-#        SPEED_ONLY=1 runs only the camera-path timing at the end; ONLY="other1 ..." runs
-#        only those settings; EXTRA="--views 8 --planes 64" adds options to every `mpi`.
+#        MODEL may name each scene's own model with {name}, the scene's base name, as
+#        tune_curves.sh writes them: OUT_TUNE/{name}/tuned.safetensors.
+#        SPEED_ONLY=1 runs only the camera-path timing at the end, NO_SPEED=1 skips it;
+#        ONLY="other1 ..." runs only those settings; EXTRA="--views 8 --planes 64" adds
+#        options to every `mpi`.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${1:-/tmp/deepstereo-mpi-eval}"
@@ -30,7 +33,7 @@ for entry in "${EVAL_SCENES[@]}"; do
     [ -f "$OUT/$name.$tag/eval.json" ] && continue
     if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $tag "* ]]; then continue; fi
     # shellcheck disable=SC2086
-    "$BIN" mpi --scene "$dir" $flags --llffhold 8 --model "$MODEL" --eval $opts ${EXTRA:-} \
+    "$BIN" mpi --scene "$dir" $flags --llffhold 8 --model "${MODEL//\{name\}/$name}" --eval $opts ${EXTRA:-} \
       --out "$OUT/$name.$tag" 2> "$OUT/$name.$tag.log"
   done
   echo "done: $name"
@@ -64,9 +67,10 @@ PY
 # difference of two path lengths over the frames added (network: 2 and 6 frames; MPIs: 12
 # and 60), so loading the model or the MPIs and writing the video are not counted.
 S="$DATA/val/juicebox"
-if [ -d "$S" ]; then
-  [ -d "$OUT/speed_mpis3" ] || "$BIN" mpi --scene "$S" --targets 1,9,17 --model "$MODEL" --out "$OUT/speed_mpis3" 2> /dev/null
-  [ -d "$OUT/speed_mpis1" ] || "$BIN" mpi --scene "$S" --target 9 --model "$MODEL" --out "$OUT/speed_mpis1" 2> /dev/null
+SM="${MODEL//\{name\}/juicebox}"
+if [ -d "$S" ] && [ -z "${NO_SPEED:-}" ]; then
+  [ -d "$OUT/speed_mpis3" ] || "$BIN" mpi --scene "$S" --targets 1,9,17 --model "$SM" --out "$OUT/speed_mpis3" 2> /dev/null
+  [ -d "$OUT/speed_mpis1" ] || "$BIN" mpi --scene "$S" --target 9 --model "$SM" --out "$OUT/speed_mpis1" 2> /dev/null
   # path_seconds FRAMES ARGS...: wall seconds of one `render --path spiral`.
   path_seconds() {
     local frames="$1"; shift
@@ -78,7 +82,7 @@ if [ -d "$S" ]; then
     python3 -c "print($t1 - $t0)"
   }
   for round in 1 2; do
-    n2=$(path_seconds 2 --model "$MODEL"); n6=$(path_seconds 6 --model "$MODEL")
+    n2=$(path_seconds 2 --model "$SM"); n6=$(path_seconds 6 --model "$SM")
     a12=$(path_seconds 12 --mpi "$OUT/speed_mpis1"); a60=$(path_seconds 60 --mpi "$OUT/speed_mpis1")
     b12=$(path_seconds 12 --mpi "$OUT/speed_mpis3"); b60=$(path_seconds 60 --mpi "$OUT/speed_mpis3")
     python3 - "$round" "$n2" "$n6" "$a12" "$a60" "$b12" "$b60" <<'PY'
