@@ -1,8 +1,9 @@
 //! Fitting a scene's selection prior ([`deepstereo_core::prior`]) by leaving one view out:
 //! the network renders each tuning view's layers from its other views once, and the
 //! grid's log-weights are fitted so that the reweighed layers reproduce the photographs
-//! (L1, Adam; a smoothness term is optional and off by default). The network's weights do not move, so the fit runs
-//! on stored layers, thousands of rays per step, without the network in the loop.
+//! (L1, Adam; a smoothness term is optional and off by default). The network's weights
+//! do not move, so the fit runs on stored layers, thousands of rays per step, without the
+//! network in the loop.
 
 use crate::inference::{pick_sources, source_inputs, Prepared, RenderSettings};
 use crate::optim::{ADAM_BETAS, ADAM_EPS};
@@ -577,8 +578,8 @@ fn fit_rays(
 }
 
 /// How long the final fit will take: `fixed + per_view * views` seconds for `views`
-/// views read (placing their rays in the grid grows with them), with a fifth more for
-/// safety.
+/// views read (placing their rays in the grid grows with them), with
+/// [`FitTime::MARGIN`] more for safety and [`FitTime::SLACK`] seconds besides.
 #[derive(Clone, Copy, Debug)]
 struct FitTime {
     fixed: f64,
@@ -588,6 +589,11 @@ struct FitTime {
 }
 
 impl FitTime {
+    /// The factor every measured time is scaled by.
+    const MARGIN: f64 = 1.2;
+    /// Seconds added to the fit's time.
+    const SLACK: f64 = 2.0;
+
     /// Estimated from a few steps on `rays` (one view's; the grid is thrown away, and
     /// the rays are placed in the final grid again before the fit).
     fn measure(rays: &mut Rays, val: &Rays, opts: &PriorOptions) -> Result<Self> {
@@ -619,8 +625,8 @@ impl FitTime {
         let per_val = per_step * val.len() as f64 / opts.batch.max(1) as f64;
         let total = per_step * opts.steps as f64 + per_val * validations;
         Ok(Self {
-            fixed: 1.2 * total + 2.0,
-            per_view: 1.2 * per_view,
+            fixed: Self::MARGIN * total + Self::SLACK,
+            per_view: Self::MARGIN * per_view,
             per_step: total / opts.steps.max(1) as f64,
         })
     }
@@ -628,11 +634,12 @@ impl FitTime {
     /// The most steps (at least 1, at most `steps`) that end within `left` seconds once
     /// `views` views' rays are placed in the grid.
     fn steps_within(&self, left: f64, views: usize, steps: usize) -> usize {
-        let room = (left - 2.0 - self.per_view * views as f64) / (1.2 * self.per_step);
+        let room =
+            (left - Self::SLACK - self.per_view * views as f64) / (Self::MARGIN * self.per_step);
         (room.max(1.0) as usize).min(steps)
     }
 
-    /// Seconds for `views` views read (and `extra` validation views).
+    /// Seconds for the final fit once `views` views (validation views included) are read.
     fn of(&self, views: usize) -> f64 {
         self.fixed + self.per_view * views as f64
     }
