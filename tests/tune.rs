@@ -110,6 +110,13 @@ fn the_tuned_model_renders_and_names_its_tune() {
         serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
     assert_eq!(tune["holdout"], serde_json::json!([0, 4]));
     assert_eq!(tune["steps"], 4);
+    // A model with a prior renders at 48 planes unless told otherwise.
+    let cfg: serde_json::Value =
+        serde_json::from_str(meta["deepstereo.config"].as_str().expect("a string")).expect("json");
+    assert_eq!(
+        (&cfg["planes"], &tune["render_planes"]),
+        (&serde_json::json!(48), &serde_json::json!(48))
+    );
     let (m, sc) = (model.to_string_lossy(), s.to_string_lossy());
     let eval = |extra: &[&str]| {
         let mut args = vec!["eval", "--scene", &sc, "--llffhold", "4", "--model", &m];
@@ -164,6 +171,11 @@ fn network_share_splits_the_steps() {
             if share == "1" { 4 } else { 2 },
             "share {share}"
         );
+        // Without a prior the model renders at the planes it started with.
+        let cfg: serde_json::Value =
+            serde_json::from_str(meta["deepstereo.config"].as_str().expect("a string"))
+                .expect("json");
+        assert_eq!(cfg["planes"], if prior { 48 } else { 32 }, "share {share}");
         assert_ne!(
             std::fs::read(&out).expect("read"),
             prior_only,
@@ -179,7 +191,11 @@ fn bad_input_is_refused_and_writes_nothing() {
     let out = dir.path().join("out.safetensors");
     let tiny = tiny_asset();
     let tiny = tiny.to_string_lossy();
-    let cases: [(&[&str], &str); 8] = [
+    let cases: [(&[&str], &str); 9] = [
+        (
+            &["--llffhold", "4", "--steps", "2", "--render-planes", "0"],
+            "--render-planes",
+        ),
         (
             &["--llffhold", "4", "--steps", "2", "--network-share", "1.5"],
             "--network-share",

@@ -55,64 +55,113 @@ fn tiled_render_equals_whole_image_render() -> Result<()> {
 /// a grid favouring near points renders `sum_z s'_z c_z` of the network's layers with
 /// the reweighed selection, tile by tile as the whole image; a model file carries the
 /// prior through a save and a load.
+/// A synthetic scene, a tiny model, its sources for view 0 and 8 planes, and a prior of
+/// log-weights falling with view 0's camera depth (a linear field, which trilinear
+/// interpolation keeps exactly: nearer planes are favoured) over a box around everything
+/// that camera sees on the planes.
+struct PriorCase {
+    cfg: Config,
+    trainable: deepstereo_core::weights::Trainable,
+    scene: deepstereo_core::synth::SynthScene,
+    pyr: Vec<PyramidSource>,
+    inv: Vec<f64>,
+    zero: deepstereo_core::prior::PriorGrid,
+    shell: deepstereo_core::prior::PriorGrid,
+}
+
+impl PriorCase {
+    fn new() -> Result<Self> {
+        use deepstereo_core::prior::PriorGrid;
+        use glam::DVec3;
+        let cfg = Config::tiny();
+        let opts = SynthOptions {
+            views: 6,
+            width: 40,
+            height: 32,
+            ..SynthOptions::default()
+        };
+        let s = generate(5, &opts)?;
+        let t = init(&cfg, &Device::Cpu)?;
+        let pyr: Vec<PyramidSource> = (s.cameras.iter().zip(&s.images))
+            .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
+            .collect();
+        let inv = inverse_depths(s.near, s.far, 8);
+        let cam = &s.cameras[0];
+        let c = cam.pose.centre();
+        let (lo, hi) = (c - DVec3::splat(2.0 * s.far), c + DVec3::splat(2.0 * s.far));
+        let zero = PriorGrid::zeros(lo, hi, 8)?;
+        let mut shell = zero.clone();
+        let [nx, ny, _] = shell.dims;
+        for (i, v) in shell.values.iter_mut().enumerate() {
+            let p = shell.origin
+                + DVec3::new(
+                    (i % nx) as f64,
+                    ((i / nx) % ny) as f64,
+                    (i / (nx * ny)) as f64,
+                ) * shell.cell;
+            let depth = cam.pose.transform_point(p).z;
+            *v = (-4.0 * (depth - s.near) / (s.far - s.near)) as f32;
+        }
+        Ok(Self {
+            cfg,
+            trainable: t,
+            scene: s,
+            pyr,
+            inv,
+            zero,
+            shell,
+        })
+    }
+
+    fn sources(&self) -> Vec<&PyramidSource> {
+        self.pyr[1..=self.cfg.views].iter().collect()
+    }
+
+    fn backend(&self, prior: Option<deepstereo_core::prior::PriorGrid>) -> CandleBackend {
+        CandleBackend {
+            model: self.trainable.model.clone().with_prior(prior),
+            device: Device::Cpu,
+        }
+    }
+}
+
+/// A scene prior applied by the renderer: a grid of zeros renders as the network does;
+/// a grid favouring near points renders `sum_z s'_z c_z` of the network's layers with
+/// the reweighed selection, tile by tile as the whole image; a model file carries the
+/// prior through a save and a load.
 #[test]
 fn scene_prior_reweighs_the_render() -> Result<()> {
     use deepstereo_core::mpi::layers;
-    use deepstereo_core::prior::PriorGrid;
-    use glam::DVec3;
-    let cfg = Config::tiny();
-    let opts = SynthOptions {
-        views: 6,
-        width: 40,
-        height: 32,
-        ..SynthOptions::default()
-    };
-    let s = generate(5, &opts)?;
-    let t = init(&cfg, &Device::Cpu)?;
-    let pyr: Vec<PyramidSource> = (s.cameras.iter().zip(&s.images))
-        .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
-        .collect();
-    let srcs: Vec<&PyramidSource> = pyr[1..=cfg.views].iter().collect();
-    let inv = inverse_depths(s.near, s.far, 8);
-    let cam = &s.cameras[0];
-    let plain = CandleBackend {
-        model: t.model.clone(),
-        device: Device::Cpu,
-    };
-    let reference = render_view(&plain, cam, &srcs, &inv, 16, &|_, _| {})?;
-    // A box around everything the camera sees on the planes.
-    let c = cam.pose.centre();
-    let (lo, hi) = (c - DVec3::splat(2.0 * s.far), c + DVec3::splat(2.0 * s.far));
-    let zero = PriorGrid::zeros(lo, hi, 8)?;
-    let with = |g: PriorGrid| CandleBackend {
-        model: t.model.clone().with_prior(Some(g)),
-        device: Device::Cpu,
-    };
-    let r0 = render_view(&with(zero.clone()), cam, &srcs, &inv, 16, &|_, _| {})?;
+    let case = PriorCase::new()?;
+    let (srcs, inv, cam) = (case.sources(), &case.inv, &case.scene.cameras[0]);
+    let plain = case.backend(None);
+    let reference = render_view(&plain, cam, &srcs, inv, 16, &|_, _| {})?;
+    let r0 = render_view(
+        &case.backend(Some(case.zero.clone())),
+        cam,
+        &srcs,
+        inv,
+        16,
+        &|_, _| {},
+    )?;
     let worst = (reference.image.data.iter().zip(&r0.image.data))
         .map(|(a, b)| (a - b).abs())
         .fold(0f32, f32::max);
     assert!(worst < 1e-5, "a zero prior changed the render by {worst}");
-    // Log-weights falling with camera depth (a linear field, which trilinear
-    // interpolation keeps exactly): nearer planes are favoured.
-    let mut shell = zero.clone();
-    let [nx, ny, _] = shell.dims;
-    for (i, v) in shell.values.iter_mut().enumerate() {
-        let p = shell.origin
-            + DVec3::new(
-                (i % nx) as f64,
-                ((i / nx) % ny) as f64,
-                (i / (nx * ny)) as f64,
-            ) * shell.cell;
-        let depth = cam.pose.transform_point(p).z;
-        *v = (-4.0 * (depth - s.near) / (s.far - s.near)) as f32;
-    }
-    let favoured = render_view(&with(shell.clone()), cam, &srcs, &inv, 16, &|_, _| {})?;
-    let (cl, sl) = layers(&plain, cam, &srcs, &inv, 16, &|_, _| {})?;
+    let shell = case.shell.clone();
+    let favoured = render_view(
+        &case.backend(Some(shell.clone())),
+        cam,
+        &srcs,
+        inv,
+        16,
+        &|_, _| {},
+    )?;
+    let (cl, sl) = layers(&plain, cam, &srcs, inv, 16, &|_, _| {})?;
     let n = 40 * 32;
     let image = shell.apply_tile(
         cam,
-        &inv,
+        inv,
         (0, 0),
         40,
         &pad(&cl, 8 * 3, n),
@@ -132,12 +181,58 @@ fn scene_prior_reweighs_the_render() -> Result<()> {
     // Through a file.
     let dir = tempfile::tempdir()?;
     let path = dir.path().join("tuned.safetensors");
-    deepstereo_core::weights::save_with_prior(&path, &cfg, &t.varmap, Some(&shell), &[])?;
+    let varmap = &case.trainable.varmap;
+    deepstereo_core::weights::save_with_prior(&path, &case.cfg, varmap, Some(&shell), &[])?;
     let back = deepstereo_core::weights::load(&path, &Device::Cpu)?;
     let got = back.model.prior().expect("the prior read back");
     assert_eq!((got.dims, &got.values), (shell.dims, &shell.values));
     let moved = (got.origin - shell.origin).length() + (got.cell - shell.cell).abs();
     assert!(moved < 1e-9 * shell.cell, "placement moved by {moved}");
+    Ok(())
+}
+
+/// The coarse pass of `--prune auto` sees the selection the render sees: with a scene
+/// prior, each guide pixel's selection is the network's reweighed by the prior at that
+/// pixel's plane points (of the guide level's camera).
+#[test]
+fn the_prune_guide_applies_the_scene_prior() -> Result<()> {
+    use deepstereo_core::inputs::level_camera;
+    use deepstereo_core::prune::network_guide;
+    let case = PriorCase::new()?;
+    let (srcs, inv, cam) = (case.sources(), &case.inv, &case.scene.cameras[0]);
+    let guide = |prior| {
+        network_guide(
+            &case.backend(prior),
+            cam,
+            &srcs,
+            inv,
+            (0, 7),
+            1,
+            16,
+            0,
+            false,
+        )
+        .map(|g| g.expect("a guide at level 1"))
+    };
+    let (plain, tuned) = (guide(None)?, guide(Some(case.shell.clone()))?);
+    let (w, h, d) = (plain.width, plain.height, inv.len());
+    let lc = level_camera(cam, plain.level, w as u32, h as u32);
+    let pixels: Vec<(usize, usize)> = (0..w * h).map(|q| (q % w, q / w)).collect();
+    let cells = case.shell.locate_rays(&lc, inv, &pixels);
+    let mut moved = 0f32;
+    for q in 0..w * h {
+        let mut s: Vec<f32> = (0..d).map(|z| plain.sel[z * w * h + q]).collect();
+        case.shell.reweigh(&mut s, &cells[q * d..(q + 1) * d]);
+        for (z, want) in s.iter().enumerate() {
+            let got = tuned.sel[z * w * h + q];
+            assert!(
+                (got - want).abs() < 1e-5,
+                "pixel {q} plane {z}: {got} vs {want}"
+            );
+            moved = moved.max((got - plain.sel[z * w * h + q]).abs());
+        }
+    }
+    assert!(moved > 0.01, "the prior moved no guide selection ({moved})");
     Ok(())
 }
 
