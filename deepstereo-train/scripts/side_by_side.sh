@@ -3,8 +3,9 @@
 # out, the scene flags of eval_default.sh): per scene, each configuration's `eval`, one
 # after the other, ROUNDS times (alternated, so a slower spell of the machine falls on
 # all of them). Writes OUT/NAME.LABEL.ROUND.json (`eval --json`) and prints a markdown
-# table: held-out PSNR / SSIM and the mean seconds per view of each configuration, with
-# its time as a ratio of the first configuration's (python3, stdlib only).
+# table: held-out PSNR / SSIM and the seconds per view of each configuration, with its
+# mean time and the network's work (planes x pixels it ran, summed over the held-out
+# views) as ratios of the first configuration's (python3, stdlib only).
 # Usage: bash deepstereo-train/scripts/side_by_side.sh OUT ROUNDS 'LABEL|OPTIONS' ...
 #        OPTIONS are `eval` options; {name} in them is the scene's base name, e.g.
 #        'tuned|--model TUNE_OUT/{name}/tuned.safetensors' for tune_curves.sh's models.
@@ -40,11 +41,11 @@ python3 - "$OUT" "${labels[@]}" <<'PY'
 import json, sys, pathlib
 out, labels = pathlib.Path(sys.argv[1]), sys.argv[2:]
 names = sorted({p.name.split(".")[0] for p in out.glob("*.json")})
-print("| scene | " + " | ".join(f"{l}: PSNR / SSIM, s/view (ratio)" for l in labels) + " |")
+print("| scene | " + " | ".join(f"{l}: PSNR / SSIM, s/view (time, work ratio)" for l in labels) + " |")
 print("|---|" + "---|" * len(labels))
 sums = {l: [] for l in labels}
 for n in names:
-    row, base = [n], None
+    row, base, wbase = [n], None, None
     for l in labels:
         runs = [json.loads(p.read_text()) for p in sorted(out.glob(f"{n}.{l}.*.json"))]
         if not runs:
@@ -52,9 +53,12 @@ for n in names:
             continue
         m = runs[0]["mean"]
         secs = sum(r["mean"]["seconds"] for r in runs) / len(runs)
+        work = sum((v.get("prune") or {}).get("planes_run", 0) for v in runs[0]["per_view"])
         base = secs if base is None else base
+        wbase = work if wbase is None else wbase
         each = ", ".join(f"{r['mean']['seconds']:.2f}" for r in runs)
-        row.append(f"{m['psnr']:.2f} / {m['ssim']:.3f}, {each} ({secs / base:.2f}x)")
+        wr = f"{work / wbase:.2f}x" if wbase else "-"
+        row.append(f"{m['psnr']:.2f} / {m['ssim']:.3f}, {each} ({secs / base:.2f}x, {wr})")
         sums[l].append(m["psnr"])
     print("| " + " | ".join(row) + " |")
 means = [f"{sum(v) / len(v):.2f}" if v else "-" for v in sums.values()]

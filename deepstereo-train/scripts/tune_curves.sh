@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Error against tuning time: `deepstereo tune` on each evaluation scene (every 8th view
 # held out and never read; the scene flags of eval_default.sh), held-out PSNR / SSIM of
-# the snapshots at 0, 1, 2, 5 and 10 minutes (0 = the untuned model), one scene at a time.
+# the snapshots at 0, 1, 2, 5, 10 and 20 minutes within the budget and at its end (0 = the
+# untuned model), one scene at a time.
 # Writes OUT/NAME/{curve.csv,curve.json,curve.png,tune.log} and prints a markdown table.
 # Usage: bash deepstereo-train/scripts/tune_curves.sh [OUT] [MINUTES] [MODEL]
+#        ONLY="moldgoldcape fox" tunes only those scenes (the table shows every scene in OUT).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${1:-/tmp/deepstereo-tune}"
@@ -11,16 +13,18 @@ MINUTES="${2:-10}"
 MODEL="${3:-embedded}"
 BIN=target/release/deepstereo
 mkdir -p "$OUT"
+CURVE=$(python3 -c "import sys; m = float(sys.argv[1]); t = [x for x in (0, 1, 2, 5, 10, 20) if x < m] + [m]; print(','.join(f'{x:g}' for x in t))" "$MINUTES")
 # shellcheck source=eval_scenes.sh
 source deepstereo-train/scripts/eval_scenes.sh
 for entry in "${EVAL_SCENES[@]}"; do
   dir="${entry%%|*}"; flags="${entry#*|}"; name="$(basename "$dir")"
   if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
+  if [ -n "${ONLY:-}" ] && [[ " $ONLY " != *" $name "* ]]; then continue; fi
   if [ -f "$OUT/$name/curve.json" ]; then echo "done before: $name"; continue; fi
   mkdir -p "$OUT/$name"
   # shellcheck disable=SC2086
   "$BIN" tune --scene "$dir" $flags --llffhold 8 --minutes "$MINUTES" --model "$MODEL" \
-    --curve "$OUT/$name" --curve-minutes "0,1,2,5,$MINUTES" --seed 1 \
+    --curve "$OUT/$name" --curve-minutes "$CURVE" --seed 1 \
     --out "$OUT/$name/tuned.safetensors" 2> "$OUT/$name/tune.log"
   echo "done: $name"
 done
