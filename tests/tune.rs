@@ -110,12 +110,21 @@ fn the_tuned_model_renders_and_names_its_tune() {
         serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
     assert_eq!(tune["holdout"], serde_json::json!([0, 4]));
     assert_eq!(tune["steps"], 4);
-    // A model with a prior renders at 48 planes unless told otherwise.
+    // A model with a prior renders at 48 planes unless told otherwise; the network's
+    // own plane count stays.
     let cfg: serde_json::Value =
         serde_json::from_str(meta["deepstereo.config"].as_str().expect("a string")).expect("json");
     assert_eq!(
-        (&cfg["planes"], &tune["render_planes"]),
-        (&serde_json::json!(48), &serde_json::json!(48))
+        (
+            &cfg["planes"],
+            &cfg["render_planes"],
+            &tune["render_planes"]
+        ),
+        (
+            &serde_json::json!(32),
+            &serde_json::json!(48),
+            &serde_json::json!(48)
+        )
     );
     let (m, sc) = (model.to_string_lossy(), s.to_string_lossy());
     let eval = |extra: &[&str]| {
@@ -128,6 +137,17 @@ fn the_tuned_model_renders_and_names_its_tune() {
     let json: serde_json::Value = serde_json::from_str(&res.stdout).expect("eval json");
     let psnr = json["mean"]["psnr"].as_f64().expect("a mean PSNR");
     assert!(psnr.is_finite() && psnr > 10.0, "PSNR {psnr}");
+    // eval renders it at 48 planes without being told, and at --planes when told.
+    assert_eq!(json["planes"], 48);
+    let res = eval(&["--planes", "40", "--json", "-"]);
+    assert_eq!(
+        res.code,
+        Some(0),
+        "eval --planes 40 failed:\n{}",
+        res.stderr
+    );
+    let json: serde_json::Value = serde_json::from_str(&res.stdout).expect("eval json");
+    assert_eq!(json["planes"], 40);
     // The scene prior is in the file; onnxruntime cannot apply it and says so.
     assert!(
         meta.contains_key("deepstereo.prior"),
@@ -175,7 +195,13 @@ fn network_share_splits_the_steps() {
         let cfg: serde_json::Value =
             serde_json::from_str(meta["deepstereo.config"].as_str().expect("a string"))
                 .expect("json");
-        assert_eq!(cfg["planes"], if prior { 48 } else { 32 }, "share {share}");
+        let want = if prior {
+            serde_json::json!(48)
+        } else {
+            serde_json::Value::Null
+        };
+        assert_eq!(cfg["render_planes"], want, "share {share}");
+        assert_eq!(cfg["planes"], 32, "share {share}");
         assert_ne!(
             std::fs::read(&out).expect("read"),
             prior_only,

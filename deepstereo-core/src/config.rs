@@ -201,9 +201,19 @@ pub struct Config {
     /// inputs `[B, D, 4V, H, W]`, exactly `views`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pool: Option<ViewPool>,
+    /// Depth planes a render uses unless told otherwise, when not `planes` (a tuned
+    /// model's: `tune --render-planes`). `planes` stays the count the network was
+    /// trained at, which pruning may thin requested planes down to.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub render_planes: Option<usize>,
 }
 
 impl Config {
+    /// Depth planes a render uses unless told otherwise: `render_planes`, else `planes`.
+    pub fn default_render_planes(&self) -> usize {
+        self.render_planes.unwrap_or(self.planes)
+    }
+
     /// As close to the paper as its text allows: 5 views, 96 planes, 4 levels, 8x8 output
     /// tiles from 26x26 level-0 inputs. The paper's figure with layer widths is not in the
     /// text; widths here follow its description (2D ReLU convs shared across planes,
@@ -227,6 +237,7 @@ impl Config {
                 merge_convs: vec![c(5, 96), c(5, 64), c(3, 32)],
             },
             colour_skip: false,
+            render_planes: None,
             pool: None,
         }
     }
@@ -252,6 +263,7 @@ impl Config {
                 merge_convs: vec![c(1, 12)],
             },
             colour_skip: true,
+            render_planes: None,
             pool: None,
         }
     }
@@ -282,6 +294,7 @@ impl Config {
                 merge_convs: vec![],
             },
             colour_skip: false,
+            render_planes: None,
             pool: Some(ViewPool {
                 encoder: vec![c(1, 6), c(1, 6)],
                 blend: vec![c(1, 6)],
@@ -415,6 +428,9 @@ impl Config {
     pub fn validate(&self) -> Result<(), String> {
         if self.views == 0 || self.planes == 0 {
             return Err("views and planes must be positive".into());
+        }
+        if let Some(r) = self.render_planes.filter(|&r| r == 0 || r > MAX_PLANES) {
+            return Err(format!("render_planes must be 1 to {MAX_PLANES}, got {r}"));
         }
         if self.views > MAX_VIEWS || self.planes > MAX_PLANES || self.tile > MAX_TILE {
             return Err(format!(
@@ -696,6 +712,32 @@ mod tests {
         json["pool"].as_object_mut().unwrap().remove("falloff");
         let old: Config = serde_json::from_value(json).unwrap();
         assert_eq!(old.pool.and_then(|p| p.falloff), None);
+    }
+
+    /// `render_planes` is optional (absent from configs without it, and not written when
+    /// `None`), is the renders' default when present, and is refused outside its range.
+    #[test]
+    fn render_planes_is_optional_and_validated() {
+        let c = Config::nviews();
+        assert!(!serde_json::to_string(&c).unwrap().contains("render_planes"));
+        assert_eq!(c.default_render_planes(), c.planes);
+        let tuned = Config {
+            render_planes: Some(48),
+            ..c.clone()
+        };
+        tuned.validate().unwrap();
+        assert_eq!(tuned.default_render_planes(), 48);
+        let back: Config = serde_json::from_str(&serde_json::to_string(&tuned).unwrap()).unwrap();
+        assert_eq!(back, tuned);
+        for bad in [0, MAX_PLANES + 1] {
+            let err = Config {
+                render_planes: Some(bad),
+                ..c.clone()
+            }
+            .validate()
+            .unwrap_err();
+            assert!(err.contains("render_planes"), "{err}");
+        }
     }
 
     #[test]

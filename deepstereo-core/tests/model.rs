@@ -32,6 +32,7 @@ fn small() -> Config {
             merge_convs: vec![c(3, 3)],
         },
         colour_skip: true,
+        render_planes: None,
         pool: None,
     }
 }

@@ -35,6 +35,7 @@ fn small() -> Config {
             merge_convs: vec![c(1, 3)],
         },
         colour_skip: false,
+        render_planes: None,
         pool: Some(ViewPool {
             encoder: vec![c(1, 4), c(1, 3)],
             blend: vec![c(1, 4)],

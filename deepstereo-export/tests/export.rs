@@ -31,6 +31,7 @@ fn variant() -> Config {
             merge_convs: vec![c(3, 6)],
         },
         colour_skip: false,
+        render_planes: None,
         pool: None,
     }
 }

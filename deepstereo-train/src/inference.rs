@@ -129,7 +129,7 @@ pub fn source_inputs<'a>(
         );
     }
     let sources = &sources[..k];
-    let planes = settings.planes.unwrap_or(cfg.planes);
+    let planes = settings.planes.unwrap_or(cfg.default_render_planes());
     if planes == 0 {
         bail!("--planes must be at least 1");
     }
@@ -285,7 +285,7 @@ pub fn evaluate(
 ) -> Result<EvalReport> {
     let cfg = backend.config().clone();
     let k = settings.source_count(&cfg)?;
-    let planes = settings.planes.unwrap_or(cfg.planes);
+    let planes = settings.planes.unwrap_or(cfg.default_render_planes());
     let mut prepared = Prepared::new(scene);
     let mut per_view = Vec::new();
     for &t in targets {

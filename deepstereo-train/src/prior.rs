@@ -459,6 +459,8 @@ pub fn fit_scene(
 ) -> Result<SceneFit> {
     let t0 = Instant::now();
     let mut paused = 0f64;
+    // The planes the network was trained at (not a tuned model's render_planes): the
+    // grid is in world space and applies at any plane count.
     let planes = settings.planes.unwrap_or(backend.config().planes);
     let order: Vec<usize> = spread_order(train)
         .into_iter()

@@ -62,6 +62,7 @@ pub(super) fn small_backend(views: usize) -> CandleBackend {
             merge_convs: vec![c(1, 4)],
         },
         colour_skip: true,
+        render_planes: None,
         pool: None,
     };
     let t = init_seeded(&cfg, DType::F32, &Device::Cpu, 7).expect("model");

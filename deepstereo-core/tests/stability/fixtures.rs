@@ -31,6 +31,7 @@ pub fn small() -> Config {
             merge_convs: vec![c(3, 3)],
         },
         colour_skip: true,
+        render_planes: None,
         pool: None,
     }
 }

@@ -231,7 +231,7 @@ fn run_eval(
     let report = serde_json::json!({
         "scene": a.scene.scene.display().to_string(),
         "model": a.model.name(),
-        "planes": settings.planes.unwrap_or(backend.config().planes),
+        "planes": settings.planes.unwrap_or(backend.config().default_render_planes()),
         "views": settings.source_count(backend.config())?,
         "own_photo": !a.exclude_own_photo,
         "margin": a.margin,
