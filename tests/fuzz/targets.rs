@@ -232,6 +232,7 @@ fn small_config(levels: usize, skip: bool) -> Config {
         },
         colour_skip: skip,
         pool: None,
+        render_planes: None,
     }
 }
 
