@@ -422,7 +422,8 @@ fn draw_axes(img: &mut RgbImage, f: &Frame, (title, x_title, y_title): (&str, &s
     }
     line(img, (LEFT, H - BOTTOM), (plot_r, H - BOTTOM), BLACK);
     line(img, (LEFT, TOP), (LEFT, H - BOTTOM), BLACK);
-    text(img, LEFT, 10, title, BLACK);
+    // The title above the y axis title (rows 3-9 against 16-22), which runs past `LEFT`.
+    text(img, LEFT, 3, title, BLACK);
     text(
         img,
         (LEFT + plot_r - GLYPH_W * x_title.len() as i32) / 2,
