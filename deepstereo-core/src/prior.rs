@@ -158,10 +158,38 @@ impl PriorGrid {
         out
     }
 
+    /// Reweighs the selection `[D, th, tw]` (row-major, as a backend returns it) of the
+    /// `th` x `tw` tile at `(x0, y0)` of `camera` on the planes `inv_depths`, in place.
+    pub fn reweigh_tile(
+        &self,
+        camera: &Camera,
+        inv_depths: &[f64],
+        (x0, y0): (usize, usize),
+        (th, tw): (usize, usize),
+        selection: &mut [f32],
+    ) {
+        let (d, n) = (inv_depths.len(), th * tw);
+        let pixels: Vec<(usize, usize)> = (0..n).map(|q| (x0 + q % tw, y0 + q / tw)).collect();
+        let cells = self.locate_rays(camera, inv_depths, &pixels);
+        let columns: Vec<Vec<f32>> = (0..n)
+            .into_par_iter()
+            .map(|q| {
+                let mut s: Vec<f32> = (0..d).map(|z| selection[z * n + q]).collect();
+                self.reweigh(&mut s, &cells[q * d..(q + 1) * d]);
+                s
+            })
+            .collect();
+        for (q, s) in columns.into_iter().enumerate() {
+            for (z, v) in s.into_iter().enumerate() {
+                selection[z * n + q] = v;
+            }
+        }
+    }
+
     /// Applies the prior to a tile's layers: `colours` `[D, 3, t, t]` and `selection`
     /// `[D, t, t]` (row-major, as a backend returns them) of the `t` x `t` tile at `(x0,
-    /// y0)` of `camera` on the planes `inv_depths`. The selection is reweighed in place;
-    /// returns the colour `sum_z s'_z c_z`, `[3, t, t]`.
+    /// y0)` of `camera` on the planes `inv_depths`. The selection is reweighed in place
+    /// ([`Self::reweigh_tile`]); returns the colour `sum_z s'_z c_z`, `[3, t, t]`.
     pub fn apply_tile(
         &self,
         camera: &Camera,
@@ -171,31 +199,15 @@ impl PriorGrid {
         colours: &[f32],
         selection: &mut [f32],
     ) -> Vec<f32> {
-        let d = inv_depths.len();
+        self.reweigh_tile(camera, inv_depths, (x0, y0), (tile, tile), selection);
         let tt = tile * tile;
-        let pixels: Vec<(usize, usize)> = (0..tt).map(|q| (x0 + q % tile, y0 + q / tile)).collect();
-        let cells = self.locate_rays(camera, inv_depths, &pixels);
-        let columns: Vec<([f32; 3], Vec<f32>)> = (0..tt)
-            .into_par_iter()
-            .map(|q| {
-                let mut s: Vec<f32> = (0..d).map(|z| selection[z * tt + q]).collect();
-                self.reweigh(&mut s, &cells[q * d..(q + 1) * d]);
-                let mut c = [0f32; 3];
-                for (z, w) in s.iter().enumerate() {
-                    for (ch, v) in c.iter_mut().enumerate() {
-                        *v += w * colours[(z * 3 + ch) * tt + q];
-                    }
-                }
-                (c, s)
-            })
-            .collect();
         let mut image = vec![0f32; 3 * tt];
-        for (q, (c, s)) in columns.into_iter().enumerate() {
-            for ch in 0..3 {
-                image[ch * tt + q] = c[ch];
-            }
-            for (z, v) in s.into_iter().enumerate() {
-                selection[z * tt + q] = v;
+        for (z, s) in selection.chunks_exact(tt).enumerate() {
+            for (ch, out) in image.chunks_exact_mut(tt).enumerate() {
+                let c = &colours[(z * 3 + ch) * tt..(z * 3 + ch + 1) * tt];
+                for ((o, w), v) in out.iter_mut().zip(s).zip(c) {
+                    *o += w * v;
+                }
             }
         }
         image

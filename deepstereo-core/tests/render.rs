@@ -6,30 +6,38 @@ use deepstereo_core::config::Config;
 use deepstereo_core::geometry::inverse_depths;
 use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::render::{render_view, CandleBackend};
-use deepstereo_core::synth::{generate, SynthOptions};
-use deepstereo_core::weights::init;
+use deepstereo_core::synth::{generate, SynthOptions, SynthScene};
+use deepstereo_core::weights::{init, Trainable};
 
-#[test]
-fn tiled_render_equals_whole_image_render() -> Result<()> {
+/// A synthetic scene of 6 views (`generate(seed)` at `width x height`), a `tiny` model
+/// initialised as `init` does, and every view's pyramid.
+fn synthetic(
+    seed: u64,
+    width: u32,
+    height: u32,
+) -> Result<(Config, SynthScene, Trainable, Vec<PyramidSource>)> {
     let cfg = Config::tiny();
     let opts = SynthOptions {
         views: 6,
-        width: 70,
-        height: 52,
+        width,
+        height,
         ..SynthOptions::default()
     };
-    let s = generate(21, &opts)?;
+    let s = generate(seed, &opts)?;
     let t = init(&cfg, &Device::Cpu)?;
+    let pyr: Vec<PyramidSource> = (s.cameras.iter().zip(&s.images))
+        .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
+        .collect();
+    Ok((cfg, s, t, pyr))
+}
+
+#[test]
+fn tiled_render_equals_whole_image_render() -> Result<()> {
+    let (cfg, s, t, pyr) = synthetic(21, 70, 52)?;
     let backend = CandleBackend {
         model: t.model,
         device: Device::Cpu,
     };
-    let pyr: Vec<PyramidSource> = s
-        .cameras
-        .iter()
-        .zip(&s.images)
-        .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
-        .collect();
     let srcs: Vec<&PyramidSource> = pyr[1..=cfg.views].iter().collect();
     let inv = inverse_depths(s.near, s.far, 12);
     let whole = render_view(&backend, &s.cameras[0], &srcs, &inv, 80, &|_, _| {})?;
@@ -51,18 +59,14 @@ fn tiled_render_equals_whole_image_render() -> Result<()> {
     Ok(())
 }
 
-/// A scene prior applied by the renderer: a grid of zeros renders as the network does;
-/// a grid favouring near points renders `sum_z s'_z c_z` of the network's layers with
-/// the reweighed selection, tile by tile as the whole image; a model file carries the
-/// prior through a save and a load.
 /// A synthetic scene, a tiny model, its sources for view 0 and 8 planes, and a prior of
 /// log-weights falling with view 0's camera depth (a linear field, which trilinear
 /// interpolation keeps exactly: nearer planes are favoured) over a box around everything
 /// that camera sees on the planes.
 struct PriorCase {
     cfg: Config,
-    trainable: deepstereo_core::weights::Trainable,
-    scene: deepstereo_core::synth::SynthScene,
+    trainable: Trainable,
+    scene: SynthScene,
     pyr: Vec<PyramidSource>,
     inv: Vec<f64>,
     zero: deepstereo_core::prior::PriorGrid,
@@ -73,18 +77,7 @@ impl PriorCase {
     fn new() -> Result<Self> {
         use deepstereo_core::prior::PriorGrid;
         use glam::DVec3;
-        let cfg = Config::tiny();
-        let opts = SynthOptions {
-            views: 6,
-            width: 40,
-            height: 32,
-            ..SynthOptions::default()
-        };
-        let s = generate(5, &opts)?;
-        let t = init(&cfg, &Device::Cpu)?;
-        let pyr: Vec<PyramidSource> = (s.cameras.iter().zip(&s.images))
-            .map(|(c, i)| PyramidSource::new(c, i, cfg.levels))
-            .collect();
+        let (cfg, s, t, pyr) = synthetic(5, 40, 32)?;
         let inv = inverse_depths(s.near, s.far, 8);
         let cam = &s.cameras[0];
         let c = cam.pose.centre();

@@ -5,7 +5,6 @@
 use crate::camera::Camera;
 use crate::error::{Error, Result};
 use crate::inputs::{level_camera, tile_inputs, PyramidSource};
-use crate::prior::PriorGrid;
 use crate::render::Backend;
 
 /// The colour bound of [`needed_prefix`] stops only once the kept planes hold at least
@@ -130,7 +129,9 @@ pub fn network_guide(
                 backend.run(&inputs, nz)?
             };
             if let Some(grid) = backend.prior() {
-                reweigh_tile(grid, &cam, &band, (x0, y0), (th, tw), &mut s);
+                // As the render applies it: the planes kept are then those the
+                // reweighed selection needs.
+                grid.reweigh_tile(&cam, &band, (x0, y0), (th, tw), &mut s);
             }
             for z in 0..nz {
                 for y in y0..(y0 + th).min(h) {
@@ -159,32 +160,6 @@ pub fn network_guide(
         sel,
         rgb: layers.then_some(rgb),
     }))
-}
-
-/// A tuned model's scene prior applied to a guide tile's selection `s` (`[D, th, tw]`,
-/// the `th x tw` tile at `(x0, y0)` of `camera` on the planes `band`), in place, as the
-/// render applies it: the planes kept are then those the prior's selection needs.
-fn reweigh_tile(
-    grid: &PriorGrid,
-    camera: &Camera,
-    band: &[f64],
-    (x0, y0): (usize, usize),
-    (th, tw): (usize, usize),
-    s: &mut [f32],
-) {
-    let (d, n) = (band.len(), th * tw);
-    let pixels: Vec<(usize, usize)> = (0..n).map(|q| (x0 + q % tw, y0 + q / tw)).collect();
-    let cells = grid.locate_rays(camera, band, &pixels);
-    let mut col = vec![0f32; d];
-    for q in 0..n {
-        for (z, v) in col.iter_mut().enumerate() {
-            *v = s[z * n + q];
-        }
-        grid.reweigh(&mut col, &cells[q * d..(q + 1) * d]);
-        for (z, v) in col.iter().enumerate() {
-            s[z * n + q] = *v;
-        }
-    }
 }
 
 impl Guide {

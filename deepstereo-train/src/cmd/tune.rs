@@ -139,13 +139,14 @@ pub fn run(a: Args) -> Result<()> {
     if !(share.is_finite() && (0.0..=1.0).contains(&share)) {
         bail!("--network-share must be between 0 and 1, got {share}");
     }
-    let max_planes = deepstereo_core::config::MAX_PLANES;
-    if a.render_planes == 0 || a.render_planes > max_planes {
-        bail!(
-            "--render-planes must be 1 to {max_planes}, got {}",
-            a.render_planes
-        );
-    }
+    // The config a model with a prior is written with, checked before anything runs.
+    let with_prior_cfg = Config {
+        render_planes: Some(a.render_planes),
+        ..cfg.clone()
+    };
+    with_prior_cfg
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--render-planes: {e}"))?;
     let (net_budget, prior_budget) = split_budget(budget, share);
     let opts = TuneOptions {
         budget: net_budget.unwrap_or(Budget::Steps(1)),
@@ -205,10 +206,11 @@ pub fn run(a: Args) -> Result<()> {
     let improved = |p: &&SceneFit| p.fit.as_ref().is_some_and(|f| f.best_step > 0);
     let grid = prior.as_ref().filter(improved).and_then(|p| p.grid.clone());
     // A model with a prior renders at --render-planes; without one, as it was.
-    let mut tuned_cfg = cfg.clone();
-    if grid.is_some() {
-        tuned_cfg.render_planes = Some(a.render_planes);
-    }
+    let tuned_cfg = if grid.is_some() {
+        with_prior_cfg
+    } else {
+        cfg.clone()
+    };
     let provenance = serde_json::json!({
         "scene": scene.root,
         "holdout": holdout,
