@@ -66,10 +66,9 @@ fn held_out_noise_changes_nothing(auto_bounds: bool) {
     let dir = tempfile::tempdir().expect("tempdir");
     let s = scene(dir.path(), auto_bounds);
     let a = tuned(&s, &dir.path().join("a.safetensors"));
-    assert_eq!(
-        a,
-        tuned(&s, &dir.path().join("again.safetensors")),
-        "same seed and steps"
+    assert!(
+        a == tuned(&s, &dir.path().join("again.safetensors")),
+        "same seed and steps, another file"
     );
     // --llffhold 4 of 8 views holds out views 0 and 4: noise in their place.
     for v in [0, 4] {
@@ -110,21 +109,33 @@ fn the_tuned_model_renders_and_names_its_tune() {
         serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
     assert_eq!(tune["holdout"], serde_json::json!([0, 4]));
     assert_eq!(tune["steps"], 4);
-    // A model with a prior renders at 48 planes unless told otherwise; the network's
-    // own plane count stays.
+    // A model with a prior renders at the planes chosen on the views set aside: the
+    // most of 48, 40 and 32 whose work stays within the embedded model's (32 when none
+    // does); the network's own plane count stays.
     let cfg: serde_json::Value =
         serde_json::from_str(meta["deepstereo.config"].as_str().expect("a string")).expect("json");
+    assert_eq!(cfg["planes"], 32);
+    assert_eq!(cfg["render_planes"], tune["render_planes"]);
+    let chosen = cfg["render_planes"].as_u64().expect("render_planes");
+    let tried: Vec<(u64, f64)> = tune["render_planes_work"]
+        .as_array()
+        .expect("the work of each count tried")
+        .iter()
+        .map(|t| {
+            (
+                t[0].as_u64().expect("planes"),
+                t[1].as_f64().expect("ratio"),
+            )
+        })
+        .collect();
+    assert!(!tried.is_empty() && tried.iter().all(|t| t.1.is_finite() && t.1 > 0.0));
+    let counts: Vec<u64> = tried.iter().map(|t| t.0).collect();
+    assert_eq!(counts, [48, 40, 32][..counts.len()].to_vec(), "{tried:?}");
+    let fits = tried.iter().find(|t| t.1 <= 1.0).map_or(32, |t| t.0);
+    assert_eq!(chosen, fits, "{tried:?}");
     assert_eq!(
-        (
-            &cfg["planes"],
-            &cfg["render_planes"],
-            &tune["render_planes"]
-        ),
-        (
-            &serde_json::json!(32),
-            &serde_json::json!(48),
-            &serde_json::json!(48)
-        )
+        tune["network_share"], 0.0,
+        "--steps without --network-share"
     );
     let (m, sc) = (model.to_string_lossy(), s.to_string_lossy());
     let eval = |extra: &[&str]| {
@@ -137,8 +148,8 @@ fn the_tuned_model_renders_and_names_its_tune() {
     let json: serde_json::Value = serde_json::from_str(&res.stdout).expect("eval json");
     let psnr = json["mean"]["psnr"].as_f64().expect("a mean PSNR");
     assert!(psnr.is_finite() && psnr > 10.0, "PSNR {psnr}");
-    // eval renders it at 48 planes without being told, and at --planes when told.
-    assert_eq!(json["planes"], 48);
+    // eval renders it at its render planes without being told, and at --planes when told.
+    assert_eq!(json["planes"], chosen);
     let res = eval(&["--planes", "40", "--json", "-"]);
     assert_eq!(
         res.code,
@@ -191,15 +202,17 @@ fn network_share_splits_the_steps() {
             if share == "1" { 4 } else { 2 },
             "share {share}"
         );
-        // Without a prior the model renders at the planes it started with.
+        // Without a prior the model renders at the planes it started with; with one, at
+        // the planes chosen.
         let cfg: serde_json::Value =
             serde_json::from_str(meta["deepstereo.config"].as_str().expect("a string"))
                 .expect("json");
         let want = if prior {
-            serde_json::json!(48)
+            t["render_planes"].clone()
         } else {
             serde_json::Value::Null
         };
+        assert!(!prior || want.is_u64(), "share {share}: {t}");
         assert_eq!(cfg["render_planes"], want, "share {share}");
         assert_eq!(cfg["planes"], 32, "share {share}");
         assert_ne!(
@@ -208,6 +221,46 @@ fn network_share_splits_the_steps() {
             "share {share}"
         );
     }
+}
+
+/// `--render-planes P` is written as given, without the choice on the views set aside;
+/// a time budget splits itself between the network and the prior and says how.
+#[test]
+fn render_planes_and_the_split_of_a_time_budget() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = scene(dir.path(), false);
+    let out = dir.path().join("p40.safetensors");
+    let res = tune(
+        &s,
+        &out,
+        &["--llffhold", "4", "--steps", "4", "--render-planes", "40"],
+    );
+    assert_eq!(res.code, Some(0), "tune failed:\n{}", res.stderr);
+    let meta = read_safetensors_metadata(&out);
+    let t: serde_json::Value =
+        serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
+    assert_eq!(t["render_planes"], 40);
+    assert!(t["render_planes_work"].is_null(), "{t}");
+    let out = dir.path().join("timed.safetensors");
+    let res = tune(&s, &out, &["--llffhold", "4", "--minutes", "0.1"]);
+    assert_eq!(res.code, Some(0), "tune failed:\n{}", res.stderr);
+    assert!(
+        res.stderr.contains("the prior needs about"),
+        "{}",
+        res.stderr
+    );
+    let meta = read_safetensors_metadata(&out);
+    let t: serde_json::Value =
+        serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
+    let share = t["network_share"].as_f64().expect("a share");
+    let need = t["prior_need_seconds"]
+        .as_f64()
+        .expect("the prior's estimated time");
+    assert!((0.0..=1.0).contains(&share) && need > 0.0, "{t}");
+    assert_eq!(t["network_share_given"], false);
+    // The network runs when it has a share, after which the prior still runs.
+    assert_eq!(t["network_steps"].is_null(), share == 0.0, "{t}");
+    assert!(t["prior_views"].as_u64().is_some_and(|v| v > 0), "{t}");
 }
 
 #[test]

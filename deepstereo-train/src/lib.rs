@@ -19,4 +19,5 @@ pub mod prior;
 pub mod scene_weights;
 pub mod training;
 pub mod tune;
+pub mod tune_plan;
 pub mod video;

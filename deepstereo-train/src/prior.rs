@@ -512,7 +512,7 @@ pub fn fit_scene(
         )?;
         let elapsed = t0.elapsed().as_secs_f64() - paused;
         if reserve.is_none() {
-            reserve = Some(FitTime::measure(&mut rays, &val, opts)?);
+            reserve = Some(FitTime::measure(&mut rays, val.len(), opts)?);
         }
         for &s in snapshots {
             // Times before this phase began belong to the network's fine-tune.
@@ -564,6 +564,66 @@ pub fn fit_scene(
     Ok(out)
 }
 
+/// What reading a scene's views and fitting its prior will take, estimated before it
+/// runs (for a tune that splits its time between the network and the prior).
+#[derive(Clone, Copy, Debug)]
+pub struct PriorNeed {
+    /// Views [`fit_scene`] would read (validation views included).
+    pub views: usize,
+    /// Seconds to render one view's layers (measured on one validation view).
+    pub per_view: f64,
+    fit: FitTime,
+}
+
+impl PriorNeed {
+    /// The factor the measured time per view is scaled by.
+    const MARGIN: f64 = 1.15;
+
+    /// Renders the layers of the first validation view (or the first training view) with
+    /// `backend` and times it, then times a few fit steps on its rays.
+    pub fn measure(
+        backend: &dyn Backend,
+        scene: &Scene,
+        (train, validation): (&[usize], &[usize]),
+        settings: &RenderSettings,
+        opts: &PriorOptions,
+    ) -> Result<Self> {
+        let Some(&probe) = validation.first().or(train.first()) else {
+            bail!("no view to measure the prior's time on");
+        };
+        let planes = settings.planes.unwrap_or(backend.config().planes);
+        let views = train.len().min(opts.max_views) + validation.len();
+        let per_ray = opts.rays_per_view.min(opts.max_rays / views.max(1)).max(1);
+        let mut rays = Rays::new(planes);
+        let mut prepared = Prepared::new(scene);
+        let mut rng = Rng::new(opts.seed);
+        let t0 = Instant::now();
+        let r = (&mut rng, per_ray);
+        collect_view(
+            backend,
+            scene,
+            &mut prepared,
+            probe,
+            &[],
+            settings,
+            r,
+            &mut rays,
+        )?;
+        let per_view = t0.elapsed().as_secs_f64();
+        let fit = FitTime::measure(&mut rays, validation.len() * per_ray, opts)?;
+        Ok(Self {
+            views,
+            per_view,
+            fit,
+        })
+    }
+
+    /// Seconds to read every view and fit: `views * per_view` (with a margin) and the fit.
+    pub fn seconds(&self) -> f64 {
+        Self::MARGIN * self.per_view * self.views as f64 + self.fit.of(self.views)
+    }
+}
+
 /// A grid over `rays`, fitted to them.
 fn fit_rays(
     rays: &mut Rays,
@@ -597,8 +657,9 @@ impl FitTime {
     const SLACK: f64 = 2.0;
 
     /// Estimated from a few steps on `rays` (one view's; the grid is thrown away, and
-    /// the rays are placed in the final grid again before the fit).
-    fn measure(rays: &mut Rays, val: &Rays, opts: &PriorOptions) -> Result<Self> {
+    /// the rays are placed in the final grid again before the fit), with `val_rays`
+    /// validation rays.
+    fn measure(rays: &mut Rays, val_rays: usize, opts: &PriorOptions) -> Result<Self> {
         let t0 = Instant::now();
         let mut grid = rays.grid(opts.cells)?;
         rays.locate(&grid);
@@ -624,7 +685,7 @@ impl FitTime {
         let per_step = t1.elapsed().as_secs_f64() / steps as f64 * opts.batch as f64 / probed;
         // A validation renders every validation ray once, about as a step renders its batch.
         let validations = (opts.steps / opts.validate_every.max(1) + 2) as f64;
-        let per_val = per_step * val.len() as f64 / opts.batch.max(1) as f64;
+        let per_val = per_step * val_rays as f64 / opts.batch.max(1) as f64;
         let total = per_step * opts.steps as f64 + per_val * validations;
         Ok(Self {
             fixed: Self::MARGIN * total + Self::SLACK,

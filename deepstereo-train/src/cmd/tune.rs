@@ -5,8 +5,9 @@
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::data::SceneData;
 use crate::inference::{evaluate, RenderSettings};
-use crate::prior::{fit_scene, PriorBudget, PriorOptions, PriorProgress, SceneFit};
+use crate::prior::{fit_scene, PriorBudget, PriorNeed, PriorOptions, PriorProgress, SceneFit};
 use crate::tune::{tune, validation_views, Budget, Progress, TuneOptions, TuneResult};
+use crate::tune_plan;
 use anyhow::{bail, Context, Result};
 use candle_core::Tensor;
 use deepstereo_core::config::Config;
@@ -18,15 +19,12 @@ use deepstereo_core::weights::{self, named_vars};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Instant;
 
 /// Adam's initial rate of the recipe.
 pub const DEFAULT_LR: f64 = 5e-4;
 /// The rate's final share (cosine decay over the budget).
 pub const DEFAULT_LR_FINAL: f64 = 0.1;
-/// Depth planes a model with a scene prior renders at unless told otherwise
-/// (`--render-planes`).
-pub const TUNED_PLANES: usize = 48;
-
 /// Metadata key of the tune's options in the model it writes.
 pub const TUNE_KEY: &str = "deepstereo.tune";
 
@@ -87,19 +85,21 @@ pub struct Args {
     /// Share of the budget (time, or steps) spent first fine-tuning the network's
     /// weights; the rest fits the scene prior (a world-space grid that reweighs the
     /// network's selection, leaving the network as it is). 0: the prior alone; 1: the
-    /// network alone, without a prior.
-    #[arg(long, default_value_t = 0.0)]
-    pub network_share: f64,
+    /// network alone, without a prior. Default with --minutes: what the prior will not
+    /// need (one view rendered and a few fit steps timed first), nothing when that is
+    /// under a tenth of the budget; with --steps: 0.
+    #[arg(long)]
+    pub network_share: Option<f64>,
     /// Cells along the longest side of the scene prior's grid.
     #[arg(long, default_value_t = PriorOptions::default().cells)]
     pub prior_cells: usize,
     /// Depth planes a model with a scene prior renders at by default (written into its
-    /// config as `render_planes`; `--planes` still overrides it when rendering). The
-    /// coarse pass of `--prune auto` applies the prior, so fewer of them run: on the
-    /// evaluation scenes (docs/results.md) 48 planes of a tuned model took 0.97-1.39x
-    /// the embedded model's time at 32 and scored 0.3 dB higher than 32 on average.
-    #[arg(long, default_value_t = TUNED_PLANES)]
-    pub render_planes: usize,
+    /// config as `render_planes`; `--planes` still overrides it when rendering). Default:
+    /// the most of 1.5x, 1.25x and 1x the network's planes (48, 40, 32) at which the
+    /// tuned model does no more work than the model it started from on the views set
+    /// aside (the coarse pass of `--prune auto` applies the prior, so fewer planes run).
+    #[arg(long)]
+    pub render_planes: Option<usize>,
     /// Print a line per validation instead of a progress bar (the default when standard
     /// error is not a terminal).
     #[arg(long)]
@@ -135,21 +135,14 @@ pub fn run(a: Args) -> Result<()> {
     }
     let data = SceneData::from_scene(&scene, cfg.levels)?;
     let validation = validation_views(data.cameras.len());
-    let share = a.network_share;
-    if !(share.is_finite() && (0.0..=1.0).contains(&share)) {
-        bail!("--network-share must be between 0 and 1, got {share}");
-    }
     // The config a model with a prior is written with, checked before anything runs.
-    let with_prior_cfg = Config {
-        render_planes: Some(a.render_planes),
-        ..cfg.clone()
-    };
-    with_prior_cfg
-        .validate()
-        .map_err(|e| anyhow::anyhow!("--render-planes: {e}"))?;
-    let (net_budget, prior_budget) = split_budget(budget, share);
+    if let Some(p) = a.render_planes {
+        with_render_planes(&cfg, p)?;
+    }
+    let shared = (&scene, &validation[..], &settings);
+    let plan = plan(&a, budget, &start, shared)?;
     let opts = TuneOptions {
-        budget: net_budget.unwrap_or(Budget::Steps(1)),
+        budget: plan.network.unwrap_or(Budget::Steps(1)),
         seed: a.seed,
         lr: a.lr,
         lr_final: a.lr_final,
@@ -166,28 +159,36 @@ pub fn run(a: Args) -> Result<()> {
             .with_context(|| format!("--curve {}: cannot create the directory", dir.display()))?;
     }
     eprintln!(
-        "tuning {} on {} views ({} held out, {} set aside for validation), {} per tile",
+        "tuning {} on {} views ({} held out, {} set aside for validation), {} per tile; {}",
         a.model.name(),
         data.cameras.len(),
         holdout.len(),
         validation.len(),
-        opts.views
+        opts.views,
+        plan.describe(budget)
     );
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
     let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
     let bar = progress_bar(!a.no_progress);
-    let network = match net_budget {
+    let original = copy_weights(&start)?;
+    let network = match plan.network {
         Some(_) => Some(tune_network(&start, data, &validation, &opts, &stop, &bar)?),
         None => None,
     };
     let interrupted = network.as_ref().is_some_and(|r| r.interrupted);
-    let prior = match prior_budget {
-        Some(pb) if !interrupted => {
+    let prior = match plan.prior {
+        true if !interrupted => {
             let mut po = prior_options(&a);
-            if let Budget::Steps(s) = budget {
-                po.steps = (s - net_budget.map_or(0, steps_of)) as usize;
-            }
+            let pb = match budget {
+                Budget::Steps(s) => {
+                    po.steps = (s - plan.network.map_or(0, steps_of)) as usize;
+                    PriorBudget::AllViews
+                }
+                Budget::Seconds(b) => {
+                    PriorBudget::Seconds(b - plan.clock.elapsed().as_secs_f64() - plan.reserve)
+                }
+            };
             let offset = network.as_ref().map_or(0.0, |r| r.seconds);
             let phase = PriorPhase {
                 scene: &scene,
@@ -205,11 +206,15 @@ pub fn run(a: Args) -> Result<()> {
     // A grid no step improved on is the model as given: no prior is written.
     let improved = |p: &&SceneFit| p.fit.as_ref().is_some_and(|f| f.best_step > 0);
     let grid = prior.as_ref().filter(improved).and_then(|p| p.grid.clone());
-    // A model with a prior renders at --render-planes; without one, as it was.
-    let tuned_cfg = if grid.is_some() {
-        with_prior_cfg
-    } else {
-        cfg.clone()
+    // A model with a prior renders at --render-planes or at the planes chosen on the
+    // views set aside; without one, as it was.
+    let (tuned_cfg, choice) = match (&grid, a.render_planes) {
+        (None, _) => (cfg.clone(), None),
+        (Some(_), Some(p)) => (with_render_planes(&cfg, p)?, None),
+        (Some(g), None) => {
+            let c = pick_planes(&start, (&cfg, &original), g, shared)?;
+            (with_render_planes(&cfg, c.planes)?, Some(c))
+        }
     };
     let provenance = serde_json::json!({
         "scene": scene.root,
@@ -217,7 +222,9 @@ pub fn run(a: Args) -> Result<()> {
         "seed": a.seed,
         "steps": match budget { Budget::Steps(s) => Some(s), Budget::Seconds(_) => None },
         "minutes": a.minutes,
-        "network_share": share,
+        "network_share": plan.share,
+        "network_share_given": a.network_share.is_some(),
+        "prior_need_seconds": plan.need.map(|n| n.seconds()),
         "network_steps": network.as_ref().map(|r| r.steps),
         "network_best_step": network.as_ref().map(|r| r.best_step),
         "prior_views": prior.as_ref().map(|p| p.views),
@@ -229,6 +236,7 @@ pub fn run(a: Args) -> Result<()> {
         "views": opts.views,
         "augment": a.augment,
         "render_planes": tuned_cfg.default_render_planes(),
+        "render_planes_work": choice.as_ref().map(|c| &c.work),
         "start": a.model.name(),
     });
     save_model(
@@ -238,7 +246,11 @@ pub fn run(a: Args) -> Result<()> {
         grid.as_ref(),
         &provenance.to_string(),
     )?;
-    eprintln!("model: {}", a.out.display());
+    eprintln!(
+        "model: {} ({:.0} s of tuning)",
+        a.out.display(),
+        plan.clock.elapsed().as_secs_f64()
+    );
     if let Some(dir) = &a.curve {
         let snaps = curve_snapshots(
             &opts,
@@ -300,9 +312,7 @@ impl PriorPhase<'_> {
             model: start.model.clone().with_prior(None),
             device: candle_core::Device::Cpu,
         };
-        let train: Vec<usize> = (0..self.scene.views.len())
-            .filter(|i| !self.validation.contains(i))
-            .collect();
+        let train = tuning_targets(self.scene, self.validation);
         let r = fit_scene(
             &backend,
             self.scene,
@@ -331,20 +341,157 @@ impl PriorPhase<'_> {
     }
 }
 
-/// The budgets of the network's fine-tune (`None`: it does not run) and of the prior
-/// (`None`: it is not fitted), a share `share` of `budget` going to the network first.
-fn split_budget(budget: Budget, share: f64) -> (Option<Budget>, Option<PriorBudget>) {
-    let net = match budget {
+/// How the budget is spent.
+struct Plan {
+    /// The network's fine-tune (`None`: it does not run).
+    network: Option<Budget>,
+    /// Whether the prior is fitted after it.
+    prior: bool,
+    /// The network's share of the budget.
+    share: f64,
+    /// The prior's estimated time (measured with a time budget).
+    need: Option<PriorNeed>,
+    /// Seconds kept for choosing the render planes after the prior.
+    reserve: f64,
+    /// When tuning began.
+    clock: Instant,
+}
+
+impl Plan {
+    fn describe(&self, budget: Budget) -> String {
+        let net = match (self.network, budget) {
+            (None, _) => "the scene prior alone".to_string(),
+            (Some(Budget::Seconds(t)), _) => format!("the network for {t:.0} s"),
+            (Some(Budget::Steps(n)), _) => format!("the network for {n} steps"),
+        };
+        let need = self.need.map_or(String::new(), |n| {
+            format!(
+                " (the prior needs about {:.0} s: {} views at {:.1} s and its fit)",
+                n.seconds(),
+                n.views,
+                n.per_view
+            )
+        });
+        match (self.network.is_some(), self.prior) {
+            (true, true) => format!("{net}, then the scene prior{need}"),
+            _ => format!("{net}{need}"),
+        }
+    }
+}
+
+/// Splits the budget: `--network-share` as given, or (with a time budget) what the
+/// prior will not need, measured on the scene ([`crate::tune_plan`]).
+fn plan(
+    a: &Args,
+    budget: Budget,
+    start: &deepstereo_core::weights::Trainable,
+    (scene, validation, settings): (&Scene, &[usize], &RenderSettings),
+) -> Result<Plan> {
+    let clock = Instant::now();
+    if let Some(f) = a.network_share {
+        if !(f.is_finite() && (0.0..=1.0).contains(&f)) {
+            bail!("--network-share must be between 0 and 1, got {f}");
+        }
+    }
+    let prior = a.network_share.is_none_or(|f| f < 1.0);
+    let need = match budget {
+        Budget::Seconds(_) if prior => {
+            let backend = CandleBackend {
+                model: start.model.clone().with_prior(None),
+                device: candle_core::Device::Cpu,
+            };
+            let train = tuning_targets(scene, validation);
+            let po = prior_options(a);
+            Some(PriorNeed::measure(
+                &backend,
+                scene,
+                (&train, validation),
+                settings,
+                &po,
+            )?)
+        }
+        _ => None,
+    };
+    let reserve = match (need, a.render_planes) {
+        (Some(n), None) => tune_plan::choice_reserve(&n, validation.len()),
+        _ => 0.0,
+    };
+    let share = match (a.network_share, budget, need) {
+        (Some(f), _, _) => f,
+        (None, Budget::Seconds(b), Some(n)) => {
+            let left = b - clock.elapsed().as_secs_f64();
+            tune_plan::network_seconds(left, n.seconds(), reserve) / b
+        }
+        _ => 0.0,
+    };
+    let network = match budget {
         Budget::Steps(s) => Some(Budget::Steps((s as f64 * share).round() as u64)),
         Budget::Seconds(t) => Some(Budget::Seconds(t * share)),
     }
     .filter(|b| !matches!(b, Budget::Steps(0)) && *b != Budget::Seconds(0.0));
-    let prior = match budget {
-        _ if share >= 1.0 => None,
-        Budget::Steps(_) => Some(PriorBudget::AllViews),
-        Budget::Seconds(t) => Some(PriorBudget::Seconds(t * (1.0 - share))),
+    Ok(Plan {
+        network,
+        prior,
+        share,
+        need,
+        reserve,
+        clock,
+    })
+}
+
+/// The views a prior is fitted on: all but those set aside.
+fn tuning_targets(scene: &Scene, validation: &[usize]) -> Vec<usize> {
+    (0..scene.views.len())
+        .filter(|i| !validation.contains(i))
+        .collect()
+}
+
+/// `cfg` rendering at `planes` by default, checked.
+fn with_render_planes(cfg: &Config, planes: usize) -> Result<Config> {
+    let c = Config {
+        render_planes: Some(planes),
+        ..cfg.clone()
     };
-    (net, prior)
+    c.validate()
+        .map_err(|e| anyhow::anyhow!("--render-planes: {e}"))?;
+    Ok(c)
+}
+
+/// The render planes of a tuned model with prior `grid` (its network's weights those
+/// of `start` now), chosen on the views set aside against the model it started from
+/// (`cfg` with the weights `original`, and its own prior if it had one).
+fn pick_planes(
+    start: &deepstereo_core::weights::Trainable,
+    (cfg, original): (&Config, &[Tensor]),
+    grid: &PriorGrid,
+    (scene, validation, settings): (&Scene, &[usize], &RenderSettings),
+) -> Result<tune_plan::PlanesChoice> {
+    let before = backend_with(cfg, original, start.model.prior().cloned())?;
+    let tuned = CandleBackend {
+        model: start.model.clone().with_prior(Some(grid.clone())),
+        device: candle_core::Device::Cpu,
+    };
+    let choices = tune_plan::plane_choices(cfg.planes);
+    let c =
+        tune_plan::choose_render_planes(&before, &tuned, scene, validation, settings, &choices)?;
+    let tried: Vec<String> = (c.work.iter())
+        .map(|(p, r)| format!("{p} planes {r:.2}x"))
+        .collect();
+    eprintln!(
+        "render planes: {} (work on the views set aside against the model started from: {}; {:.0} s)",
+        c.planes,
+        tried.join(", "),
+        c.seconds
+    );
+    Ok(c)
+}
+
+/// Detached copies of a model's weights (in `named_vars` order).
+fn copy_weights(t: &deepstereo_core::weights::Trainable) -> Result<Vec<Tensor>> {
+    Ok(named_vars(&t.varmap)
+        .iter()
+        .map(|(_, v)| v.as_tensor().copy())
+        .collect::<candle_core::Result<_>>()?)
 }
 
 fn steps_of(b: Budget) -> u64 {
@@ -376,10 +523,7 @@ fn curve_snapshots(
     prior: Option<&SceneFit>,
     written: Option<&PriorGrid>,
 ) -> Result<Vec<Snapshot>> {
-    let now: Vec<Tensor> = named_vars(&start.varmap)
-        .iter()
-        .map(|(_, v)| v.as_tensor().copy())
-        .collect::<candle_core::Result<_>>()?;
+    let now = copy_weights(start)?;
     let net_end = network.map_or(0.0, |r| r.seconds);
     let end = net_end + prior.map_or(0.0, |p| p.seconds);
     // A tune that read every view before its time was up ends with the model a longer

@@ -1,0 +1,132 @@
+//! What `tune` decides by measuring the scene: how a time budget is split between
+//! fine-tuning the network and fitting the scene prior, and how many depth planes the
+//! tuned model renders at.
+//!
+//! - **The split.** The prior reads every tuning view once (one render of its layers
+//!   each) and then fits; on a scene with few views that ends long before the budget.
+//!   The network gets what the prior will not need: `budget - need - reserve`, where
+//!   `need` is [`PriorNeed::seconds`] (one view rendered and a few fit steps timed) and
+//!   `reserve` the time the planes choice below takes; nothing when that is under
+//!   [`MIN_NETWORK_SHARE`] of the budget.
+//! - **The planes.** A prior sharpens the selection, so pruning runs fewer planes and a
+//!   tuned model can afford more of them at the cost of the model it started from. The
+//!   work of a render is the planes times the pixels the network ran on (`planes_run` of
+//!   the pruning's statistics, deterministic, and what the time follows: 1.0-1.2x its
+//!   ratio on the evaluation scenes, docs/results.md). The choice is the most planes of
+//!   [`plane_choices`] whose work on the views set aside for validation stays within
+//!   the starting model's at its own default; the network's planes when none does.
+
+use crate::inference::{render_held_out, Prepared, RenderSettings};
+use crate::prior::PriorNeed;
+use anyhow::Result;
+use deepstereo_core::render::Backend;
+use deepstereo_core::scene::Scene;
+use std::time::Instant;
+
+/// The smallest share of a time budget worth giving the network (below it, the prior
+/// alone runs).
+pub const MIN_NETWORK_SHARE: f64 = 0.1;
+
+/// Renders of each validation view the planes choice may take (the start's and up to
+/// three candidates'), in units of one view's layers at the network's planes (pruned
+/// renders at 1.5x the planes run 0.4-1.4x of those), for its time reserve.
+const CHOICE_RENDERS: f64 = 3.0;
+
+/// Seconds the network fine-tunes within a budget of `budget` seconds when the prior
+/// needs `need` and `reserve` is kept for what follows it: the rest, or 0 when the rest
+/// is under [`MIN_NETWORK_SHARE`] of the budget.
+pub fn network_seconds(budget: f64, need: f64, reserve: f64) -> f64 {
+    let rest = budget - need - reserve;
+    if rest >= MIN_NETWORK_SHARE * budget {
+        rest
+    } else {
+        0.0
+    }
+}
+
+/// Seconds to keep for [`choose_render_planes`] on `validation_views` views.
+pub fn choice_reserve(need: &PriorNeed, validation_views: usize) -> f64 {
+    CHOICE_RENDERS * need.per_view * validation_views as f64
+}
+
+/// The plane counts tried, most first: 1.5, 1.25 and 1 times the network's `planes`.
+pub fn plane_choices(planes: usize) -> [usize; 3] {
+    [planes * 3 / 2, planes * 5 / 4, planes]
+}
+
+/// What [`choose_render_planes`] found.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct PlanesChoice {
+    pub planes: usize,
+    /// `(planes, work / the start's work)` of each count tried, in the order tried.
+    pub work: Vec<(usize, f64)>,
+    pub seconds: f64,
+}
+
+/// The most planes of `choices` (most first) at which `tuned` does no more work on
+/// `views` of `scene` (each rendered from the views not among them) than `start` at its
+/// own default planes; the last choice when none does. `settings.planes` is ignored.
+pub fn choose_render_planes(
+    start: &dyn Backend,
+    tuned: &dyn Backend,
+    scene: &Scene,
+    views: &[usize],
+    settings: &RenderSettings,
+    choices: &[usize],
+) -> Result<PlanesChoice> {
+    let t0 = Instant::now();
+    let mut prepared = Prepared::new(scene);
+    let mut work = |backend: &dyn Backend, planes: Option<usize>| -> Result<f64> {
+        let s = RenderSettings {
+            planes,
+            ..settings.clone()
+        };
+        let k = s.source_count(backend.config())?;
+        let mut sum = 0f64;
+        for &t in views {
+            let h = render_held_out(backend, scene, &mut prepared, t, views, k, &s)?;
+            let (w, hgt) = (h.rendered.image.width, h.rendered.image.height);
+            sum += match &h.rendered.prune {
+                Some(p) => p.planes_run as f64,
+                None => (h.inv_depths.len() * w as usize * hgt as usize) as f64,
+            };
+        }
+        Ok(sum)
+    };
+    let base = work(start, None)?.max(1.0);
+    let mut tried = Vec::new();
+    let mut planes = *choices.last().unwrap_or(&start.config().planes);
+    for &p in choices {
+        let ratio = work(tuned, Some(p))? / base;
+        tried.push((p, ratio));
+        if ratio <= 1.0 {
+            planes = p;
+            break;
+        }
+    }
+    Ok(PlanesChoice {
+        planes,
+        work: tried,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_network_gets_what_the_prior_leaves() {
+        assert_eq!(network_seconds(600.0, 100.0, 20.0), 480.0);
+        // Under a tenth of the budget left: the prior alone.
+        assert_eq!(network_seconds(600.0, 550.0, 0.0), 0.0);
+        assert_eq!(network_seconds(600.0, 900.0, 10.0), 0.0);
+        assert_eq!(network_seconds(600.0, 530.0, 10.0), 60.0);
+    }
+
+    #[test]
+    fn plane_choices_scale_the_networks_planes() {
+        assert_eq!(plane_choices(32), [48, 40, 32]);
+        assert_eq!(plane_choices(8), [12, 10, 8]);
+    }
+}
