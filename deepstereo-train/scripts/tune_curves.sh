@@ -29,20 +29,27 @@ for entry in "${EVAL_SCENES[@]}"; do
   echo "done: $name"
 done
 python3 - "$OUT" <<'PY'
-import json, sys, pathlib
+import json, re, sys, pathlib
 out = pathlib.Path(sys.argv[1])
 rows = []
 for f in sorted(out.glob("*/curve.json")):
     pts = json.loads(f.read_text())["points"]
-    rows.append((f.parent.name, pts))
+    log = (f.parent / "tune.log").read_text() if (f.parent / "tune.log").exists() else ""
+    net = re.search(r"^network: (\d+) steps in (\d+) s", log, re.M)
+    prior = re.search(r"^scene prior: (\d+) views", log, re.M)
+    planes = re.search(r"^render planes: (\d+)", log, re.M)
+    what = ", ".join([f"network {net[2]} s" if net else "no network",
+                      f"prior {prior[1]} views" if prior else "no prior",
+                      f"{planes[1]} planes" if planes else "planes as given"])
+    rows.append((f.parent.name, pts, what))
 if rows:
     mins = [p["minutes"] for p in rows[0][1]]
-    print("| scene | " + " | ".join(f"{m:g} min PSNR / SSIM" for m in mins) + " | gain | s/view untuned / tuned |")
-    print("|---|" + "---|" * (len(mins) + 2))
-    for name, pts in rows:
+    print("| scene | " + " | ".join(f"{m:g} min PSNR / SSIM" for m in mins) + " | gain | tune | s/view untuned / tuned |")
+    print("|---|" + "---|" * (len(mins) + 3))
+    for name, pts, what in rows:
         cells = [f"{p['psnr']:.2f} / {p['ssim']:.3f}" for p in pts]
         gain = pts[-1]["psnr"] - pts[0]["psnr"]
-        print(f"| {name} | " + " | ".join(cells) + f" | {gain:+.2f} | {pts[0]['seconds_per_view']:.2f} / {pts[-1]['seconds_per_view']:.2f} |")
+        print(f"| {name} | " + " | ".join(cells) + f" | {gain:+.2f} | {what} | {pts[0]['seconds_per_view']:.2f} / {pts[-1]['seconds_per_view']:.2f} |")
     n = len(rows)
-    print(f"| mean | " + " | ".join(f"{sum(r[1][i]['psnr'] for r in rows)/n:.2f}" for i in range(len(mins))) + f" | {sum(r[1][-1]['psnr']-r[1][0]['psnr'] for r in rows)/n:+.2f} | |")
+    print(f"| mean | " + " | ".join(f"{sum(r[1][i]['psnr'] for r in rows)/n:.2f}" for i in range(len(mins))) + f" | {sum(r[1][-1]['psnr']-r[1][0]['psnr'] for r in rows)/n:+.2f} | | |")
 PY

@@ -87,7 +87,7 @@ pub struct Args {
     /// network's selection, leaving the network as it is). 0: the prior alone; 1: the
     /// network alone, without a prior. Default with --minutes: what the prior will not
     /// need (one view rendered and a few fit steps timed first), nothing when that is
-    /// under a tenth of the budget; with --steps: 0.
+    /// under 70% of the budget; with --steps: 0.
     #[arg(long)]
     pub network_share: Option<f64>,
     /// Cells along the longest side of the scene prior's grid.
