@@ -165,7 +165,7 @@ pub fn run(a: Args) -> Result<()> {
         holdout.len(),
         validation.len(),
         opts.views,
-        plan.describe(budget)
+        plan.describe()
     );
     let stop = Arc::new(AtomicBool::new(false));
     let flag = stop.clone();
@@ -358,11 +358,12 @@ struct Plan {
 }
 
 impl Plan {
-    fn describe(&self, budget: Budget) -> String {
-        let net = match (self.network, budget) {
-            (None, _) => "the scene prior alone".to_string(),
-            (Some(Budget::Seconds(t)), _) => format!("the network for {t:.0} s"),
-            (Some(Budget::Steps(n)), _) => format!("the network for {n} steps"),
+    /// A line for people: what runs, for how long.
+    fn describe(&self) -> String {
+        let net = match self.network {
+            None => "the scene prior alone".to_string(),
+            Some(Budget::Seconds(t)) => format!("the network for {t:.0} s"),
+            Some(Budget::Steps(n)) => format!("the network for {n} steps"),
         };
         let need = self.need.map_or(String::new(), |n| {
             format!(
