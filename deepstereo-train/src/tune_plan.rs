@@ -14,9 +14,9 @@
 //!   tuned model can afford more of them at the cost of the model it started from. The
 //!   work of a render is the planes times the pixels the network ran on and a fixed
 //!   cost per block it ran ([`CALL_COST`]; both counted by the pruning's statistics, so
-//!   the choice is deterministic). The choice is the most planes of
-//!   [`plane_choices`] whose work on the views set aside for validation stays within
-//!   the starting model's at its own default; the network's planes when none does.
+//!   the choice is deterministic). The choice is the most planes of [`plane_choices`]
+//!   whose work on the views set aside for validation stays within the starting
+//!   model's at its own default; the network's planes when none does.
 
 use crate::inference::{render_held_out, Prepared, RenderSettings};
 use crate::prior::PriorNeed;
@@ -27,7 +27,7 @@ use std::time::Instant;
 
 /// The smallest share of a time budget worth giving the network (below it, the prior
 /// alone runs): with 26-54% of 10 minutes the network's fine-tune before the prior
-/// scored 0.0-0.9 dB below the prior alone on four scenes; with 75-80% it gained on
+/// scored 0.0-0.6 dB below the prior alone on three scenes; with 75-80% it gained on
 /// the rings (docs/results.md).
 pub const MIN_NETWORK_SHARE: f64 = 0.7;
 
