@@ -60,6 +60,14 @@ impl Default for PriorOptions {
     }
 }
 
+impl PriorOptions {
+    /// Rays kept per view when `views` tuning views are read: `rays_per_view`, fewer when
+    /// that many views would pass `max_rays`.
+    pub fn rays_per_view_of(&self, views: usize) -> usize {
+        self.rays_per_view.min(self.max_rays / views.max(1)).max(1)
+    }
+}
+
 /// Stored rays: per ray its plane selection and colours, the photograph's colour, and
 /// (once a grid exists) its plane points' cells.
 pub struct Rays {
@@ -467,7 +475,7 @@ pub fn fit_scene(
         .take(opts.max_views)
         .collect();
     let total = order.len();
-    let per_view = opts.rays_per_view.min(opts.max_rays / total.max(1)).max(1);
+    let per_view = opts.rays_per_view_of(total);
     let mut prepared = Prepared::new(scene);
     let mut rng = Rng::new(opts.seed ^ 0x005e_ed0f_9a1d);
     let mut val = Rays::new(planes);
@@ -592,8 +600,9 @@ impl PriorNeed {
             bail!("no view to measure the prior's time on");
         };
         let planes = settings.planes.unwrap_or(backend.config().planes);
-        let views = train.len().min(opts.max_views) + validation.len();
-        let per_ray = opts.rays_per_view.min(opts.max_rays / views.max(1)).max(1);
+        let read = train.len().min(opts.max_views);
+        let views = read + validation.len();
+        let per_ray = opts.rays_per_view_of(read);
         let mut rays = Rays::new(planes);
         let mut prepared = Prepared::new(scene);
         let mut rng = Rng::new(opts.seed);

@@ -296,7 +296,7 @@ impl Run {
 }
 
 /// Detached copies of the variables' values.
-fn copy(vars: &[(String, Var)]) -> Result<Vec<Tensor>> {
+pub fn copy(vars: &[(String, Var)]) -> Result<Vec<Tensor>> {
     Ok(vars
         .iter()
         .map(|(_, v)| v.as_tensor().copy())

@@ -489,10 +489,7 @@ fn pick_planes(
 
 /// Detached copies of a model's weights (in `named_vars` order).
 fn copy_weights(t: &deepstereo_core::weights::Trainable) -> Result<Vec<Tensor>> {
-    Ok(named_vars(&t.varmap)
-        .iter()
-        .map(|(_, v)| v.as_tensor().copy())
-        .collect::<candle_core::Result<_>>()?)
+    crate::tune::copy(&named_vars(&t.varmap))
 }
 
 fn steps_of(b: Budget) -> u64 {
