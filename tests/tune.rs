@@ -109,9 +109,10 @@ fn the_tuned_model_renders_and_names_its_tune() {
         serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
     assert_eq!(tune["holdout"], serde_json::json!([0, 4]));
     assert_eq!(tune["steps"], 4);
-    // A model with a prior renders at the planes chosen on the views set aside: the
-    // most of 48, 40 and 32 whose work stays within the embedded model's (32 when none
-    // does); the network's own plane count stays.
+    // A model with a prior renders at the planes chosen on the views set aside and a
+    // few tuning views: the most of 24, 28, ..., 48 whose work stays within the
+    // embedded model's (24 when none does), found by bisection from 36; the network's
+    // own plane count stays.
     let cfg: serde_json::Value =
         serde_json::from_str(meta["deepstereo.config"].as_str().expect("a string")).expect("json");
     assert_eq!(cfg["planes"], 32);
@@ -129,10 +130,21 @@ fn the_tuned_model_renders_and_names_its_tune() {
         })
         .collect();
     assert!(!tried.is_empty() && tried.iter().all(|t| t.1.is_finite() && t.1 > 0.0));
-    let counts: Vec<u64> = tried.iter().map(|t| t.0).collect();
-    assert_eq!(counts, [48, 40, 32][..counts.len()].to_vec(), "{tried:?}");
-    let fits = tried.iter().find(|t| t.1 <= 1.0).map_or(32, |t| t.0);
-    assert_eq!(chosen, fits, "{tried:?}");
+    // The bisection's path: each count tried follows from the ratio before it.
+    let choices = [24u64, 28, 32, 36, 40, 44, 48];
+    let (mut lo, mut hi, mut want) = (0usize, choices.len(), 24u64);
+    for t in &tried {
+        let mid = (lo + hi) / 2;
+        assert_eq!(t.0, choices[mid], "{tried:?}");
+        if t.1 <= 1.0 {
+            want = t.0;
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
+    }
+    assert_eq!(lo, hi, "the bisection ended early: {tried:?}");
+    assert_eq!(chosen, want, "{tried:?}");
     assert_eq!(
         tune["network_share"], 0.0,
         "--steps without --network-share"

@@ -1,18 +1,19 @@
 //! A per-scene selection prior: a world-space grid of log-weights `b` that reweighs the
 //! network's selection outside the network,
 //!
-//! `s'_z = s_z exp(b(x_z)) / sum_k s_k exp(b(x_k))`,
+//! `s'_z = s_z^g exp(b(x_z)) / sum_k s_k^g exp(b(x_k))`,
 //!
-//! where `x_z` is the world point of the pixel's ray on plane `z` and `b(x)` is the
+//! where `x_z` is the world point of the pixel's ray on plane `z`, `b(x)` is the
 //! grid's trilinear interpolation (points outside the grid take its nearest face's
-//! values). A grid of zeros changes nothing, so a prior fitted from zero starts at the
-//! network's own render. Because `b` lives in the world, not in any camera, what one
+//! values) and `g` the scene's sharpness, one exponent for the whole scene (above 1 the
+//! selection is sharper than the network's, below 1 flatter). A grid of zeros with `g =
+//! 1` changes nothing, so a prior fitted from there starts at the network's own render. Because `b` lives in the world, not in any camera, what one
 //! view teaches about where surfaces are holds in every other view: it is the scene's
 //! own depth evidence, learned by leaving one view out (`deepstereo tune`).
 //!
-//! The rendered colour is `C = sum_z s'_z c_z`, and its derivative by `b_z` is
-//! `dC/db_z = s'_z (c_z - C)` (the softmax's Jacobian), which [`PriorGrid::ray_gradient`]
-//! uses. Geometry is f64; the grid and the layers are f32.
+//! The rendered colour is `C = sum_z s'_z c_z`, a softmax of the logits `l_z = g ln s_z +
+//! b_z`; its derivatives are `dC/db_z = s'_z (c_z - C)` (the softmax's Jacobian) and
+//! `dC/dg = sum_z s'_z (c_z - C) ln s_z`, which [`PriorGrid::ray_gradient`] uses. Geometry is f64; the grid and the layers are f32.
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
@@ -26,6 +27,10 @@ pub mod io;
 /// `exp` never overflows.
 pub const MAX_LOG_WEIGHT: f32 = 12.0;
 
+/// The range a scene's sharpness `g` is held in: from a quarter of the network's
+/// logit scale to eight times it (a selection of 0.5 against 0.25 becomes 256 to 1).
+pub const SHARPNESS_RANGE: (f32, f32) = (0.25, 8.0);
+
 /// An axis-aligned grid of log-weights over a box of the world.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PriorGrid {
@@ -37,6 +42,9 @@ pub struct PriorGrid {
     pub dims: [usize; 3],
     /// `dims[0] * dims[1] * dims[2]` log-weights, x fastest.
     pub values: Vec<f32>,
+    /// The exponent `g` of the network's selection (1: as the network has it), within
+    /// [`SHARPNESS_RANGE`].
+    pub sharpness: f32,
 }
 
 /// Where a point falls in the grid: its cell's first corner and its fractions.
@@ -70,6 +78,7 @@ impl PriorGrid {
             cell,
             dims,
             values: vec![0.0; dims[0] * dims[1] * dims[2]],
+            sharpness: 1.0,
         })
     }
 
@@ -228,7 +237,7 @@ impl PriorGrid {
     /// its located plane points `cells`; a pixel whose selection is all zero stays zero.
     pub fn reweigh(&self, s: &mut [f32], cells: &[Cell]) {
         let b: Vec<f32> = cells.iter().map(|&c| self.value(c)).collect();
-        reweigh_with(s, &b);
+        reweigh_with(s, &b, self.sharpness);
     }
 
     /// One ray rendered with the prior: its reweighed selection `s'` and colour
@@ -246,11 +255,13 @@ impl PriorGrid {
         (sp, colour)
     }
 
-    /// One ray's L1 loss gradient by the log-weights of its plane points: the rendered
-    /// colour `C = sum_z s'_z c_z` of selection `s` and colours `c` (`[D][3]`) against
-    /// `truth`, `g = sign(C - truth)`, `dL/db_z = s'_z (c_z - C) . g`, scattered onto the
-    /// cells' corners with their trilinear weights (times `scale`) into `grad`. Returns
-    /// the ray's L1 error (summed over channels).
+    /// One ray's L1 loss gradient by the log-weights of its plane points and by the
+    /// sharpness: the rendered colour `C = sum_z s'_z c_z` of selection `s` and colours
+    /// `c` (`[D][3]`) against `truth`, `e = sign(C - truth)`, `dL/db_z = s'_z (c_z - C) .
+    /// e`, scattered onto the cells' corners with their trilinear weights (times `scale`)
+    /// into `grad`, and `dL/dg = sum_z dL/db_z ln s_z` (times `scale`) added to
+    /// `grad_sharpness`. Returns the ray's L1 error (summed over channels).
+    #[allow(clippy::too_many_arguments)]
     pub fn ray_gradient(
         &self,
         s: &[f32],
@@ -259,14 +270,18 @@ impl PriorGrid {
         truth: [f32; 3],
         scale: f32,
         grad: &mut [f32],
+        grad_sharpness: &mut f32,
     ) -> f32 {
         let (sp, colour) = self.render_ray(s, c, cells);
-        let g: [f32; 3] = std::array::from_fn(|k| (colour[k] - truth[k]).signum());
+        let e: [f32; 3] = std::array::from_fn(|k| (colour[k] - truth[k]).signum());
         for z in 0..sp.len() {
-            let dz: f32 = (0..3).map(|k| (c[z][k] - colour[k]) * g[k]).sum::<f32>() * sp[z];
+            let dz: f32 = (0..3).map(|k| (c[z][k] - colour[k]) * e[k]).sum::<f32>() * sp[z];
             if dz != 0.0 {
                 for (i, w) in self.corners(cells[z]) {
                     grad[i] += scale * w * dz;
+                }
+                if s[z] > 0.0 {
+                    *grad_sharpness += scale * dz * s[z].ln();
                 }
             }
         }
@@ -274,9 +289,13 @@ impl PriorGrid {
     }
 }
 
-/// `s_z exp(b_z) / sum_k s_k exp(b_k)` in place (`b` bounded by [`MAX_LOG_WEIGHT`] and
-/// shifted by its largest value first, so `exp` stays in range).
-pub fn reweigh_with(s: &mut [f32], b: &[f32]) {
+/// `s_z^g exp(b_z) / sum_k s_k^g exp(b_k)` in place, `g` the sharpness (`b` bounded by
+/// [`MAX_LOG_WEIGHT`]; the logits `g ln s_z + b_z` shifted by their largest first, so
+/// `exp` stays in range). Planes with `s_z = 0` stay 0.
+pub fn reweigh_with(s: &mut [f32], b: &[f32], sharpness: f32) {
+    if sharpness != 1.0 {
+        return reweigh_sharpened(s, b, sharpness);
+    }
     let top = (s.iter().zip(b))
         .filter(|(v, _)| **v > 0.0)
         .map(|(_, &x)| x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT))
@@ -287,6 +306,27 @@ pub fn reweigh_with(s: &mut [f32], b: &[f32]) {
     let mut sum = 0f32;
     for (v, &x) in s.iter_mut().zip(b) {
         *v = v.max(0.0) * (x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT) - top).exp();
+        sum += *v;
+    }
+    if sum > 0.0 {
+        s.iter_mut().for_each(|v| *v /= sum);
+    }
+}
+
+/// [`reweigh_with`] for a sharpness other than 1, through the logits.
+fn reweigh_sharpened(s: &mut [f32], b: &[f32], sharpness: f32) {
+    let logit = |v: f32, x: f32| {
+        (v > 0.0).then(|| sharpness * v.ln() + x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT))
+    };
+    let top = (s.iter().zip(b))
+        .filter_map(|(&v, &x)| logit(v, x))
+        .fold(f32::NEG_INFINITY, f32::max);
+    if !top.is_finite() {
+        return;
+    }
+    let mut sum = 0f32;
+    for (v, &x) in s.iter_mut().zip(b) {
+        *v = logit(*v, x).map_or(0.0, |l| (l - top).exp());
         sum += *v;
     }
     if sum > 0.0 {

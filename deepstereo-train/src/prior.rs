@@ -10,7 +10,7 @@ use crate::optim::{ADAM_BETAS, ADAM_EPS};
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::mpi::{layers, reference_camera};
-use deepstereo_core::prior::{Cell, PriorGrid, MAX_LOG_WEIGHT};
+use deepstereo_core::prior::{Cell, PriorGrid, MAX_LOG_WEIGHT, SHARPNESS_RANGE};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
 use deepstereo_core::synth::Rng;
@@ -38,6 +38,9 @@ pub struct PriorOptions {
     pub lr: f32,
     /// Weight of the squared difference of neighbouring cells.
     pub smooth: f32,
+    /// Whether the scene's sharpness (the selection's exponent) is fitted with the
+    /// log-weights (Adam on its logarithm, at `lr`); otherwise it stays 1.
+    pub sharpen: bool,
     /// Validation (on the views set aside) every this many steps.
     pub validate_every: usize,
     pub seed: u64,
@@ -54,6 +57,7 @@ impl Default for PriorOptions {
             batch: 16384,
             lr: 0.05,
             smooth: 0.0,
+            sharpen: true,
             validate_every: 100,
             seed: 0,
         }
@@ -297,9 +301,7 @@ pub fn fit(
 ) -> Fit {
     let d = rays.planes;
     let nr = rays.len();
-    let (mut m, mut v) = (vec![0f32; grid.values.len()], vec![0f32; grid.values.len()]);
-    let (b1, b2) = (ADAM_BETAS.0 as f32, ADAM_BETAS.1 as f32);
-    let eps = ADAM_EPS as f32;
+    let mut adam: Vec<AdamScalar> = (0..grid.values.len()).map(|_| Default::default()).collect();
     let mut rng = Rng::new(opts.seed ^ 0xf17_9a1d);
     let batch = opts.batch.min(nr).max(1);
     let threads = rayon::current_num_threads().max(1);
@@ -318,7 +320,8 @@ pub fn fit(
         best_step: 0,
         interrupted: false,
     };
-    let mut best = (grid.values.clone(), first);
+    let mut best = (grid.values.clone(), grid.sharpness, first);
+    let mut sharp = AdamScalar::default();
     for step in 1..=opts.steps {
         if nr == 0 {
             break;
@@ -330,10 +333,10 @@ pub fn fit(
         let picks: Vec<usize> = (0..batch).map(|_| rng.below(nr)).collect();
         let scale = 1.0 / (3.0 * batch as f32);
         let g: &PriorGrid = grid;
-        let parts: Vec<Vec<f32>> = picks
+        let parts: Vec<(Vec<f32>, f32)> = picks
             .par_chunks(batch.div_ceil(threads))
             .map(|chunk| {
-                let mut grad = vec![0f32; g.values.len()];
+                let (mut grad, mut grad_g) = (vec![0f32; g.values.len()], 0f32);
                 for &r in chunk {
                     let span = r * d..(r + 1) * d;
                     g.ray_gradient(
@@ -343,23 +346,27 @@ pub fn fit(
                         rays.truth[r],
                         scale,
                         &mut grad,
+                        &mut grad_g,
                     );
                 }
-                grad
+                (grad, grad_g)
             })
             .collect();
-        let mut grad = vec![0f32; grid.values.len()];
-        for p in parts {
+        let (mut grad, mut grad_g) = (vec![0f32; grid.values.len()], 0f32);
+        for (p, pg) in parts {
             grad.iter_mut().zip(p).for_each(|(a, b)| *a += b);
+            grad_g += pg;
         }
         smoothness_gradient(grid, opts.smooth, &mut grad);
         let t = step as i32;
-        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
-        for i in 0..grad.len() {
-            m[i] = b1 * m[i] + (1.0 - b1) * grad[i];
-            v[i] = b2 * v[i] + (1.0 - b2) * grad[i] * grad[i];
-            let x = grid.values[i] - opts.lr * (m[i] / c1) / ((v[i] / c2).sqrt() + eps);
-            grid.values[i] = x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT);
+        for ((b, a), g) in grid.values.iter_mut().zip(&mut adam).zip(&grad) {
+            *b = (*b - a.step(*g, t, opts.lr)).clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT);
+        }
+        if opts.sharpen {
+            // Adam on ln g: dL/d(ln g) = g dL/dg.
+            let lg = grid.sharpness.ln() - sharp.step(grid.sharpness * grad_g, t, opts.lr);
+            let (lo, hi) = SHARPNESS_RANGE;
+            grid.sharpness = lg.exp().clamp(lo, hi);
         }
         out.steps = step;
         if step % opts.validate_every.max(1) == 0 || step == opts.steps {
@@ -367,14 +374,33 @@ pub fn fit(
             on_validate(step, psnr);
             out.validation.push((step, psnr));
             // Without validation views the last step is kept.
-            if psnr > best.1 || val.is_empty() {
-                best = (grid.values.clone(), psnr);
+            if psnr > best.2 || val.is_empty() {
+                best = (grid.values.clone(), grid.sharpness, psnr);
                 out.best_step = step;
             }
         }
     }
-    grid.values = best.0;
+    (grid.values, grid.sharpness) = (best.0, best.1);
     out
+}
+
+/// Adam's moments for one value (the prior's own Adam: a plain loop over the grid's
+/// values, which are not candle variables).
+#[derive(Default)]
+struct AdamScalar {
+    m: f32,
+    v: f32,
+}
+
+impl AdamScalar {
+    /// The update (to subtract) for gradient `g` at step `t` (from 1) and rate `lr`.
+    fn step(&mut self, g: f32, t: i32, lr: f32) -> f32 {
+        let (b1, b2) = (ADAM_BETAS.0 as f32, ADAM_BETAS.1 as f32);
+        self.m = b1 * self.m + (1.0 - b1) * g;
+        self.v = b2 * self.v + (1.0 - b2) * g * g;
+        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+        lr * (self.m / c1) / ((self.v / c2).sqrt() + ADAM_EPS as f32)
+    }
 }
 
 /// Adds the gradient of `w * sum (b_i - b_j)^2` over neighbouring cells.

@@ -15,8 +15,9 @@
 //!   work of a render is the planes times the pixels the network ran on and a fixed
 //!   cost per block it ran ([`CALL_COST`]; both counted by the pruning's statistics, so
 //!   the choice is deterministic). The choice is the most planes of [`plane_choices`]
-//!   whose work on the views set aside for validation stays within the starting
-//!   model's at its own default; the network's planes when none does.
+//!   whose work on the views set aside for validation and a few tuning views (each
+//!   rendered as a held-out view) stays within the starting model's at its own default;
+//!   the fewest when none does.
 
 use crate::inference::{render_held_out, Prepared, RenderSettings};
 use crate::prior::PriorNeed;
@@ -39,10 +40,11 @@ pub const MIN_NETWORK_SHARE: f64 = 0.7;
 /// run more, smaller blocks (up to 1.35x the blocks at equal plane-pixels).
 pub const CALL_COST: f64 = 5000.0;
 
-/// Renders of each validation view the planes choice may take (the start's and up to
-/// three candidates'), in units of one view's layers at the network's planes (pruned
-/// renders at 1.5x the planes run 0.4-1.4x of those), for its time reserve.
-const CHOICE_RENDERS: f64 = 3.0;
+/// Renders of each of its views the planes choice may take (the start's and three
+/// candidates' by bisection over seven counts), in units of one view's layers at the
+/// network's planes (pruned renders at 1.5x the planes run 0.4-1.4x of those), for its
+/// time reserve.
+const CHOICE_RENDERS: f64 = 4.0;
 
 /// Seconds the network fine-tunes within a budget of `budget` seconds when the prior
 /// needs `need` and `reserve` is kept for what follows it: the rest, or 0 when the rest
@@ -56,14 +58,32 @@ pub fn network_seconds(budget: f64, need: f64, reserve: f64) -> f64 {
     }
 }
 
-/// Seconds to keep for [`choose_render_planes`] on `validation_views` views.
-pub fn choice_reserve(need: &PriorNeed, validation_views: usize) -> f64 {
-    CHOICE_RENDERS * need.per_view * validation_views as f64
+/// Tuning views the planes choice renders besides the views set aside, each from the
+/// others as a held-out view is: three views set aside alone misjudged the work of the
+/// held-out views by up to 16% (fox: 1.07x against 0.91x; docs/results.md).
+pub const CHOICE_TUNING_VIEWS: usize = 3;
+
+/// The views the planes choice renders: those set aside and [`CHOICE_TUNING_VIEWS`] of
+/// `tuning` spread over it.
+pub fn choice_targets(tuning: &[usize], validation: &[usize]) -> Vec<usize> {
+    let (n, k) = (tuning.len(), CHOICE_TUNING_VIEWS.min(tuning.len()));
+    let spread = (0..k).map(|i| tuning[(2 * i + 1) * n / (2 * k)]);
+    validation.iter().copied().chain(spread).collect()
 }
 
-/// The plane counts tried, most first: 1.5, 1.25 and 1 times the network's `planes`.
-pub fn plane_choices(planes: usize) -> [usize; 3] {
-    [planes * 3 / 2, planes * 5 / 4, planes]
+/// Seconds to keep for [`choose_render_planes`] on `views` views.
+pub fn choice_reserve(need: &PriorNeed, views: usize) -> f64 {
+    CHOICE_RENDERS * need.per_view * views as f64
+}
+
+/// The plane counts the choice is among, fewest first: 0.75 to 1.5 times the network's
+/// `planes` in steps of an eighth (24, 28, ..., 48). Fewer planes than the network's
+/// keep a tuned model whose prior flattens the selection (so that pruning thins fewer
+/// planes) within the starting model's time.
+pub fn plane_choices(planes: usize) -> Vec<usize> {
+    let mut v: Vec<usize> = (6..=12).map(|k| (planes * k / 8).max(1)).collect();
+    v.dedup();
+    v
 }
 
 /// What [`choose_render_planes`] found.
@@ -75,14 +95,15 @@ pub struct PlanesChoice {
     pub seconds: f64,
 }
 
-/// The most planes of `choices` (most first) at which `tuned` does no more work on
-/// `views` of `scene` (each rendered from the views not among them) than `start` at its
-/// own default planes; the last choice when none does. `settings.planes` is ignored.
+/// The most planes of `choices` (fewest first) at which `tuned` does no more work on the
+/// views `targets` of `scene` than `start` at its own default planes (found by
+/// bisection, taking the work to grow with the planes); the first (fewest) when none
+/// does. Each target is rendered from the views that are neither it nor in
+/// `exclude`, as `eval` renders a held-out view. `settings.planes` is ignored.
 pub fn choose_render_planes(
-    start: &dyn Backend,
-    tuned: &dyn Backend,
+    (start, tuned): (&dyn Backend, &dyn Backend),
     scene: &Scene,
-    views: &[usize],
+    (targets, exclude): (&[usize], &[usize]),
     settings: &RenderSettings,
     choices: &[usize],
 ) -> Result<PlanesChoice> {
@@ -95,8 +116,10 @@ pub fn choose_render_planes(
         };
         let k = s.source_count(backend.config())?;
         let mut sum = 0f64;
-        for &t in views {
-            let h = render_held_out(backend, scene, &mut prepared, t, views, k, &s)?;
+        for &t in targets {
+            let mut out = exclude.to_vec();
+            out.push(t);
+            let h = render_held_out(backend, scene, &mut prepared, t, &out, k, &s)?;
             let (w, hgt) = (h.rendered.image.width, h.rendered.image.height);
             sum += match &h.rendered.prune {
                 Some(p) => p.planes_run as f64 + CALL_COST * p.calls as f64,
@@ -107,13 +130,18 @@ pub fn choose_render_planes(
     };
     let base = work(start, None)?.max(1.0);
     let mut tried = Vec::new();
-    let mut planes = *choices.last().unwrap_or(&start.config().planes);
-    for &p in choices {
-        let ratio = work(tuned, Some(p))? / base;
-        tried.push((p, ratio));
+    let mut planes = *choices.first().unwrap_or(&start.config().planes);
+    // Bisection over the counts (work grows with them): [lo, hi) holds the unknown.
+    let (mut lo, mut hi) = (0, choices.len());
+    while lo < hi {
+        let mid = (lo + hi) / 2;
+        let ratio = work(tuned, Some(choices[mid]))? / base;
+        tried.push((choices[mid], ratio));
         if ratio <= 1.0 {
-            planes = p;
-            break;
+            planes = choices[mid];
+            lo = mid + 1;
+        } else {
+            hi = mid;
         }
     }
     Ok(PlanesChoice {
@@ -137,8 +165,20 @@ mod tests {
     }
 
     #[test]
+    fn the_choice_renders_the_views_set_aside_and_tuning_views_spread() {
+        let tuning: Vec<usize> = (0..20).filter(|i| i % 7 != 3).collect();
+        let t = choice_targets(&tuning, &[3, 10, 17]);
+        assert_eq!(t.len(), 3 + CHOICE_TUNING_VIEWS);
+        assert_eq!(&t[..3], &[3, 10, 17]);
+        assert!(t[3..].iter().all(|v| tuning.contains(v)));
+        assert!(t[3..].windows(2).all(|w| w[0] < w[1]));
+        assert_eq!(choice_targets(&[4], &[1]), vec![1, 4]);
+    }
+
+    #[test]
     fn plane_choices_scale_the_networks_planes() {
-        assert_eq!(plane_choices(32), [48, 40, 32]);
-        assert_eq!(plane_choices(8), [12, 10, 8]);
+        assert_eq!(plane_choices(32), [24, 28, 32, 36, 40, 44, 48]);
+        assert_eq!(plane_choices(8), [6, 7, 8, 9, 10, 11, 12]);
+        assert_eq!(plane_choices(2), [1, 2, 3]);
     }
 }

@@ -1,9 +1,10 @@
 //! A prior in a weights file: its log-weights as the F32 tensor [`TENSOR`], shaped
 //! `[nz, ny, nx]` (x fastest, as [`PriorGrid::values`]), and its placement in the
-//! metadata under [`META_KEY`] as JSON: `{"origin": [x, y, z], "cell": c}` (world units,
-//! the first cell's centre and the cells' side).
+//! metadata under [`META_KEY`] as JSON: `{"origin": [x, y, z], "cell": c, "sharpness":
+//! g}` (world units, the first cell's centre and the cells' side; the selection's exponent,
+//! 1 when absent).
 
-use super::PriorGrid;
+use super::{PriorGrid, SHARPNESS_RANGE};
 use crate::error::{Error, Result};
 use crate::tensorio::NamedArray;
 use glam::DVec3;
@@ -19,6 +20,12 @@ pub const META_KEY: &str = "deepstereo.prior";
 struct Placement {
     origin: [f64; 3],
     cell: f64,
+    #[serde(default = "one")]
+    sharpness: f64,
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 /// The tensor and the metadata entry that store `grid`.
@@ -27,6 +34,7 @@ pub fn to_file(grid: &PriorGrid) -> (NamedArray, (&'static str, String)) {
     let place = Placement {
         origin: grid.origin.to_array(),
         cell: grid.cell,
+        sharpness: grid.sharpness as f64,
     };
     let json = serde_json::to_string(&place).unwrap_or_default();
     (
@@ -64,6 +72,13 @@ pub fn read(path: &Path, bytes: &[u8], st: &SafeTensors<'_>) -> Result<Option<Pr
             "the origin and the cell side must be finite, the side positive".into(),
         ));
     }
+    let (lo, hi) = SHARPNESS_RANGE;
+    if !(place.sharpness >= lo as f64 && place.sharpness <= hi as f64) {
+        return Err(bad(format!(
+            "the sharpness must be within {lo} to {hi}, got {}",
+            place.sharpness
+        )));
+    }
     let shape = view.shape();
     if view.dtype() != safetensors::Dtype::F32 || shape.len() != 3 || shape.iter().any(|&d| d < 2) {
         return Err(bad(format!(
@@ -82,5 +97,6 @@ pub fn read(path: &Path, bytes: &[u8], st: &SafeTensors<'_>) -> Result<Option<Pr
         cell: place.cell,
         dims: [shape[2], shape[1], shape[0]],
         values,
+        sharpness: place.sharpness as f32,
     }))
 }

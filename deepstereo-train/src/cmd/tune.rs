@@ -93,11 +93,16 @@ pub struct Args {
     /// Cells along the longest side of the scene prior's grid.
     #[arg(long, default_value_t = PriorOptions::default().cells)]
     pub prior_cells: usize,
+    /// Keep the scene prior's sharpness at 1 (the network's own selection, reweighed)
+    /// instead of fitting it with the grid.
+    #[arg(long)]
+    pub no_sharpen: bool,
     /// Depth planes a model with a scene prior renders at by default (written into its
     /// config as `render_planes`; `--planes` still overrides it when rendering). Default:
-    /// the most of 1.5x, 1.25x and 1x the network's planes (48, 40, 32) at which the
-    /// tuned model does no more work than the model it started from on the views set
-    /// aside (the coarse pass of `--prune auto` applies the prior, so fewer planes run).
+    /// the most of 0.75x to 1.5x the network's planes in eighths (24, 28, ..., 48) at
+    /// which the tuned model does no more work than the model it started from on the
+    /// views set aside and a few tuning views (the coarse pass of `--prune auto` applies
+    /// the prior, so the planes run depend on it).
     #[arg(long)]
     pub render_planes: Option<usize>,
     /// Print a line per validation instead of a progress bar (the default when standard
@@ -230,6 +235,7 @@ pub fn run(a: Args) -> Result<()> {
         "prior_views": prior.as_ref().map(|p| p.views),
         "prior_steps": prior.as_ref().and_then(|p| p.fit.as_ref()).map(|f| f.steps),
         "prior_best_step": prior.as_ref().and_then(|p| p.fit.as_ref()).map(|f| f.best_step),
+        "prior_sharpness": grid.as_ref().map(|g| g.sharpness),
         "lr": a.lr,
         "lr_final": a.lr_final,
         "batch": a.batch,
@@ -327,14 +333,15 @@ impl PriorPhase<'_> {
         if let Some(f) = &r.fit {
             let first = f.validation.first().map_or(f64::NAN, |v| v.1);
             eprintln!(
-                "{}scene prior: {} views, {} rays, {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (step {})",
+                "{}scene prior: {} views, {} rays, {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (step {}), sharpness {:.3}",
                 if r.interrupted { "interrupted: " } else { "" },
                 r.views,
                 r.rays,
                 f.steps,
                 r.seconds,
                 f.best_psnr(),
-                f.best_step
+                f.best_step,
+                r.grid.as_ref().map_or(1.0, |g| g.sharpness)
             );
         }
         Ok(r)
@@ -414,7 +421,10 @@ fn plan(
         _ => None,
     };
     let reserve = match (need, a.render_planes) {
-        (Some(n), None) => tune_plan::choice_reserve(&n, validation.len()),
+        (Some(n), None) => {
+            let targets = tune_plan::choice_targets(&tuning_targets(scene, validation), validation);
+            tune_plan::choice_reserve(&n, targets.len())
+        }
         _ => 0.0,
     };
     let share = match (a.network_share, budget, need) {
@@ -473,14 +483,21 @@ fn pick_planes(
         device: candle_core::Device::Cpu,
     };
     let choices = tune_plan::plane_choices(cfg.planes);
-    let c =
-        tune_plan::choose_render_planes(&before, &tuned, scene, validation, settings, &choices)?;
+    let targets = tune_plan::choice_targets(&tuning_targets(scene, validation), validation);
+    let c = tune_plan::choose_render_planes(
+        (&before, &tuned),
+        scene,
+        (&targets, validation),
+        settings,
+        &choices,
+    )?;
     let tried: Vec<String> = (c.work.iter())
         .map(|(p, r)| format!("{p} planes {r:.2}x"))
         .collect();
     eprintln!(
-        "render planes: {} (work on the views set aside against the model started from: {}; {:.0} s)",
+        "render planes: {} (work on {} views against the model started from: {}; {:.0} s)",
         c.planes,
+        targets.len(),
         tried.join(", "),
         c.seconds
     );
@@ -502,6 +519,7 @@ fn steps_of(b: Budget) -> u64 {
 fn prior_options(a: &Args) -> PriorOptions {
     PriorOptions {
         cells: a.prior_cells,
+        sharpen: !a.no_sharpen,
         validate_every: a.validate_every as usize,
         seed: a.seed,
         ..PriorOptions::default()
