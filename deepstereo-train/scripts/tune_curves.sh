@@ -36,10 +36,10 @@ for f in sorted(out.glob("*/curve.json")):
     pts = json.loads(f.read_text())["points"]
     log = (f.parent / "tune.log").read_text() if (f.parent / "tune.log").exists() else ""
     net = re.search(r"^network: (\d+) steps in (\d+) s", log, re.M)
-    prior = re.search(r"^scene prior: (\d+) views", log, re.M)
+    prior = re.search(r"^scene prior: (\d+) views.*?(?:sharpness ([\d.]+))?$", log, re.M)
     planes = re.search(r"^render planes: (\d+)", log, re.M)
     what = ", ".join([f"network {net[2]} s" if net else "no network",
-                      f"prior {prior[1]} views" if prior else "no prior",
+                      (f"prior {prior[1]} views" + (f" (sharpness {float(prior[2]):.2f})" if prior[2] else "")) if prior else "no prior",
                       f"{planes[1]} planes" if planes else "planes as given"])
     rows.append((f.parent.name, pts, what))
 if rows:

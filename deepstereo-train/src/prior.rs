@@ -742,3 +742,76 @@ impl FitTime {
         self.fixed + self.per_view * views as f64
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `n` rays of `d` planes with random selections and colours, located at random
+    /// points of `grid`, whose photographs are their render with `truth`.
+    fn rays_rendered_by(truth: &PriorGrid, grid: &PriorGrid, n: usize, seed: u64) -> Rays {
+        let d = 6;
+        let mut rng = Rng::new(seed);
+        let mut rays = Rays::new(d);
+        for _ in 0..n {
+            let logits: Vec<f64> = (0..d).map(|_| rng.sym(3.0)).collect();
+            let sum: f64 = logits.iter().map(|l| l.exp()).sum();
+            let s: Vec<f32> = logits.iter().map(|l| (l.exp() / sum) as f32).collect();
+            let c: Vec<[f32; 3]> = (0..d)
+                .map(|_| std::array::from_fn(|_| rng.unit() as f32))
+                .collect();
+            let cells: Vec<Cell> = (0..d)
+                .map(|_| {
+                    let p = DVec3::new(rng.sym(1.0), rng.sym(1.0), rng.range(1.0, 3.0));
+                    grid.locate(p)
+                })
+                .collect();
+            let (_, colour) = truth.render_ray(&s, &c, &cells);
+            rays.selection.extend(s);
+            rays.colours.extend(c);
+            rays.cells.extend(cells);
+            rays.truth.push(colour);
+        }
+        rays
+    }
+
+    /// Photographs rendered at sharpness 2.5 (and no log-weights): the fit finds the
+    /// exponent, and the views set aside score higher; without `sharpen` it stays 1.
+    #[test]
+    fn the_fit_finds_the_scenes_sharpness() {
+        let grid = PriorGrid::zeros(DVec3::new(-1.0, -1.0, 1.0), DVec3::new(1.0, 1.0, 3.0), 4)
+            .expect("grid");
+        let truth = PriorGrid {
+            sharpness: 2.5,
+            ..grid.clone()
+        };
+        let rays = rays_rendered_by(&truth, &grid, 4000, 1);
+        let val = rays_rendered_by(&truth, &grid, 1000, 2);
+        let opts = PriorOptions {
+            steps: 300,
+            batch: 1024,
+            validate_every: 50,
+            ..PriorOptions::default()
+        };
+        let never = AtomicBool::new(false);
+        let mut g = grid.clone();
+        let f = fit(&mut g, &rays, &val, &opts, &never, |_, _| {});
+        assert!(
+            (g.sharpness - 2.5).abs() < 0.25,
+            "sharpness {}",
+            g.sharpness
+        );
+        assert!(
+            f.best_psnr() > f.validation[0].1 + 10.0,
+            "{:?}",
+            f.validation
+        );
+        let mut flat = grid.clone();
+        let plain = PriorOptions {
+            sharpen: false,
+            ..opts
+        };
+        fit(&mut flat, &rays, &val, &plain, &never, |_, _| {});
+        assert_eq!(flat.sharpness, 1.0);
+    }
+}
