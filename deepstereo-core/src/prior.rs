@@ -293,40 +293,41 @@ impl PriorGrid {
 /// [`MAX_LOG_WEIGHT`]; the logits `g ln s_z + b_z` shifted by their largest first, so
 /// `exp` stays in range). Planes with `s_z = 0` stay 0.
 pub fn reweigh_with(s: &mut [f32], b: &[f32], sharpness: f32) {
-    if sharpness != 1.0 {
-        return reweigh_sharpened(s, b, sharpness);
-    }
-    let top = (s.iter().zip(b))
-        .filter(|(v, _)| **v > 0.0)
-        .map(|(_, &x)| x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT))
-        .fold(f32::NEG_INFINITY, f32::max);
-    if !top.is_finite() {
-        return;
-    }
-    let mut sum = 0f32;
-    for (v, &x) in s.iter_mut().zip(b) {
-        *v = v.max(0.0) * (x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT) - top).exp();
-        sum += *v;
-    }
-    if sum > 0.0 {
-        s.iter_mut().for_each(|v| *v /= sum);
+    let clamp = |x: f32| x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT);
+    if sharpness == 1.0 {
+        // s_z exp(b_z - top): exact for the network's own sharpness.
+        normalise_by(
+            s,
+            b,
+            |v, x| (v > 0.0).then(|| clamp(x)),
+            |v, x, top| v.max(0.0) * (clamp(x) - top).exp(),
+        );
+    } else {
+        let logit = |v: f32, x: f32| (v > 0.0).then(|| sharpness * v.ln() + clamp(x));
+        normalise_by(s, b, logit, |v, x, top| {
+            logit(v, x).map_or(0.0, |l| (l - top).exp())
+        });
     }
 }
 
-/// [`reweigh_with`] for a sharpness other than 1, through the logits.
-fn reweigh_sharpened(s: &mut [f32], b: &[f32], sharpness: f32) {
-    let logit = |v: f32, x: f32| {
-        (v > 0.0).then(|| sharpness * v.ln() + x.clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT))
-    };
+/// `s_z <- weight(s_z, b_z, top) / sum_k weight(s_k, b_k, top)`, `top` the largest
+/// `key(s_z, b_z)` (planes without a key are not counted); unchanged when no plane has
+/// a key, all zero when every weight is.
+fn normalise_by(
+    s: &mut [f32],
+    b: &[f32],
+    key: impl Fn(f32, f32) -> Option<f32>,
+    weight: impl Fn(f32, f32, f32) -> f32,
+) {
     let top = (s.iter().zip(b))
-        .filter_map(|(&v, &x)| logit(v, x))
+        .filter_map(|(&v, &x)| key(v, x))
         .fold(f32::NEG_INFINITY, f32::max);
     if !top.is_finite() {
         return;
     }
     let mut sum = 0f32;
     for (v, &x) in s.iter_mut().zip(b) {
-        *v = logit(*v, x).map_or(0.0, |l| (l - top).exp());
+        *v = weight(*v, x, top);
         sum += *v;
     }
     if sum > 0.0 {
