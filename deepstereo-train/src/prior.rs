@@ -358,13 +358,13 @@ pub fn fit(
             grad_g += pg;
         }
         smoothness_gradient(grid, opts.smooth, &mut grad);
-        let t = step as i32;
+        let c = AdamScalar::corrections(step as i32);
         for ((b, a), g) in grid.values.iter_mut().zip(&mut adam).zip(&grad) {
-            *b = (*b - a.step(*g, t, opts.lr)).clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT);
+            *b = (*b - a.step(*g, c, opts.lr)).clamp(-MAX_LOG_WEIGHT, MAX_LOG_WEIGHT);
         }
         if opts.sharpen {
             // Adam on ln g: dL/d(ln g) = g dL/dg.
-            let lg = grid.sharpness.ln() - sharp.step(grid.sharpness * grad_g, t, opts.lr);
+            let lg = grid.sharpness.ln() - sharp.step(grid.sharpness * grad_g, c, opts.lr);
             let (lo, hi) = SHARPNESS_RANGE;
             grid.sharpness = lg.exp().clamp(lo, hi);
         }
@@ -392,13 +392,21 @@ struct AdamScalar {
     v: f32,
 }
 
+const BETAS: (f32, f32) = (ADAM_BETAS.0 as f32, ADAM_BETAS.1 as f32);
+
 impl AdamScalar {
-    /// The update (to subtract) for gradient `g` at step `t` (from 1) and rate `lr`.
-    fn step(&mut self, g: f32, t: i32, lr: f32) -> f32 {
-        let (b1, b2) = (ADAM_BETAS.0 as f32, ADAM_BETAS.1 as f32);
+    /// The bias corrections `(1 - b1^t, 1 - b2^t)` of step `t` (from 1), the same for
+    /// every value of a step.
+    fn corrections(t: i32) -> (f32, f32) {
+        (1.0 - BETAS.0.powi(t), 1.0 - BETAS.1.powi(t))
+    }
+
+    /// The update (to subtract) for gradient `g` with the step's `corrections` and rate
+    /// `lr`.
+    fn step(&mut self, g: f32, (c1, c2): (f32, f32), lr: f32) -> f32 {
+        let (b1, b2) = BETAS;
         self.m = b1 * self.m + (1.0 - b1) * g;
         self.v = b2 * self.v + (1.0 - b2) * g * g;
-        let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
         lr * (self.m / c1) / ((self.v / c2).sqrt() + ADAM_EPS as f32)
     }
 }
