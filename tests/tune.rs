@@ -144,6 +144,7 @@ fn the_tuned_model_renders_and_names_its_tune() {
         }
     }
     assert_eq!(lo, hi, "the bisection ended early: {tried:?}");
+    assert_eq!(tune["render_planes_cut"], false, "--steps: no time limit");
     assert_eq!(chosen, want, "{tried:?}");
     assert_eq!(
         tune["network_share"], 0.0,
@@ -254,7 +255,7 @@ fn render_planes_and_the_split_of_a_time_budget() {
     assert_eq!(t["render_planes"], 40);
     assert!(t["render_planes_work"].is_null(), "{t}");
     let out = dir.path().join("timed.safetensors");
-    let res = tune(&s, &out, &["--llffhold", "4", "--minutes", "0.1"]);
+    let res = tune(&s, &out, &["--llffhold", "4", "--minutes", "0.5"]);
     assert_eq!(res.code, Some(0), "tune failed:\n{}", res.stderr);
     assert!(
         res.stderr.contains("the prior needs about"),
@@ -273,6 +274,11 @@ fn render_planes_and_the_split_of_a_time_budget() {
     // The network runs when it has a share, after which the prior still runs.
     assert_eq!(t["network_steps"].is_null(), share == 0.0, "{t}");
     assert!(t["prior_views"].as_u64().is_some_and(|v| v > 0), "{t}");
+    // The prior reads part of each view only when it runs alone and whole views do not
+    // fit in its time.
+    let view_share = t["prior_view_share"].as_f64().expect("a view share");
+    assert!((0.25..=1.0).contains(&view_share), "{t}");
+    assert!(share == 0.0 || view_share == 1.0, "{t}");
 }
 
 #[test]

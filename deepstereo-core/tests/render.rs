@@ -237,3 +237,47 @@ fn pad(v: &[f32], planes: usize, n: usize) -> Vec<f32> {
     }
     out
 }
+
+/// The layers of chosen tiles equal those of the whole view on those tiles' pixels, and
+/// are 0 on every other pixel; a grid of another size or a tile outside it is refused.
+#[test]
+fn layers_of_some_tiles_equal_the_whole_views_there() -> Result<()> {
+    use deepstereo_core::mpi::{layers, layers_of_tiles, reference_camera, TileGrid};
+    let (cfg, s, t, pyr) = synthetic(9, 70, 52)?;
+    let backend = CandleBackend {
+        model: t.model,
+        device: Device::Cpu,
+    };
+    let srcs: Vec<&PyramidSource> = pyr[1..=cfg.views].iter().collect();
+    let inv = inverse_depths(s.near, s.far, 6);
+    let cam = reference_camera(&s.cameras[0]);
+    let (w, h) = (70, 52);
+    let grid = TileGrid::new(&cfg, (w, h), 24);
+    assert_eq!((grid.across, grid.down), (3, 3));
+    let (c, sel) = layers(&backend, &cam, &srcs, &inv, 24, &|_, _| {})?;
+    let kept = [1, 5, 6];
+    let (ck, sk) = layers_of_tiles(&backend, &cam, &srcs, &inv, (grid, &kept), &|_, _| {})?;
+    let inside: Vec<usize> = kept.iter().flat_map(|&i| grid.pixels(i)).collect();
+    assert_eq!(inside.len(), 24 * 24 + 22 * 24 + 24 * 4);
+    let n = w * h;
+    for p in 0..n {
+        let kept = inside.contains(&p);
+        for z in 0..inv.len() {
+            let want = if kept { sel[z * n + p] } else { 0.0 };
+            assert_eq!(
+                sk[z * n + p].to_bits(),
+                want.to_bits(),
+                "selection at {p}, plane {z}"
+            );
+            for ch in 0..3 {
+                let i = (z * 3 + ch) * n + p;
+                let want = if kept { c[i] } else { 0.0 };
+                assert_eq!(ck[i].to_bits(), want.to_bits(), "colour at {p}, plane {z}");
+            }
+        }
+    }
+    let other = TileGrid::new(&cfg, (w + 1, h), 24);
+    assert!(layers_of_tiles(&backend, &cam, &srcs, &inv, (other, &kept), &|_, _| {}).is_err());
+    assert!(layers_of_tiles(&backend, &cam, &srcs, &inv, (grid, &[9]), &|_, _| {}).is_err());
+    Ok(())
+}

@@ -9,7 +9,7 @@ use crate::inference::{pick_sources, source_inputs, Prepared, RenderSettings};
 use crate::optim::{ADAM_BETAS, ADAM_EPS};
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
-use deepstereo_core::mpi::{layers, reference_camera};
+use deepstereo_core::mpi::{layers, layers_of_tiles, reference_camera, TileGrid};
 use deepstereo_core::prior::{Cell, PriorGrid, MAX_LOG_WEIGHT, SHARPNESS_RANGE};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
@@ -30,6 +30,10 @@ pub struct PriorOptions {
     pub max_rays: usize,
     /// Most views read.
     pub max_views: usize,
+    /// Share of each view's tiles the network runs on when the view is read (at least
+    /// one tile; rays are drawn from those tiles): below 1, more views are read in a
+    /// time budget, each less densely.
+    pub view_share: f64,
     /// Adam steps of the final fit.
     pub steps: usize,
     /// Rays per step.
@@ -53,6 +57,7 @@ impl Default for PriorOptions {
             rays_per_view: 16384,
             max_rays: 600_000,
             max_views: 96,
+            view_share: 1.0,
             steps: 1000,
             batch: 16384,
             lr: 0.05,
@@ -117,7 +122,9 @@ impl Rays {
 }
 
 /// Renders the layers of view `t` of `scene` from its nearest other views (none of
-/// `exclude`) and keeps `count` random rays of it.
+/// `exclude`) and keeps `count` random rays of it: of the whole view when `share` is 1
+/// or more, else of `ceil(share * tiles)` of its tiles drawn at random (the network runs
+/// on those alone).
 #[allow(clippy::too_many_arguments)]
 pub fn collect_view(
     backend: &dyn Backend,
@@ -126,7 +133,7 @@ pub fn collect_view(
     t: usize,
     exclude: &[usize],
     settings: &RenderSettings,
-    (rng, count): (&mut Rng, usize),
+    (rng, count, share): (&mut Rng, usize, f64),
     rays: &mut Rays,
 ) -> Result<()> {
     let k = settings.source_count(backend.config())?;
@@ -142,7 +149,6 @@ pub fn collect_view(
             rays.planes
         );
     }
-    let (c, s) = layers(backend, &cam, &srcs, &inv, settings.tile, &|_, _| {})?;
     let truth = scene.load_image(t)?;
     let (w, h) = (truth.width as usize, truth.height as usize);
     if (w, h)
@@ -153,7 +159,20 @@ pub fn collect_view(
     {
         bail!("view {t}: its image is {w}x{h}, its camera another size");
     }
-    let pixels = pick_pixels(rng, w * h, count);
+    let grid = TileGrid::new(backend.config(), (w, h), settings.tile);
+    let (c, s, pixels) = if share >= 1.0 {
+        let (c, s) = layers(backend, &cam, &srcs, &inv, settings.tile, &|_, _| {})?;
+        (c, s, pick_pixels(rng, w * h, count))
+    } else {
+        let k = ((share.max(0.0) * grid.len() as f64).ceil() as usize).clamp(1, grid.len());
+        let mut tiles = pick_pixels(rng, grid.len(), k);
+        let (c, s) = layers_of_tiles(backend, &cam, &srcs, &inv, (grid, &tiles), &|_, _| {})?;
+        let covered: Vec<usize> = tiles.drain(..).flat_map(|i| grid.pixels(i)).collect();
+        let picked = pick_pixels(rng, covered.len(), count);
+        let mut pixels: Vec<usize> = picked.into_iter().map(|i| covered[i]).collect();
+        pixels.sort_unstable();
+        (c, s, pixels)
+    };
     rays.push(&cam, &inv, (&c, &s), &truth.data, &pixels);
     Ok(())
 }
@@ -514,7 +533,7 @@ pub fn fit_scene(
     let mut rng = Rng::new(opts.seed ^ 0x005e_ed0f_9a1d);
     let mut val = Rays::new(planes);
     for &v in validation {
-        let r = (&mut rng, per_view);
+        let r = (&mut rng, per_view, 1.0);
         collect_view(backend, scene, &mut prepared, v, &[], settings, r, &mut val)?;
     }
     let mut rays = Rays::new(planes);
@@ -541,7 +560,7 @@ pub fn fit_scene(
             out.interrupted = true;
             break;
         }
-        let r = (&mut rng, per_view);
+        let r = (&mut rng, per_view, opts.view_share);
         collect_view(
             backend,
             scene,
@@ -641,7 +660,7 @@ impl PriorNeed {
         let mut prepared = Prepared::new(scene);
         let mut rng = Rng::new(opts.seed);
         let t0 = Instant::now();
-        let r = (&mut rng, per_ray);
+        let r = (&mut rng, per_ray, 1.0);
         collect_view(
             backend,
             scene,
@@ -663,7 +682,21 @@ impl PriorNeed {
 
     /// Seconds to read every view and fit: `views * per_view` (with a margin) and the fit.
     pub fn seconds(&self) -> f64 {
-        Self::MARGIN * self.per_view * self.views as f64 + self.fit.of(self.views)
+        self.seconds_at(1.0)
+    }
+
+    /// Seconds to read every view at `share` of its tiles (the reading taken to scale with
+    /// them) and fit.
+    pub fn seconds_at(&self, share: f64) -> f64 {
+        Self::MARGIN * self.per_view * self.views as f64 * share + self.fit.of(self.views)
+    }
+
+    /// The share of each view's tiles at which reading every view and fitting take
+    /// `seconds` (at most 1, at least `least`).
+    pub fn share_within(&self, seconds: f64, least: f64) -> f64 {
+        let reading = Self::MARGIN * self.per_view * self.views as f64;
+        let share = (seconds - self.fit.of(self.views)) / reading.max(1e-9);
+        share.clamp(least.min(1.0), 1.0)
     }
 }
 
@@ -785,6 +818,28 @@ mod tests {
 
     /// Photographs rendered at sharpness 2.5 (and no log-weights): the fit finds the
     /// exponent, and the views set aside score higher; without `sharpen` it stays 1.
+    #[test]
+    fn the_view_share_fits_the_reading_in_the_time_left() {
+        let fit = FitTime {
+            fixed: 20.0,
+            per_view: 0.1,
+            per_step: 0.01,
+        };
+        let need = PriorNeed {
+            views: 100,
+            per_view: 2.0,
+            fit,
+        };
+        // 1.15 * 2 s * 100 views of reading, 20 + 0.1 * 100 s of fit.
+        assert!((need.seconds() - 260.0).abs() < 1e-9);
+        assert_eq!(need.share_within(300.0, 0.25), 1.0);
+        let share = need.share_within(145.0, 0.25);
+        assert!((share - 0.5).abs() < 1e-12, "{share}");
+        assert!((need.seconds_at(share) - 145.0).abs() < 1e-9);
+        assert_eq!(need.share_within(10.0, 0.25), 0.25);
+        assert_eq!(need.share_within(-5.0, 2.0), 1.0);
+    }
+
     #[test]
     fn the_fit_finds_the_scenes_sharpness() {
         let grid = PriorGrid::zeros(DVec3::new(-1.0, -1.0, 1.0), DVec3::new(1.0, 1.0, 3.0), 4)

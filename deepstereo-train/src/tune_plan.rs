@@ -10,6 +10,9 @@
 //!   [`MIN_NETWORK_SHARE`] of the budget. A short fine-tune before the prior lost to the
 //!   prior alone on the scenes whose views take most of the budget to read (stitch,
 //!   fox; docs/results.md), and gained on the rings, whose few views leave it 75-80%.
+//! - **The reading.** When the prior runs alone and reading its views whole would not
+//!   end within the budget, it reads [`view_share`] of each view's tiles, so that every
+//!   view is read, each less densely.
 //! - **The planes.** A prior sharpens the selection, so pruning runs fewer planes and a
 //!   tuned model can afford more of them at the cost of the model it started from. The
 //!   work of a render is the planes times the pixels the network ran on and a fixed
@@ -58,6 +61,19 @@ pub fn network_seconds(budget: f64, need: f64, reserve: f64) -> f64 {
     }
 }
 
+/// The least share of each view's tiles [`view_share`] reads.
+pub const MIN_VIEW_SHARE: f64 = 0.25;
+
+/// The share of each view's tiles the prior reads when it runs alone in `seconds`: 1
+/// when reading every view whole and fitting fit in them, else the share at which they
+/// do (at least [`MIN_VIEW_SHARE`]). The prior keeps a few thousand rays of a view of
+/// hundreds of thousands of pixels, so on a scene whose whole views take longer than
+/// the budget to read (moldgoldcape: 99 views at 7.5 s for 10 minutes) part of every
+/// view is worth more than every part of some views.
+pub fn view_share(need: &PriorNeed, seconds: f64) -> f64 {
+    need.share_within(seconds, MIN_VIEW_SHARE)
+}
+
 /// Tuning views the planes choice renders besides the views set aside, each from the
 /// others as a held-out view is: three views set aside alone misjudged the work of the
 /// held-out views by up to 16% (fox: 1.07x against 0.91x; docs/results.md).
@@ -71,9 +87,15 @@ pub fn choice_targets(tuning: &[usize], validation: &[usize]) -> Vec<usize> {
     validation.iter().copied().chain(spread).collect()
 }
 
-/// Seconds to keep for [`choose_render_planes`] on `views` views.
-pub fn choice_reserve(need: &PriorNeed, views: usize) -> f64 {
-    CHOICE_RENDERS * need.per_view * views as f64
+/// The largest share of a time budget kept for [`choose_render_planes`]; past it the
+/// choice stops its bisection when its next count would end after the budget.
+pub const MAX_RESERVE_SHARE: f64 = 0.25;
+
+/// Seconds to keep for [`choose_render_planes`] on `views` views within a budget of
+/// `budget` seconds: [`CHOICE_RENDERS`] renders of each, at most [`MAX_RESERVE_SHARE`]
+/// of the budget.
+pub fn choice_reserve(need: &PriorNeed, views: usize, budget: f64) -> f64 {
+    (CHOICE_RENDERS * need.per_view * views as f64).min(MAX_RESERVE_SHARE * budget)
 }
 
 /// The plane counts the choice is among, fewest first: 0.75 to 1.5 times the network's
@@ -93,19 +115,23 @@ pub struct PlanesChoice {
     /// `(planes, work / the start's work)` of each count tried, in the order tried.
     pub work: Vec<(usize, f64)>,
     pub seconds: f64,
+    /// Whether the bisection stopped early to end within its time.
+    pub cut: bool,
 }
 
 /// The most planes of `choices` (fewest first) at which `tuned` does no more work on the
 /// views `targets` of `scene` than `start` at its own default planes (found by
 /// bisection, taking the work to grow with the planes); the first (fewest) when none
 /// does. Each target is rendered from the views that are neither it nor in
-/// `exclude`, as `eval` renders a held-out view. `settings.planes` is ignored.
+/// `exclude`, as `eval` renders a held-out view. `settings.planes` is ignored. The
+/// bisection stops (with the most planes found to fit so far) before a count whose
+/// renders, taken to last as long as the previous count's, would end after `seconds`.
 pub fn choose_render_planes(
     (start, tuned): (&dyn Backend, &dyn Backend),
     scene: &Scene,
     (targets, exclude): (&[usize], &[usize]),
     settings: &RenderSettings,
-    choices: &[usize],
+    (choices, seconds): (&[usize], f64),
 ) -> Result<PlanesChoice> {
     let t0 = Instant::now();
     let mut prepared = Prepared::new(scene);
@@ -129,13 +155,21 @@ pub fn choose_render_planes(
         Ok(sum)
     };
     let base = work(start, None)?.max(1.0);
+    let mut last = t0.elapsed().as_secs_f64();
     let mut tried = Vec::new();
     let mut planes = *choices.first().unwrap_or(&start.config().planes);
+    let mut cut = false;
     // Bisection over the counts (work grows with them): [lo, hi) holds the unknown.
     let (mut lo, mut hi) = (0, choices.len());
     while lo < hi {
+        let begun = t0.elapsed().as_secs_f64();
+        if begun + last > seconds {
+            cut = true;
+            break;
+        }
         let mid = (lo + hi) / 2;
         let ratio = work(tuned, Some(choices[mid]))? / base;
+        last = t0.elapsed().as_secs_f64() - begun;
         tried.push((choices[mid], ratio));
         if ratio <= 1.0 {
             planes = choices[mid];
@@ -148,6 +182,7 @@ pub fn choose_render_planes(
         planes,
         work: tried,
         seconds: t0.elapsed().as_secs_f64(),
+        cut,
     })
 }
 
@@ -173,6 +208,52 @@ mod tests {
         assert!(t[3..].iter().all(|v| tuning.contains(v)));
         assert!(t[3..].windows(2).all(|w| w[0] < w[1]));
         assert_eq!(choice_targets(&[4], &[1]), vec![1, 4]);
+    }
+
+    /// The choice renders every count of its bisection with time enough, and none (taking
+    /// the fewest planes) when its time is spent.
+    #[test]
+    fn the_choice_stops_at_its_time() -> Result<()> {
+        use deepstereo_core::config::Config;
+        use deepstereo_core::prune::PruneOptions;
+        use deepstereo_core::render::CandleBackend;
+        use deepstereo_core::scene::LoadOptions;
+        use deepstereo_core::synth::{generate, write_scene, SynthOptions};
+        let dir = tempfile::tempdir()?;
+        let opts = SynthOptions {
+            views: 6,
+            width: 40,
+            height: 32,
+            ..SynthOptions::default()
+        };
+        write_scene(dir.path(), &generate(3, &opts)?)?;
+        let scene = Scene::load(dir.path(), &LoadOptions::default())?;
+        let cfg = Config::tiny();
+        let backend = CandleBackend {
+            model: deepstereo_core::weights::init(&cfg, &candle_core::Device::Cpu)?.model,
+            device: candle_core::Device::Cpu,
+        };
+        let settings = RenderSettings {
+            planes: None,
+            views: None,
+            tile: 64,
+            prune: PruneOptions::default(),
+        };
+        let choices = plane_choices(cfg.planes);
+        let pair = (&backend as &dyn Backend, &backend as &dyn Backend);
+        let targets = (&[0, 3][..], &[5][..]);
+        let all =
+            choose_render_planes(pair, &scene, targets, &settings, (&choices, f64::INFINITY))?;
+        assert!(!all.cut, "{all:?}");
+        assert_eq!(
+            all.work.len(),
+            3,
+            "seven counts take three renders: {all:?}"
+        );
+        let none = choose_render_planes(pair, &scene, targets, &settings, (&choices, 0.0))?;
+        assert!(none.cut && none.work.is_empty(), "{none:?}");
+        assert_eq!(none.planes, choices[0]);
+        Ok(())
     }
 
     #[test]

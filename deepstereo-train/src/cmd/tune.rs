@@ -185,6 +185,7 @@ pub fn run(a: Args) -> Result<()> {
     let prior = match plan.prior {
         true if !interrupted => {
             let mut po = prior_options(&a);
+            po.view_share = plan.view_share;
             let pb = match budget {
                 Budget::Steps(s) => {
                     po.steps = (s - plan.network.map_or(0, steps_of)) as usize;
@@ -217,7 +218,11 @@ pub fn run(a: Args) -> Result<()> {
         (None, _) => (cfg.clone(), None),
         (Some(_), Some(p)) => (with_render_planes(&cfg, p)?, None),
         (Some(g), None) => {
-            let c = pick_planes(&start, (&cfg, &original), g, shared)?;
+            let left = match budget {
+                Budget::Seconds(b) => b - plan.clock.elapsed().as_secs_f64(),
+                Budget::Steps(_) => f64::INFINITY,
+            };
+            let c = pick_planes(&start, (&cfg, &original), g, shared, left)?;
             (with_render_planes(&cfg, c.planes)?, Some(c))
         }
     };
@@ -230,6 +235,7 @@ pub fn run(a: Args) -> Result<()> {
         "network_share": plan.share,
         "network_share_given": a.network_share.is_some(),
         "prior_need_seconds": plan.need.map(|n| n.seconds()),
+        "prior_view_share": plan.view_share,
         "network_steps": network.as_ref().map(|r| r.steps),
         "network_best_step": network.as_ref().map(|r| r.best_step),
         "prior_views": prior.as_ref().map(|p| p.views),
@@ -243,6 +249,7 @@ pub fn run(a: Args) -> Result<()> {
         "augment": a.augment,
         "render_planes": tuned_cfg.default_render_planes(),
         "render_planes_work": choice.as_ref().map(|c| &c.work),
+        "render_planes_cut": choice.as_ref().map(|c| c.cut),
         "start": a.model.name(),
     });
     save_model(
@@ -360,6 +367,8 @@ struct Plan {
     need: Option<PriorNeed>,
     /// Seconds kept for choosing the render planes after the prior.
     reserve: f64,
+    /// The share of each view's tiles the prior reads ([`tune_plan::view_share`]).
+    view_share: f64,
     /// When tuning began.
     clock: Instant,
 }
@@ -373,8 +382,12 @@ impl Plan {
             Some(Budget::Steps(n)) => format!("the network for {n} steps"),
         };
         let need = self.need.map_or(String::new(), |n| {
+            let share = match self.view_share < 1.0 {
+                true => format!("; it reads {:.0}% of each view", 100.0 * self.view_share),
+                false => String::new(),
+            };
             format!(
-                " (the prior needs about {:.0} s: {} views at {:.1} s and its fit)",
+                " (the prior needs about {:.0} s: {} views at {:.1} s and its fit{share})",
                 n.seconds(),
                 n.views,
                 n.per_view
@@ -423,7 +436,11 @@ fn plan(
     let reserve = match (need, a.render_planes) {
         (Some(n), None) => {
             let targets = tune_plan::choice_targets(&tuning_targets(scene, validation), validation);
-            tune_plan::choice_reserve(&n, targets.len())
+            let b = match budget {
+                Budget::Seconds(b) => b,
+                Budget::Steps(_) => f64::INFINITY,
+            };
+            tune_plan::choice_reserve(&n, targets.len(), b)
         }
         _ => 0.0,
     };
@@ -434,6 +451,13 @@ fn plan(
             tune_plan::network_seconds(left, n.seconds(), reserve) / b
         }
         _ => 0.0,
+    };
+    let view_share = match (a.network_share, budget, need) {
+        (None, Budget::Seconds(b), Some(n)) if share == 0.0 => {
+            let left = b - clock.elapsed().as_secs_f64() - reserve;
+            tune_plan::view_share(&n, left)
+        }
+        _ => 1.0,
     };
     let network = match budget {
         Budget::Steps(s) => Some(Budget::Steps((s as f64 * share).round() as u64)),
@@ -446,6 +470,7 @@ fn plan(
         share,
         need,
         reserve,
+        view_share,
         clock,
     })
 }
@@ -476,6 +501,7 @@ fn pick_planes(
     (cfg, original): (&Config, &[Tensor]),
     grid: &PriorGrid,
     (scene, validation, settings): (&Scene, &[usize], &RenderSettings),
+    seconds: f64,
 ) -> Result<tune_plan::PlanesChoice> {
     let before = backend_with(cfg, original, start.model.prior().cloned())?;
     let tuned = CandleBackend {
@@ -489,17 +515,22 @@ fn pick_planes(
         scene,
         (&targets, validation),
         settings,
-        &choices,
+        (&choices, seconds),
     )?;
     let tried: Vec<String> = (c.work.iter())
         .map(|(p, r)| format!("{p} planes {r:.2}x"))
         .collect();
     eprintln!(
-        "render planes: {} (work on {} views against the model started from: {}; {:.0} s)",
+        "render planes: {} (work on {} views against the model started from: {}; {:.0} s{})",
         c.planes,
         targets.len(),
         tried.join(", "),
-        c.seconds
+        c.seconds,
+        if c.cut {
+            "; stopped at the budget's end"
+        } else {
+            ""
+        }
     );
     Ok(c)
 }
