@@ -159,16 +159,16 @@ pub fn collect_view(
     {
         bail!("view {t}: its image is {w}x{h}, its camera another size");
     }
-    let grid = TileGrid::new(backend.config(), (w, h), settings.tile);
     let (c, s, pixels) = if share >= 1.0 {
         let (c, s) = layers(backend, &cam, &srcs, &inv, settings.tile, &|_, _| {})?;
-        (c, s, pick_pixels(rng, w * h, count))
+        (c, s, pick_distinct(rng, w * h, count))
     } else {
-        let k = ((share.max(0.0) * grid.len() as f64).ceil() as usize).clamp(1, grid.len());
-        let mut tiles = pick_pixels(rng, grid.len(), k);
+        let grid = TileGrid::new(backend.config(), (w, h), settings.tile);
+        let k = ((share.max(0.0) * grid.len() as f64).ceil() as usize).max(1);
+        let tiles = pick_distinct(rng, grid.len(), k.min(grid.len()));
         let (c, s) = layers_of_tiles(backend, &cam, &srcs, &inv, (grid, &tiles), &|_, _| {})?;
-        let covered: Vec<usize> = tiles.drain(..).flat_map(|i| grid.pixels(i)).collect();
-        let picked = pick_pixels(rng, covered.len(), count);
+        let covered: Vec<usize> = tiles.iter().flat_map(|&i| grid.pixels(i)).collect();
+        let picked = pick_distinct(rng, covered.len(), count);
         let mut pixels: Vec<usize> = picked.into_iter().map(|i| covered[i]).collect();
         pixels.sort_unstable();
         (c, s, pixels)
@@ -177,8 +177,8 @@ pub fn collect_view(
     Ok(())
 }
 
-/// `count` distinct pixels of `n`, ascending.
-fn pick_pixels(rng: &mut Rng, n: usize, count: usize) -> Vec<usize> {
+/// `count` distinct numbers of `0..n` (all when `count >= n`), ascending.
+fn pick_distinct(rng: &mut Rng, n: usize, count: usize) -> Vec<usize> {
     if count >= n {
         return (0..n).collect();
     }
@@ -818,6 +818,74 @@ mod tests {
 
     /// Photographs rendered at sharpness 2.5 (and no log-weights): the fit finds the
     /// exponent, and the views set aside score higher; without `sharpen` it stays 1.
+    /// Reading a share of a view keeps rays of that many of its tiles only, each with the
+    /// layers the whole view has at its pixel.
+    #[test]
+    fn a_share_of_a_view_reads_rays_of_its_tiles_only() -> Result<()> {
+        use deepstereo_core::config::Config;
+        use deepstereo_core::prune::PruneOptions;
+        use deepstereo_core::render::CandleBackend;
+        use deepstereo_core::scene::LoadOptions;
+        use deepstereo_core::synth::{generate, write_scene, SynthOptions};
+        let dir = tempfile::tempdir()?;
+        let (w, h) = (96, 64);
+        let opts = SynthOptions {
+            views: 6,
+            width: w as u32,
+            height: h as u32,
+            ..SynthOptions::default()
+        };
+        write_scene(dir.path(), &generate(4, &opts)?)?;
+        let scene = Scene::load(dir.path(), &LoadOptions::default())?;
+        let cfg = Config::tiny();
+        let backend = CandleBackend {
+            model: deepstereo_core::weights::init(&cfg, &candle_core::Device::Cpu)?.model,
+            device: candle_core::Device::Cpu,
+        };
+        let settings = RenderSettings {
+            planes: None,
+            views: None,
+            tile: 32,
+            prune: PruneOptions::default(),
+        };
+        let d = cfg.planes;
+        let mut prepared = Prepared::new(&scene);
+        let mut read = |count: usize, share: f64| -> Result<Rays> {
+            let mut rays = Rays::new(d);
+            let r = (&mut Rng::new(7), count, share);
+            collect_view(
+                &backend,
+                &scene,
+                &mut prepared,
+                2,
+                &[],
+                &settings,
+                r,
+                &mut rays,
+            )?;
+            Ok(rays)
+        };
+        let part = read(300, 0.5)?;
+        let whole = read(w * h, 1.0)?;
+        assert_eq!((part.len(), whole.len()), (300, w * h));
+        // 0.5 of the 3 x 2 tiles of 32 pixels.
+        let tiles: std::collections::BTreeSet<usize> = (part.pixels.iter())
+            .map(|&(x, y)| (y / 32) * 3 + x / 32)
+            .collect();
+        assert_eq!(tiles.len(), 3, "{tiles:?}");
+        for (r, &(x, y)) in part.pixels.iter().enumerate() {
+            let q = y * w + x;
+            assert_eq!(whole.pixels[q], (x, y));
+            assert_eq!(part.truth[r], whole.truth[q]);
+            for z in 0..d {
+                let (a, b) = (part.selection[r * d + z], whole.selection[q * d + z]);
+                assert_eq!(a.to_bits(), b.to_bits(), "ray {r}, plane {z}");
+                assert_eq!(part.colours[r * d + z], whole.colours[q * d + z]);
+            }
+        }
+        Ok(())
+    }
+
     #[test]
     fn the_view_share_fits_the_reading_in_the_time_left() {
         let fit = FitTime {
