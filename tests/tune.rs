@@ -288,7 +288,7 @@ fn bad_input_is_refused_and_writes_nothing() {
     let out = dir.path().join("out.safetensors");
     let tiny = tiny_asset();
     let tiny = tiny.to_string_lossy();
-    let cases: [(&[&str], &str); 9] = [
+    let cases: [(&[&str], &str); 10] = [
         (
             &["--llffhold", "4", "--steps", "2", "--render-planes", "0"],
             "--render-planes",
@@ -307,6 +307,7 @@ fn bad_input_is_refused_and_writes_nothing() {
             "family",
         ),
         (&["--steps", "2", "--curve", "curve"], "held-out"),
+        (&["--steps", "2", "--prior-smooth=-1"], "--prior-smooth"),
     ];
     for (args, want) in cases {
         let res = tune(&s, &out, args);

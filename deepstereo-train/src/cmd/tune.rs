@@ -93,6 +93,10 @@ pub struct Args {
     /// Cells along the longest side of the scene prior's grid.
     #[arg(long, default_value_t = PriorOptions::default().cells)]
     pub prior_cells: usize,
+    /// Weight of the squared difference of neighbouring cells of the scene prior's
+    /// log-weights in its fit (0: none).
+    #[arg(long, default_value_t = PriorOptions::default().smooth)]
+    pub prior_smooth: f32,
     /// Keep the scene prior's sharpness at 1 (the network's own selection, reweighed)
     /// instead of fitting it with the grid.
     #[arg(long)]
@@ -414,6 +418,12 @@ fn plan(
             bail!("--network-share must be between 0 and 1, got {f}");
         }
     }
+    if !(a.prior_smooth.is_finite() && a.prior_smooth >= 0.0) {
+        bail!(
+            "--prior-smooth must be a finite number >= 0, got {}",
+            a.prior_smooth
+        );
+    }
     let prior = a.network_share.is_none_or(|f| f < 1.0);
     let need = match budget {
         Budget::Seconds(_) if prior => {
@@ -550,6 +560,7 @@ fn steps_of(b: Budget) -> u64 {
 fn prior_options(a: &Args) -> PriorOptions {
     PriorOptions {
         cells: a.prior_cells,
+        smooth: a.prior_smooth,
         sharpen: !a.no_sharpen,
         validate_every: a.validate_every as usize,
         seed: a.seed,
