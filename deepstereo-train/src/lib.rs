@@ -17,6 +17,8 @@ pub mod outdir;
 pub mod path;
 pub mod prior;
 pub mod scene_weights;
+#[cfg(test)]
+mod test_scene;
 pub mod training;
 pub mod tune;
 pub mod tune_plan;

@@ -822,32 +822,10 @@ mod tests {
     /// layers the whole view has at its pixel.
     #[test]
     fn a_share_of_a_view_reads_rays_of_its_tiles_only() -> Result<()> {
-        use deepstereo_core::config::Config;
-        use deepstereo_core::prune::PruneOptions;
-        use deepstereo_core::render::CandleBackend;
-        use deepstereo_core::scene::LoadOptions;
-        use deepstereo_core::synth::{generate, write_scene, SynthOptions};
         let dir = tempfile::tempdir()?;
         let (w, h) = (96, 64);
-        let opts = SynthOptions {
-            views: 6,
-            width: w as u32,
-            height: h as u32,
-            ..SynthOptions::default()
-        };
-        write_scene(dir.path(), &generate(4, &opts)?)?;
-        let scene = Scene::load(dir.path(), &LoadOptions::default())?;
-        let cfg = Config::tiny();
-        let backend = CandleBackend {
-            model: deepstereo_core::weights::init(&cfg, &candle_core::Device::Cpu)?.model,
-            device: candle_core::Device::Cpu,
-        };
-        let settings = RenderSettings {
-            planes: None,
-            views: None,
-            tile: 32,
-            prune: PruneOptions::default(),
-        };
+        let (scene, cfg, backend, settings) =
+            crate::test_scene::tiny_case(dir.path(), 4, (w as u32, h as u32), 32)?;
         let d = cfg.planes;
         let mut prepared = Prepared::new(&scene);
         let mut read = |count: usize, share: f64| -> Result<Rays> {

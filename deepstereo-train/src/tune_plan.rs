@@ -215,31 +215,9 @@ mod tests {
     /// the fewest planes) when its time is spent.
     #[test]
     fn the_choice_stops_at_its_time() -> Result<()> {
-        use deepstereo_core::config::Config;
-        use deepstereo_core::prune::PruneOptions;
-        use deepstereo_core::render::CandleBackend;
-        use deepstereo_core::scene::LoadOptions;
-        use deepstereo_core::synth::{generate, write_scene, SynthOptions};
         let dir = tempfile::tempdir()?;
-        let opts = SynthOptions {
-            views: 6,
-            width: 40,
-            height: 32,
-            ..SynthOptions::default()
-        };
-        write_scene(dir.path(), &generate(3, &opts)?)?;
-        let scene = Scene::load(dir.path(), &LoadOptions::default())?;
-        let cfg = Config::tiny();
-        let backend = CandleBackend {
-            model: deepstereo_core::weights::init(&cfg, &candle_core::Device::Cpu)?.model,
-            device: candle_core::Device::Cpu,
-        };
-        let settings = RenderSettings {
-            planes: None,
-            views: None,
-            tile: 64,
-            prune: PruneOptions::default(),
-        };
+        let (scene, cfg, backend, settings) =
+            crate::test_scene::tiny_case(dir.path(), 3, (40, 32), 64)?;
         let choices = plane_choices(cfg.planes);
         let pair = (&backend as &dyn Backend, &backend as &dyn Backend);
         let targets = (&[0, 3][..], &[5][..]);
