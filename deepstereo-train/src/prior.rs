@@ -685,17 +685,21 @@ impl PriorNeed {
         self.seconds_at(1.0)
     }
 
+    /// Seconds to read every view whole: `views * per_view`, with a margin.
+    fn reading(&self) -> f64 {
+        Self::MARGIN * self.per_view * self.views as f64
+    }
+
     /// Seconds to read every view at `share` of its tiles (the reading taken to scale with
     /// them) and fit.
     pub fn seconds_at(&self, share: f64) -> f64 {
-        Self::MARGIN * self.per_view * self.views as f64 * share + self.fit.of(self.views)
+        self.reading() * share + self.fit.of(self.views)
     }
 
     /// The share of each view's tiles at which reading every view and fitting take
     /// `seconds` (at most 1, at least `least`).
     pub fn share_within(&self, seconds: f64, least: f64) -> f64 {
-        let reading = Self::MARGIN * self.per_view * self.views as f64;
-        let share = (seconds - self.fit.of(self.views)) / reading.max(1e-9);
+        let share = (seconds - self.fit.of(self.views)) / self.reading().max(1e-9);
         share.clamp(least.min(1.0), 1.0)
     }
 }
@@ -816,8 +820,6 @@ mod tests {
         rays
     }
 
-    /// Photographs rendered at sharpness 2.5 (and no log-weights): the fit finds the
-    /// exponent, and the views set aside score higher; without `sharpen` it stays 1.
     /// Reading a share of a view keeps rays of that many of its tiles only, each with the
     /// layers the whole view has at its pixel.
     #[test]
@@ -886,6 +888,8 @@ mod tests {
         assert_eq!(need.share_within(-5.0, 2.0), 1.0);
     }
 
+    /// Photographs rendered at sharpness 2.5 (and no log-weights): the fit finds the
+    /// exponent, and the views set aside score higher; without `sharpen` it stays 1.
     #[test]
     fn the_fit_finds_the_scenes_sharpness() {
         let grid = PriorGrid::zeros(DVec3::new(-1.0, -1.0, 1.0), DVec3::new(1.0, 1.0, 3.0), 4)

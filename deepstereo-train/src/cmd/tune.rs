@@ -222,10 +222,7 @@ pub fn run(a: Args) -> Result<()> {
         (None, _) => (cfg.clone(), None),
         (Some(_), Some(p)) => (with_render_planes(&cfg, p)?, None),
         (Some(g), None) => {
-            let left = match budget {
-                Budget::Seconds(b) => b - plan.clock.elapsed().as_secs_f64(),
-                Budget::Steps(_) => f64::INFINITY,
-            };
+            let left = seconds_of(budget) - plan.clock.elapsed().as_secs_f64();
             let c = pick_planes(&start, (&cfg, &original), g, shared, left)?;
             (with_render_planes(&cfg, c.planes)?, Some(c))
         }
@@ -446,28 +443,23 @@ fn plan(
     let reserve = match (need, a.render_planes) {
         (Some(n), None) => {
             let targets = tune_plan::choice_targets(&tuning_targets(scene, validation), validation);
-            let b = match budget {
-                Budget::Seconds(b) => b,
-                Budget::Steps(_) => f64::INFINITY,
-            };
-            tune_plan::choice_reserve(&n, targets.len(), b)
+            tune_plan::choice_reserve(&n, targets.len(), seconds_of(budget))
         }
         _ => 0.0,
     };
-    let share = match (a.network_share, budget, need) {
-        (Some(f), _, _) => f,
+    // The network's share, and the share of each view the prior reads when it runs alone.
+    let (share, view_share) = match (a.network_share, budget, need) {
+        (Some(f), _, _) => (f, 1.0),
         (None, Budget::Seconds(b), Some(n)) => {
             let left = b - clock.elapsed().as_secs_f64();
-            tune_plan::network_seconds(left, n.seconds(), reserve) / b
+            let t = tune_plan::network_seconds(left, n.seconds(), reserve);
+            if t > 0.0 {
+                (t / b, 1.0)
+            } else {
+                (0.0, tune_plan::view_share(&n, left - reserve))
+            }
         }
-        _ => 0.0,
-    };
-    let view_share = match (a.network_share, budget, need) {
-        (None, Budget::Seconds(b), Some(n)) if share == 0.0 => {
-            let left = b - clock.elapsed().as_secs_f64() - reserve;
-            tune_plan::view_share(&n, left)
-        }
-        _ => 1.0,
+        _ => (0.0, 1.0),
     };
     let network = match budget {
         Budget::Steps(s) => Some(Budget::Steps((s as f64 * share).round() as u64)),
@@ -554,6 +546,14 @@ fn steps_of(b: Budget) -> u64 {
     match b {
         Budget::Steps(s) => s,
         Budget::Seconds(_) => 0,
+    }
+}
+
+/// A time budget's seconds; a budget of steps has no time limit.
+fn seconds_of(b: Budget) -> f64 {
+    match b {
+        Budget::Seconds(t) => t,
+        Budget::Steps(_) => f64::INFINITY,
     }
 }
 
