@@ -1,7 +1,7 @@
 //! Fitting a scene's selection prior ([`deepstereo_core::prior`]) by leaving one view out:
 //! the network renders each tuning view's layers from its other views once, and the
 //! grid's log-weights are fitted so that the reweighed layers reproduce the photographs
-//! (L1, Adam; a smoothness term is optional and off by default). The network's weights
+//! (L1 and a small smoothness term, Adam). The network's weights
 //! do not move, so the fit runs on stored layers, thousands of rays per step, without the
 //! network in the loop.
 
@@ -40,7 +40,8 @@ pub struct PriorOptions {
     pub batch: usize,
     /// Adam's rate (log-weight units).
     pub lr: f32,
-    /// Weight of the squared difference of neighbouring cells.
+    /// Weight of the squared difference of neighbouring cells (1e-7: large enough that
+    /// the views set aside stop peaking early, small enough not to blur; docs/results.md).
     pub smooth: f32,
     /// Whether the scene's sharpness (the selection's exponent) is fitted with the
     /// log-weights (Adam on its logarithm, at `lr`); otherwise it stays 1.
@@ -61,7 +62,7 @@ impl Default for PriorOptions {
             steps: 1000,
             batch: 16384,
             lr: 0.05,
-            smooth: 0.0,
+            smooth: 1e-7,
             sharpen: true,
             validate_every: 100,
             seed: 0,
