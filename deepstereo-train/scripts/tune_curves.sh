@@ -5,7 +5,8 @@
 # untuned model), one scene at a time.
 # Writes OUT/NAME/{curve.csv,curve.json,curve.png,tune.log} and prints a markdown table.
 # Usage: bash deepstereo-train/scripts/tune_curves.sh [OUT] [MINUTES] [MODEL]
-#        ONLY="moldgoldcape fox" tunes only those scenes (the table shows every scene in OUT).
+#        ONLY="moldgoldcape fox" tunes only those scenes (the table shows every scene in OUT);
+#        SEED=S tunes with --seed S (default 1).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${1:-/tmp/deepstereo-tune}"
@@ -24,7 +25,7 @@ for entry in "${EVAL_SCENES[@]}"; do
   mkdir -p "$OUT/$name"
   # shellcheck disable=SC2086
   "$BIN" tune --scene "$dir" $flags --llffhold 8 --minutes "$MINUTES" --model "$MODEL" \
-    --curve "$OUT/$name" --curve-minutes "$CURVE" --seed 1 \
+    --curve "$OUT/$name" --curve-minutes "$CURVE" --seed "${SEED:-1}" \
     --out "$OUT/$name/tuned.safetensors" 2> "$OUT/$name/tune.log"
   echo "done: $name"
 done
