@@ -128,6 +128,7 @@ pub fn run(a: Args) -> Result<()> {
         Some(_) => parse_minutes(&a.curve_minutes)?,
         None => Vec::new(),
     };
+    check_split(&a)?;
     check_out(&a.out)?;
     let start = crate::models::load_model(a.model.model.as_deref())?;
     let cfg = start.model.config().clone();
@@ -401,15 +402,8 @@ impl Plan {
     }
 }
 
-/// Splits the budget: `--network-share` as given, or (with a time budget) what the
-/// prior will not need, measured on the scene ([`crate::tune_plan`]).
-fn plan(
-    a: &Args,
-    budget: Budget,
-    start: &deepstereo_core::weights::Trainable,
-    (scene, validation, settings): (&Scene, &[usize], &RenderSettings),
-) -> Result<Plan> {
-    let clock = Instant::now();
+/// Refuses an impossible `--network-share` or `--prior-smooth` before the scene is read.
+fn check_split(a: &Args) -> Result<()> {
     if let Some(f) = a.network_share {
         if !(f.is_finite() && (0.0..=1.0).contains(&f)) {
             bail!("--network-share must be between 0 and 1, got {f}");
@@ -421,6 +415,18 @@ fn plan(
             a.prior_smooth
         );
     }
+    Ok(())
+}
+
+/// Splits the budget: `--network-share` as given, or (with a time budget) what the
+/// prior will not need, measured on the scene ([`crate::tune_plan`]).
+fn plan(
+    a: &Args,
+    budget: Budget,
+    start: &deepstereo_core::weights::Trainable,
+    (scene, validation, settings): (&Scene, &[usize], &RenderSettings),
+) -> Result<Plan> {
+    let clock = Instant::now();
     let prior = a.network_share.is_none_or(|f| f < 1.0);
     let need = match budget {
         Budget::Seconds(_) if prior => {
