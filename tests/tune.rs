@@ -323,6 +323,21 @@ fn bad_input_is_refused_and_writes_nothing() {
         );
         assert!(!out.exists(), "{args:?} wrote {}", out.display());
     }
+    // The split's flags are refused before the scene is read: a missing scene is not
+    // what the error names.
+    let nowhere = dir.path().join("no-scene");
+    for (flag, value) in [("--network-share", "2"), ("--prior-smooth", "-1")] {
+        let res = tune(
+            &nowhere,
+            &out,
+            &["--steps", "2", &format!("{flag}={value}")],
+        );
+        assert!(
+            res.code.is_some_and(|c| c != 0) && res.stderr.contains(flag),
+            "{flag}={value} with a missing scene: {}",
+            res.stderr
+        );
+    }
     let missing = dir.path().join("no/such/dir/out.safetensors");
     let res = tune(&s, &missing, &["--llffhold", "4", "--steps", "2"]);
     assert_ne!(
