@@ -326,7 +326,11 @@ fn bad_input_is_refused_and_writes_nothing() {
     // The split's flags are refused before the scene is read: a missing scene is not
     // what the error names.
     let nowhere = dir.path().join("no-scene");
-    for (flag, value) in [("--network-share", "2"), ("--prior-smooth", "-1")] {
+    for (flag, value) in [
+        ("--network-share", "2"),
+        ("--prior-smooth", "-1"),
+        ("--prior-cells", "1"),
+    ] {
         let res = tune(
             &nowhere,
             &out,

@@ -71,6 +71,21 @@ impl Default for PriorOptions {
 }
 
 impl PriorOptions {
+    /// Refuses options no fit can run with (named by their `tune` flags), before any
+    /// work: a grid of fewer than 2 cells, a negative or non-finite smoothness weight.
+    pub fn check(&self) -> Result<()> {
+        if self.cells < 2 {
+            bail!("--prior-cells must be at least 2, got {}", self.cells);
+        }
+        if !(self.smooth.is_finite() && self.smooth >= 0.0) {
+            bail!(
+                "--prior-smooth must be a finite number >= 0, got {}",
+                self.smooth
+            );
+        }
+        Ok(())
+    }
+
     /// Rays kept per view when `views` tuning views are read: `rays_per_view`, fewer when
     /// that many views would pass `max_rays`.
     pub fn rays_per_view_of(&self, views: usize) -> usize {

@@ -402,20 +402,15 @@ impl Plan {
     }
 }
 
-/// Refuses an impossible `--network-share` or `--prior-smooth` before the scene is read.
+/// Refuses an impossible `--network-share` or prior option ([`PriorOptions::check`]:
+/// `--prior-cells`, `--prior-smooth`) before the scene is read.
 fn check_split(a: &Args) -> Result<()> {
     if let Some(f) = a.network_share {
         if !(f.is_finite() && (0.0..=1.0).contains(&f)) {
             bail!("--network-share must be between 0 and 1, got {f}");
         }
     }
-    if !(a.prior_smooth.is_finite() && a.prior_smooth >= 0.0) {
-        bail!(
-            "--prior-smooth must be a finite number >= 0, got {}",
-            a.prior_smooth
-        );
-    }
-    Ok(())
+    prior_options(a).check()
 }
 
 /// Splits the budget: `--network-share` as given, or (with a time budget) what the
