@@ -108,6 +108,10 @@ class ViewPool:
     # `pool.weigh` (hidden widths): the cue follows the RGBA in the inputs and weighs each
     # view's alpha by `1 + tanh(WEIGH_SCALE g(cue))` (`views.weigh.*`); exclusive with `cue`.
     weigh: list[Conv] | None = None
+    # `pool.agree` ({"near", "sigma"}): like the falloff, applied to the inputs' alpha by
+    # whoever builds them (deepstereo-core/src/view_weights.rs, agree_gate); kept so that
+    # a config round-trips.
+    agree: dict[str, Any] | None = None
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "ViewPool":
@@ -118,6 +122,7 @@ class ViewPool:
             falloff=None if f is None else {"full": int(f["full"]), "power": int(f["power"])},
             cue=bool(d.get("cue", False)),
             weigh=None if d.get("weigh") is None else [Conv(int(c["kernel"]), int(c["channels"])) for c in d["weigh"]],
+            agree=None if d.get("agree") is None else {"near": int(d["agree"]["near"]), "sigma": float(d["agree"]["sigma"])},
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -128,6 +133,8 @@ class ViewPool:
             d["cue"] = True
         if self.weigh is not None:
             d["weigh"] = [c.__dict__ for c in self.weigh]
+        if self.agree is not None:
+            d["agree"] = dict(self.agree)
         return d
 
     def encoder_in(self) -> int:

@@ -89,7 +89,7 @@ pub const MAX_CONVS: usize = 32;
 /// colours (`blend`: 1x1 layers on each view's features and the colour tower's, then one
 /// logit per view, softmax over the views that see the pixel) plus the colour tower's
 /// linear RGB.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ViewPool {
     /// Per-view convolutions (kernel 1).
     pub encoder: Vec<Conv>,
@@ -114,6 +114,23 @@ pub struct ViewPool {
     /// `None`: views weigh by their alpha alone.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub weigh: Option<Vec<Conv>>,
+    /// The sources beyond the nearest few count where their colour agrees with a near
+    /// one's (`crate::view_weights::agree_gate`): their alpha at each plane point is
+    /// scaled by a Gaussian of the colour distance. `None`: no gate (models trained
+    /// before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agree: Option<ViewAgree>,
+}
+
+/// The colour-agreement gate of the sources beyond the `near` nearest (ranked by camera
+/// centre distance to the target, as [`ViewFalloff`]): a far source's alpha at a plane
+/// point times `exp(-e / (2 sigma^2))`, `e` the least squared RGB distance (0-1 scale)
+/// from its colour to a near source's that sees the point. See
+/// [`crate::view_weights::agree_gate`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewAgree {
+    pub near: usize,
+    pub sigma: f32,
 }
 
 /// The weight of a source view `v` at distance `d_v` from the target camera centre:
@@ -301,6 +318,7 @@ impl Config {
                 falloff: Some(ViewFalloff { full: 4, power: 8 }),
                 cue: false,
                 weigh: None,
+                agree: None,
             }),
         }
     }
@@ -499,6 +517,13 @@ impl Config {
                 {
                     return Err(format!(
                         "pool.falloff: full must be 1 to {MAX_VIEWS} and power 1 to {MAX_FALLOFF_POWER}, got {f:?}"
+                    ));
+                }
+            }
+            if let Some(a) = pool.agree {
+                if !((1..=MAX_VIEWS).contains(&a.near) && a.sigma.is_finite() && a.sigma > 0.0) {
+                    return Err(format!(
+                        "pool.agree: near must be 1 to {MAX_VIEWS} and sigma a positive number, got {a:?}"
                     ));
                 }
             }
@@ -712,6 +737,37 @@ mod tests {
         json["pool"].as_object_mut().unwrap().remove("falloff");
         let old: Config = serde_json::from_value(json).unwrap();
         assert_eq!(old.pool.and_then(|p| p.falloff), None);
+    }
+
+    /// A gate outside its ranges is refused; a config without one still parses and
+    /// does not write it.
+    #[test]
+    fn agree_is_validated_and_optional() {
+        let mut c = Config::nviews_weigh();
+        for (near, sigma) in [
+            (0, 0.1),
+            (MAX_VIEWS + 1, 0.1),
+            (4, 0.0),
+            (4, -1.0),
+            (4, f32::NAN),
+        ] {
+            if let Some(p) = c.pool.as_mut() {
+                p.agree = Some(ViewAgree { near, sigma });
+            }
+            let err = c.validate().unwrap_err();
+            assert!(err.contains("pool.agree"), "{err}");
+        }
+        if let Some(p) = c.pool.as_mut() {
+            p.agree = Some(ViewAgree {
+                near: 4,
+                sigma: 0.1,
+            });
+        }
+        c.validate().unwrap();
+        let back: Config = serde_json::from_str(&serde_json::to_string(&c).unwrap()).unwrap();
+        assert_eq!(back, c);
+        let json = serde_json::to_value(Config::nviews_weigh()).unwrap();
+        assert!(json["pool"].get("agree").is_none());
     }
 
     /// `render_planes` is optional (absent from configs without it, and not written when

@@ -3,7 +3,9 @@
 //! Level `l` is the plane sweep of the sources' level-`l` pyramid images into the target
 //! camera downsampled by `2^l`, over the region [`Config::input_origin`] /
 //! [`Config::input_size`] give (see `config.rs` for the tile geometry). Only the pixels a
-//! tile needs are warped. With a `pool.falloff` in the config, every view's alpha is then
+//! tile needs are warped. With a `pool.agree` in the config, the alpha of the views beyond
+//! the nearest is gated by their colours' agreement with the nearest
+//! ([`crate::view_weights::agree_gate`]); with a `pool.falloff`, every view's alpha is then
 //! scaled by its weight ([`crate::view_weights`]); with `pool.cue`, every view's
 //! geometric cue ([`crate::sweep::cue`]) follows its RGBA.
 
@@ -13,7 +15,7 @@ use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
 use crate::sweep::cue::{centre_in, cue_slice, CueRays};
 use crate::sweep::{sweep_into, target_rays, Region, Source, CHANNELS};
-use crate::view_weights::view_weights;
+use crate::view_weights::{agree_gate, near_views, view_weights};
 use glam::DVec3;
 
 /// A source view prepared for sampling: its camera at every pyramid level and the images.
@@ -126,19 +128,22 @@ pub fn tile_inputs(
             ),
         }));
     }
-    // Per-view alpha weights (crate::view_weights), when the config has a falloff.
-    let weights = cfg.pool.as_ref().and_then(|p| p.falloff).map(|f| {
-        let centres: Vec<_> = sources
-            .iter()
-            .map(|s| match (s.images.first(), s.cameras.first()) {
-                (Some(img), Some(cam)) if img.width > 0 && img.height > 0 => {
-                    Some(cam.pose.centre())
-                }
-                _ => None,
-            })
-            .collect();
-        view_weights(f, target.pose.centre(), &centres)
-    });
+    // Per-view alpha weights and the near views of the colour gate (crate::view_weights),
+    // when the config has a falloff or a gate.
+    let centres: Vec<_> = sources
+        .iter()
+        .map(|s| match (s.images.first(), s.cameras.first()) {
+            (Some(img), Some(cam)) if img.width > 0 && img.height > 0 => Some(cam.pose.centre()),
+            _ => None,
+        })
+        .collect();
+    let pool = cfg.pool.as_ref();
+    let weights = pool
+        .and_then(|p| p.falloff)
+        .map(|f| view_weights(f, target.pose.centre(), &centres));
+    let agree = pool
+        .and_then(|p| p.agree)
+        .map(|a| (near_views(a.near, target.pose.centre(), &centres), a.sigma));
     let mut levels = Vec::with_capacity(cfg.levels);
     let mut sizes = Vec::with_capacity(cfg.levels);
     for l in 0..cfg.levels {
@@ -169,6 +174,9 @@ pub fn tile_inputs(
             .collect();
         let mut buf = vec![0.0f32; inv_depths.len() * sources.len() * CHANNELS * region.len()];
         sweep_into(&tcam, region, &srcs, inv_depths, &mut buf);
+        if let Some((near, sigma)) = &agree {
+            agree_gate(&mut buf, near, *sigma, region.len());
+        }
         if let Some(w) = weights.as_deref().filter(|w| w.iter().any(|&g| g != 1.0)) {
             scale_alpha(&mut buf, w, region.len());
         }

@@ -434,6 +434,7 @@ mod tests {
             falloff: None,
             cue: false,
             weigh: None,
+            agree: None,
         };
         let vm = candle_nn::VarMap::new();
         let enc = ViewEncoder::new(

@@ -54,6 +54,72 @@ pub fn view_weights(falloff: ViewFalloff, target: DVec3, centres: &[Option<DVec3
         .collect()
 }
 
+/// Which sources are among the `near` nearest to the target (camera centre distance;
+/// every source as near as the `near`-th counts, so ties do not depend on the order);
+/// empty views (`None`) count as near, as their alpha is 0 anyway. With `near` sources
+/// or fewer, all are near.
+pub fn near_views(near: usize, target: DVec3, centres: &[Option<DVec3>]) -> Vec<bool> {
+    let dist: Vec<Option<f64>> = centres
+        .iter()
+        .map(|c| c.map(|c| c.distance(target)))
+        .collect();
+    let mut sorted: Vec<f64> = dist.iter().flatten().copied().collect();
+    if near == 0 || sorted.len() <= near {
+        return vec![true; centres.len()];
+    }
+    sorted.sort_by(f64::total_cmp);
+    let d_ref = sorted[near - 1];
+    dist.iter().map(|d| d.is_none_or(|d| d <= d_ref)).collect()
+}
+
+/// Alpha at or above which a near source sees a plane point and its colour is a
+/// reference of [`agree_gate`] (the sweep's alpha is 1 inside a source's image, 0
+/// outside, fractional along its border).
+pub const AGREE_SEES: f32 = 0.5;
+
+/// The colour-agreement gate (config `pool.agree`) on a plane sweep `[D, V, 4, h, w]` of
+/// `hw` pixels per plane, applied to the sweep's own alpha (before the falloff): at each
+/// plane point, every source `v` that is not near (`near[v]` false) has its alpha scaled
+/// by
+///
+/// `g_v = exp(-e_v / (2 sigma^2))`, `e_v = min_n |c_v - c_n|^2`,
+///
+/// the least squared RGB distance to the colour `c_n` of a near source `n` that sees the
+/// point (alpha >= [`AGREE_SEES`]). Where no near source sees it, `g_v = 1`. A far
+/// source then counts where it agrees with one of the nearest (the same surface seen
+/// from farther) and hardly where it shows something else (another face of an object,
+/// an occluder); near sources are unchanged, so a model sees its input unchanged at
+/// `near` views or fewer. Depends on the colours and the set of near views only, so it
+/// does not change when views are reordered; an empty view (alpha 0) stays empty and is
+/// never a reference.
+pub fn agree_gate(volume: &mut [f32], near: &[bool], sigma: f32, hw: usize) {
+    use rayon::prelude::*;
+    let v = near.len();
+    if v == 0 || near.iter().all(|&n| n) {
+        return;
+    }
+    let per = 4 * hw;
+    let scale = -0.5 / (sigma * sigma);
+    volume.par_chunks_mut(v * per).for_each(|plane| {
+        for p in 0..hw {
+            let colour = |plane: &[f32], k: usize| [0, 1, 2].map(|c| plane[k * per + c * hw + p]);
+            for f in (0..v).filter(|&f| !near[f]) {
+                let cf = colour(plane, f);
+                let e = (0..v)
+                    .filter(|&n| near[n] && plane[n * per + 3 * hw + p] >= AGREE_SEES)
+                    .map(|n| {
+                        let cn = colour(plane, n);
+                        (0..3).map(|c| (cf[c] - cn[c]).powi(2)).sum::<f32>()
+                    })
+                    .reduce(f32::min);
+                if let Some(e) = e {
+                    plane[f * per + 3 * hw + p] *= (scale * e).exp();
+                }
+            }
+        }
+    });
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -90,6 +156,103 @@ mod tests {
         let mut e = view_weights(F, DVec3::ZERO, &c);
         assert_eq!((e.remove(6), e.remove(1)), (1.0, 1.0));
         assert_eq!(w, e);
+    }
+
+    /// A sweep `[1, V, 4, 1, 2]` of the given RGBA per view and pixel.
+    fn volume(views: &[[[f32; 4]; 2]]) -> Vec<f32> {
+        let mut v = Vec::new();
+        for view in views {
+            for c in 0..4 {
+                v.extend(view.iter().map(|px| px[c]));
+            }
+        }
+        v
+    }
+
+    fn alphas(vol: &[f32]) -> Vec<[f32; 2]> {
+        vol.chunks_exact(8).map(|v| [v[6], v[7]]).collect()
+    }
+
+    #[test]
+    fn far_views_are_gated_by_the_nearest_agreeing_colour() {
+        let sigma = 0.1f32;
+        let views = [
+            // near: seen at pixel 0, barely (alpha under AGREE_SEES) at pixel 1
+            [[0.2, 0.2, 0.2, 1.0], [0.5, 0.5, 0.5, 0.4]],
+            [[0.8, 0.8, 0.8, 1.0], [0.5, 0.5, 0.5, 0.0]],
+            // far
+            [[0.3, 0.2, 0.2, 1.0], [0.9, 0.1, 0.1, 0.7]],
+        ];
+        let mut vol = volume(&views);
+        agree_gate(&mut vol, &[true, true, false], sigma, 2);
+        let a = alphas(&vol);
+        // Pixel 0: the closest near colour is (0.2, 0.2, 0.2), e = 0.01.
+        let want = (-0.01f32 / (2.0 * sigma * sigma)).exp();
+        assert!((a[2][0] - want).abs() < 1e-6, "{} against {want}", a[2][0]);
+        // Pixel 1: no near view sees it, so the far view keeps its alpha; near views
+        // are never changed.
+        assert_eq!(a[2][1], 0.7);
+        assert_eq!((a[0], a[1]), ([1.0, 0.4], [1.0, 0.0]));
+        // Every view near: nothing changes.
+        let mut same = volume(&views);
+        agree_gate(&mut same, &[true; 3], sigma, 2);
+        assert_eq!(same, volume(&views));
+    }
+
+    #[test]
+    fn the_gate_ignores_order_and_empty_views() {
+        let views = [
+            [[0.2, 0.4, 0.2, 1.0], [0.5, 0.5, 0.5, 1.0]],
+            [[0.8, 0.1, 0.8, 1.0], [0.1, 0.5, 0.9, 0.6]],
+            [[0.3, 0.2, 0.2, 1.0], [0.9, 0.1, 0.1, 0.7]],
+            [[0.7, 0.2, 0.7, 0.9], [0.4, 0.5, 0.5, 1.0]],
+        ];
+        let near = [true, false, true, false];
+        let mut vol = volume(&views);
+        agree_gate(&mut vol, &near, 0.2, 2);
+        let a = alphas(&vol);
+        assert!(a[1][0] < 1.0 && a[3][1] < 1.0, "nothing was gated: {a:?}");
+        let order = [2, 3, 0, 1];
+        let mut vp = volume(&order.map(|i| views[i]));
+        agree_gate(&mut vp, &order.map(|i| near[i]), 0.2, 2);
+        let ap = alphas(&vp);
+        for (k, &i) in order.iter().enumerate() {
+            assert_eq!(ap[k], a[i]);
+        }
+        // An empty view (alpha 0), near or far, changes nothing and stays empty.
+        for empty_near in [false, true] {
+            let mut ve = views.to_vec();
+            ve.insert(1, [[0.0; 4]; 2]);
+            let mut ne = near.to_vec();
+            ne.insert(1, empty_near);
+            let mut vol = volume(&ve);
+            agree_gate(&mut vol, &ne, 0.2, 2);
+            let mut ae = alphas(&vol);
+            assert_eq!(ae.remove(1), [0.0, 0.0]);
+            assert_eq!(ae, a);
+        }
+    }
+
+    #[test]
+    fn near_views_keep_ties_and_empty_views() {
+        let c = centres(&[3.0, 1.0, 2.0, -2.0, 5.0]);
+        // The 2nd nearest distance is 2, shared by two views: both are near.
+        assert_eq!(
+            near_views(2, DVec3::ZERO, &c),
+            vec![false, true, true, true, false]
+        );
+        let mut ce = c.clone();
+        ce.push(None);
+        assert_eq!(
+            near_views(2, DVec3::ZERO, &ce),
+            vec![false, true, true, true, false, true]
+        );
+        // At `near` views or fewer (empty ones not counted), every view is near.
+        assert_eq!(near_views(4, DVec3::ZERO, &c[..4]), vec![true; 4]);
+        assert_eq!(
+            near_views(2, DVec3::ZERO, &[c[0], None, c[1]]),
+            vec![true; 3]
+        );
     }
 
     #[test]

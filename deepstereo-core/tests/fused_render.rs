@@ -77,6 +77,7 @@ fn encoder_with(channels: &[usize], cue: bool) -> Result<(ViewEncoder, VarMap)> 
         falloff: None,
         cue,
         weigh: None,
+        agree: None,
     };
     let vm = VarMap::new();
     let enc = ViewEncoder::new(

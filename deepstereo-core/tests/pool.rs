@@ -42,6 +42,7 @@ fn small() -> Config {
             falloff: None,
             cue: false,
             weigh: None,
+            agree: None,
         }),
     }
 }
@@ -498,6 +499,57 @@ fn falloff_scales_only_the_alpha_of_views_beyond_the_nearest() -> Result<()> {
                 }
             }
         }
+    }
+    Ok(())
+}
+
+/// `pool.agree`: at `near` views or fewer the inputs equal the ungated ones; beyond, only
+/// the alpha of the views beyond the nearest changes, never upwards, and some of it does.
+#[test]
+fn the_colour_gate_lowers_only_the_alpha_of_views_beyond_the_nearest() -> Result<()> {
+    use deepstereo_core::config::ViewAgree;
+    use deepstereo_core::inputs::tile_inputs;
+    use deepstereo_core::view_weights::near_views;
+    let mut plain = Config::nviews();
+    if let Some(p) = plain.pool.as_mut() {
+        p.falloff = None;
+    }
+    let mut cfg = plain.clone();
+    let near = 4;
+    if let Some(p) = cfg.pool.as_mut() {
+        p.agree = Some(ViewAgree { near, sigma: 0.1 });
+    }
+    let (s, pyr) = scene_pyramids(5, 10, (48, 36), cfg.levels)?;
+    let inv = inverse_depths(s.near, s.far, 6);
+    let t = cfg.tile;
+    for v in [near, 9] {
+        let srcs: Vec<&PyramidSource> = pyr[1..=v].iter().collect();
+        let a = tile_inputs(&cfg, &s.cameras[0], &srcs, &inv, (0, 0), (t, t))?;
+        let b = tile_inputs(&plain, &s.cameras[0], &srcs, &inv, (0, 0), (t, t))?;
+        if v <= near {
+            assert_eq!(a.levels, b.levels, "gated at {v} views");
+            continue;
+        }
+        let centres: Vec<_> = srcs
+            .iter()
+            .map(|p| Some(p.cameras[0].pose.centre()))
+            .collect();
+        let is_near = near_views(near, s.cameras[0].pose.centre(), &centres);
+        let mut lowered = 0;
+        for (la, lb) in a.levels.iter().zip(&b.levels) {
+            let hw = la.len() / (inv.len() * v * 4);
+            for (i, (sa, sb)) in la.chunks(4 * hw).zip(lb.chunks(4 * hw)).enumerate() {
+                assert_eq!(sa[..3 * hw], sb[..3 * hw], "colours changed");
+                if is_near[i % v] {
+                    assert_eq!(sa[3 * hw..], sb[3 * hw..], "a near view's alpha changed");
+                }
+                for (x, y) in sa[3 * hw..].iter().zip(&sb[3 * hw..]) {
+                    assert!(*x <= *y && *x >= 0.0, "alpha {x} from {y}");
+                    lowered += usize::from(*x < *y);
+                }
+            }
+        }
+        assert!(lowered > 0, "the gate changed nothing at {v} views");
     }
     Ok(())
 }

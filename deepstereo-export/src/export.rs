@@ -211,8 +211,17 @@ fn graph_inputs(cfg: &Config) -> Vec<ValueInfoProto> {
                 ),
                 None => String::new(),
             };
+            let agree = match cfg.pool.as_ref().and_then(|p| p.agree) {
+                Some(a) => format!(
+                    "; alpha of each source beyond the {} nearest first times exp(-e / (2 * {}^2)), \
+                     e its least squared RGB distance to a near source's colour where that one's \
+                     alpha >= 0.5: deepstereo-core/src/view_weights.rs, agree_gate",
+                    a.near, a.sigma
+                ),
+                None => String::new(),
+            };
             let doc = format!(
-                "plane sweep at 1/{} resolution: {layout}, H_{l} = (th >> {l}) + {}{falloff}",
+                "plane sweep at 1/{} resolution: {layout}, H_{l} = (th >> {l}) + {}{agree}{falloff}",
                 1 << l,
                 2 * cfg.pad(l)
             );
