@@ -33,19 +33,32 @@ use glam::DVec3;
 /// are measured against it instead, so that the weights stay finite.
 pub const MIN_REF_DISTANCE: f64 = 1e-12;
 
-/// The weights `g_v` of the module doc for sources at `centres` (`None`: an empty view,
-/// weight 1, as its alpha is 0 anyway) seen from a target at `target`.
-pub fn view_weights(falloff: ViewFalloff, target: DVec3, centres: &[Option<DVec3>]) -> Vec<f64> {
+/// Each source's camera centre distance to `target` (`None`: an empty view) and the
+/// `k`-th smallest of them, or `None` when there are `k` sources or fewer (or `k` is 0).
+fn kth_distance(
+    k: usize,
+    target: DVec3,
+    centres: &[Option<DVec3>],
+) -> (Vec<Option<f64>>, Option<f64>) {
     let dist: Vec<Option<f64>> = centres
         .iter()
         .map(|c| c.map(|c| c.distance(target)))
         .collect();
     let mut sorted: Vec<f64> = dist.iter().flatten().copied().collect();
-    if falloff.full == 0 || sorted.len() <= falloff.full {
-        return vec![1.0; centres.len()];
+    if k == 0 || sorted.len() <= k {
+        return (dist, None);
     }
     sorted.sort_by(f64::total_cmp);
-    let d_ref = sorted[falloff.full - 1].max(MIN_REF_DISTANCE);
+    (dist, Some(sorted[k - 1]))
+}
+
+/// The weights `g_v` of the module doc for sources at `centres` (`None`: an empty view,
+/// weight 1, as its alpha is 0 anyway) seen from a target at `target`.
+pub fn view_weights(falloff: ViewFalloff, target: DVec3, centres: &[Option<DVec3>]) -> Vec<f64> {
+    let (dist, Some(d_ref)) = kth_distance(falloff.full, target, centres) else {
+        return vec![1.0; centres.len()];
+    };
+    let d_ref = d_ref.max(MIN_REF_DISTANCE);
     dist.iter()
         .map(|d| match d {
             Some(d) if *d > d_ref => (d_ref / d).powi(falloff.power as i32),
@@ -59,16 +72,9 @@ pub fn view_weights(falloff: ViewFalloff, target: DVec3, centres: &[Option<DVec3
 /// empty views (`None`) count as near, as their alpha is 0 anyway. With `near` sources
 /// or fewer, all are near.
 pub fn near_views(near: usize, target: DVec3, centres: &[Option<DVec3>]) -> Vec<bool> {
-    let dist: Vec<Option<f64>> = centres
-        .iter()
-        .map(|c| c.map(|c| c.distance(target)))
-        .collect();
-    let mut sorted: Vec<f64> = dist.iter().flatten().copied().collect();
-    if near == 0 || sorted.len() <= near {
+    let (dist, Some(d_ref)) = kth_distance(near, target, centres) else {
         return vec![true; centres.len()];
-    }
-    sorted.sort_by(f64::total_cmp);
-    let d_ref = sorted[near - 1];
+    };
     dist.iter().map(|d| d.is_none_or(|d| d <= d_ref)).collect()
 }
 
