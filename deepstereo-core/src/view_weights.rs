@@ -1,4 +1,5 @@
-//! Per-view weights of the any-number-of-views family (config `pool.falloff`).
+//! Per-view weights of the any-number-of-views family (config `pool.falloff`), and the
+//! colour gate of the views beyond the nearest (config `pool.agree`, [`agree_gate`]).
 //!
 //! The view pooling (`pool.rs`) averages the sources with their alpha as weights. With
 //! every source weighing alike, adding views that are farther from the target than the
