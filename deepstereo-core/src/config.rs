@@ -133,6 +133,11 @@ pub struct ViewAgree {
     pub sigma: f32,
 }
 
+/// The range of [`ViewAgree::sigma`] (colours are 0-1: below it the gate shuts every
+/// far view that differs at all, and `sigma^2` would underflow; above it, it gates
+/// nothing).
+pub const AGREE_SIGMA_RANGE: (f32, f32) = (1e-3, 10.0);
+
 /// The weight of a source view `v` at distance `d_v` from the target camera centre:
 /// `1` for the `full` nearest, `(d_ref / d_v)^power` for the others (`d_ref`: the
 /// `full`-th nearest distance). See [`crate::view_weights`].
@@ -521,9 +526,10 @@ impl Config {
                 }
             }
             if let Some(a) = pool.agree {
-                if !((1..=MAX_VIEWS).contains(&a.near) && a.sigma.is_finite() && a.sigma > 0.0) {
+                let (lo, hi) = AGREE_SIGMA_RANGE;
+                if !((1..=MAX_VIEWS).contains(&a.near) && (lo..=hi).contains(&a.sigma)) {
                     return Err(format!(
-                        "pool.agree: near must be 1 to {MAX_VIEWS} and sigma a positive number, got {a:?}"
+                        "pool.agree: near must be 1 to {MAX_VIEWS} and sigma {lo} to {hi}, got {a:?}"
                     ));
                 }
             }
@@ -750,6 +756,8 @@ mod tests {
             (4, 0.0),
             (4, -1.0),
             (4, f32::NAN),
+            (4, 1e-30),
+            (4, f32::INFINITY),
         ] {
             if let Some(p) = c.pool.as_mut() {
                 p.agree = Some(ViewAgree { near, sigma });

@@ -119,7 +119,7 @@ pub fn agree_gate(volume: &mut [f32], near: &[bool], sigma: f32, hw: usize) {
                         (0..3).map(|c| (cf[c] - cn[c]).powi(2)).sum::<f32>()
                     })
                     .reduce(f32::min);
-                if let Some(e) = e {
+                if let Some(e) = e.filter(|&e| e > 0.0) {
                     plane[f * per + 3 * hw + p] *= (scale * e).exp();
                 }
             }
