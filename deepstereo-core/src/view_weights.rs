@@ -102,18 +102,19 @@ pub const AGREE_SEES: f32 = 0.5;
 pub fn agree_gate(volume: &mut [f32], near: &[bool], sigma: f32, hw: usize) {
     use rayon::prelude::*;
     let v = near.len();
-    if v == 0 || near.iter().all(|&n| n) {
+    if near.iter().all(|&n| n) {
         return;
     }
     let per = 4 * hw;
     let scale = -0.5 / (sigma * sigma);
+    let (near_ix, far_ix): (Vec<usize>, Vec<usize>) = (0..v).partition(|&k| near[k]);
     volume.par_chunks_mut(v * per).for_each(|plane| {
         for p in 0..hw {
             let colour = |plane: &[f32], k: usize| [0, 1, 2].map(|c| plane[k * per + c * hw + p]);
-            for f in (0..v).filter(|&f| !near[f]) {
+            for &f in &far_ix {
                 let cf = colour(plane, f);
-                let e = (0..v)
-                    .filter(|&n| near[n] && plane[n * per + 3 * hw + p] >= AGREE_SEES)
+                let e = (near_ix.iter().copied())
+                    .filter(|&n| plane[n * per + 3 * hw + p] >= AGREE_SEES)
                     .map(|n| {
                         let cn = colour(plane, n);
                         (0..3).map(|c| (cf[c] - cn[c]).powi(2)).sum::<f32>()
