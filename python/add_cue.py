@@ -6,9 +6,14 @@ renders exactly as the old one until training moves the new weights:
   channel, all zero;
 - with `--weigh` (`pool.weigh`), the model gains the view weights `views.weigh.*`: a
   hidden layer of `--hidden` channels (PyTorch's default initialisation, `--seed`) and a
-  1-channel layer of zeros, so every view's weight `1 + tanh(0)` is 1.
+  1-channel layer of zeros, so every view's weight `1 + tanh(0)` is 1;
+- with `--disagree NEAR` on a model whose views are already weighed (`pool.weigh`), the
+  cue gains its colour-disagreement channel (`pool.disagree`,
+  `deepstereo-core/src/view_weights.rs`): the first `views.weigh` layer gains one zero
+  input column.
 
     python python/add_cue.py IN.safetensors OUT.safetensors [--name NAME] [--weigh [--hidden 8] [--seed 0]]
+    python python/add_cue.py IN.safetensors OUT.safetensors --disagree 4 [--name NAME]
 
 Writes OUT and its config alone beside it as `config.json` (the run directory's), each
 atomically. Needs numpy and safetensors (python/requirements.txt)."""
@@ -31,6 +36,7 @@ def main() -> int:
     ap.add_argument("--weigh", action="store_true", help="the cue weighs the views (pool.weigh) instead of entering the encoder")
     ap.add_argument("--hidden", type=int, default=8, help="--weigh: channels of its hidden layer (0: none)")
     ap.add_argument("--seed", type=int, default=0, help="--weigh: seed of the hidden layer's initialisation")
+    ap.add_argument("--disagree", type=int, default=None, metavar="NEAR", help="add the disagreement channel with NEAR reference views (1 to 64) to a model with pool.weigh")
     args = ap.parse_args()
     if args.hidden < 0 or args.hidden > 1024:
         print(f"error: --hidden must be 0 to 1024, got {args.hidden}", file=sys.stderr)
@@ -40,6 +46,8 @@ def main() -> int:
     if not pool:
         print(f"error: {args.input}: not a model of the any-number-of-views family (no pool)", file=sys.stderr)
         return 1
+    if args.disagree is not None:
+        return add_disagree(args, meta, tensors, cfg)
     if pool.get("cue") or pool.get("weigh") is not None:
         print(f"error: {args.input}: the model already reads the cue", file=sys.stderr)
         return 1
@@ -74,6 +82,32 @@ def add_weigh(args: argparse.Namespace, meta: dict, tensors: dict, cfg: dict) ->
     out_dir = os.path.dirname(os.path.abspath(args.output))
     model_file.save(args.output, os.path.join(out_dir, "config.json"), meta, tensors, cfg)
     print(f"wrote {args.output} ({cfg['name']}: views weighed by their cue, hidden layer {args.hidden})")
+    return 0
+
+
+def add_disagree(args: argparse.Namespace, meta: dict, tensors: dict, cfg: dict) -> int:
+    """`--disagree NEAR`: a zero input column for the disagreement channel in `views.weigh.0`."""
+    pool = cfg["pool"]
+    if not 1 <= args.disagree <= 64:
+        print(f"error: --disagree must be 1 to 64 (MAX_VIEWS), got {args.disagree}", file=sys.stderr)
+        return 2
+    if pool.get("weigh") is None:
+        print(f"error: {args.input}: --disagree needs a model whose cue weighs the views (pool.weigh; add it with --weigh first)", file=sys.stderr)
+        return 1
+    if pool.get("disagree") is not None:
+        print(f"error: {args.input}: the model already has the disagreement channel", file=sys.stderr)
+        return 1
+    w = tensors["views.weigh.0.weight"]  # [C0, 5, 1, 1]
+    if w.shape[1] != CUE_CHANNELS:
+        print(f"error: {args.input}: views.weigh.0.weight has {w.shape[1]} input channels, expected {CUE_CHANNELS}", file=sys.stderr)
+        return 1
+    zeros = np.zeros((w.shape[0], 1, 1, 1), dtype=w.dtype)
+    tensors["views.weigh.0.weight"] = np.ascontiguousarray(np.concatenate([w, zeros], axis=1))
+    pool["disagree"] = {"near": args.disagree}
+    cfg["name"] = args.name or cfg["name"] + "-disagree"
+    out_dir = os.path.dirname(os.path.abspath(args.output))
+    model_file.save(args.output, os.path.join(out_dir, "config.json"), meta, tensors, cfg)
+    print(f"wrote {args.output} ({cfg['name']}: the views' weights read {CUE_CHANNELS + 1} cue channels, near {args.disagree})")
     return 0
 
 

@@ -112,6 +112,10 @@ class ViewPool:
     # whoever builds them (deepstereo-core/src/view_weights.rs, agree_gate); kept so that
     # a config round-trips.
     agree: dict[str, Any] | None = None
+    # `pool.disagree` ({"near"}): one more cue channel, the view's colour disagreement with
+    # the nearest views, computed by whoever builds the inputs
+    # (deepstereo-core/src/view_weights.rs, disagreement) and read by `views.weigh.*`.
+    disagree: dict[str, int] | None = None
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "ViewPool":
@@ -123,6 +127,7 @@ class ViewPool:
             cue=bool(d.get("cue", False)),
             weigh=None if d.get("weigh") is None else [Conv(int(c["kernel"]), int(c["channels"])) for c in d["weigh"]],
             agree=None if d.get("agree") is None else {"near": int(d["agree"]["near"]), "sigma": float(d["agree"]["sigma"])},
+            disagree=None if d.get("disagree") is None else {"near": int(d["disagree"]["near"])},
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -135,13 +140,18 @@ class ViewPool:
             d["weigh"] = [c.__dict__ for c in self.weigh]
         if self.agree is not None:
             d["agree"] = dict(self.agree)
+        if self.disagree is not None:
+            d["disagree"] = dict(self.disagree)
         return d
+
+    def cue_channels(self) -> int:
+        return CUE_CHANNELS + (1 if self.disagree is not None else 0)
 
     def encoder_in(self) -> int:
         return ENCODER_IN + (CUE_CHANNELS if self.cue else 0)
 
     def view_channels(self) -> int:
-        return 4 + (CUE_CHANNELS if self.cue or self.weigh is not None else 0)
+        return 4 + (self.cue_channels() if self.cue or self.weigh is not None else 0)
 
     def features(self) -> int:
         return self.encoder[-1].channels if self.encoder else self.encoder_in()
@@ -220,6 +230,8 @@ class Config:
                     raise ValueError(f"pool: encoder, blend and weigh layers must be 1x1, got {c}")
             if self.pool.cue and self.pool.weigh is not None:
                 raise ValueError("pool: cue and weigh are exclusive")
+            if self.pool.disagree is not None and self.pool.weigh is None:
+                raise ValueError("pool.disagree needs pool.weigh (the view weights read it)")
             if self.colour_skip:
                 raise ValueError("pool: colour_skip must be false")
 
@@ -418,6 +430,7 @@ class Views(nn.Module):
     def __init__(self, pool: ViewPool):
         super().__init__()
         self.cue = pool.cue
+        self.cue_channels = pool.cue_channels()
         self.encode = nn.ModuleList()
         ch = pool.encoder_in()
         for c in pool.encoder:
@@ -425,24 +438,25 @@ class Views(nn.Module):
             ch = c.channels
         if pool.weigh is not None:
             self.weigh = nn.ModuleList()
-            ch = CUE_CHANNELS
+            ch = self.cue_channels
             for cout in [c.channels for c in pool.weigh] + [1]:
                 self.weigh.append(nn.Conv2d(ch, cout, 1))
                 ch = cout
 
     def weigh_forward(self, x: torch.Tensor) -> torch.Tensor:
-        """`ViewWeigh::forward`: `[B, D, V, 4 + 5, H, W]` -> `[B, D, V, 4, H, W]`, each
-        view's RGB and its alpha times `1 + tanh(WEIGH_SCALE g(cue))`."""
+        """`ViewWeigh::forward`: `[B, D, V, 4 + K, H, W]` -> `[B, D, V, 4, H, W]` (`K` 5, or 6
+        with `pool.disagree`), each view's RGB and its alpha times `1 + tanh(WEIGH_SCALE g(cue))`."""
         b, d, v, cv, h, w = x.shape
-        if cv != 4 + CUE_CHANNELS:
-            raise ValueError(f"expected [B, D, V, {4 + CUE_CHANNELS}, H, W], got {tuple(x.shape)}")
-        g = x[:, :, :, 4:].reshape(b * d * v, CUE_CHANNELS, h, w)
+        k = self.cue_channels
+        if cv != 4 + k:
+            raise ValueError(f"expected [B, D, V, {4 + k}, H, W], got {tuple(x.shape)}")
+        g = x[:, :, :, 4:].reshape(b * d * v, k, h, w)
         last = len(self.weigh) - 1
         for i, conv in enumerate(self.weigh):
             g = conv(g)
             if i < last:
                 g = F.relu(g)
-        k = (1.0 + torch.tanh(g * WEIGH_SCALE)).reshape(b, d, v, 1, h, w)
+        k = (2.0 * torch.sigmoid(g * (2.0 * WEIGH_SCALE))).reshape(b, d, v, 1, h, w)  # = 1 + tanh(S g), accurate where small
         return torch.cat([x[:, :, :, :3], x[:, :, :, 3:4] * k], 3)
 
     def pool_forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -339,6 +339,34 @@ def procedural_scene(p: Parity) -> Path | None:
     return None
 
 
+def check_disagreement(p: Parity, model: Model, name: str, st: dict[str, np.ndarray]) -> None:
+    """The disagreement channel `sweep --model` writes (the cue's last), recomputed here from
+    the sweep's own RGBA (sources nearest first, as `sweep` lists them): per plane point and view,
+    sqrt(min |rgb_v - rgb_n|^2) over the other views n among the `near` nearest with alpha
+    >= 0.5 (`view_weights.rs`). Needs a config without falloff or gate (the RGBA is then
+    the sweep's own)."""
+    pool = model.cfg.pool
+    assert pool is not None and pool.disagree is not None
+    if pool.falloff is not None or pool.agree is not None:
+        p.note(f"sweep {name}: disagreement channel not recomputed (the config has a falloff or a gate)")
+        return
+    v = st["level0"].shape[2]
+    near = np.arange(v) < pool.disagree["near"]  # `sweep` lists the sources nearest first
+    worst = 0.0
+    for l in range(model.cfg.levels):
+        x = st[f"level{l}"][0].astype(np.float64)  # [D, V, 10, H, W]
+        rgb, a = x[:, :, :3], x[:, :, 3]
+        e = ((rgb[:, :, None] - rgb[:, None, :]) ** 2).sum(3)  # [D, V, V, H, W]
+        ok = (near[None, None, :, None, None] & (a[:, None, :] >= 0.5)) & ~np.eye(v, dtype=bool)[None, :, :, None, None]
+        e = np.where(ok, e, np.inf).min(2)
+        want = np.where(np.isfinite(e), np.sqrt(np.where(np.isfinite(e), e, 0)), 0.0)
+        worst = max(worst, float(np.abs(x[:, :, -1] - want).max()))
+    status = "ok" if worst <= 1e-5 else "FAIL"
+    print(f"  {name}: disagreement channel against numpy: max |diff| {worst:.2e} {status}", flush=True)
+    if worst > 1e-5:
+        p.fail(f"sweep {name}: disagreement channel differs from numpy by {worst}")
+
+
 def sweep_case(p: Parity, model: Model, name: str, scene: Path, planes: int | None, extra: list[str]) -> None:
     out = p.work / f"sweep_{name}.safetensors"
     cmd = [p.bin, "sweep", "--scene", scene, "--target", "0", "--model", model.weights, "--out", out, *extra]
@@ -357,6 +385,8 @@ def sweep_case(p: Parity, model: Model, name: str, scene: Path, planes: int | No
     if not graph_inputs <= st.keys():
         p.fail(f"sweep --model of {name} lacks graph inputs {sorted(graph_inputs - st.keys())}")
         return
+    if model.cfg.pool is not None and model.cfg.pool.disagree is not None:
+        check_disagreement(p, model, name, st)
     th, tw = (int(v) for v in st["tile_size"])
     d = st["level0"].shape[1]
     h, w = st["target"].shape[1:]
@@ -409,6 +439,34 @@ def add_cue_check(p: Parity, weights: Path, rng: np.random.Generator, weigh: boo
     print(f"  add_cue.py{' --weigh' if weigh else ''}: the model with zero cue weights against the model without the cue: image max |diff| {d:.2e} {status}", flush=True)
     if d > 1e-6:
         p.fail(f"add_cue.py changed what the model renders: {d}")
+
+
+def add_disagree_check(p: Parity, weights: Path, rng: np.random.Generator) -> None:
+    """`python/add_cue.py --disagree 4` on a model whose cue weighs the views: fed the
+    same inputs with any disagreement channel after the cue, the new model renders exactly
+    what the old one does (its new column starts at zero), in candle."""
+    out = p.work / "with_disagree" / "model.safetensors"
+    out.parent.mkdir(exist_ok=True)
+    run([sys.executable, ROOT / "python" / "add_cue.py", weights, out, "--disagree", "4"], "add_cue.py --disagree")
+    cfg = ref.read_config(str(out))
+    old = ref.read_config(str(weights))
+    if cfg.pool is None or cfg.pool.disagree != {"near": 4} or cfg.pool.view_channels() != old.pool.view_channels() + 1:
+        p.fail(f"add_cue.py --disagree: {out} does not read the disagreement channel")
+        return
+    t = old.tile
+    x = make_inputs(old, 1, old.planes, t, t, lambda s, r: rgb_alpha(s, r, r.random, r.random), rng, 5)
+    xd = {k: np.concatenate([a, (rng.random(a.shape[:3] + (1,) + a.shape[4:]) * 1.7).astype(np.float32)], 3) for k, a in x.items()}
+    images = []
+    for model, inputs, name in ((weights, x, "without"), (out, xd, "with")):
+        f = p.work / f"add_disagree_{name}.safetensors"
+        save_file(inputs, str(f))
+        run([p.bin, "forward", "--model", model, "--inputs", f, "--out", p.work / f"add_disagree_{name}_out.safetensors"], "forward")
+        images.append(load_file(str(p.work / f"add_disagree_{name}_out.safetensors"))["image"])
+    d = float(np.abs(images[0] - images[1]).max())
+    status = "ok" if d <= 1e-6 else "FAIL"
+    print(f"  add_cue.py --disagree: the model with a zero disagreement column against the model without it: image max |diff| {d:.2e} {status}", flush=True)
+    if d > 1e-6:
+        p.fail(f"add_cue.py --disagree changed what the model renders: {d}")
 
 
 # --- main ------------------------------------------------------------------------------
@@ -532,6 +590,12 @@ def main() -> int:
         ref.init_weights(weigh_cfg, str(w), seed=7)
         models.append(p.load_model("py-pooled-weigh", w))
         weigh_model = models[-1]
+        # And with the colour-disagreement channel (a sixth cue channel the weights read).
+        weigh_cfg.name, weigh_cfg.pool.disagree = "pooled-variant-disagree", {"near": 2}
+        w = work / "pooled_variant_disagree.safetensors"
+        ref.init_weights(weigh_cfg, str(w), seed=11)
+        models.append(p.load_model("py-pooled-disagree", w))
+        disagree_model = models[-1]
         for extra in args.weights:
             models.append(p.load_model(extra.stem, extra))
         reference_loader_checks(p, models[0].weights)
@@ -542,6 +606,8 @@ def main() -> int:
             add_cue_check(p, plain[0].weights, np.random.default_rng(9), weigh=True)
         else:
             p.fail("no pooled model without the cue to check add_cue.py on")
+        weighed = [m for m in models if m.cfg.pool is not None and m.cfg.pool.weigh is not None and m.cfg.pool.disagree is None]
+        add_disagree_check(p, weighed[0].weights, np.random.default_rng(10))
 
         for m in models:
             print(f"== cases for {m.name}", flush=True)
@@ -562,6 +628,7 @@ def main() -> int:
             # The cue's channels as `sweep --model` writes them, through every runtime.
             sweep_case(p, cue_model, "procedural-cue", scene, None, ["--views", "5"])
             sweep_case(p, weigh_model, "procedural-weigh", scene, None, ["--views", "5"])
+            sweep_case(p, disagree_model, "procedural-disagree", scene, None, ["--views", "5"])
         # Real scenes: few planes so that a whole-image tile stays small.
         real = [("templeRing", 4, []), ("ethiopianHead", 2, [])]
         for name, planes, extra in real:

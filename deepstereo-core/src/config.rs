@@ -120,6 +120,20 @@ pub struct ViewPool {
     /// before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub agree: Option<ViewAgree>,
+    /// One more cue channel, read by the view weights ([`Self::weigh`]): each view's
+    /// colour disagreement with the nearest sources at each plane point
+    /// ([`crate::view_weights::disagreement`]), so the weights learn per pixel which views
+    /// show the surface the near ones see. Needs `weigh`. `None`: the geometric cue alone
+    /// (models trained before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disagree: Option<ViewDisagree>,
+}
+
+/// The cue's disagreement channel ([`ViewPool::disagree`]): references are the `near`
+/// sources nearest the target (camera centre distance, as [`ViewFalloff`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ViewDisagree {
+    pub near: usize,
 }
 
 /// The colour-agreement gate of the sources beyond the `near` nearest (ranked by camera
@@ -177,9 +191,17 @@ impl ViewPool {
     pub fn reads_cue(&self) -> bool {
         self.cue || self.weigh.is_some()
     }
+    /// Channels of each view's cue: [`CUE_CHANNELS`], plus 1 with [`Self::disagree`].
+    pub fn cue_channels(&self) -> usize {
+        CUE_CHANNELS + usize::from(self.disagree.is_some())
+    }
     /// Channels of one view in an input level: RGBA, then the cue when the model reads it.
     pub fn view_channels(&self) -> usize {
-        4 + if self.reads_cue() { CUE_CHANNELS } else { 0 }
+        4 + if self.reads_cue() {
+            self.cue_channels()
+        } else {
+            0
+        }
     }
     /// Channels of one view the encoder reads: RGBA, then the cue with [`Self::cue`]
     /// (with [`Self::weigh`], the weighed RGBA alone).
@@ -324,6 +346,7 @@ impl Config {
                 cue: false,
                 weigh: None,
                 agree: None,
+                disagree: None,
             }),
         }
     }
@@ -531,6 +554,17 @@ impl Config {
                     return Err(format!(
                         "pool.agree: near must be 1 to {MAX_VIEWS} and sigma {lo} to {hi}, got {a:?}"
                     ));
+                }
+            }
+            if let Some(d) = pool.disagree {
+                if !(1..=MAX_VIEWS).contains(&d.near) {
+                    return Err(format!(
+                        "pool.disagree: near must be 1 to {MAX_VIEWS}, got {}",
+                        d.near
+                    ));
+                }
+                if pool.weigh.is_none() {
+                    return Err("pool.disagree needs pool.weigh (the view weights read it)".into());
                 }
             }
             if self.colour_skip {
@@ -776,6 +810,35 @@ mod tests {
         assert_eq!(back, c);
         let json = serde_json::to_value(Config::nviews_weigh()).unwrap();
         assert!(json["pool"].get("agree").is_none());
+    }
+
+    /// The disagreement channel needs the view weights and a near count in range; it
+    /// adds one cue channel; a config without it does not write it.
+    #[test]
+    fn disagree_is_validated_and_optional() {
+        let mut c = Config::nviews_weigh();
+        let cv = c.view_channels();
+        for near in [0, MAX_VIEWS + 1] {
+            if let Some(p) = c.pool.as_mut() {
+                p.disagree = Some(ViewDisagree { near });
+            }
+            let err = c.validate().unwrap_err();
+            assert!(err.contains("pool.disagree"), "{err}");
+        }
+        if let Some(p) = c.pool.as_mut() {
+            p.disagree = Some(ViewDisagree { near: 4 });
+        }
+        c.validate().unwrap();
+        assert_eq!(c.view_channels(), cv + 1);
+        let back: Config = serde_json::from_str(&serde_json::to_string(&c).unwrap()).unwrap();
+        assert_eq!(back, c);
+        if let Some(p) = c.pool.as_mut() {
+            p.weigh = None;
+            p.cue = true;
+        }
+        assert!(c.validate().unwrap_err().contains("needs pool.weigh"));
+        let json = serde_json::to_value(Config::nviews_weigh()).unwrap();
+        assert!(json["pool"].get("disagree").is_none());
     }
 
     /// `render_planes` is optional (absent from configs without it, and not written when

@@ -3,11 +3,13 @@
 //! Level `l` is the plane sweep of the sources' level-`l` pyramid images into the target
 //! camera downsampled by `2^l`, over the region [`Config::input_origin`] /
 //! [`Config::input_size`] give (see `config.rs` for the tile geometry). Only the pixels a
-//! tile needs are warped. With a `pool.agree` in the config, the alpha of the views beyond
+//! tile needs are warped. With a `pool.disagree`, each view's colour disagreement with the
+//! nearest is taken from the sweep first ([`crate::view_weights::disagreement`]). With a
+//! `pool.agree` in the config, the alpha of the views beyond
 //! the nearest is gated by their colours' agreement with the nearest
 //! ([`crate::view_weights::agree_gate`]); with a `pool.falloff`, every view's alpha is then
-//! scaled by its weight ([`crate::view_weights`]); with `pool.cue`, every view's
-//! geometric cue ([`crate::sweep::cue`]) follows its RGBA.
+//! scaled by its weight ([`crate::view_weights`]); with `pool.cue` or `pool.weigh`, every
+//! view's geometric cue ([`crate::sweep::cue`]) follows its RGBA, then its disagreement.
 
 use crate::camera::Camera;
 use crate::config::{Config, CUE_CHANNELS, MAX_VIEWS};
@@ -15,7 +17,7 @@ use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
 use crate::sweep::cue::{centre_in, cue_slice, CueRays};
 use crate::sweep::{sweep_into, target_rays, Region, Source, CHANNELS};
-use crate::view_weights::{agree_gate, near_views, view_weights};
+use crate::view_weights::{agree_gate, disagreement, near_views, view_weights};
 use glam::DVec3;
 
 /// A source view prepared for sampling: its camera at every pyramid level and the images.
@@ -144,6 +146,9 @@ pub fn tile_inputs(
     let agree = pool
         .and_then(|p| p.agree)
         .map(|a| (near_views(a.near, target.pose.centre(), &centres), a.sigma));
+    let disagree = pool
+        .and_then(|p| p.disagree)
+        .map(|d| near_views(d.near, target.pose.centre(), &centres));
     let mut levels = Vec::with_capacity(cfg.levels);
     let mut sizes = Vec::with_capacity(cfg.levels);
     for l in 0..cfg.levels {
@@ -174,6 +179,9 @@ pub fn tile_inputs(
             .collect();
         let mut buf = vec![0.0f32; inv_depths.len() * sources.len() * CHANNELS * region.len()];
         sweep_into(&tcam, region, &srcs, inv_depths, &mut buf);
+        let q = disagree
+            .as_deref()
+            .map(|near| disagreement(&buf, near, region.len()));
         if let Some((near, sigma)) = &agree {
             agree_gate(&mut buf, near, *sigma, region.len());
         }
@@ -182,7 +190,7 @@ pub fn tile_inputs(
         }
         if cfg.pool.as_ref().is_some_and(|p| p.reads_cue()) {
             let centres: Vec<DVec3> = srcs.iter().map(|s| centre_in(&tcam, s.camera)).collect();
-            buf = with_cue(&buf, &tcam, region, &centres, inv_depths);
+            buf = with_cue(&buf, &tcam, region, &centres, inv_depths, q.as_deref());
         }
         levels.push(buf);
         sizes.push((region.height, region.width));
@@ -196,18 +204,22 @@ pub fn tile_inputs(
 }
 
 /// The volume `rgba` `[D, V, 4, h, w]` with every view's cue after its RGBA:
-/// `[D, V, 4 + CUE_CHANNELS, h, w]` (sources' centres in the target's coordinates).
+/// `[D, V, 4 + K, h, w]` (sources' centres in the target's coordinates), `K` =
+/// `CUE_CHANNELS`, or one more with the disagreement channel `q` `[D, V, h, w]`
+/// ([`crate::view_weights::disagreement`]) last.
 fn with_cue(
     rgba: &[f32],
     target: &Camera,
     region: Region,
     centres: &[DVec3],
     inv_depths: &[f64],
+    q: Option<&[f32]>,
 ) -> Vec<f32> {
     use rayon::prelude::*;
     let (hw, v) = (region.len(), centres.len());
     let rays = CueRays::new(&target_rays(&target.intrinsics, region));
-    let per_view = (CHANNELS + CUE_CHANNELS) * hw;
+    let cue_channels = CUE_CHANNELS + usize::from(q.is_some());
+    let per_view = (CHANNELS + cue_channels) * hw;
     let mut out = vec![0.0f32; inv_depths.len() * v * per_view];
     out.par_chunks_mut(per_view)
         .zip(rgba.par_chunks(CHANNELS * hw))
@@ -216,7 +228,11 @@ fn with_cue(
             let (d, k) = (slice / v, slice % v);
             let (colour, cue) = dst.split_at_mut(CHANNELS * hw);
             colour.copy_from_slice(src);
+            let (cue, last) = cue.split_at_mut(CUE_CHANNELS * hw);
             cue_slice(&rays, inv_depths[d], centres[k], cue);
+            if let Some(q) = q {
+                last.copy_from_slice(&q[slice * hw..][..hw]);
+            }
         });
     out
 }

@@ -192,8 +192,16 @@ impl DeepStereo {
             )),
             None => None,
         };
-        let weigh = match cfg.pool.as_ref().and_then(|p| p.weigh.as_deref()) {
-            Some(hidden) => Some(ViewWeigh::new(hidden, vb.pp("views").pp("weigh"))?),
+        let weigh = match cfg
+            .pool
+            .as_ref()
+            .and_then(|p| Some((p.weigh.as_deref()?, p)))
+        {
+            Some((hidden, p)) => Some(ViewWeigh::new(
+                hidden,
+                p.cue_channels(),
+                vb.pp("views").pp("weigh"),
+            )?),
             None => None,
         };
         Ok(Self {

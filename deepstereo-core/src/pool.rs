@@ -31,19 +31,24 @@
 //!
 //! With [`ViewPool::weigh`], the cue weighs the views before all of this
 //! ([`ViewWeigh`]): each view's alpha becomes `a_v k_v` with
-//! `k_v = 1 + tanh(S g(cue_v))` (`= 2 sigmoid(2 S g)`, in `(0, 2)`, `S` = [`WEIGH_SCALE`];
+//! `k_v = 1 + tanh(S g(cue_v))` (computed as `2 sigmoid(2 S g)`, which keeps a small
+//! weight's relative precision in f32 where `1 + tanh` cancels; in `(0, 2)`, `S` = [`WEIGH_SCALE`];
 //! `g`: 1x1 layers, ReLU between; the last one starts at zero, so that `k_v = 1`, and
 //! `python/add_cue.py --weigh` adds them so to a trained model, which then renders as it
 //! did), and steps 1-3 and the blend read that alpha. The cue thus sets how much each
 //! view counts in the mean, the variance and the blend, without entering the features
 //! whose variance is pooled; a view that is not there still has alpha 0, and `k_v`
-//! depends on its own cue alone, so the order of the views still does not matter.
+//! depends on its own cue alone, so the order of the views still does not matter. With
+//! [`ViewPool::disagree`], the cue has one more channel, the view's colour disagreement
+//! with the nearest views (`crate::view_weights::disagreement`; `python/add_cue.py
+//! --disagree` adds its zero column to a trained model's `g`), so `k_v` can turn down a
+//! view that shows something else than the nearest ones there.
 //!
 //! Parameter names (equal to the PyTorch reference's): `views.encode.{i}.{weight,bias}`,
 //! `colour.blend.{i}.{weight,bias}` (the last one the 1-channel logit layer),
 //! `views.weigh.{i}.{weight,bias}` (the last one the 1-channel `g`).
 
-use crate::config::{ViewPool, CUE_CHANNELS, ENCODER_IN, WEIGH_SCALE};
+use crate::config::{ViewPool, ENCODER_IN, WEIGH_SCALE};
 use crate::conv::{pointwise_chain, Conv2d};
 use crate::fused;
 use candle_core::{DType, Module, Result, Tensor};
@@ -56,7 +61,7 @@ pub use crate::config::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 pub struct ViewEncoder {
     convs: Vec<Conv2d>,
     /// Channels of one view in an input level ([`ViewPool::view_channels`]): 4, or with
-    /// the cue after the RGBA 4 + [`CUE_CHANNELS`].
+    /// the cue after the RGBA 4 + `K` ([`ViewPool::cue_channels`]).
     view_channels: usize,
 }
 
@@ -69,7 +74,7 @@ pub struct Pooled {
 }
 
 /// Splits an input level `[B, D, V, C_v, H, W]` into `(B*D, V, H, W, B)`, checking the
-/// rank and that `C_v` is `channels` (4, or 4 + [`CUE_CHANNELS`] with the cue).
+/// rank and that `C_v` is `channels` (4, or 4 + `K` with the cue).
 pub fn view_dims(x: &Tensor, channels: usize) -> Result<(usize, usize, usize, usize, usize)> {
     match *x.dims() {
         [b, d, v, c, h, w] if c == channels => Ok((b * d, v, h, w, b)),
@@ -121,8 +126,9 @@ impl ViewEncoder {
             return Ok(None);
         }
         let (n, v, h, w, _) = view_dims(x, self.view_channels())?;
-        let c = x.narrow(3, 4, CUE_CHANNELS)?.contiguous()?; // [B, D, V, K, H, W]
-        Ok(Some(c.reshape((n * v, CUE_CHANNELS, h, w))?))
+        let k = self.view_channels - 4;
+        let c = x.narrow(3, 4, k)?.contiguous()?; // [B, D, V, K, H, W]
+        Ok(Some(c.reshape((n * v, k, h, w))?))
     }
 
     /// Steps 1-3 of the module doc for one level `x` `[B, D, V, C_v, H, W]`: fused passes
@@ -239,27 +245,37 @@ pub struct ViewWeigh {
     /// Hidden layers, then the 1-channel `g` (starting at zero, in [`Self::new`] and
     /// `weights::init_seeded`).
     layers: Vec<Conv2d>,
+    /// Channels of each view's cue `K` ([`ViewPool::cue_channels`]).
+    cue_channels: usize,
 }
 
 impl ViewWeigh {
-    /// `hidden`: the hidden layers' widths ([`ViewPool::weigh`]).
-    pub fn new(hidden: &[crate::config::Conv], vb: VarBuilder) -> Result<Self> {
-        let mut ch = CUE_CHANNELS;
+    /// `hidden`: the hidden layers' widths ([`ViewPool::weigh`]); `cue_channels`: `K`.
+    pub fn new(
+        hidden: &[crate::config::Conv],
+        cue_channels: usize,
+        vb: VarBuilder,
+    ) -> Result<Self> {
+        let mut ch = cue_channels;
         let mut layers = Vec::with_capacity(hidden.len() + 1);
         for (i, c) in hidden.iter().enumerate() {
             layers.push(Conv2d::new(ch, c.channels, (1, 1), vb.pp(i))?);
             ch = c.channels;
         }
         layers.push(Conv2d::zeros(ch, 1, (1, 1), vb.pp(hidden.len()))?);
-        Ok(Self { layers })
+        Ok(Self {
+            layers,
+            cue_channels,
+        })
     }
 
     /// Each view's weight `k_v = 1 + tanh(WEIGH_SCALE g(cue_v))` from an input level `x`
     /// `[B, D, V, 4 + K, H, W]`: `[B, D, V, 1, H, W]`.
     pub fn weights(&self, x: &Tensor) -> Result<Tensor> {
-        let (n, v, h, w, b) = view_dims(x, 4 + CUE_CHANNELS)?;
-        let mut g = x.narrow(3, 4, CUE_CHANNELS)?.contiguous()?; // [B, D, V, K, H, W]
-        g = g.reshape((n * v, CUE_CHANNELS, h, w))?; // [N*V, K, H, W]
+        let k = self.cue_channels;
+        let (n, v, h, w, b) = view_dims(x, 4 + k)?;
+        let mut g = x.narrow(3, 4, k)?.contiguous()?; // [B, D, V, K, H, W]
+        g = g.reshape((n * v, k, h, w))?; // [N*V, K, H, W]
         let last = self.layers.len() - 1;
         for (i, conv) in self.layers.iter().enumerate() {
             g = match i < last {
@@ -267,7 +283,9 @@ impl ViewWeigh {
                 false => conv.forward(&g)?,
             };
         } // [N*V, 1, H, W]
-        let k = ((g * WEIGH_SCALE)?.tanh()? + 1.0)?;
+          // 1 + tanh(S g) as 2 sigmoid(2 S g): where g is very negative, 1 + tanh cancels
+          // to a few f32 ulps while the sigmoid keeps the small weight's relative precision.
+        let k = (candle_nn::ops::sigmoid(&(g * (2.0 * WEIGH_SCALE))?)? * 2.0)?;
         k.reshape((b, n / b.max(1), v, 1, h, w)) // [B, D, V, 1, H, W]
     }
 
@@ -435,6 +453,7 @@ mod tests {
             cue: false,
             weigh: None,
             agree: None,
+            disagree: None,
         };
         let vm = candle_nn::VarMap::new();
         let enc = ViewEncoder::new(

@@ -128,6 +128,49 @@ pub fn agree_gate(volume: &mut [f32], near: &[bool], sigma: f32, hw: usize) {
     });
 }
 
+/// The cue's disagreement channel (config `pool.disagree`) of a plane sweep
+/// `[D, V, 4, h, w]` of `hw` pixels per plane, from the sweep's own alpha: `[D, V, hw]`
+/// with, at each plane point, for every source `v`,
+///
+/// `q_v = sqrt(min_n |c_v - c_n|^2)`
+///
+/// over the near sources `n != v` (`near[n]`) that see the point (alpha >=
+/// [`AGREE_SEES`]); `q_v = 0` where none does. Colours are 0-1, so `q_v` is in
+/// `[0, sqrt 3]`: how far the source's colour is from the nearest sources' at that depth
+/// (small where it sees the surface they see, large where it shows another face or an
+/// occluder). Depends on the colours and the set of near views only: reordering the
+/// views reorders `q`; an empty view (alpha 0) is never a reference, and its own `q`
+/// multiplies its alpha 0 in the view weights.
+pub fn disagreement(volume: &[f32], near: &[bool], hw: usize) -> Vec<f32> {
+    use rayon::prelude::*;
+    let v = near.len();
+    let per = 4 * hw;
+    let near_ix: Vec<usize> = (0..v).filter(|&k| near[k]).collect();
+    let mut out = vec![0f32; volume.len() / 4];
+    out.par_chunks_mut(v * hw)
+        .zip(volume.par_chunks(v * per))
+        .for_each(|(q, plane)| {
+            for p in 0..hw {
+                let colour = |k: usize| [0, 1, 2].map(|c| plane[k * per + c * hw + p]);
+                let refs: Vec<usize> = (near_ix.iter().copied())
+                    .filter(|&n| plane[n * per + 3 * hw + p] >= AGREE_SEES)
+                    .collect();
+                for k in 0..v {
+                    let ck = colour(k);
+                    let e = (refs.iter().copied())
+                        .filter(|&n| n != k)
+                        .map(|n| {
+                            let cn = colour(n);
+                            (0..3).map(|c| (ck[c] - cn[c]).powi(2)).sum::<f32>()
+                        })
+                        .reduce(f32::min);
+                    q[k * hw + p] = e.map_or(0.0, f32::sqrt);
+                }
+            }
+        });
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -238,6 +281,47 @@ mod tests {
             let mut ae = alphas(&vol);
             assert_eq!(ae.remove(1), [0.0, 0.0]);
             assert_eq!(ae, a);
+        }
+    }
+
+    /// Each view's distance to the closest other near colour that sees the point; 0
+    /// where no other near view sees it.
+    #[test]
+    fn disagreement_is_the_distance_to_the_closest_other_near_colour() {
+        let views = [
+            // near: seen at pixel 0, barely (alpha under AGREE_SEES) at pixel 1
+            [[0.2, 0.2, 0.2, 1.0], [0.5, 0.5, 0.5, 0.4]],
+            [[0.8, 0.8, 0.8, 1.0], [0.5, 0.5, 0.5, 1.0]],
+            // far
+            [[0.3, 0.2, 0.2, 1.0], [0.9, 0.1, 0.1, 0.7]],
+        ];
+        let q = disagreement(&volume(&views), &[true, true, false], 2);
+        let want = [
+            [(3.0f32 * 0.36).sqrt(), 0.0], // pixel 1: view 1's colour, equal
+            [(3.0f32 * 0.36).sqrt(), 0.0], // pixel 1: no other near view sees it
+            [0.1, (0.16f32 + 0.16 + 0.16).sqrt()],
+        ];
+        for (k, w) in want.iter().enumerate() {
+            for p in 0..2 {
+                assert!(
+                    (q[k * 2 + p] - w[p]).abs() < 1e-6,
+                    "view {k} pixel {p}: {q:?}"
+                );
+            }
+        }
+        // Reordered views give reordered values; an empty view changes nothing.
+        let order = [2, 0, 1];
+        let qp = disagreement(&volume(&order.map(|i| views[i])), &[false, true, true], 2);
+        for (k, &i) in order.iter().enumerate() {
+            assert_eq!(qp[k * 2..k * 2 + 2], q[i * 2..i * 2 + 2]);
+        }
+        for empty_near in [false, true] {
+            let mut ve = views.to_vec();
+            ve.insert(1, [[0.0; 4]; 2]);
+            let qe = disagreement(&volume(&ve), &[true, empty_near, true, false], 2);
+            let mut qe: Vec<f32> = qe.to_vec();
+            qe.drain(2..4);
+            assert_eq!(qe, q);
         }
     }
 

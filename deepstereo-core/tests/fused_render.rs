@@ -78,6 +78,7 @@ fn encoder_with(channels: &[usize], cue: bool) -> Result<(ViewEncoder, VarMap)> 
         cue,
         weigh: None,
         agree: None,
+        disagree: None,
     };
     let vm = VarMap::new();
     let enc = ViewEncoder::new(

@@ -43,6 +43,7 @@ fn small() -> Config {
             cue: false,
             weigh: None,
             agree: None,
+            disagree: None,
         }),
     }
 }
@@ -93,6 +94,15 @@ fn with_weigh_hidden(mut cfg: Config) -> Config {
             kernel: 1,
             channels: 3,
         }]);
+    }
+    cfg
+}
+
+/// `cfg` (with `weigh`) given the colour-disagreement channel: its cue has one more
+/// channel, which the view weights read.
+fn with_disagree(mut cfg: Config) -> Config {
+    if let Some(p) = cfg.pool.as_mut() {
+        p.disagree = Some(deepstereo_core::config::ViewDisagree { near: 2 });
     }
     cfg
 }
@@ -165,6 +175,7 @@ fn views_order_does_not_matter() -> Result<()> {
         Config::nviews(),
         Config::nviews_cue(),
         Config::nviews_weigh(),
+        with_disagree(Config::nviews_weigh()),
     ] {
         let t = init(&cfg, DType::F32, 3)?;
         let x = inputs(&cfg, 1, 5, DType::F32, 1)?;
@@ -191,6 +202,7 @@ fn a_view_that_sees_nothing_changes_nothing() -> Result<()> {
         Config::nviews(),
         Config::nviews_cue(),
         Config::nviews_weigh(),
+        with_disagree(Config::nviews_weigh()),
     ] {
         let t = init(&cfg, DType::F32, 4)?;
         let x = inputs(&cfg, 2, 3, DType::F32, 2)?;
@@ -235,7 +247,11 @@ fn a_view_that_sees_nothing_changes_nothing() -> Result<()> {
 
 #[test]
 fn every_view_count_from_1_to_16_runs() -> Result<()> {
-    let weighs = [with_weigh(small()), with_weigh_hidden(small())];
+    let weighs = [
+        with_weigh(small()),
+        with_weigh_hidden(small()),
+        with_disagree(with_weigh_hidden(small())),
+    ];
     for cfg in [small(), with_cue(small())].into_iter().chain(weighs) {
         every_view_count(&cfg)?;
     }
@@ -286,16 +302,24 @@ fn wrong_input_layout_is_an_error() -> Result<()> {
 
 #[test]
 fn gradients_through_the_pooling_match_finite_differences_f64() -> Result<()> {
-    for cfg in [small(), with_cue(small()), with_weigh(small())] {
-        pooling_gradients(&cfg)?;
+    // Input seeds chosen so that no ReLU pre-activation lies within eps of its kink (with
+    // seed 7, the disagreement config puts one of the colour tower's there: its bias's
+    // difference quotient then straddles the kink, 7% off at eps 1e-5, within 1e-4 at 1e-7).
+    for (cfg, seed) in [
+        (small(), 7),
+        (with_cue(small()), 7),
+        (with_weigh(small()), 7),
+        (with_disagree(with_weigh(small())), 8),
+    ] {
+        pooling_gradients(&cfg, seed)?;
     }
     Ok(())
 }
 
-fn pooling_gradients(cfg: &Config) -> Result<()> {
+fn pooling_gradients(cfg: &Config, seed: u64) -> Result<()> {
     let cfg = cfg.clone();
     let t = init(&cfg, DType::F64, 6)?;
-    let x = inputs(&cfg, 2, 3, DType::F64, 7)?;
+    let x = inputs(&cfg, 2, 3, DType::F64, seed)?;
     let (th, d) = (cfg.tile, cfg.planes);
     let dev = &Device::Cpu;
     let r1 = Tensor::from_vec(
@@ -372,9 +396,15 @@ fn scene_pyramids(
 
 #[test]
 fn tiled_render_equals_whole_image_render_any_views() -> Result<()> {
-    let cfg = Config::nviews();
+    for cfg in [Config::nviews(), with_disagree(Config::nviews_weigh())] {
+        tiled_render(&cfg)?;
+    }
+    Ok(())
+}
+
+fn tiled_render(cfg: &Config) -> Result<()> {
     let (s, pyr) = scene_pyramids(22, 9, (70, 52), cfg.levels)?;
-    let t = init(&cfg, DType::F32, 8)?;
+    let t = init(cfg, DType::F32, 8)?;
     let backend = CandleBackend {
         model: t.model,
         device: Device::Cpu,
@@ -390,7 +420,10 @@ fn tiled_render_equals_whole_image_render_any_views() -> Result<()> {
                 worst = worst.max((a - b).abs());
             }
         }
-        println!("{v} views: worst image difference tiled vs whole {worst:e}");
+        println!(
+            "{}, {v} views: worst image difference tiled vs whole {worst:e}",
+            cfg.name
+        );
         assert!(worst < 1e-5, "{v} views: tiled render differs by {worst}");
     }
     Ok(())
@@ -551,6 +584,57 @@ fn the_colour_gate_lowers_only_the_alpha_of_views_beyond_the_nearest() -> Result
         }
         assert!(lowered > 0, "the gate changed nothing at {v} views");
     }
+    Ok(())
+}
+
+/// `pool.disagree`: the inputs gain one cue channel after the geometric cue, equal to
+/// `view_weights::disagreement` of the sweep's own RGBA (before the falloff scales the
+/// alpha); the RGBA and the geometric cue stay as they were.
+#[test]
+fn the_disagreement_channel_follows_the_cue_and_reads_the_sweeps_own_alpha() -> Result<()> {
+    use deepstereo_core::config::{ViewDisagree, CUE_CHANNELS};
+    use deepstereo_core::inputs::tile_inputs;
+    use deepstereo_core::view_weights::{disagreement, near_views};
+    let base = Config::nviews_weigh(); // with the proximity falloff 1:2
+    assert!(base.pool.as_ref().is_some_and(|p| p.falloff.is_some()));
+    let mut cfg = base.clone();
+    let near = 3;
+    if let Some(p) = cfg.pool.as_mut() {
+        p.disagree = Some(ViewDisagree { near });
+    }
+    let mut raw = Config::nviews();
+    if let Some(p) = raw.pool.as_mut() {
+        p.falloff = None;
+    }
+    let (s, pyr) = scene_pyramids(5, 8, (48, 36), cfg.levels)?;
+    let inv = inverse_depths(s.near, s.far, 5);
+    let t = cfg.tile;
+    let v = 6;
+    let srcs: Vec<&PyramidSource> = pyr[1..=v].iter().collect();
+    let a = tile_inputs(&cfg, &s.cameras[0], &srcs, &inv, (0, 0), (t, t))?;
+    let b = tile_inputs(&base, &s.cameras[0], &srcs, &inv, (0, 0), (t, t))?;
+    let r = tile_inputs(&raw, &s.cameras[0], &srcs, &inv, (0, 0), (t, t))?;
+    assert_eq!(
+        (a.channels, b.channels),
+        (4 + CUE_CHANNELS + 1, 4 + CUE_CHANNELS)
+    );
+    let centres: Vec<_> = srcs
+        .iter()
+        .map(|p| Some(p.cameras[0].pose.centre()))
+        .collect();
+    let is_near = near_views(near, s.cameras[0].pose.centre(), &centres);
+    let mut positive = 0;
+    for ((la, lb), lr) in a.levels.iter().zip(&b.levels).zip(&r.levels) {
+        let hw = lr.len() / (inv.len() * v * 4);
+        let q = disagreement(lr, &is_near, hw);
+        let (ca, cb) = (a.channels * hw, b.channels * hw);
+        for (i, (sa, sb)) in la.chunks(ca).zip(lb.chunks(cb)).enumerate() {
+            assert_eq!(sa[..cb], sb[..], "RGBA or cue changed (plane-view {i})");
+            assert_eq!(sa[cb..], q[i * hw..(i + 1) * hw], "plane-view {i}");
+            positive += sa[cb..].iter().filter(|&&x| x > 0.0).count();
+        }
+    }
+    assert!(positive > 0, "every disagreement is 0");
     Ok(())
 }
 

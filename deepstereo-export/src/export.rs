@@ -187,19 +187,31 @@ fn graph_inputs(cfg: &Config) -> Vec<ValueInfoProto> {
                         h,
                         w,
                     ],
-                    "[B, D, V, 9, H, W] (per source and plane: RGBA, then the geometric cue \
-                     [u_x, u_y, u_z, ln(n + 1e-3), clamp(ln(|X - c_v| / |X - c_t|), -5, 5)], \
-                     u = (d_v - d_t) / (n + 1e-3), n = |d_v - d_t|, d_t and d_v the unit rays \
-                     from the target and the source to the plane point in target camera \
-                     coordinates: deepstereo-core/src/sweep/cue.rs; any V >= 1)",
+                    format!(
+                        "[B, D, V, {}, H, W] (per source and plane: RGBA, then the geometric cue \
+                         [u_x, u_y, u_z, ln(n + 1e-3), clamp(ln(|X - c_v| / |X - c_t|), -5, 5)], \
+                         u = (d_v - d_t) / (n + 1e-3), n = |d_v - d_t|, d_t and d_v the unit rays \
+                         from the target and the source to the plane point in target camera \
+                         coordinates: deepstereo-core/src/sweep/cue.rs{}; any V >= 1)",
+                        p.view_channels(),
+                        match p.disagree {
+                            Some(d) => format!(
+                                ", then sqrt(min_n |rgb_v - rgb_n|^2) over the other sources n among \
+                                 the {} nearest to the target centre with sweep alpha >= 0.5 (0 where \
+                                 none): deepstereo-core/src/view_weights.rs, disagreement",
+                                d.near
+                            ),
+                            None => String::new(),
+                        }
+                    ),
                 ),
                 Some(_) => (
                     vec![dim("batch"), dim("planes"), dim("views"), fixed(4), h, w],
-                    "[B, D, V, 4, H, W] (RGBA of each source per plane, any V >= 1)",
+                    "[B, D, V, 4, H, W] (RGBA of each source per plane, any V >= 1)".into(),
                 ),
                 None => (
                     vec![dim("batch"), dim("planes"), fixed(cin), h, w],
-                    "[B, D, 4V, H, W] (RGBA of each source per plane)",
+                    "[B, D, 4V, H, W] (RGBA of each source per plane)".into(),
                 ),
             };
             // A falloff is applied by whoever builds the inputs: say so where they look.

@@ -4,8 +4,8 @@
 //! (compiled for AVX2 + FMA where the CPU has them).
 
 use super::{data, Dense};
-use crate::config::{CUE_CHANNELS, WEIGH_SCALE};
-use crate::cpu::fastmath::tanh_f32;
+use crate::config::WEIGH_SCALE;
+use crate::cpu::fastmath::exp_f32;
 use candle_core::{bail, DType, Result, Tensor};
 use rayon::prelude::*;
 
@@ -14,7 +14,8 @@ const BLOCK: usize = 64;
 
 /// `x` `[B, D, V, 4 + K, H, W]` -> `[B, D, V, 4, H, W]`: each view's RGB, and its alpha
 /// times `1 + tanh(WEIGH_SCALE g)`, with `g` the dense `layers` (ReLU between them) on the
-/// view's cue at that pixel (`tanh` from [`tanh_f32`]: rendering only). `None` where it
+/// view's cue at that pixel, computed as `2 / (1 + exp(-2 WEIGH_SCALE g))` (`exp` from
+/// [`exp_f32`]: rendering only), as the training forward does. `None` where it
 /// does not apply (not f32 on the CPU, or layers that do not chain from `K` channels to
 /// 1): the caller runs the candle ops.
 pub fn weigh_views(x: &Tensor, layers: &[Dense]) -> Result<Option<Tensor>> {
@@ -27,8 +28,7 @@ pub fn weigh_views(x: &Tensor, layers: &[Dense]) -> Result<Option<Tensor>> {
     };
     let last = layers.len() - 1;
     let chained = layers.windows(2).all(|p| p[0].cout == p[1].cin);
-    if c != 4 + CUE_CHANNELS || layers[0].cin != CUE_CHANNELS || layers[last].cout != 1 || !chained
-    {
+    if c != 4 + layers[0].cin || layers[last].cout != 1 || !chained {
         return Ok(None);
     }
     let x = x.contiguous()?;
@@ -65,10 +65,10 @@ fn weigh_view_generic(xi: &[f32], o: &mut [f32], layers: &[Dense], p: usize) {
     let width = layers.iter().map(|l| l.cin.max(l.cout)).max().unwrap_or(1);
     let (mut a, mut z) = (vec![0f32; width * BLOCK], vec![0f32; width * BLOCK]);
     let last = layers.len() - 1;
-    let scale = WEIGH_SCALE as f32;
+    let scale = -2.0 * WEIGH_SCALE as f32;
     for j0 in (0..p).step_by(BLOCK) {
         let m = BLOCK.min(p - j0);
-        for k in 0..CUE_CHANNELS {
+        for k in 0..layers[0].cin {
             a[k * BLOCK..][..m].copy_from_slice(&xi[(4 + k) * p + j0..][..m]);
         }
         for (li, layer) in layers.iter().enumerate() {
@@ -91,7 +91,7 @@ fn weigh_view_generic(xi: &[f32], o: &mut [f32], layers: &[Dense], p: usize) {
         } // a[..m]: g
         let (alpha, dst) = (&xi[3 * p + j0..][..m], &mut o[3 * p + j0..][..m]);
         for ((dv, &av), &g) in dst.iter_mut().zip(alpha).zip(&a[..m]) {
-            *dv = av * (1.0 + tanh_f32(scale * g));
+            *dv = av * 2.0 / (1.0 + exp_f32(scale * g));
         }
     }
 }

@@ -56,19 +56,23 @@ impl Graph<'_> {
     /// `ViewWeigh::forward` on every level: `[B, D, V, 4, H, W]`, each view's RGB and its
     /// alpha times `1 + tanh(WEIGH_SCALE g(cue))`.
     pub(super) fn weighed_levels(&mut self, cfg: &Config, hidden: &[Conv]) -> Result<Vec<String>> {
+        let cues = cfg
+            .pool
+            .as_ref()
+            .map_or(CUE_CHANNELS, ViewPool::cue_channels);
         let mut out = Vec::with_capacity(cfg.levels);
         for l in 0..cfg.levels {
             let p = format!("views.weigh.level{l}");
             let level = input_name(l); // [B, D, V, 4 + K, H, W]
             let rgb = self.slice_axis(&level, 3, 0, 3, &format!("{p}.rgb"));
             let a = self.slice_axis(&level, 3, 3, 4, &format!("{p}.alpha"));
-            let k = (4 + CUE_CHANNELS) as i64;
+            let k = (4 + cues) as i64;
             let cue = self.slice_axis(&level, 3, 4, k, &format!("{p}.cue")); // [B, D, V, K, H, W]
             let hw = self.shape_of(&level, 4, 6, &format!("{p}.hw"));
-            let lead = self.const_i64(&[-1, CUE_CHANNELS as i64], "fold_lead");
+            let lead = self.const_i64(&[-1, cues as i64], "fold_lead");
             let shape = self.concat(&[&lead, &hw], 0, "fold_shape");
             let mut g = self.op("Reshape", &[&cue, &shape], vec![], &format!("{p}.folded")); // [B*D*V, K, H, W]
-            let mut ch = CUE_CHANNELS;
+            let mut ch = cues;
             let widths = hidden.iter().map(|c| c.channels).chain([1]);
             for (i, cout) in widths.enumerate() {
                 g = self.conv(&g, &format!("views.weigh.{i}"), (ch, cout), (1, 1), [0; 4])?;
@@ -77,10 +81,15 @@ impl Graph<'_> {
                 }
                 ch = cout;
             } // [B*D*V, 1, H, W]
-            let scale = self.const_f32(&[], &[WEIGH_SCALE as f32], "weigh_scale");
+              // 1 + tanh(S g) as 2 / (1 + exp(-2 S g)), accurate where the weight is small
+            // (onnxruntime's Sigmoid and Tanh are exact to an absolute 1e-7 or so, which
+            // leaves a weight of 1e-7 no significant digit).
+            let scale = self.const_f32(&[], &[-2.0 * WEIGH_SCALE as f32], "weigh_scale");
             let g = self.op("Mul", &[&g, &scale], vec![], &format!("{p}.scaled"));
-            let t = self.op("Tanh", &[&g], vec![], &format!("{p}.tanh"));
-            let wk = self.add_scalar(&t, 1.0, &format!("{p}.weight"));
+            let e = self.op("Exp", &[&g], vec![], &format!("{p}.exp"));
+            let den = self.add_scalar(&e, 1.0, &format!("{p}.den"));
+            let two = self.const_f32(&[], &[2.0], "two");
+            let wk = self.op("Div", &[&two, &den], vec![], &format!("{p}.weight"));
             let bdv = self.shape_of(&level, 0, 3, &format!("{p}.bdv"));
             let one = self.const_i64(&[1], "one");
             let shape = self.concat(&[&bdv, &one, &hw], 0, "unfold_shape");
@@ -111,7 +120,7 @@ impl Graph<'_> {
                         &level,
                         3,
                         4,
-                        (4 + CUE_CHANNELS) as i64,
+                        (4 + pool.cue_channels()) as i64,
                         &format!("{p}.cue"),
                     )),
                 ),
