@@ -10,10 +10,11 @@ renders exactly as the old one until training moves the new weights:
 - with `--disagree NEAR` on a model whose views are already weighed (`pool.weigh`), the
   cue gains its colour-disagreement channel (`pool.disagree`,
   `deepstereo-core/src/view_weights.rs`): the first `views.weigh` layer gains one zero
-  input column.
+  input column; with `--prior S` also one more hidden unit `relu(q)` whose output weight
+  is `-S`, so the weights start as a colour gate, `1 + tanh(-4 S q)` times what they were.
 
     python python/add_cue.py IN.safetensors OUT.safetensors [--name NAME] [--weigh [--hidden 8] [--seed 0]]
-    python python/add_cue.py IN.safetensors OUT.safetensors --disagree 4 [--name NAME]
+    python python/add_cue.py IN.safetensors OUT.safetensors --disagree 4 [--prior S] [--name NAME]
 
 Writes OUT and its config alone beside it as `config.json` (the run directory's), each
 atomically. Needs numpy and safetensors (python/requirements.txt)."""
@@ -37,6 +38,7 @@ def main() -> int:
     ap.add_argument("--hidden", type=int, default=8, help="--weigh: channels of its hidden layer (0: none)")
     ap.add_argument("--seed", type=int, default=0, help="--weigh: seed of the hidden layer's initialisation")
     ap.add_argument("--disagree", type=int, default=None, metavar="NEAR", help="add the disagreement channel with NEAR reference views (1 to 64) to a model with pool.weigh")
+    ap.add_argument("--prior", type=float, default=None, metavar="S", help="--disagree: a hidden unit relu(q) with output weight -S (the weights start as a gate)")
     args = ap.parse_args()
     if args.hidden < 0 or args.hidden > 1024:
         print(f"error: --hidden must be 0 to 1024, got {args.hidden}", file=sys.stderr)
@@ -103,6 +105,17 @@ def add_disagree(args: argparse.Namespace, meta: dict, tensors: dict, cfg: dict)
         return 1
     zeros = np.zeros((w.shape[0], 1, 1, 1), dtype=w.dtype)
     tensors["views.weigh.0.weight"] = np.ascontiguousarray(np.concatenate([w, zeros], axis=1))
+    if args.prior is not None:
+        if not (np.isfinite(args.prior) and len(pool["weigh"]) == 1):
+            print(f"error: --prior needs a finite S and a model with one hidden weigh layer, got {args.prior}, {pool['weigh']}", file=sys.stderr)
+            return 2
+        unit = np.zeros((1, CUE_CHANNELS + 1, 1, 1), dtype=w.dtype)
+        unit[0, CUE_CHANNELS] = 1.0
+        tensors["views.weigh.0.weight"] = np.ascontiguousarray(np.concatenate([tensors["views.weigh.0.weight"], unit], axis=0))
+        tensors["views.weigh.0.bias"] = np.concatenate([tensors["views.weigh.0.bias"], np.zeros(1, w.dtype)])
+        out_w = tensors["views.weigh.1.weight"]  # [1, H, 1, 1]
+        tensors["views.weigh.1.weight"] = np.ascontiguousarray(np.concatenate([out_w, np.full((1, 1, 1, 1), -args.prior, w.dtype)], axis=1))
+        pool["weigh"][0]["channels"] += 1
     pool["disagree"] = {"near": args.disagree}
     cfg["name"] = args.name or cfg["name"] + "-disagree"
     out_dir = os.path.dirname(os.path.abspath(args.output))

@@ -3,7 +3,8 @@
     python python/ddp_check.py --bin target/release/deepstereo
 
 For `tiny` (the paper's family), `nviews` (any number of views, 2-5 per shard) and
-`nviews-cue` and `nviews-weigh` (the same with each view's geometric cue in the shards), from
+`nviews-cue`, `nviews-weigh` and `nviews-disagree` (the same with each view's geometric cue,
+and its colour disagreement, in the shards), from
 the same Rust-initialised weights (`deepstereo train --steps 0`) and the shards of
 `deepstereo samples` with the trainer's seed and a shard size equal to its batch:
 
@@ -78,6 +79,7 @@ FAMILIES = {
     "nviews": ["--views", "2-5"],
     "nviews-cue": ["--views", "2-5"],
     "nviews-weigh": ["--views", "2-5"],
+    "nviews-disagree": ["--views", "2-5"],
 }
 # What a rank prints when gloo's teardown aborts it after its work is done.
 TEARDOWN_ABORT = "terminate called without an active exception"

@@ -315,6 +315,14 @@ class Config:
         return c
 
     @staticmethod
+    def nviews_disagree() -> "Config":
+        c = Config.nviews_weigh()
+        c.name = "nviews-disagree"
+        assert c.pool is not None
+        c.pool.disagree = {"near": 4}
+        return c
+
+    @staticmethod
     def preset(name: str) -> "Config | None":
         """A preset by name (`PRESETS`), or None."""
         presets = {
@@ -323,11 +331,12 @@ class Config:
             "nviews": Config.nviews,
             "nviews-cue": Config.nviews_cue,
             "nviews-weigh": Config.nviews_weigh,
+            "nviews-disagree": Config.nviews_disagree,
         }
         return presets.get(name, lambda: None)()
 
 
-PRESETS = ("tiny", "paper", "nviews", "nviews-cue", "nviews-weigh")
+PRESETS = ("tiny", "paper", "nviews", "nviews-cue", "nviews-weigh", "nviews-disagree")
 
 
 # --- the network (mirrors model.rs) ----------------------------------------------------

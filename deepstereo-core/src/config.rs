@@ -378,9 +378,26 @@ impl Config {
         c
     }
 
+    /// [`Self::nviews_weigh`] with the colour-disagreement channel in the cue
+    /// ([`ViewPool::disagree`], the 4 nearest views as references).
+    pub fn nviews_disagree() -> Self {
+        let mut c = Self::nviews_weigh();
+        c.name = "nviews-disagree".into();
+        if let Some(p) = c.pool.as_mut() {
+            p.disagree = Some(ViewDisagree { near: 4 });
+        }
+        c
+    }
+
     /// The presets' names, as [`Self::preset`] takes them.
-    pub const PRESETS: [&'static str; 5] =
-        ["tiny", "paper", "nviews", "nviews-cue", "nviews-weigh"];
+    pub const PRESETS: [&'static str; 6] = [
+        "tiny",
+        "paper",
+        "nviews",
+        "nviews-cue",
+        "nviews-weigh",
+        "nviews-disagree",
+    ];
 
     /// A preset by name.
     pub fn preset(name: &str) -> Option<Self> {
@@ -390,6 +407,7 @@ impl Config {
             "nviews" => Some(Self::nviews()),
             "nviews-cue" => Some(Self::nviews_cue()),
             "nviews-weigh" => Some(Self::nviews_weigh()),
+            "nviews-disagree" => Some(Self::nviews_disagree()),
             _ => None,
         }
     }
