@@ -440,6 +440,67 @@ mod tests {
         Tensor::from_vec(v, shape, &Device::Cpu)
     }
 
+    /// The view weight `1 + tanh(S g)` keeps its relative precision in f32 where it is
+    /// small (g down to -10: a weight of 2e-35), in the training forward and the fused
+    /// rendering pass, against the exact `2 / (1 + e^(-2 S g))` in f64; and it is exactly
+    /// 1 at g = 0 and finite at g = -1e30 and 1e30. Written as `1 + tanh`, f32 cancels it
+    /// to 0 from g = -2.2 on.
+    #[test]
+    fn small_view_weights_keep_their_relative_precision() -> Result<()> {
+        let gs = [
+            0.0f32, -0.5, -1.0, -2.0, -4.0, -7.0, -10.0, 3.0, -1e30, 1e30,
+        ];
+        let vm = candle_nn::VarMap::new();
+        let weigh = ViewWeigh::new(
+            &[],
+            1,
+            VarBuilder::from_varmap(&vm, DType::F32, &Device::Cpu),
+        )?;
+        // g = w * cue + b with w = 1, b = 0: the cue channel is g itself.
+        for (name, var) in vm
+            .data()
+            .lock()
+            .map_err(|_| candle_core::Error::msg("lock"))?
+            .iter()
+        {
+            if name.ends_with("weight") {
+                var.set(&Tensor::ones((1, 1, 1, 1), DType::F32, &Device::Cpu)?)?;
+            }
+        }
+        let p = gs.len();
+        let mut x = vec![1f32; 5 * p]; // [1, 1, 1, 4 + 1, 1, P]: RGB 1, alpha 1, then g
+        x[4 * p..].copy_from_slice(&gs);
+        let x = Tensor::from_vec(x, (1, 1, 1, 5, 1, p), &Device::Cpu)?;
+        let forward = weigh
+            .forward(&x)?
+            .narrow(3, 3, 1)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        let infer = weigh
+            .infer(&x)?
+            .narrow(3, 3, 1)?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        for (i, &g) in gs.iter().enumerate() {
+            let exact = 2.0 / (1.0 + (-2.0 * WEIGH_SCALE * g as f64).exp());
+            for (path, k) in [("forward", forward[i]), ("infer", infer[i])] {
+                assert!(k.is_finite(), "{path}: g {g}: {k}");
+                let err = (k as f64 - exact).abs();
+                // Below f32's normal range, absolute (the fused `exp` clamps its argument).
+                let ok = if exact < 1e-37 {
+                    err < 1e-37
+                } else {
+                    err / exact < 1e-5
+                };
+                assert!(ok, "{path}: g {g}: {k} against {exact:e}");
+            }
+            if g == 0.0 {
+                assert_eq!((forward[i], infer[i]), (1.0, 1.0));
+            }
+        }
+        Ok(())
+    }
+
     /// The fused passes equal the candle composition, values and gradients (f64).
     #[test]
     fn fused_pooling_and_blend_equal_the_candle_ops() -> Result<()> {

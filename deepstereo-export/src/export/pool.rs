@@ -81,7 +81,8 @@ impl Graph<'_> {
                 }
                 ch = cout;
             } // [B*D*V, 1, H, W]
-              // 1 + tanh(S g) as 2 / (1 + exp(-2 S g)), accurate where the weight is small
+
+            // 1 + tanh(S g) as 2 / (1 + exp(-2 S g)), accurate where the weight is small
             // (onnxruntime's Sigmoid and Tanh are exact to an absolute 1e-7 or so, which
             // leaves a weight of 1e-7 no significant digit).
             let scale = self.const_f32(&[], &[-2.0 * WEIGH_SCALE as f32], "weigh_scale");
