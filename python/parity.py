@@ -410,6 +410,18 @@ def sweep_case(p: Parity, model: Model, name: str, scene: Path, planes: int | No
     print(f"  {name}: image range [{img.min():.3f}, {img.max():.3f}]", flush=True)
 
 
+def render_difference(p: Parity, tag: str, *runs: tuple[Path, dict[str, np.ndarray]]) -> float:
+    """The largest difference between the images `deepstereo forward` renders for two
+    (weights, inputs) pairs."""
+    images = []
+    for i, (model, inputs) in enumerate(runs):
+        f, out = p.work / f"{tag}_{i}.safetensors", p.work / f"{tag}_{i}_out.safetensors"
+        save_file(inputs, str(f))
+        run([p.bin, "forward", "--model", model, "--inputs", f, "--out", out], "forward")
+        images.append(load_file(str(out))["image"])
+    return float(np.abs(images[0] - images[1]).max())
+
+
 def add_cue_check(p: Parity, weights: Path, rng: np.random.Generator, weigh: bool) -> None:
     """`python/add_cue.py` (with `--weigh`: the cue weighs the views) on a model without
     the cue: the new model, fed the same RGBA with any cue beside it, renders exactly what
@@ -428,13 +440,7 @@ def add_cue_check(p: Parity, weights: Path, rng: np.random.Generator, weigh: boo
     psv = lambda s, r: rgb_alpha(s, r, r.random, lambda s2: np.clip(r.random(s2) * 1.6 - 0.3, 0, 1))  # noqa: E731
     x = make_inputs(old, 1, old.planes, t, t, psv, rng, 5)
     xc = {k: np.concatenate([a, (rng.random(a.shape[:3] + (5,) + a.shape[4:]) * 12 - 7).astype(np.float32)], 3) for k, a in x.items()}
-    images = []
-    for model, inputs, name in ((weights, x, "without"), (out, xc, "with")):
-        f = p.work / f"add_{tag}_{name}.safetensors"
-        save_file(inputs, str(f))
-        run([p.bin, "forward", "--model", model, "--inputs", f, "--out", p.work / f"add_{tag}_{name}_out.safetensors"], "forward")
-        images.append(load_file(str(p.work / f"add_{tag}_{name}_out.safetensors"))["image"])
-    d = float(np.abs(images[0] - images[1]).max())
+    d = render_difference(p, f"add_{tag}", (weights, x), (out, xc))
     status = "ok" if d <= 1e-6 else "FAIL"
     print(f"  add_cue.py{' --weigh' if weigh else ''}: the model with zero cue weights against the model without the cue: image max |diff| {d:.2e} {status}", flush=True)
     if d > 1e-6:
@@ -456,13 +462,7 @@ def add_disagree_check(p: Parity, weights: Path, rng: np.random.Generator) -> No
     t = old.tile
     x = make_inputs(old, 1, old.planes, t, t, lambda s, r: rgb_alpha(s, r, r.random, r.random), rng, 5)
     xd = {k: np.concatenate([a, (rng.random(a.shape[:3] + (1,) + a.shape[4:]) * 1.7).astype(np.float32)], 3) for k, a in x.items()}
-    images = []
-    for model, inputs, name in ((weights, x, "without"), (out, xd, "with")):
-        f = p.work / f"add_disagree_{name}.safetensors"
-        save_file(inputs, str(f))
-        run([p.bin, "forward", "--model", model, "--inputs", f, "--out", p.work / f"add_disagree_{name}_out.safetensors"], "forward")
-        images.append(load_file(str(p.work / f"add_disagree_{name}_out.safetensors"))["image"])
-    d = float(np.abs(images[0] - images[1]).max())
+    d = render_difference(p, "add_disagree", (weights, x), (out, xd))
     status = "ok" if d <= 1e-6 else "FAIL"
     print(f"  add_cue.py --disagree: the model with a zero disagreement column against the model without it: image max |diff| {d:.2e} {status}", flush=True)
     if d > 1e-6:
