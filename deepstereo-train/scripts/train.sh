@@ -48,6 +48,7 @@ RECIPES=(
   "agree|runs/nviews-agree: the embedded weights with the colour-agreement gate of the views beyond the nearest four (its config.json: weigh-scratch's with pool.agree near 4, sigma 0.1), fine-tuned on the whole corpus with 2-12 views, Adam 2e-4, cosine:300-3000 to a tenth"
   "disagree|runs/nviews-disagree: the embedded weights with the views' colour disagreement as a sixth cue channel of their weights (python/add_cue.py --disagree 4: a zero column, so step 0 renders as the embedded model), fine-tuned on the whole corpus with 4-12 views, Adam 3e-4, cosine:100-1500 to a tenth"
   "disagree-prior|runs/nviews-disagree-prior: as disagree, with the weights starting as a colour gate (add_cue.py --disagree 4 --prior 1: one more hidden unit relu(q), output weight -1), 8-12 views, Adam 3e-4, cosine:0-600 to a tenth"
+  "disagree-scratch|runs/nviews-disagree-scratch: the nviews-disagree preset (weigh-scratch's architecture with the disagreement channel) from scratch on the whole corpus, 2-12 views, as weigh-scratch: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "cue|runs/nviews-cue: the shipped weights given the per-view cue (python/add_cue.py: zero columns, so step 0 renders as the shipped model), fine-tuned on the whole corpus (17 scenes) with 2-12 views, Adam 3e-4 to step 1600, then a cosine to a tenth at step 4500"
 )
 
@@ -160,6 +161,11 @@ case "$RECIPE" in
     # init.safetensors and config.json: python/add_cue.py --disagree 4 --prior 1 on the embedded weights.
     : "${INIT:=$RUNS/nviews-disagree-prior/init.safetensors}" "${STEPS:=600}" "${LR_SCHEDULE:=cosine:0-600}"
     : "${LR:=3e-4}" "${VIEW_RANGE:=8-12}" "${CORPUS:=all}" "${VALIDATE_EVERY:=200}"
+    ;;
+  disagree-scratch)
+    OUT="${2:-$RUNS/nviews-disagree-scratch}"
+    CONFIG=nviews-disagree
+    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
     ;;
   cue)
     OUT="${2:-$RUNS/nviews-cue}"
