@@ -11,7 +11,8 @@ renders exactly as the old one until training moves the new weights:
   cue gains its colour-disagreement channel (`pool.disagree`,
   `deepstereo-core/src/view_weights.rs`): the first `views.weigh` layer gains one zero
   input column; with `--prior S` also one more hidden unit `relu(q)` whose output weight
-  is `-S`, so the weights start as a colour gate, `1 + tanh(-4 S q)` times what they were.
+  is `-S`, so that `g` becomes `g - S q` and the weights start as a colour gate (`1 + tanh(-4 S q)`
+  where the other units give `g` = 0).
 
     python python/add_cue.py IN.safetensors OUT.safetensors [--name NAME] [--weigh [--hidden 8] [--seed 0]]
     python python/add_cue.py IN.safetensors OUT.safetensors --disagree 4 [--prior S] [--name NAME]
