@@ -110,22 +110,31 @@ pub fn agree_gate(volume: &mut [f32], near: &[bool], sigma: f32, hw: usize) {
     let (near_ix, far_ix): (Vec<usize>, Vec<usize>) = (0..v).partition(|&k| near[k]);
     volume.par_chunks_mut(v * per).for_each(|plane| {
         for p in 0..hw {
-            let colour = |plane: &[f32], k: usize| [0, 1, 2].map(|c| plane[k * per + c * hw + p]);
             for &f in &far_ix {
-                let cf = colour(plane, f);
-                let e = (near_ix.iter().copied())
-                    .filter(|&n| plane[n * per + 3 * hw + p] >= AGREE_SEES)
-                    .map(|n| {
-                        let cn = colour(plane, n);
-                        (0..3).map(|c| (cf[c] - cn[c]).powi(2)).sum::<f32>()
-                    })
-                    .reduce(f32::min);
+                let e = closest_reference(plane, hw, p, f, &near_ix);
                 if let Some(e) = e.filter(|&e| e > 0.0) {
                     plane[f * per + 3 * hw + p] *= (scale * e).exp();
                 }
             }
         }
     });
+}
+
+/// The least squared RGB distance from the colour of source `k` at pixel `p` of one
+/// plane `[V, 4, hw]` to that of a source in `refs` other than `k` that sees the point
+/// (alpha >= [`AGREE_SEES`]): `e_v` of [`agree_gate`], `q_v^2` of [`disagreement`].
+/// `None` where no such source sees it.
+fn closest_reference(plane: &[f32], hw: usize, p: usize, k: usize, refs: &[usize]) -> Option<f32> {
+    let per = 4 * hw;
+    let colour = |k: usize| [0, 1, 2].map(|c| plane[k * per + c * hw + p]);
+    let ck = colour(k);
+    (refs.iter().copied())
+        .filter(|&n| n != k && plane[n * per + 3 * hw + p] >= AGREE_SEES)
+        .map(|n| {
+            let cn = colour(n);
+            (0..3).map(|c| (ck[c] - cn[c]).powi(2)).sum::<f32>()
+        })
+        .reduce(f32::min)
 }
 
 /// The cue's disagreement channel (config `pool.disagree`) of a plane sweep
@@ -151,19 +160,8 @@ pub fn disagreement(volume: &[f32], near: &[bool], hw: usize) -> Vec<f32> {
         .zip(volume.par_chunks(v * per))
         .for_each(|(q, plane)| {
             for p in 0..hw {
-                let colour = |k: usize| [0, 1, 2].map(|c| plane[k * per + c * hw + p]);
-                let refs: Vec<usize> = (near_ix.iter().copied())
-                    .filter(|&n| plane[n * per + 3 * hw + p] >= AGREE_SEES)
-                    .collect();
                 for k in 0..v {
-                    let ck = colour(k);
-                    let e = (refs.iter().copied())
-                        .filter(|&n| n != k)
-                        .map(|n| {
-                            let cn = colour(n);
-                            (0..3).map(|c| (ck[c] - cn[c]).powi(2)).sum::<f32>()
-                        })
-                        .reduce(f32::min);
+                    let e = closest_reference(plane, hw, p, k, &near_ix);
                     q[k * hw + p] = e.map_or(0.0, f32::sqrt);
                 }
             }
