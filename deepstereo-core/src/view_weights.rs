@@ -109,32 +109,37 @@ pub fn agree_gate(volume: &mut [f32], near: &[bool], sigma: f32, hw: usize) {
     let scale = -0.5 / (sigma * sigma);
     let (near_ix, far_ix): (Vec<usize>, Vec<usize>) = (0..v).partition(|&k| near[k]);
     volume.par_chunks_mut(v * per).for_each(|plane| {
-        for p in 0..hw {
-            for &f in &far_ix {
-                let e = closest_reference(plane, hw, p, f, &near_ix);
-                if let Some(e) = e.filter(|&e| e > 0.0) {
-                    plane[f * per + 3 * hw + p] *= (scale * e).exp();
+        let mut e = vec![0f32; hw];
+        for &f in &far_ix {
+            closest_references(plane, hw, f, &near_ix, &mut e);
+            let alpha = &mut plane[f * per + 3 * hw..][..hw];
+            for (a, &e) in alpha.iter_mut().zip(&e) {
+                if e.is_finite() && e > 0.0 {
+                    *a *= (scale * e).exp();
                 }
             }
         }
     });
 }
 
-/// The least squared RGB distance from the colour of source `k` at pixel `p` of one
-/// plane `[V, 4, hw]` to that of a source in `refs` other than `k` that sees the point
-/// (alpha >= [`AGREE_SEES`]): `e_v` of [`agree_gate`], `q_v^2` of [`disagreement`].
-/// `None` where no such source sees it.
-fn closest_reference(plane: &[f32], hw: usize, p: usize, k: usize, refs: &[usize]) -> Option<f32> {
-    let per = 4 * hw;
-    let colour = |k: usize| [0, 1, 2].map(|c| plane[k * per + c * hw + p]);
-    let ck = colour(k);
-    (refs.iter().copied())
-        .filter(|&n| n != k && plane[n * per + 3 * hw + p] >= AGREE_SEES)
-        .map(|n| {
-            let cn = colour(n);
-            (0..3).map(|c| (ck[c] - cn[c]).powi(2)).sum::<f32>()
-        })
-        .reduce(f32::min)
+/// The least squared RGB distance from the colour of source `k` to that of a source in
+/// `refs` other than `k` that sees the point (alpha >= [`AGREE_SEES`]), at every pixel
+/// of one plane `[V, 4, hw]`, into `e` (`hw`): `e_v` of [`agree_gate`], `q_v^2` of
+/// [`disagreement`]; infinite where no such source sees it. Runs over rows of pixels
+/// (contiguous, so the compiler vectorises it).
+fn closest_references(plane: &[f32], hw: usize, k: usize, refs: &[usize], e: &mut [f32]) {
+    let channel = |n: usize, c: usize| &plane[n * 4 * hw + c * hw..][..hw];
+    let (r, g, b) = (channel(k, 0), channel(k, 1), channel(k, 2));
+    e.fill(f32::INFINITY);
+    for &n in refs.iter().filter(|&&n| n != k) {
+        let (rn, gn, bn, an) = (channel(n, 0), channel(n, 1), channel(n, 2), channel(n, 3));
+        for p in 0..hw {
+            let d = (r[p] - rn[p]).powi(2) + (g[p] - gn[p]).powi(2) + (b[p] - bn[p]).powi(2);
+            if an[p] >= AGREE_SEES {
+                e[p] = e[p].min(d);
+            }
+        }
+    }
 }
 
 /// The cue's disagreement channel (config `pool.disagree`) of a plane sweep
@@ -160,24 +165,7 @@ pub fn disagreement(volume: &[f32], near: &[bool], hw: usize) -> Vec<f32> {
         .zip(volume.par_chunks(v * per))
         .for_each(|(q, plane)| {
             for (k, qk) in q.chunks_mut(hw).enumerate() {
-                // `closest_reference` for every pixel at once, a row of pixels per pass
-                // (contiguous, so the compiler vectorises it): the same sums in the same
-                // order, so the same values.
-                qk.fill(f32::INFINITY);
-                let channel = |n: usize, c: usize| &plane[n * per + c * hw..][..hw];
-                let (r, g, b) = (channel(k, 0), channel(k, 1), channel(k, 2));
-                for &n in near_ix.iter().filter(|&&n| n != k) {
-                    let (rn, gn, bn, an) =
-                        (channel(n, 0), channel(n, 1), channel(n, 2), channel(n, 3));
-                    for p in 0..hw {
-                        let e = (r[p] - rn[p]).powi(2)
-                            + (g[p] - gn[p]).powi(2)
-                            + (b[p] - bn[p]).powi(2);
-                        if an[p] >= AGREE_SEES {
-                            qk[p] = qk[p].min(e);
-                        }
-                    }
-                }
+                closest_references(plane, hw, k, &near_ix, qk);
                 for x in qk.iter_mut() {
                     *x = if x.is_finite() { x.sqrt() } else { 0.0 };
                 }
@@ -362,11 +350,33 @@ mod tests {
         );
     }
 
-    /// The vectorised `disagreement` against `closest_reference` pixel by pixel, on a
-    /// pseudo-random sweep of 3 planes, 6 views (4 near), half of the alphas below
-    /// `AGREE_SEES`: the same values, bit for bit.
+    /// The definition, pixel by pixel: the least squared RGB distance from the colour of
+    /// source `k` at pixel `p` of one plane `[V, 4, hw]` to that of a source in `refs`
+    /// other than `k` that sees the point; `None` where none does.
+    fn closest_reference(
+        plane: &[f32],
+        hw: usize,
+        p: usize,
+        k: usize,
+        refs: &[usize],
+    ) -> Option<f32> {
+        let per = 4 * hw;
+        let colour = |k: usize| [0, 1, 2].map(|c| plane[k * per + c * hw + p]);
+        let ck = colour(k);
+        (refs.iter().copied())
+            .filter(|&n| n != k && plane[n * per + 3 * hw + p] >= AGREE_SEES)
+            .map(|n| {
+                let cn = colour(n);
+                (0..3).map(|c| (ck[c] - cn[c]).powi(2)).sum::<f32>()
+            })
+            .reduce(f32::min)
+    }
+
+    /// The row-wise `disagreement` and `agree_gate` against `closest_reference` pixel by
+    /// pixel, on a pseudo-random sweep of 3 planes, 6 views (4 near), half of the alphas
+    /// below `AGREE_SEES`: the same values, bit for bit.
     #[test]
-    fn disagreement_equals_the_closest_reference_at_every_pixel() {
+    fn disagreement_and_gate_equal_the_closest_reference_at_every_pixel() {
         let (d, v, hw) = (3, 6, 37);
         let mut state = 12345u64;
         let volume: Vec<f32> = (0..d * v * 4 * hw)
@@ -398,6 +408,24 @@ mod tests {
         }
         // Both cases occur: some points with a seeing reference, some with none.
         assert!(seen > 0 && seen < d * v * hw, "{seen}");
+        let sigma = 0.1f32;
+        let mut gated = volume.clone();
+        agree_gate(&mut gated, &near, sigma, hw);
+        for z in 0..d {
+            let plane = &volume[z * v * 4 * hw..][..v * 4 * hw];
+            for (k, &is_near) in near.iter().enumerate() {
+                for p in 0..hw {
+                    let i = z * v * 4 * hw + k * 4 * hw + 3 * hw + p;
+                    let e = closest_reference(plane, hw, p, k, &near_ix);
+                    let want = match e.filter(|&e| !is_near && e > 0.0) {
+                        Some(e) => volume[i] * (-0.5 / (sigma * sigma) * e).exp(),
+                        None => volume[i],
+                    };
+                    assert_eq!(gated[i].to_bits(), want.to_bits(), "gate {z} {k} {p}");
+                }
+            }
+        }
+        assert_ne!(gated, volume);
     }
 
     #[test]
