@@ -11,11 +11,12 @@
 # Usage: bash deepstereo-train/scripts/ship_default.sh [MODEL] [VIEWS] [FALLOFF] [OUT]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-# Default: the weights of the run with the per-view cue as view weights
-# (runs/nviews-weigh-scratch at step 8600, its config with pool.falloff 1:2). The default
-# before it was runs/nviews-prox at step 2000 (commit 0afcee9); before that runs/nviews-real
-# at step 8600 (commit 29f97d2), kept as runs/nviews-falloff/init.safetensors.
-MODEL="${1:-deepstereo-train/runs/nviews-weigh-scratch/model.safetensors}"
+# Default: the weights of the run with the per-view cue and the colour-disagreement channel
+# (runs/nviews-disagree-scratch at step 8600, its config with pool.falloff 1:2). The
+# default before it was runs/nviews-weigh-scratch at step 8600 (commit c4032f1), before
+# that runs/nviews-prox at step 2000 (commit 0afcee9), and before that runs/nviews-real at
+# step 8600 (commit 29f97d2), kept as runs/nviews-falloff/init.safetensors.
+MODEL="${1:-deepstereo-train/runs/nviews-disagree-scratch/model.safetensors}"
 VIEWS="${2:-4}"
 FALLOFF="${3:-4:8}"
 OUT="${4:-deepstereo-train/assets/nviews-real.safetensors}"

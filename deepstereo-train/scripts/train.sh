@@ -12,11 +12,13 @@
 # SKIP_FLAT, SCENE_WEIGHTS (`train --loss/--view-stride/--skip-flat/--scene-weights`).
 # DRY_RUN=1 prints the command instead of building and running it, and writes nothing.
 #
-# Two recipes made the shipped model (deepstereo-train/assets/nviews-real.safetensors,
-# ship_default.sh): `default` (runs/nviews-real, from scratch) and then `prox`
-# (runs/nviews-prox, fine-tuned from nviews-real's weights at step 8600). The others are
-# experiments fine-tuned from (or, `scratch`, compared with) the shipped weights; their
-# runs and results are at commit fda1758. The experiments that changed the architecture
+# `disagree-scratch` made the shipped model (runs/nviews-disagree-scratch, from scratch;
+# ship_default.sh turns it into deepstereo-train/assets/nviews-real.safetensors). The
+# defaults before it: `weigh-scratch` (runs/nviews-weigh-scratch), and before that
+# `default` (runs/nviews-real) then `prox` (runs/nviews-prox). The others are
+# experiments; the ones of commit fda1758 and before started from (or, `scratch`, were
+# compared with) nviews-prox's weights, and their runs and results are at that commit.
+# The experiments that changed the architecture
 # with a Python tool first (`wide`: widen.py, `encoder3`: spatial_encoder.py, `levels`:
 # add_levels.py; runs nviews-wide, nviews-enc3, nviews-l4) are only at that commit
 # (deepstereo-train/scripts/train_{wide,encoder3,levels}.sh there).
@@ -29,27 +31,27 @@ SHIPPED=$RUNS/nviews-prox/model.safetensors
 # name|description, in the order --list prints them.
 RECIPES=(
   "default|runs/nviews-real: the nviews architecture (the run's config.json) from scratch, Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
-  "prox|runs/nviews-prox: its config's 1:2 proximity falloff, fine-tuned from nviews-real at step 8600, Adam 2e-4, cosine:200-2000 to a tenth, seed 2 (the shipped weights)"
+  "prox|runs/nviews-prox: its config's 1:2 proximity falloff, fine-tuned from nviews-real at step 8600, Adam 2e-4, cosine:200-2000 to a tenth, seed 2 (the default until commit 0afcee9)"
   "prox2|runs/nviews-prox2: prox's weights fine-tuned 3000 more steps, cosine:500-3000"
   "falloff|runs/nviews-falloff: the nviews preset's 4:8 falloff, fine-tuned from nviews-real at step 8600, cosine:200-2200"
   "scratch|runs/nviews-scratch: prox's config trained from scratch as default, cosine:3000-5500, validation every 250"
-  "v4|runs/nviews-v4: the shipped weights fine-tuned with exactly 4 source views per batch, cosine:100-1500"
-  "hires|runs/nviews-hires: the shipped weights fine-tuned with procedural scenes at 360x270, cosine:100-1500"
-  "l2|runs/nviews-l2: the shipped weights fine-tuned with --loss l2, cosine:100-1200"
-  "stride|runs/nviews-stride: the shipped weights fine-tuned with --view-stride 1-3, cosine:100-1500"
-  "flat|runs/nviews-flat: the shipped weights fine-tuned with --skip-flat 0.02, cosine:100-1500"
-  "weighted|runs/nviews-weighted: the shipped weights fine-tuned with --scene-weights (360-degree captures x3), cosine:100-1500"
+  "v4|runs/nviews-v4: nviews-prox's weights fine-tuned with exactly 4 source views per batch, cosine:100-1500"
+  "hires|runs/nviews-hires: nviews-prox's weights fine-tuned with procedural scenes at 360x270, cosine:100-1500"
+  "l2|runs/nviews-l2: nviews-prox's weights fine-tuned with --loss l2, cosine:100-1200"
+  "stride|runs/nviews-stride: nviews-prox's weights fine-tuned with --view-stride 1-3, cosine:100-1500"
+  "flat|runs/nviews-flat: nviews-prox's weights fine-tuned with --skip-flat 0.02, cosine:100-1500"
+  "weighted|runs/nviews-weighted: nviews-prox's weights fine-tuned with --scene-weights (360-degree captures x3), cosine:100-1500"
   "cue-scratch|runs/nviews-cue-scratch: the nviews-cue architecture (cue's config) from scratch on the whole corpus (17 scenes), 2-12 views, as default: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "corpus|runs/nviews-corpus: prox's architecture (its config: no cue) from scratch on the whole corpus (17 scenes), 2-12 views, as cue-scratch: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "weigh|runs/nviews-weigh: corpus's weights at step 8600 with the views weighed by their cue (python/add_cue.py --weigh: the weights start at 1, so step 0 renders as corpus), fine-tuned on the whole corpus with 2-12 views, Adam 2e-4, cosine:300-2500 to a tenth"
   "weigh-scratch|runs/nviews-weigh-scratch: weigh's architecture (its config) from scratch on the whole corpus, 2-12 views, as corpus: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
-  "mpi|runs/nviews-mpi: the shipped weights (weigh-scratch's config) fine-tuned for MPIs with --mpi-loss 1 (224x64 tiles, the target one of the reference's 3 nearest views, 4 source views, no augmentation), batch 4, Adam 5e-4, cosine:100-300 to a tenth"
+  "mpi|runs/nviews-mpi: weigh-scratch's weights and config fine-tuned for MPIs with --mpi-loss 1 (224x64 tiles, the target one of the reference's 3 nearest views, 4 source views, no augmentation), batch 4, Adam 5e-4, cosine:100-300 to a tenth"
   "mpi2|runs/nviews-mpi2: as mpi, with the pairs drawn at half resolution (--mpi-scale 2, 96x64 tiles: 192x128 pixels of the full images), 200 steps, cosine:50-200"
-  "agree|runs/nviews-agree: the embedded weights with the colour-agreement gate of the views beyond the nearest four (its config.json: weigh-scratch's with pool.agree near 4, sigma 0.1), fine-tuned on the whole corpus with 2-12 views, Adam 2e-4, cosine:300-3000 to a tenth"
-  "disagree|runs/nviews-disagree: the embedded weights with the views' colour disagreement as a sixth cue channel of their weights (python/add_cue.py --disagree 4: a zero column, so step 0 renders as the embedded model), fine-tuned on the whole corpus with 4-12 views, Adam 3e-4, cosine:100-1500 to a tenth"
+  "agree|runs/nviews-agree: weigh-scratch's weights with the colour-agreement gate of the views beyond the nearest four (its config.json: weigh-scratch's with pool.agree near 4, sigma 0.1), fine-tuned on the whole corpus with 2-12 views, Adam 2e-4, cosine:300-3000 to a tenth"
+  "disagree|runs/nviews-disagree: weigh-scratch's weights with the views' colour disagreement as a sixth cue channel of their weights (python/add_cue.py --disagree 4: a zero column, so step 0 renders as weigh-scratch), fine-tuned on the whole corpus with 4-12 views, Adam 3e-4, cosine:100-1500 to a tenth"
   "disagree-prior|runs/nviews-disagree-prior: as disagree, with the weights starting as a colour gate (add_cue.py --disagree 4 --prior 1: one more hidden unit relu(q), output weight -1), 8-12 views, Adam 3e-4, cosine:0-600 to a tenth"
   "disagree-scratch|runs/nviews-disagree-scratch: the nviews-disagree preset (weigh-scratch's architecture with the disagreement channel) from scratch on the whole corpus, 2-12 views, as weigh-scratch: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
-  "cue|runs/nviews-cue: the shipped weights given the per-view cue (python/add_cue.py: zero columns, so step 0 renders as the shipped model), fine-tuned on the whole corpus (17 scenes) with 2-12 views, Adam 3e-4 to step 1600, then a cosine to a tenth at step 4500"
+  "cue|runs/nviews-cue: nviews-prox's weights given the per-view cue (python/add_cue.py: zero columns, so step 0 renders as nviews-prox), fine-tuned on the whole corpus (17 scenes) with 2-12 views, Adam 3e-4 to step 1600, then a cosine to a tenth at step 4500"
 )
 
 list() {
@@ -69,7 +71,7 @@ if [ $# -gt 2 ]; then
   exit 2
 fi
 
-# A fine-tune of the shipped weights: the run's own copy of prox's config.
+# A fine-tune of nviews-prox's weights (SHIPPED: the default until commit 0afcee9): the run's own copy of prox's config.
 experiment() {
   : "${INIT:=$SHIPPED}" "${STEPS:=1500}" "${LR_SCHEDULE:=cosine:100-1500}"
   COPY_CONFIG=$PROX_CONFIG
@@ -147,18 +149,18 @@ case "$RECIPE" in
   agree)
     OUT="${2:-$RUNS/nviews-agree}"
     # config.json: runs/nviews-weigh-scratch/config.json with "agree": {"near": 4, "sigma": 0.1} in its pool.
-    : "${INIT:=deepstereo-train/assets/nviews-real.safetensors}" "${STEPS:=3000}" "${LR_SCHEDULE:=cosine:300-3000}"
+    : "${INIT:=$RUNS/nviews-weigh-scratch/model.safetensors}" "${STEPS:=3000}" "${LR_SCHEDULE:=cosine:300-3000}"
     : "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
     ;;
   disagree)
     OUT="${2:-$RUNS/nviews-disagree}"
-    # init.safetensors and config.json: python/add_cue.py --disagree 4 on the embedded weights.
+    # init.safetensors and config.json: python/add_cue.py --disagree 4 on runs/nviews-weigh-scratch's weights.
     : "${INIT:=$RUNS/nviews-disagree/init.safetensors}" "${STEPS:=1500}" "${LR_SCHEDULE:=cosine:100-1500}"
     : "${LR:=3e-4}" "${VIEW_RANGE:=4-12}" "${CORPUS:=all}"
     ;;
   disagree-prior)
     OUT="${2:-$RUNS/nviews-disagree-prior}"
-    # init.safetensors and config.json: python/add_cue.py --disagree 4 --prior 1 on the embedded weights.
+    # init.safetensors and config.json: python/add_cue.py --disagree 4 --prior 1 on runs/nviews-weigh-scratch's weights.
     : "${INIT:=$RUNS/nviews-disagree-prior/init.safetensors}" "${STEPS:=600}" "${LR_SCHEDULE:=cosine:0-600}"
     : "${LR:=3e-4}" "${VIEW_RANGE:=8-12}" "${CORPUS:=all}" "${VALIDATE_EVERY:=200}"
     ;;
@@ -169,7 +171,7 @@ case "$RECIPE" in
     ;;
   cue)
     OUT="${2:-$RUNS/nviews-cue}"
-    # init.safetensors and config.json: python/add_cue.py on the shipped weights.
+    # init.safetensors and config.json: python/add_cue.py on nviews-prox's weights.
     : "${INIT:=$RUNS/nviews-cue/init.safetensors}" "${STEPS:=4500}" "${LR_SCHEDULE:=cosine:1600-4500}"
     # Started as cosine:300-7000; shortened to 6000 at step 800; the validation PSNR fell
     # from 24.31 (step 500) to 24.08 (step 1500) at 3e-4, so from step 1600 the rate decays
@@ -185,7 +187,7 @@ case "$RECIPE" in
       : "${STEPS:=200}" "${LR_SCHEDULE:=cosine:50-200}"
       PAIRS=(--mpi-tile 96x64 --mpi-neighbours 3 --mpi-scale 2)
     fi
-    : "${INIT:=deepstereo-train/assets/nviews-real.safetensors}"
+    : "${INIT:=$RUNS/nviews-weigh-scratch/model.safetensors}"
     : "${VIEW_RANGE:=4}" "${CORPUS:=all}" "${BATCH:=4}" "${VALIDATE_EVERY:=100}" "${LR:=5e-4}"
     COPY_CONFIG=$RUNS/nviews-weigh-scratch/config.json
     NO_AUGMENT=1
