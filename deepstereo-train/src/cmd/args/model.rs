@@ -34,8 +34,8 @@ pub struct ModelArgs {
     /// planes a coarse pass finds surfaces on, picks the source views that see the
     /// target, and skips tiles no source covers or that are constant; `off` runs every
     /// plane of every tile from the nearest views (the plain renderer). `auto` is the
-    /// default: at 32, 64 and 96 planes it rendered every scene measured at a higher PSNR
-    /// than `off`, and faster (docs/performance.md).
+    /// default: at 32, 64 and 96 planes it rendered every real scene measured faster than
+    /// `off` (2x or more at 64 and 96), mostly at a higher PSNR (docs/performance.md).
     #[arg(long, default_value_t = PruneMode::Auto)]
     pub prune: PruneMode,
     /// --prune auto: the coarse pass: `network` (the model itself at low resolution) or
