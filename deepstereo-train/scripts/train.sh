@@ -27,6 +27,8 @@ cd "$(dirname "$0")/../.."
 RUNS=deepstereo-train/runs
 PROX_CONFIG=$RUNS/nviews-prox/config.json
 SHIPPED=$RUNS/nviews-prox/model.safetensors
+# The default from commit c40fb32 to c4032f1, where the later fine-tunes start.
+WEIGH=$RUNS/nviews-weigh-scratch/model.safetensors
 
 # name|description, in the order --list prints them.
 RECIPES=(
@@ -71,7 +73,8 @@ if [ $# -gt 2 ]; then
   exit 2
 fi
 
-# A fine-tune of nviews-prox's weights (SHIPPED: the default until commit 0afcee9): the run's own copy of prox's config.
+# A fine-tune of nviews-prox's weights (SHIPPED: the default until commit 0afcee9): the
+# run's own copy of prox's config.
 experiment() {
   : "${INIT:=$SHIPPED}" "${STEPS:=1500}" "${LR_SCHEDULE:=cosine:100-1500}"
   COPY_CONFIG=$PROX_CONFIG
@@ -149,7 +152,7 @@ case "$RECIPE" in
   agree)
     OUT="${2:-$RUNS/nviews-agree}"
     # config.json: runs/nviews-weigh-scratch/config.json with "agree": {"near": 4, "sigma": 0.1} in its pool.
-    : "${INIT:=$RUNS/nviews-weigh-scratch/model.safetensors}" "${STEPS:=3000}" "${LR_SCHEDULE:=cosine:300-3000}"
+    : "${INIT:=$WEIGH}" "${STEPS:=3000}" "${LR_SCHEDULE:=cosine:300-3000}"
     : "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
     ;;
   disagree)
@@ -187,7 +190,7 @@ case "$RECIPE" in
       : "${STEPS:=200}" "${LR_SCHEDULE:=cosine:50-200}"
       PAIRS=(--mpi-tile 96x64 --mpi-neighbours 3 --mpi-scale 2)
     fi
-    : "${INIT:=$RUNS/nviews-weigh-scratch/model.safetensors}"
+    : "${INIT:=$WEIGH}"
     : "${VIEW_RANGE:=4}" "${CORPUS:=all}" "${BATCH:=4}" "${VALIDATE_EVERY:=100}" "${LR:=5e-4}"
     COPY_CONFIG=$RUNS/nviews-weigh-scratch/config.json
     NO_AUGMENT=1
