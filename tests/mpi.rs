@@ -390,3 +390,89 @@ fn an_mpi_with_a_margin_is_larger_and_still_exact_at_its_reference() {
         "MPI with a margin at its reference vs render --pose: {db:.1} dB"
     );
 }
+
+/// With pruning on (the default), the MPI holds the pruned render's layers: at a camera
+/// between the views (`mpi --pose`), its composite equals `render --pose` there with the
+/// same options (>= 40 dB), where pruning (a coarse pass keeping half the selection, no
+/// margin) visibly changes that render, and the planes the coarse pass leaves out of a
+/// block have alpha 0 where the unpruned bake (`--prune off`) gives them some.
+#[test]
+fn a_pruned_mpi_is_the_pruned_render_at_its_reference_and_empty_off_its_surfaces() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    // Larger than `scene`'s views, so the coarse pass has blocks to leave planes out of.
+    let s = synth_scene(tmp.path(), (128, 96), 6, 11, &["--rig", "forward"]);
+    let pose = pose_file(&s, 2, [0.05, 0.02, 0.0], &tmp.path().join("pose.json"));
+    let (s, pose) = (s.to_string_lossy(), pose.to_string_lossy());
+    let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
+    // Thinning off, so both bakes have the same planes.
+    let common = [
+        "--scene",
+        &s,
+        "--pose",
+        &pose,
+        "--planes",
+        "24",
+        "--prune-max-step",
+        "0",
+        "--prune-keep",
+        "0.5",
+        "--prune-margin",
+        "0",
+    ];
+    let image = |args: &[&str], out: &str| {
+        let mut a = args.to_vec();
+        a.extend(["--out", out]);
+        ok(&a);
+        load(&Path::new(out).join("image.png"))
+    };
+    let (m, off) = (t("mpi"), t("mpi_off"));
+    for (out, prune) in [(&m, "auto"), (&off, "off")] {
+        let mut args = vec!["mpi", "--margin", "0", "--prune", prune, "--out", out];
+        args.extend(common);
+        ok(&args);
+    }
+    let net = image(&[&["render"][..], &common].concat(), &t("net"));
+    let via = image(
+        &["render", "--scene", &s, "--pose", &pose, "--mpi", &m],
+        &t("via"),
+    );
+    let via_off = image(
+        &["render", "--scene", &s, "--pose", &pose, "--mpi", &off],
+        &t("via_off"),
+    );
+    let (db, db_off) = (psnr(&via, &net), psnr(&via_off, &net));
+    assert!(
+        db >= 40.0,
+        "pruned MPI at its reference vs render --pose: {db:.1} dB"
+    );
+    assert!(
+        db_off < db - 3.0,
+        "pruning changed the render by little: {db_off:.1} dB"
+    );
+
+    let (pruned, full) = (
+        io::read(Path::new(&m)).expect("read the MPI"),
+        io::read(Path::new(&off)).expect("read the MPI"),
+    );
+    assert_eq!(pruned.inv_depths, full.inv_depths);
+    let texels = |mpi: &Mpi| -> Vec<f32> {
+        mpi.planes()
+            .iter()
+            .flat_map(|p| p.chunks(4).map(|t| t[3]))
+            .collect()
+    };
+    let (a, f) = (texels(&pruned), texels(&full));
+    let emptied = a
+        .iter()
+        .zip(&f)
+        .filter(|(a, f)| **a == 0.0 && **f > 0.01)
+        .count();
+    let filled = f.iter().filter(|f| **f > 0.01).count();
+    assert!(
+        emptied * 10 > filled,
+        "pruning emptied {emptied} of the {filled} texels the full bake fills"
+    );
+    eprintln!(
+        "pruning emptied {emptied} of the {filled} texels; at the reference {db:.1} dB, unpruned {db_off:.1} dB"
+    );
+}

@@ -25,6 +25,7 @@ use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 
 pub mod io;
+pub mod planned;
 pub mod viewer;
 pub mod warp;
 

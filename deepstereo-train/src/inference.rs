@@ -170,35 +170,7 @@ pub fn render_camera(
         let r = render_view(backend, target, &srcs, &requested, settings.tile, progress)?;
         return Ok((r, requested));
     }
-    // Pruning runs fewer planes, spread evenly, when the requested ones are closer than
-    // `max_step` pixels apart in every (real) source: a subset of the requested planes.
-    let cams: Vec<&Camera> = srcs[..k].iter().map(|s| &s.cameras[0]).collect();
-    let step = max_plane_step(target, &cams, &requested);
-    let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step, cfg.planes)
-        .into_iter()
-        .map(|z| requested[z])
-        .collect();
-    let bounds: Vec<Option<(f64, f64)>> = sources.iter().map(|&i| scene.views[i].bounds).collect();
-    let range = plane_range_from_points(target, &scene.points, &inv)
-        .or_else(|| plane_range_from_bounds(&bounds, &inv));
-    let mut pruner = Pruner::new(&cfg, target, &srcs, &inv, range, &settings.prune);
-    if settings.prune.coarse == CoarsePass::Network {
-        let t0 = Instant::now();
-        let guide = network_guide(
-            backend,
-            target,
-            &srcs,
-            &inv,
-            pruner.range(),
-            settings.prune.guide_level,
-            settings.tile,
-            guide_planes(cfg.planes, inv.len()),
-            settings.prune.error > 0.0,
-        )?;
-        if let Some(g) = guide {
-            pruner = pruner.with_guide(g, t0.elapsed().as_secs_f64());
-        }
-    }
+    let (inv, pruner) = plan_pruning(backend, scene, target, &srcs, sources, &requested, settings)?;
     let mut r = render_view_pruned(
         backend,
         target,
@@ -215,6 +187,52 @@ pub fn render_camera(
         }
     }
     Ok((r, requested))
+}
+
+/// Pruning's plan for rendering `target` from `srcs` (the pyramids of the scene's views
+/// `sources`, which pick their depth bounds) at the `requested` inverse depths: the planes
+/// run (fewer, spread evenly, when the requested ones are closer than `max_step` pixels
+/// apart in every source: a subset of the requested planes) and the pruner, with the
+/// network's coarse pass when the settings ask for it.
+pub fn plan_pruning<'a>(
+    backend: &dyn Backend,
+    scene: &Scene,
+    target: &Camera,
+    srcs: &'a [&'a PyramidSource],
+    sources: &[usize],
+    requested: &[f64],
+    settings: &RenderSettings,
+) -> Result<(Vec<f64>, Pruner<'a>)> {
+    let cfg = backend.config();
+    let k = sources.len().min(srcs.len());
+    let cams: Vec<&Camera> = srcs[..k].iter().map(|s| &s.cameras[0]).collect();
+    let step = max_plane_step(target, &cams, requested);
+    let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step, cfg.planes)
+        .into_iter()
+        .map(|z| requested[z])
+        .collect();
+    let bounds: Vec<Option<(f64, f64)>> = sources.iter().map(|&i| scene.views[i].bounds).collect();
+    let range = plane_range_from_points(target, &scene.points, &inv)
+        .or_else(|| plane_range_from_bounds(&bounds, &inv));
+    let mut pruner = Pruner::new(cfg, target, srcs, &inv, range, &settings.prune);
+    if settings.prune.coarse == CoarsePass::Network {
+        let t0 = Instant::now();
+        let guide = network_guide(
+            backend,
+            target,
+            srcs,
+            &inv,
+            pruner.range(),
+            settings.prune.guide_level,
+            settings.tile,
+            guide_planes(cfg.planes, inv.len()),
+            settings.prune.error > 0.0,
+        )?;
+        if let Some(g) = guide {
+            pruner = pruner.with_guide(g, t0.elapsed().as_secs_f64());
+        }
+    }
+    Ok((inv, pruner))
 }
 
 /// What a held-out view's evaluation produced, for callers that save pictures.

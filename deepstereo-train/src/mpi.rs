@@ -2,10 +2,13 @@
 //! (`deepstereo_core::mpi` holds the format and the rendering), and held-out views seen
 //! through them, beside the network's own renders of those views.
 
-use crate::inference::{pick_sources, render_held_out, source_inputs, Prepared, RenderSettings};
+use crate::inference::{
+    pick_sources, plan_pruning, render_held_out, source_inputs, Prepared, RenderSettings,
+};
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::metrics::{psnr, ssim};
+use deepstereo_core::mpi::planned::bake_planned;
 use deepstereo_core::mpi::{bake, io, reference_camera, render_blend, viewer, with_margin, Mpi};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
@@ -15,8 +18,10 @@ use std::time::Instant;
 
 /// Bakes the MPI of `camera` (made a pinhole at its mid-readout pose, with `margin`
 /// pixels more on every side: [`with_margin`]) from the scene's views `sources` (the
-/// first `k` of them, `k` from `settings`) at the settings' planes; every plane is kept
-/// (`--prune` does not apply: an MPI is seen from other cameras).
+/// first `k` of them, `k` from `settings`) at the settings' planes. With pruning on, as
+/// `render` prunes that camera ([`plan_pruning`]): the planes run, and per block the
+/// planes the coarse pass keeps (alpha 0 on the others), so the MPI's composite is the
+/// pruned render; with `--prune off`, every plane of every pixel.
 pub fn bake_camera(
     backend: &dyn Backend,
     scene: &Scene,
@@ -27,10 +32,25 @@ pub fn bake_camera(
     progress: &dyn Fn(usize, usize),
 ) -> Result<Mpi> {
     let cfg = backend.config().clone();
+    let k = settings.source_count(&cfg)?;
     let (srcs, inv) = source_inputs(&cfg, scene, prepared, sources, settings)?;
     // The margin is added to the pinhole at the mid-readout pose (its height decides it).
     let camera = with_margin(&reference_camera(camera), margin);
-    let mut mpi = bake(backend, &camera, &srcs, &inv, settings.tile, progress)?;
+    let mut mpi = if settings.prune.is_on() {
+        let sources = &sources[..k.min(sources.len())];
+        let (inv, pruner) = plan_pruning(backend, scene, &camera, &srcs, sources, &inv, settings)?;
+        bake_planned(
+            backend,
+            &camera,
+            &srcs,
+            &inv,
+            settings.tile,
+            &pruner,
+            progress,
+        )?
+    } else {
+        bake(backend, &camera, &srcs, &inv, settings.tile, progress)?
+    };
     mpi.margin = margin;
     Ok(mpi)
 }
