@@ -656,23 +656,7 @@ pub fn layers_of_tiles(
     let (mut colours, mut selection) = (vec![0f32; d * 3 * n], vec![0f32; d * n]);
     for (done, &i) in tiles.iter().enumerate() {
         let (x0, y0) = grid.origin(i);
-        let inputs = tile_inputs(
-            cfg,
-            camera,
-            sources,
-            inv_depths,
-            (x0 as i64, y0 as i64),
-            (tile, tile),
-        )?;
-        let (c, mut s) = backend.run_layers(&inputs, d)?;
-        if let Some(prior) = backend.prior() {
-            prior.apply_tile(camera, inv_depths, (x0, y0), tile, &c, &mut s);
-        }
-        if c.iter().chain(&s).any(|v| !v.is_finite()) {
-            return Err(Error::Invalid(format!(
-                "the network produced non-finite values in the tile at ({x0}, {y0})"
-            )));
-        }
+        let (c, s) = tile_layers(backend, camera, sources, inv_depths, (x0, y0), tile)?;
         let tt = tile * tile;
         for p in grid.pixels(i) {
             let q = (p / w - y0) * tile + (p % w - x0);
@@ -686,6 +670,37 @@ pub fn layers_of_tiles(
         progress(done + 1, tiles.len());
     }
     Ok((colours, selection))
+}
+
+/// The network's colours `[D, 3, tile, tile]` and selection `[D, tile, tile]` on the
+/// square of side `tile` at `(x0, y0)` of `camera` (the selection reweighed by the
+/// backend's scene prior when it has one); an error when any value is not finite.
+pub(crate) fn tile_layers(
+    backend: &dyn Backend,
+    camera: &Camera,
+    sources: &[&PyramidSource],
+    inv_depths: &[f64],
+    (x0, y0): (usize, usize),
+    tile: usize,
+) -> Result<(Vec<f32>, Vec<f32>)> {
+    let inputs = tile_inputs(
+        backend.config(),
+        camera,
+        sources,
+        inv_depths,
+        (x0 as i64, y0 as i64),
+        (tile, tile),
+    )?;
+    let (c, mut s) = backend.run_layers(&inputs, inv_depths.len())?;
+    if let Some(prior) = backend.prior() {
+        prior.apply_tile(camera, inv_depths, (x0, y0), tile, &c, &mut s);
+    }
+    if c.iter().chain(&s).any(|v| !v.is_finite()) {
+        return Err(Error::Invalid(format!(
+            "the network produced non-finite values in the tile at ({x0}, {y0})"
+        )));
+    }
+    Ok((c, s))
 }
 
 #[cfg(test)]

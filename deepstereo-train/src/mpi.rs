@@ -8,7 +8,7 @@ use crate::inference::{
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::metrics::{psnr, ssim};
-use deepstereo_core::mpi::planned::bake_planned;
+use deepstereo_core::mpi::planned::layers_planned;
 use deepstereo_core::mpi::{bake, io, reference_camera, render_blend, viewer, with_margin, Mpi};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
@@ -39,7 +39,7 @@ pub fn bake_camera(
     let mut mpi = if settings.prune.is_on() {
         let sources = &sources[..k.min(sources.len())];
         let (inv, pruner) = plan_pruning(backend, scene, &camera, &srcs, sources, &inv, settings)?;
-        bake_planned(
+        let (colours, selection) = layers_planned(
             backend,
             &camera,
             &srcs,
@@ -47,7 +47,8 @@ pub fn bake_camera(
             settings.tile,
             &pruner,
             progress,
-        )?
+        )?;
+        Mpi::from_layers(camera, inv, &colours, &selection)?
     } else {
         bake(backend, &camera, &srcs, &inv, settings.tile, progress)?
     };

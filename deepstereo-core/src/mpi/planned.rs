@@ -5,10 +5,10 @@
 //! colours and selections), and the planes hold colour only near the depths the coarse
 //! pass finds surfaces at.
 
-use super::{Mpi, TileGrid};
+use super::{tile_layers, TileGrid};
 use crate::camera::Camera;
 use crate::error::{Error, Result};
-use crate::inputs::{tile_inputs, PyramidSource};
+use crate::inputs::PyramidSource;
 use crate::prune::{Block, Pruner, TilePlan};
 use crate::render::{empty_response, Backend};
 
@@ -114,23 +114,7 @@ fn run_block(
 ) -> Result<()> {
     let band: Vec<f64> = planes.iter().map(|&z| inv_depths[z]).collect();
     let (x0, y0, size) = (block.x0, block.y0, block.size);
-    let inputs = tile_inputs(
-        backend.config(),
-        camera,
-        sources,
-        &band,
-        (x0 as i64, y0 as i64),
-        (size, size),
-    )?;
-    let (c, mut s) = backend.run_layers(&inputs, band.len())?;
-    if let Some(prior) = backend.prior() {
-        prior.apply_tile(camera, &band, (x0, y0), size, &c, &mut s);
-    }
-    if c.iter().chain(&s).any(|v| !v.is_finite()) {
-        return Err(Error::Invalid(format!(
-            "the network produced non-finite values in the tile at ({x0}, {y0})"
-        )));
-    }
+    let (c, s) = tile_layers(backend, camera, sources, &band, (x0, y0), size)?;
     let tt = size * size;
     for (p, q) in out.pixels(block) {
         for (j, &z) in planes.iter().enumerate() {
@@ -143,20 +127,4 @@ fn run_block(
         }
     }
     Ok(())
-}
-
-/// [`super::bake`] with pruning's plan ([`layers_planned`]): the MPI of `camera` (a
-/// pinhole: [`super::reference_camera`]) whose planes are the pruned render's.
-pub fn bake_planned(
-    backend: &dyn Backend,
-    camera: &Camera,
-    sources: &[&PyramidSource],
-    inv_depths: &[f64],
-    tile: usize,
-    pruner: &Pruner<'_>,
-    progress: &dyn Fn(usize, usize),
-) -> Result<Mpi> {
-    let (colours, selection) =
-        layers_planned(backend, camera, sources, inv_depths, tile, pruner, progress)?;
-    Mpi::from_layers(*camera, inv_depths.to_vec(), &colours, &selection)
 }
