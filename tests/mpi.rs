@@ -161,7 +161,9 @@ fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
     let s = scene(tmp.path());
     let s = s.to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
-    let common = ["--planes", "8", "--prune", "off", "--tile", "32"];
+    let common = [
+        "--planes", "8", "--prune", "off", "--tile", "32", "--views", "4",
+    ];
     let mut args = vec!["mpi", "--scene", &s, "--target", "2", "--out"];
     let m = t("mpi");
     args.push(&m);
@@ -364,7 +366,9 @@ fn an_mpi_with_a_margin_is_larger_and_still_exact_at_its_reference() {
     let s = scene(tmp.path());
     let s = s.to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
-    let common = ["--planes", "8", "--prune", "off", "--tile", "32"];
+    let common = [
+        "--planes", "8", "--prune", "off", "--tile", "32", "--views", "4",
+    ];
     let m = t("mpi");
     let mut args = vec![
         "mpi", "--scene", &s, "--target", "2", "--margin", "8", "--out", &m,
@@ -412,6 +416,8 @@ fn a_pruned_mpi_is_the_pruned_render_at_its_reference_and_empty_off_its_surfaces
         &pose,
         "--planes",
         "24",
+        "--views",
+        "4",
         "--prune-max-step",
         "0",
         "--prune-keep",
@@ -474,5 +480,44 @@ fn a_pruned_mpi_is_the_pruned_render_at_its_reference_and_empty_off_its_surfaces
     );
     eprintln!(
         "pruning emptied {emptied} of the {filled} texels; at the reference {db:.1} dB, unpruned {db_off:.1} dB"
+    );
+}
+
+/// Without --views, an MPI of the embedded model (any number of views) is baked from 8
+/// sources, or as many as the scene offers: at a camera between the views of a 6-view
+/// scene (`mpi --pose`), from all 6, so it is `render --pose --views 6` there, not the
+/// 4-view render.
+#[test]
+fn an_mpi_is_baked_from_up_to_8_views_by_default() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let pose = pose_file(&s, 2, [0.05, 0.02, 0.0], &tmp.path().join("pose.json"));
+    let (s, pose) = (s.to_string_lossy(), pose.to_string_lossy());
+    let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
+    let common = [
+        "--scene", &s, "--pose", &pose, "--planes", "8", "--prune", "off",
+    ];
+    let image = |args: &[&str], out: &str| {
+        let mut a = args.to_vec();
+        a.extend(["--out", out]);
+        ok(&a);
+        load(&Path::new(out).join("image.png"))
+    };
+    let m = t("mpi");
+    ok(&[&["mpi", "--margin", "0", "--out", &m][..], &common].concat());
+    let via = image(
+        &["render", "--scene", &s, "--pose", &pose, "--mpi", &m],
+        &t("via"),
+    );
+    let net6 = image(
+        &[&["render", "--views", "6"][..], &common].concat(),
+        &t("net6"),
+    );
+    let net4 = image(&[&["render"][..], &common].concat(), &t("net4"));
+    let (db6, db4) = (psnr(&via, &net6), psnr(&via, &net4));
+    assert!(db6 >= 40.0, "MPI vs render --pose --views 6: {db6:.1} dB");
+    assert!(
+        db4 < db6 - 3.0,
+        "MPI vs the 4-view render: {db4:.1} dB, 6 views {db6:.1}"
     );
 }

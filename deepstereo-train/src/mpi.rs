@@ -7,6 +7,7 @@ use crate::inference::{
 };
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
+use deepstereo_core::config::Config;
 use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::mpi::planned::layers_planned;
 use deepstereo_core::mpi::{bake, io, reference_camera, render_blend, viewer, with_margin, Mpi};
@@ -54,6 +55,23 @@ pub fn bake_camera(
     };
     mpi.margin = margin;
     Ok(mpi)
+}
+
+/// Source views an MPI of the any-number-of-views family is baked from when `--views`
+/// is not given. An MPI is seen from cameras around its reference, and sources beyond
+/// the nearest four see what those cameras see: one MPI from 8 views is 0.6 dB better at
+/// held-out views than from the model's 4 (docs/results.md, "MPIs").
+pub const BAKE_VIEWS: usize = 8;
+
+/// The settings an MPI is baked with: `settings`, where `--views` was not given and the
+/// model takes any number of views, with [`BAKE_VIEWS`] sources, or as many as the
+/// scene offers (`available`) when fewer, but no fewer than the model's default.
+pub fn bake_settings(settings: &RenderSettings, cfg: &Config, available: usize) -> RenderSettings {
+    let mut s = settings.clone();
+    if s.views.is_none() && cfg.pool.is_some() {
+        s.views = Some(BAKE_VIEWS.min(available).max(cfg.views));
+    }
+    s
 }
 
 /// The sources of an MPI baked at view `reference`: `k` views that are not held out,
@@ -126,17 +144,19 @@ pub struct MpiViewResult {
     pub mpi_render_seconds: f64,
 }
 
-/// Every held-out view of `holdout` rendered by the network (as `eval` does) and through
-/// MPIs baked at its nearest views that are not held out.
+/// Every held-out view of `holdout` rendered by the network (as `eval` does, with
+/// `settings`) and through MPIs baked at its nearest views that are not held out (with
+/// `bake`: [`bake_settings`]).
 pub fn eval_through_mpi(
     backend: &dyn Backend,
     scene: &Scene,
     holdout: &[usize],
     opts: MpiEvalOptions,
-    settings: &RenderSettings,
+    (settings, bake): (&RenderSettings, &RenderSettings),
     mut on_view: impl FnMut(&MpiViewResult),
 ) -> Result<Vec<MpiViewResult>> {
     let k = settings.source_count(backend.config())?;
+    let kb = bake.source_count(backend.config())?;
     if opts.mpis == 0 || opts.mpis > viewer::MAX_MPIS {
         bail!("1 to {} MPIs per view, not {}", viewer::MAX_MPIS, opts.mpis);
     }
@@ -154,7 +174,7 @@ pub fn eval_through_mpi(
         let t0 = Instant::now();
         let mut mpis = Vec::new();
         for &r in &references {
-            let ref_srcs = reference_sources(scene, r, holdout, opts.own_photo, k, settings)?;
+            let ref_srcs = reference_sources(scene, r, holdout, opts.own_photo, kb, bake)?;
             let none = &|_, _| {};
             mpis.push(bake_camera(
                 backend,
@@ -162,7 +182,7 @@ pub fn eval_through_mpi(
                 &mut prepared,
                 (&scene.views[r].camera, opts.margin),
                 &ref_srcs,
-                settings,
+                bake,
                 none,
             )?);
         }

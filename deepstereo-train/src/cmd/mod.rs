@@ -60,7 +60,9 @@ pub enum Command {
     /// Fine-tune a model on one scene by leaving one view out; writes a model for --model.
     Tune(tune::Args),
     /// Bake multiplane images with the network, with a browser viewer (or --eval: held-out
-    /// views through them).
+    /// views through them). Without --views, models that take any number of views bake
+    /// from 8 sources (fewer where the scene has fewer), and --eval's network renders use
+    /// the model's own default.
     Mpi(mpi::Args),
 }
 

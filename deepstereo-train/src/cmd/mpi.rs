@@ -3,7 +3,7 @@
 
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::inference::{pick_sources, Prepared, RenderSettings};
-use crate::mpi::{bake_camera, eval_through_mpi, reference_sources, MpiEvalOptions};
+use crate::mpi::{bake_camera, bake_settings, eval_through_mpi, reference_sources, MpiEvalOptions};
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::Camera;
@@ -67,13 +67,17 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let settings = a.model.settings()?;
     let scene = a.scene.load()?;
     let n = scene.views.len();
     let holdout = a.holdout.list(n)?;
     let backend = a.model.backend()?;
+    let net = a.model.settings()?;
+    // The views that may be sources of a bake: neither held out nor, without its
+    // photograph, the reference.
+    let available = n.saturating_sub(holdout.len() + usize::from(a.exclude_own_photo));
+    let settings = bake_settings(&net, backend.config(), available);
     if a.eval {
-        return run_eval(&a, backend.as_ref(), &scene, &holdout, &settings);
+        return run_eval(&a, backend.as_ref(), &scene, &holdout, (&net, &settings));
     }
     let targets = bake_targets(&a, &scene, &holdout)?;
     let staged = StagedDir::new(&a.out)?;
@@ -185,7 +189,7 @@ fn run_eval(
     backend: &dyn Backend,
     scene: &Scene,
     holdout: &[usize],
-    settings: &RenderSettings,
+    (settings, bake): (&RenderSettings, &RenderSettings),
 ) -> Result<()> {
     if holdout.is_empty() {
         bail!("--eval needs held-out views: pass --llffhold N or --holdout I,J,...");
@@ -197,7 +201,7 @@ fn run_eval(
         own_photo: !a.exclude_own_photo,
         margin: a.margin,
     };
-    let per_view = eval_through_mpi(backend, scene, holdout, opts, settings, |r| {
+    let per_view = eval_through_mpi(backend, scene, holdout, opts, (settings, bake), |r| {
         eprintln!(
             "{:>4}  {:>10}  {:>10.2}  {:>6.2}  {:>17.2}  {:>9.2}  {:>6.2}  {:>5.3}",
             r.target,
@@ -233,6 +237,7 @@ fn run_eval(
         "model": a.model.name(),
         "planes": settings.planes.unwrap_or(backend.config().default_render_planes()),
         "views": settings.source_count(backend.config())?,
+        "bake_views": bake.source_count(backend.config())?,
         "own_photo": !a.exclude_own_photo,
         "margin": a.margin,
         "mpis_per_view": a.eval_mpis,
