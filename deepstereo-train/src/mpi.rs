@@ -138,7 +138,8 @@ pub struct MpiViewResult {
     pub mpi_vs_network_psnr: f64,
     /// The network's render of the held-out view.
     pub network_seconds: f64,
-    /// Baking the MPIs (the network at each reference camera, every plane kept).
+    /// Baking the MPIs (the network at each reference camera, pruned as `render` prunes it
+    /// unless `--prune off`).
     pub bake_seconds: f64,
     /// Rendering the held-out view from the baked MPIs on the CPU.
     pub mpi_render_seconds: f64,

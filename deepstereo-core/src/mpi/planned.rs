@@ -70,16 +70,22 @@ pub fn layers_planned(
         colours: vec![0f32; d * 3 * w * h],
         selection: vec![0f32; d * w * h],
     };
+    // The network's response to empty input, computed on the first block that needs it.
+    let mut empty: Option<([f32; 3], Vec<f32>)> = None;
     for i in 0..grid.len() {
         let (x0, y0) = grid.origin(i);
         for block in pruner.plan(x0, y0, grid.side) {
             match &block.plan {
                 TilePlan::Uncovered => {
-                    let (img, sel) = empty_response(backend, d)?;
-                    let rgb = [img[0], img[1], img[2]];
-                    for (p, _) in out.pixels(&block) {
-                        for (z, &s) in sel.iter().enumerate() {
-                            out.set(z, p, rgb, s);
+                    if empty.is_none() {
+                        let (img, sel) = empty_response(backend, d)?;
+                        empty = Some(([img[0], img[1], img[2]], sel));
+                    }
+                    if let Some((rgb, sel)) = &empty {
+                        for (p, _) in out.pixels(&block) {
+                            for (z, &s) in sel.iter().enumerate() {
+                                out.set(z, p, *rgb, s);
+                            }
                         }
                     }
                 }
