@@ -48,7 +48,8 @@ print("|---|---|" + "---|" * len(tags) + "---|---|")
 for n in names:
     j = {t: json.loads((out / f"{n}.{t}/eval.json").read_text()) for t, _ in tags if (out / f"{n}.{t}/eval.json").exists()}
     if not j: continue
-    m = next(iter(j.values()))["mean"]
+    first = next(iter(j.values()))
+    m = first["mean"]
     row = [n, f"{m['network_psnr']:.2f} / {m['network_ssim']:.3f}, {m['network_seconds']:.2f}"]
     for t, _ in tags:
         if t in j:
@@ -59,7 +60,7 @@ for n in names:
     f1 = j["other1"]["mean"]["mpi_render_seconds"] if "other1" in j else float("nan")
     f3 = j["other3"]["mean"]["mpi_render_seconds"] if "other3" in j else float("nan")
     row.append(f"{f1:.3f} / {f3:.3f}")
-    row.append(f"{m['bake_seconds']:.2f}")
+    row.append(f"{m['bake_seconds'] / first['mpis_per_view']:.2f}")
     print("| " + " | ".join(row) + " |")
 PY
 # Speed: a spiral camera path on juicebox through the network and through one and three
