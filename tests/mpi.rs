@@ -24,6 +24,14 @@ fn load(path: &Path) -> RgbImage {
     RgbImage::load(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
+/// The `image.png` a `render` command line (`args`, without `--out`) writes into `out`.
+fn image(args: &[&str], out: &str) -> RgbImage {
+    let mut a = args.to_vec();
+    a.extend(["--out", out]);
+    ok(&a);
+    load(&Path::new(out).join("image.png"))
+}
+
 /// View `view` of `inspect --json` as a camera file, its centre moved by `offset` in its
 /// own axes (`t' = t - offset`).
 fn pose_file(scene: &Path, view: usize, offset: [f64; 3], out: &Path) -> PathBuf {
@@ -425,12 +433,6 @@ fn a_pruned_mpi_is_the_pruned_render_at_its_reference_and_empty_off_its_surfaces
         "--prune-margin",
         "0",
     ];
-    let image = |args: &[&str], out: &str| {
-        let mut a = args.to_vec();
-        a.extend(["--out", out]);
-        ok(&a);
-        load(&Path::new(out).join("image.png"))
-    };
     let (m, off) = (t("mpi"), t("mpi_off"));
     for (out, prune) in [(&m, "auto"), (&off, "off")] {
         let mut args = vec!["mpi", "--margin", "0", "--prune", prune, "--out", out];
@@ -497,12 +499,6 @@ fn an_mpi_is_baked_from_up_to_8_views_by_default() {
     let common = [
         "--scene", &s, "--pose", &pose, "--planes", "8", "--prune", "off",
     ];
-    let image = |args: &[&str], out: &str| {
-        let mut a = args.to_vec();
-        a.extend(["--out", out]);
-        ok(&a);
-        load(&Path::new(out).join("image.png"))
-    };
     let m = t("mpi");
     ok(&[&["mpi", "--margin", "0", "--out", &m][..], &common].concat());
     let via = image(

@@ -38,7 +38,8 @@ pub fn bake_camera(
     // The margin is added to the pinhole at the mid-readout pose (its height decides it).
     let camera = with_margin(&reference_camera(camera), margin);
     let mut mpi = if settings.prune.is_on() {
-        let sources = &sources[..k.min(sources.len())];
+        // source_inputs refused fewer than k sources.
+        let sources = &sources[..k];
         let (inv, pruner) = plan_pruning(backend, scene, &camera, &srcs, sources, &inv, settings)?;
         let (colours, selection) = layers_planned(
             backend,

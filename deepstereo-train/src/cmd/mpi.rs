@@ -73,8 +73,9 @@ pub fn run(a: Args) -> Result<()> {
     let backend = a.model.backend()?;
     let net = a.model.settings()?;
     // The views that may be sources of a bake: neither held out nor, without its
-    // photograph, the reference.
-    let available = n.saturating_sub(holdout.len() + usize::from(a.exclude_own_photo));
+    // photograph, the reference view (a --pose camera is none).
+    let own_left_out = a.exclude_own_photo && a.pose.is_none();
+    let available = n.saturating_sub(holdout.len() + usize::from(own_left_out));
     let settings = bake_settings(&net, backend.config(), available);
     if a.eval {
         return run_eval(&a, backend.as_ref(), &scene, &holdout, (&net, &settings));
