@@ -214,6 +214,64 @@ fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
     assert!(db >= 30.0, "viewer moved vs render --mpi: {db:.1} dB");
     assert!(psnr(&cpu, &via_img) < db, "the move changed nothing");
     eprintln!("viewer moved: {db:.1} dB");
+
+    // An MPI without a margin, seen from a camera turned beyond its image: the rays it does
+    // not cover are filled from those around them, the same on the CPU and in the viewer.
+    let m0 = t("mpi0");
+    let mut args = vec![
+        "mpi", "--scene", &s, "--target", "2", "--margin", "0", "--out", &m0,
+    ];
+    args.extend(common);
+    ok(&args);
+    let (yaw, pitch) = (0.3, -0.1);
+    let mpi0 = io::read_dir(Path::new(&m0))
+        .expect("read the MPI")
+        .remove(0);
+    let mut cam = mpi0.camera;
+    let centre = cam.pose.centre();
+    cam.pose.rotation =
+        glam::DMat3::from_rotation_x(pitch) * glam::DMat3::from_rotation_y(yaw) * cam.pose.rotation;
+    cam.pose.translation = -(cam.pose.rotation * centre);
+    let (_, alpha) = mpi0.render(&cam);
+    let holes = alpha.iter().filter(|&&a| a <= 0.0).count();
+    assert!(
+        holes > alpha.len() / 20,
+        "only {holes} pixels uncovered: turn farther"
+    );
+    let pose = tmp.path().join("turned.json");
+    let res = ok(&["inspect", "--scene", &t("scenes/scene_0000"), "--json"]);
+    let all: serde_json::Value = serde_json::from_str(&res.stdout).expect("inspect JSON");
+    let mut json = all["views"][2].clone();
+    json["R"] = serde_json::json!(cam.pose.rotation.transpose().to_cols_array());
+    json["t"] = serde_json::json!(cam.pose.translation.to_array());
+    std::fs::write(&pose, json.to_string()).expect("write pose");
+    let cpu = image(
+        &[
+            "render",
+            "--scene",
+            &s,
+            "--mpi",
+            &m0,
+            "--pose",
+            &pose.to_string_lossy(),
+        ],
+        &t("turned_cpu"),
+    );
+    let dark = (cpu.data.chunks(3))
+        .filter(|p| p.iter().all(|&v| v < 1.0 / 255.0))
+        .count();
+    assert_eq!(dark, 0, "{dark} black pixels where {holes} were uncovered");
+    let page = format!("file://{m0}/index.html?fit=native&look={yaw},{pitch}");
+    let shot = screenshot(&page, tmp.path(), "turned").expect("chromium ran before");
+    let db = psnr(&shot, &cpu);
+    assert!(
+        db >= 30.0,
+        "viewer beyond the MPI vs render --mpi: {db:.1} dB"
+    );
+    eprintln!(
+        "viewer turned beyond the MPI ({holes} of {} pixels filled): {db:.1} dB",
+        alpha.len()
+    );
 }
 
 #[test]

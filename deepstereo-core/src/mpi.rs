@@ -24,6 +24,7 @@ use crate::render::Backend;
 use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 
+pub mod fill;
 pub mod io;
 pub mod planned;
 pub mod viewer;
@@ -490,7 +491,9 @@ pub const MARGIN_BLEND_WEIGHT: f64 = 0.25;
 /// `delta` [`MARGIN_BLEND_WEIGHT`]. A margin is the network's extrapolation: where a
 /// farther MPI photographed what a nearer one's margin shows, the farther one counts
 /// `(1 + delta) / delta` times as much at equal distance.
-/// Without margins `C' = C`, LLFF's blend. Black where no MPI covers the ray.
+/// Without margins `C' = C`, LLFF's blend. Where no MPI covers the ray (a camera moved
+/// beyond their images), the colour is filled from the covered pixels around it
+/// ([`fill::fill_holes`]).
 pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
     let centre = camera.pose.centre();
     let dists: Vec<f64> = (mpis.iter())
@@ -533,6 +536,10 @@ pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
             }
         }
     });
+    let covered: Vec<bool> = (0..w * h)
+        .map(|p| renders.iter().any(|(_, a, _)| a[p] > 0.0))
+        .collect();
+    fill::fill_holes(&mut img, &covered);
     img
 }
 
