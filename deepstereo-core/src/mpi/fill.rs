@@ -1,5 +1,5 @@
-//! Rays that no MPI plane covers (a camera moved beyond the MPI's image sees past its
-//! edges) filled from the covered pixels around them, as a GPU does with a mipmap: the
+//! Rays that no MPI plane covers (a camera turned or moved beyond the MPI's image sees
+//! past its edges) filled from the covered pixels around them, as a GPU does with a mipmap: the
 //! image premultiplied by its coverage (1 covered, 0 not) is halved level by level, each
 //! pixel the mean of its (up to) 2x2 children; a hole takes `P / A` of the finest level
 //! whose premultiplied colour `P` and coverage `A`, sampled bilinearly at the hole's
@@ -78,7 +78,8 @@ impl Level {
 }
 
 /// Fills the pixels of `img` where `covered` is false from the covered ones (see the
-/// module); unchanged when every pixel or none is covered.
+/// module); unchanged when every pixel or none is covered (or `covered` is not one flag
+/// per pixel).
 pub fn fill_holes(img: &mut RgbImage, covered: &[bool]) {
     let (w, h) = (img.width as usize, img.height as usize);
     if covered.len() != w * h || covered.iter().all(|&c| c) || !covered.iter().any(|&c| c) {
