@@ -17,6 +17,11 @@ use std::process::Command;
 const W: u32 = 64;
 const H: u32 = 48;
 
+/// The model options of the MPIs the tests bake and of the renders they are checked against.
+const COMMON: [&str; 8] = [
+    "--planes", "8", "--prune", "off", "--tile", "32", "--views", "4",
+];
+
 fn scene(dir: &Path) -> PathBuf {
     synth_scene(dir, (W as usize, H as usize), 6, 11, &["--rig", "forward"])
 }
@@ -33,18 +38,30 @@ fn image(args: &[&str], out: &str) -> RgbImage {
     load(&Path::new(out).join("image.png"))
 }
 
-/// View `view` of `inspect --json` as a camera file, its centre moved by `offset` in its
-/// own axes (`t' = t - offset`).
-fn pose_file(scene: &Path, view: usize, offset: [f64; 3], out: &Path) -> PathBuf {
+/// View `view` of `inspect --json` as a camera file, changed by `edit`.
+fn edited_pose(
+    scene: &Path,
+    view: usize,
+    out: &Path,
+    edit: impl FnOnce(&mut serde_json::Value),
+) -> PathBuf {
     let res = ok(&["inspect", "--scene", &scene.to_string_lossy(), "--json"]);
     let all: serde_json::Value = serde_json::from_str(&res.stdout).expect("inspect JSON");
     let mut cam = all["views"][view].clone();
-    for (i, o) in offset.iter().enumerate() {
-        let t = cam["t"][i].as_f64().expect("t");
-        cam["t"][i] = serde_json::json!(t - o);
-    }
+    edit(&mut cam);
     std::fs::write(out, cam.to_string()).expect("write pose");
     out.to_path_buf()
+}
+
+/// View `view` of `inspect --json` as a camera file, its centre moved by `offset` in its
+/// own axes (`t' = t - offset`).
+fn pose_file(scene: &Path, view: usize, offset: [f64; 3], out: &Path) -> PathBuf {
+    edited_pose(scene, view, out, |cam| {
+        for (i, o) in offset.iter().enumerate() {
+            let t = cam["t"][i].as_f64().expect("t");
+            cam["t"][i] = serde_json::json!(t - o);
+        }
+    })
 }
 
 /// The first frame of `page` (a file URL with its query; `capture=1` is added) in
@@ -170,9 +187,7 @@ fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
     let s = scene(tmp.path());
     let s = s.to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
-    let common = [
-        "--planes", "8", "--prune", "off", "--tile", "32", "--views", "4",
-    ];
+    let common = COMMON;
     let mut args = vec!["mpi", "--scene", &s, "--target", "2", "--out"];
     let m = t("mpi");
     args.push(&m);
@@ -226,9 +241,7 @@ fn rays_no_mpi_covers_are_filled_alike_on_the_cpu_and_in_the_viewer() {
     let s = scene(tmp.path());
     let s = s.to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
-    let common = [
-        "--planes", "8", "--prune", "off", "--tile", "32", "--views", "4",
-    ];
+    let common = COMMON;
     let m0 = t("mpi0");
     let mut args = vec![
         "mpi", "--scene", &s, "--target", "2", "--margin", "0", "--out", &m0,
@@ -250,13 +263,11 @@ fn rays_no_mpi_covers_are_filled_alike_on_the_cpu_and_in_the_viewer() {
         holes > alpha.len() / 20,
         "only {holes} pixels uncovered: turn farther"
     );
-    let pose = tmp.path().join("turned.json");
-    let res = ok(&["inspect", "--scene", &t("scenes/scene_0000"), "--json"]);
-    let all: serde_json::Value = serde_json::from_str(&res.stdout).expect("inspect JSON");
-    let mut json = all["views"][2].clone();
-    json["R"] = serde_json::json!(cam.pose.rotation.transpose().to_cols_array());
-    json["t"] = serde_json::json!(cam.pose.translation.to_array());
-    std::fs::write(&pose, json.to_string()).expect("write pose");
+    let scene0 = tmp.path().join("scenes/scene_0000");
+    let pose = edited_pose(&scene0, 2, &tmp.path().join("turned.json"), |json| {
+        json["R"] = serde_json::json!(cam.pose.rotation.transpose().to_cols_array());
+        json["t"] = serde_json::json!(cam.pose.translation.to_array());
+    });
     let cpu = image(
         &[
             "render",
@@ -446,9 +457,7 @@ fn an_mpi_with_a_margin_is_larger_and_still_exact_at_its_reference() {
     let s = scene(tmp.path());
     let s = s.to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
-    let common = [
-        "--planes", "8", "--prune", "off", "--tile", "32", "--views", "4",
-    ];
+    let common = COMMON;
     let m = t("mpi");
     let mut args = vec![
         "mpi", "--scene", &s, "--target", "2", "--margin", "8", "--out", &m,
