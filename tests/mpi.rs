@@ -3,7 +3,8 @@
 //! viewer in headless Chromium shows it pixel for pixel at `?fit=native` (>= 30 dB; the
 //! default margin of 64 pixels around the view left out), and
 //! moved (`?offset=`) as `render --mpi` does on the CPU; rays an MPI does not cover are
-//! filled alike on the CPU and in the viewer; several MPIs render a path and
+//! filled alike on the CPU and in the viewer; an MPI's planes lie over the depths its
+//! reference camera sees (`--plane-span view`); several MPIs render a path and
 //! a video, and the viewer blends them as `render --mpi` does; bad input is refused with
 //! nothing written.
 
@@ -596,5 +597,125 @@ fn an_mpi_is_baked_from_up_to_8_views_by_default() {
     assert!(
         db4 < db6 - 3.0,
         "MPI vs the 4-view render: {db4:.1} dB, 6 views {db6:.1}"
+    );
+}
+
+/// An MPI's planes lie over the depths its reference camera sees (`--plane-span view`,
+/// the default of `mpi`): in a COLMAP copy of a generated scene whose sparse points lie
+/// at depths 2.4-2.8 in front of view 2, read with the generated scene's wider near and
+/// far, the 8 planes are evenly spaced in inverse depth over those points' range (widened
+/// as pruning widens it), not over the scene's; its composite is `render --pose
+/// --plane-span view` there (>= 40 dB), not the scene's planes' render; and
+/// `--plane-span scene` bakes the scene's planes.
+#[test]
+fn an_mpi_spreads_its_planes_over_the_depths_its_view_sees() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let synth = scene(tmp.path());
+    let loaded = deepstereo_core::scene::Scene::load(&synth, &Default::default()).expect("scene");
+    let (near, far) = (loaded.near, loaded.far);
+    assert!(
+        near < 2.0 && far > 4.0,
+        "the generated scene spans {near}-{far}"
+    );
+    let cams: Vec<NamedCamera> = (loaded.views.iter())
+        .map(|v| NamedCamera {
+            name: v.name.clone(),
+            camera: v.camera,
+        })
+        .collect();
+    // Points on a 7x7 grid of view 2's rays (the middle half of its image, in view from
+    // the camera beside it too), at depths 2.4 to 2.8.
+    let c2 = loaded.views[2].camera;
+    let to_world = c2.pose.inverse();
+    let points: Vec<glam::DVec3> = (0..49)
+        .map(|i| {
+            let uv = glam::DVec2::new(
+                (0.25 + 0.5 * (i % 7) as f64 / 6.0) * W as f64,
+                (0.25 + 0.5 * (i / 7) as f64 / 6.0) * H as f64,
+            );
+            let n = c2.intrinsics.unproject_pixel(uv);
+            let z = 2.4 + 0.4 * i as f64 / 48.0;
+            to_world.rotation * glam::DVec3::new(n.x * z, n.y * z, z) + to_world.translation
+        })
+        .collect();
+    let colmap = tmp.path().join("colmap");
+    write_colmap_text(&colmap, &cams, &["PINHOLE"], &points);
+    for v in &loaded.views {
+        std::fs::copy(&v.image_path, colmap.join("images").join(&v.name)).expect("copy image");
+    }
+    let pose = pose_file(&synth, 2, [0.05, 0.02, 0.0], &tmp.path().join("pose.json"));
+    let (s, pose) = (colmap.to_string_lossy(), pose.to_string_lossy());
+    let (n, f) = (near.to_string(), far.to_string());
+    let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
+    let scene_args = [
+        "--scene", &s, "--format", "colmap", "--near", &n, "--far", &f, "--pose", &pose,
+    ];
+    let common = [&scene_args[..], &COMMON[..]].concat();
+    let (m, m_scene) = (t("mpi"), t("mpi_scene"));
+    ok(&[&["mpi", "--margin", "0", "--out", &m][..], &common].concat());
+    let span = ["--plane-span", "scene"];
+    ok(&[
+        &["mpi", "--margin", "0", "--out", &m_scene][..],
+        &common,
+        &span,
+    ]
+    .concat());
+
+    let inv = io::read(Path::new(&m)).expect("read the MPI").inv_depths;
+    let whole = deepstereo_core::geometry::inverse_depths(near, far, 8);
+    let read_scene = io::read(Path::new(&m_scene)).expect("read the MPI");
+    assert!(read_scene
+        .inv_depths
+        .iter()
+        .zip(&whole)
+        .all(|(a, b)| (a - b).abs() < 1e-9));
+    let step = (inv[0] - inv[7]) / 7.0;
+    assert!(
+        inv.windows(2).all(|w| ((w[0] - w[1]) - step).abs() < 1e-9),
+        "{inv:?}"
+    );
+    // Within the scene's planes, around the points' 2.4-2.8 widened by 10%, at most the
+    // scene grid's plane beyond each side, and less than half the scene's span.
+    let grid = whole[0] - whole[1];
+    let (lo, hi) = (1.0 / (2.8 * 1.1), 1.0 / (2.4 * 0.9));
+    assert!(
+        inv[0] <= whole[0] && inv[7] >= whole[7],
+        "{inv:?} in {whole:?}"
+    );
+    assert!(
+        inv[0] >= hi && inv[0] <= hi + grid + 1e-9,
+        "{inv:?} in {whole:?}"
+    );
+    assert!(
+        inv[7] <= lo && inv[7] >= lo - grid - 1e-9,
+        "{inv:?} in {whole:?}"
+    );
+    assert!(
+        inv[0] - inv[7] < 0.5 * (whole[0] - whole[7]),
+        "{inv:?} in {whole:?}"
+    );
+
+    let via = image(
+        &[
+            "render", "--scene", &s, "--format", "colmap", "--pose", &pose, "--mpi", &m,
+        ],
+        &t("via"),
+    );
+    let net = image(
+        &[&["render", "--plane-span", "view"][..], &common].concat(),
+        &t("net"),
+    );
+    let net_scene = image(&[&["render"][..], &common].concat(), &t("net_scene"));
+    let (db, db_scene) = (psnr(&via, &net), psnr(&via, &net_scene));
+    assert!(
+        db >= 40.0,
+        "MPI vs render --pose --plane-span view: {db:.1} dB"
+    );
+    assert!(
+        db_scene < db - 3.0,
+        "MPI vs the scene's planes' render: {db_scene:.1} dB, the view's {db:.1}"
+    );
+    eprintln!(
+        "planes {inv:?}; at the reference {db:.1} dB, against the scene's planes {db_scene:.1}"
     );
 }

@@ -11,7 +11,7 @@ use deepstereo_core::inputs::PyramidSource;
 use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::prune::{
     guide_planes, max_plane_step, network_guide, plane_range_from_bounds, plane_range_from_points,
-    rank_views, thin_planes, CoarsePass, PruneOptions, PruneStats, Pruner,
+    rank_views, span_planes, thin_planes, CoarsePass, PruneOptions, PruneStats, Pruner,
 };
 use deepstereo_core::render::{render_view, render_view_pruned, Backend, Rendered};
 use deepstereo_core::scene::{nearest_to_point, Scene};
@@ -36,6 +36,22 @@ pub struct RenderSettings {
     pub tile: usize,
     /// What to leave out (`deepstereo_core::prune`).
     pub prune: PruneOptions,
+    /// Where the planes lie (`None`: the command's default, [`PlaneSpan::Scene`] but for
+    /// `mpi`'s bakes).
+    pub span: Option<PlaneSpan>,
+}
+
+/// Where a render's planes lie, uniform in inverse depth either way.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PlaneSpan {
+    /// Between the scene's near and far.
+    Scene,
+    /// As many planes over the depths the camera sees: between the nearest and farthest
+    /// of the scene's sparse points in its view (or its sources' per-view bounds), widened
+    /// as pruning widens that range, so every plane samples depths the view holds. The
+    /// scene's planes where neither says anything.
+    View,
 }
 
 impl RenderSettings {
@@ -166,6 +182,7 @@ pub fn render_camera(
     let k = settings.source_count(&cfg)?;
     let (srcs, requested) = source_inputs(&cfg, scene, prepared, sources, settings)?;
     let sources = &sources[..k];
+    let requested = spanned_planes(scene, target, sources, requested, settings.span);
     if !settings.prune.is_on() {
         let r = render_view(backend, target, &srcs, &requested, settings.tile, progress)?;
         return Ok((r, requested));
@@ -211,9 +228,7 @@ pub fn plan_pruning<'a>(
         .into_iter()
         .map(|z| requested[z])
         .collect();
-    let bounds: Vec<Option<(f64, f64)>> = sources.iter().map(|&i| scene.views[i].bounds).collect();
-    let range = plane_range_from_points(target, &scene.points, &inv)
-        .or_else(|| plane_range_from_bounds(&bounds, &inv));
+    let range = camera_plane_range(scene, target, sources, &inv);
     let mut pruner = Pruner::new(cfg, target, srcs, &inv, range, &settings.prune);
     if settings.prune.coarse == CoarsePass::Network {
         let t0 = Instant::now();
@@ -233,6 +248,39 @@ pub fn plan_pruning<'a>(
         }
     }
     Ok((inv, pruner))
+}
+
+/// The planes of `inv` (`first..=last`) that `target` can need: those the scene's sparse
+/// points in its view need, or else those the per-view bounds of the scene's views
+/// `sources` allow (`deepstereo_core::prune::range`); `None` when neither says.
+pub fn camera_plane_range(
+    scene: &Scene,
+    target: &Camera,
+    sources: &[usize],
+    inv: &[f64],
+) -> Option<(usize, usize)> {
+    let bounds: Vec<Option<(f64, f64)>> = sources.iter().map(|&i| scene.views[i].bounds).collect();
+    plane_range_from_points(target, &scene.points, inv)
+        .or_else(|| plane_range_from_bounds(&bounds, inv))
+}
+
+/// The planes to render `target` at from the scene's views `sources`: `requested` (the
+/// scene's), or with [`PlaneSpan::View`] as many spread over the range of them
+/// [`camera_plane_range`] gives ([`span_planes`]).
+pub fn spanned_planes(
+    scene: &Scene,
+    target: &Camera,
+    sources: &[usize],
+    requested: Vec<f64>,
+    span: Option<PlaneSpan>,
+) -> Vec<f64> {
+    match span {
+        Some(PlaneSpan::View) => match camera_plane_range(scene, target, sources, &requested) {
+            Some(range) => span_planes(&requested, range),
+            None => requested,
+        },
+        Some(PlaneSpan::Scene) | None => requested,
+    }
 }
 
 /// What a held-out view's evaluation produced, for callers that save pictures.

@@ -35,6 +35,7 @@ pub fn tiny_case(
         views: None,
         tile,
         prune: PruneOptions::default(),
+        span: None,
     };
     Ok((scene, cfg, backend, settings))
 }

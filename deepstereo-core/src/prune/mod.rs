@@ -83,8 +83,9 @@ mod views;
 pub use guide::{guide_planes, needed_prefix, network_guide, Guide, COLOUR_MIN_MASS};
 pub use plan::{Block, Pruner, TilePlan};
 pub use range::{
-    max_plane_step, plane_range_from_bounds, plane_range_from_points, thin_floor, thin_planes,
-    BOUNDS_MARGIN, FINE_STEP, MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES, SUBPIXEL_STEP,
+    max_plane_step, plane_range_from_bounds, plane_range_from_points, span_planes, thin_floor,
+    thin_planes, BOUNDS_MARGIN, FINE_STEP, MIN_CLOUD_POINTS, POINT_MARGIN, POINT_QUANTILES,
+    SUBPIXEL_STEP,
 };
 pub use views::{rank_views, view_coverage, ViewRank, MIN_VIEW_COVERAGE};
 

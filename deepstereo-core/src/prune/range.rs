@@ -114,6 +114,28 @@ fn planes_between(near: f64, far: f64, inv_depths: &[f64]) -> Option<(usize, usi
     (first <= last).then_some((first, last))
 }
 
+/// As many planes as `inv_depths` (which decrease) spread uniformly in inverse depth over
+/// `first..=last` of them, from `inv_depths[first]` to `inv_depths[last]`: the planes of a
+/// range from [`plane_range_from_points`] or [`plane_range_from_bounds`] resampled as
+/// finely as the whole grid was, so the depths a camera sees get every plane. With
+/// `D = inv_depths.len() >= 2`, plane `i` is
+/// `rho_i = rho_first + (rho_last - rho_first) i / (D - 1)`; one plane, or a range that
+/// is not one (`first > last`, out of bounds), leaves `inv_depths` as they are.
+pub fn span_planes(inv_depths: &[f64], (first, last): (usize, usize)) -> Vec<f64> {
+    let d = inv_depths.len();
+    if d < 2 || first > last || last >= d {
+        return inv_depths.to_vec();
+    }
+    let (a, b) = (inv_depths[first], inv_depths[last]);
+    (0..d)
+        .map(|i| match i {
+            0 => a,
+            i if i == d - 1 => b,
+            i => a + (b - a) * i as f64 / (d - 1) as f64,
+        })
+        .collect()
+}
+
 /// Target pixels sampled per image side when measuring plane steps.
 const STEP_SAMPLES: usize = 5;
 

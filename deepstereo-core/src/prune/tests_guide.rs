@@ -249,3 +249,32 @@ fn prune_needed_prefix_is_the_shortest_within_the_colour_bound() {
         }
     }
 }
+
+#[test]
+fn prune_span_planes_spreads_the_grid_over_a_range() {
+    let inv = inverse_depths(1.0, 10.0, 32);
+    let (first, last) = (18, 30);
+    let s = span_planes(&inv, (first, last));
+    assert_eq!(s.len(), 32);
+    // The range's ends exactly, and equal steps in inverse depth between them, nearest
+    // first: 12 steps of the old grid become 31.
+    assert_eq!((s[0], s[31]), (inv[first], inv[last]));
+    let step = (inv[last] - inv[first]) / 31.0;
+    for (i, w) in s.windows(2).enumerate() {
+        assert!(
+            ((w[1] - w[0]) - step).abs() < 1e-12,
+            "step {i}: {}",
+            w[1] - w[0]
+        );
+    }
+    assert!((inv[first] - inv[last]) / (s[0] - s[1]) > 31.0 - 1e-9);
+    // A plane at infinity stays the far end.
+    let inf = inverse_depths(2.0, f64::INFINITY, 8);
+    assert_eq!(span_planes(&inf, (3, 7))[7], 0.0);
+    // The whole grid is itself; no range, or one plane, changes nothing.
+    let whole = span_planes(&inv, (0, 31));
+    assert!(whole.iter().zip(&inv).all(|(a, b)| (a - b).abs() < 1e-15));
+    assert_eq!(span_planes(&inv, (5, 4)), inv);
+    assert_eq!(span_planes(&inv, (5, 32)), inv);
+    assert_eq!(span_planes(&[0.5], (0, 0)), vec![0.5]);
+}

@@ -2,7 +2,7 @@
 //! with `--eval`, held-out views seen through MPIs beside the network's own renders.
 
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
-use crate::inference::{pick_sources, Prepared, RenderSettings};
+use crate::inference::{pick_sources, PlaneSpan, Prepared, RenderSettings};
 use crate::mpi::{bake_camera, bake_settings, eval_through_mpi, reference_sources, MpiEvalOptions};
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
@@ -114,11 +114,14 @@ pub fn run(a: Args) -> Result<()> {
             format!("mpi_{i:02}")
         };
         io::write(&mpi, &staged.path().join(&name))?;
+        let depth = |r: Option<&f64>| r.map_or(f64::NAN, |&r| 1.0 / r);
         eprintln!(
-            "baked {}x{}, {} planes, in {:.2} s from views {srcs:?} into {}",
+            "baked {}x{}, {} planes at depths {:.4}-{:.4}, in {:.2} s from views {srcs:?} into {}",
             mpi.width(),
             mpi.height(),
             mpi.planes().len(),
+            depth(mpi.inv_depths.first()),
+            depth(mpi.inv_depths.last()),
             t0.elapsed().as_secs_f64(),
             a.out.join(&name).display()
         );
@@ -239,6 +242,8 @@ fn run_eval(
         "planes": settings.planes.unwrap_or(backend.config().default_render_planes()),
         "views": settings.source_count(backend.config())?,
         "bake_views": bake.source_count(backend.config())?,
+        "plane_span": settings.span.unwrap_or(PlaneSpan::Scene),
+        "bake_plane_span": bake.span.unwrap_or(PlaneSpan::Scene),
         "own_photo": !a.exclude_own_photo,
         "margin": a.margin,
         "mpis_per_view": a.eval_mpis,

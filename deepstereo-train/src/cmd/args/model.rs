@@ -1,6 +1,6 @@
 //! Options shared by the commands that run a model: `render`, `eval`, `report`, `demo`.
 
-use crate::inference::{BackendKind, RenderSettings};
+use crate::inference::{BackendKind, PlaneSpan, RenderSettings};
 use anyhow::{bail, Result};
 use deepstereo_core::prune::{
     CoarsePass, PruneMode, PruneOptions, DEFAULT_ERROR, DEFAULT_GUIDE_LEVEL, DEFAULT_KEEP,
@@ -77,6 +77,13 @@ pub struct ModelArgs {
     /// photo-consistency cost is averaged over.
     #[arg(long, default_value_t = DEFAULT_WINDOW)]
     pub prune_window: usize,
+    /// Where the planes lie, uniform in inverse depth: `scene` between the scene's near and
+    /// far; `view` as many over the depths the camera sees (the nearest to the farthest of
+    /// the scene's sparse points in its view, or its sources' per-view bounds, widened by
+    /// 10% and a plane), finer where a scene's bounds are wide. Default: `scene`, and
+    /// `view` for `mpi`'s bakes.
+    #[arg(long, value_enum)]
+    pub plane_span: Option<PlaneSpan>,
     /// Runtime for the network: candle, or ort (onnxruntime on the exported model).
     #[arg(long, value_enum, default_value_t = BackendKind::Candle)]
     pub backend: BackendKind,
@@ -109,6 +116,7 @@ impl ModelArgs {
             views: self.views,
             tile: self.tile,
             prune,
+            span: self.plane_span,
         })
     }
 
