@@ -69,9 +69,9 @@ pub const BAKE_VIEWS: usize = 8;
 /// Where an MPI's planes lie when `--plane-span` is not given: over the depths its
 /// reference camera sees. Seen from elsewhere, an MPI shows a surface between two planes
 /// as a blend of both, shifted apart by their disparity; planes beyond what the camera
-/// sees hold nothing, so spreading them all over its depths (in a sparse capture,
-/// juicebox, 13 of 32 planes become 32) brings one MPI 0.2-0.8 dB closer to the
-/// held-out views at the same frame time (docs/results.md, "MPIs").
+/// sees hold nothing, so spreading them all over its depths (on juicebox 10 to 19 of the
+/// scene's 32 planes lie there for most views) brings one MPI up to 0.8 dB closer to the
+/// held-out views at the same frame time, for a longer bake (docs/results.md, "MPIs").
 pub const BAKE_SPAN: PlaneSpan = PlaneSpan::View;
 
 /// The settings an MPI is baked with: `settings`, where `--views` was not given and the
