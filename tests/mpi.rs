@@ -600,6 +600,38 @@ fn an_mpi_is_baked_from_up_to_8_views_by_default() {
     );
 }
 
+/// A COLMAP text copy of the generated scene `synth` in `out` (the same cameras and
+/// images) with 49 sparse points on a 7x7 grid of view `view`'s rays (the middle half of
+/// its image, so that a camera beside it sees them too) at depths `z0` to `z1`; and the
+/// generated scene's near and far.
+fn colmap_with_points(synth: &Path, out: &Path, view: usize, (z0, z1): (f64, f64)) -> (f64, f64) {
+    let loaded = deepstereo_core::scene::Scene::load(synth, &Default::default()).expect("scene");
+    let cams: Vec<NamedCamera> = (loaded.views.iter())
+        .map(|v| NamedCamera {
+            name: v.name.clone(),
+            camera: v.camera,
+        })
+        .collect();
+    let c = loaded.views[view].camera;
+    let to_world = c.pose.inverse();
+    let points: Vec<glam::DVec3> = (0..49)
+        .map(|i| {
+            let uv = glam::DVec2::new(
+                (0.25 + 0.5 * (i % 7) as f64 / 6.0) * W as f64,
+                (0.25 + 0.5 * (i / 7) as f64 / 6.0) * H as f64,
+            );
+            let n = c.intrinsics.unproject_pixel(uv);
+            let z = z0 + (z1 - z0) * i as f64 / 48.0;
+            to_world.rotation * glam::DVec3::new(n.x * z, n.y * z, z) + to_world.translation
+        })
+        .collect();
+    write_colmap_text(out, &cams, &["PINHOLE"], &points);
+    for v in &loaded.views {
+        std::fs::copy(&v.image_path, out.join("images").join(&v.name)).expect("copy image");
+    }
+    (loaded.near, loaded.far)
+}
+
 /// An MPI's planes lie over the depths its reference camera sees (`--plane-span view`,
 /// the default of `mpi`): in a COLMAP copy of a generated scene whose sparse points lie
 /// at depths 2.4-2.8 in front of view 2, read with the generated scene's wider near and
@@ -611,38 +643,12 @@ fn an_mpi_is_baked_from_up_to_8_views_by_default() {
 fn an_mpi_spreads_its_planes_over_the_depths_its_view_sees() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let synth = scene(tmp.path());
-    let loaded = deepstereo_core::scene::Scene::load(&synth, &Default::default()).expect("scene");
-    let (near, far) = (loaded.near, loaded.far);
+    let colmap = tmp.path().join("colmap");
+    let (near, far) = colmap_with_points(&synth, &colmap, 2, (2.4, 2.8));
     assert!(
         near < 2.0 && far > 4.0,
         "the generated scene spans {near}-{far}"
     );
-    let cams: Vec<NamedCamera> = (loaded.views.iter())
-        .map(|v| NamedCamera {
-            name: v.name.clone(),
-            camera: v.camera,
-        })
-        .collect();
-    // Points on a 7x7 grid of view 2's rays (the middle half of its image, in view from
-    // the camera beside it too), at depths 2.4 to 2.8.
-    let c2 = loaded.views[2].camera;
-    let to_world = c2.pose.inverse();
-    let points: Vec<glam::DVec3> = (0..49)
-        .map(|i| {
-            let uv = glam::DVec2::new(
-                (0.25 + 0.5 * (i % 7) as f64 / 6.0) * W as f64,
-                (0.25 + 0.5 * (i / 7) as f64 / 6.0) * H as f64,
-            );
-            let n = c2.intrinsics.unproject_pixel(uv);
-            let z = 2.4 + 0.4 * i as f64 / 48.0;
-            to_world.rotation * glam::DVec3::new(n.x * z, n.y * z, z) + to_world.translation
-        })
-        .collect();
-    let colmap = tmp.path().join("colmap");
-    write_colmap_text(&colmap, &cams, &["PINHOLE"], &points);
-    for v in &loaded.views {
-        std::fs::copy(&v.image_path, colmap.join("images").join(&v.name)).expect("copy image");
-    }
     let pose = pose_file(&synth, 2, [0.05, 0.02, 0.0], &tmp.path().join("pose.json"));
     let (s, pose) = (colmap.to_string_lossy(), pose.to_string_lossy());
     let (n, f) = (near.to_string(), far.to_string());
