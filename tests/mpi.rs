@@ -725,3 +725,44 @@ fn an_mpi_spreads_its_planes_over_the_depths_its_view_sees() {
         "planes {inv:?}; at the reference {db:.1} dB, against the scene's planes {db_scene:.1}"
     );
 }
+
+/// An MPI baked at a view with its own photograph shows, at that view,
+/// what `render --pose` with the photograph among the sources shows (>= 40 dB), whichever
+/// way the photograph enters: by default the planes are those of the bake without it
+/// (`--exclude-own-photo`: the same alphas, texel for texel) with their colours moved to
+/// that picture; with `--own-photo-as-source` they are the network's layers with it.
+#[test]
+fn an_mpi_with_its_own_photograph_keeps_the_other_views_depths() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path()).to_string_lossy().into_owned();
+    let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
+    let (m, m_src, m_ex) = (t("mpi"), t("mpi_src"), t("mpi_ex"));
+    for (out, flag) in [
+        (&m, None),
+        (&m_src, Some("--own-photo-as-source")),
+        (&m_ex, Some("--exclude-own-photo")),
+    ] {
+        let mut args = vec!["mpi", "--scene", &s, "--target", "2", "--out", out];
+        args.extend(flag);
+        args.extend(COMMON);
+        ok(&args);
+    }
+    for mpi in [&m, &m_src] {
+        let (net, via) = at_reference(tmp.path(), &s, mpi, &COMMON);
+        let db = psnr(&via, &net);
+        assert!(
+            db >= 40.0,
+            "{mpi} at its reference vs render --pose: {db:.1} dB"
+        );
+    }
+    let read = |d: &str| io::read(Path::new(d)).expect("read the MPI");
+    let (own, excluded) = (read(&m), read(&m_ex));
+    let mut moved = 0;
+    for (a, b) in own.planes().iter().zip(excluded.planes()) {
+        for (x, y) in a.chunks(4).zip(b.chunks(4)) {
+            assert_eq!(x[3], y[3], "alphas differ");
+            moved += usize::from((0..3).any(|c| (x[c] - y[c]).abs() > 1.5 / 255.0));
+        }
+    }
+    assert!(moved > 0, "no colour moved to the photograph's picture");
+}

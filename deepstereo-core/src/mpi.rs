@@ -167,21 +167,62 @@ impl Mpi {
         Self::new(camera, inv_depths, planes)
     }
 
+    /// This MPI with its composite at the reference camera made `target` (`[H, W, 3]` in
+    /// [0, 1], the MPI's size): at each pixel, every plane's straight colour moves by
+    /// `(target - C) / A`, `C` the composite and `A` its coverage (`sum_z s_z`, 1 wherever
+    /// a plane selects anything), so the composite becomes `C + A (target - C) / A =
+    /// target`, exactly where no colour leaves [0, 1] (those are clamped); alphas, and so
+    /// the planes' geometry, are unchanged. A pixel no plane covers stays as it is.
+    pub fn with_composite(&self, target: &RgbImage) -> Result<Self> {
+        let (w, h) = (self.width(), self.height());
+        if (target.width as usize, target.height as usize) != (w, h) {
+            return Err(Error::Invalid(format!(
+                "a composite of {}x{} for an MPI of {w}x{h}",
+                target.width, target.height
+            )));
+        }
+        let (now, coverage) = self.composite_with_coverage();
+        let mut planes = self.planes.clone();
+        for p in 0..w * h {
+            if coverage[p] <= 0.0 {
+                continue;
+            }
+            for c in 0..3 {
+                let shift = (target.data[p * 3 + c] - now.data[p * 3 + c]) / coverage[p];
+                for plane in planes.iter_mut() {
+                    let v = &mut plane[p * 4 + c];
+                    *v = (*v + shift).clamp(0.0, 1.0);
+                }
+            }
+        }
+        let mut out = Self::new(self.camera, self.inv_depths.clone(), planes)?;
+        out.margin = self.margin;
+        Ok(out)
+    }
+
     /// The planes composited back to front at the reference camera.
     pub fn composite(&self) -> RgbImage {
+        self.composite_with_coverage().0
+    }
+
+    /// [`Self::composite`] and the accumulated alpha per pixel.
+    fn composite_with_coverage(&self) -> (RgbImage, Vec<f32>) {
         let (w, h) = (self.width(), self.height());
         let mut img = RgbImage::new(w as u32, h as u32);
+        let mut coverage = vec![0f32; w * h];
         for p in 0..w * h {
-            let mut c = [0f32; 3];
+            let (mut c, mut a) = ([0f32; 3], 0f32);
             for plane in self.planes.iter().rev() {
                 let px = &plane[p * 4..p * 4 + 4];
                 for k in 0..3 {
                     c[k] = px[3] * px[k] + (1.0 - px[3]) * c[k];
                 }
+                a = px[3] + (1.0 - px[3]) * a;
             }
             img.data[p * 3..p * 3 + 3].copy_from_slice(&c);
+            coverage[p] = a;
         }
-        img
+        (img, coverage)
     }
 
     /// Renders the MPI at `camera` (any intrinsics and distortion; rolling shutter

@@ -111,6 +111,68 @@ pub fn reference_sources(
     Ok(pick_sources(scene, &cam, &exclude, k, settings))
 }
 
+/// How a view's own photograph enters an MPI baked at its camera.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OwnPhoto {
+    /// Left out: the planes come from the other views, and the MPI shows the network's
+    /// prediction of the view at its camera (`--exclude-own-photo`).
+    Excluded,
+    /// One of the sources, as `render --pose` at that camera runs the network
+    /// (`--own-photo-as-source`).
+    Source,
+    /// The MPI of the other views, its colours moved so that its composite at the
+    /// reference is the render with the photograph among the sources
+    /// ([`Mpi::with_composite`]): the planes' depths of [`OwnPhoto::Excluded`], the
+    /// picture of [`OwnPhoto::Source`] at the reference. The default: seen from elsewhere
+    /// it scores above both (docs/results.md, "MPIs").
+    Residual,
+}
+
+/// Bakes the MPI of view `reference` (not held out), with `margin` and `own` for its
+/// photograph, from `k` views chosen by [`reference_sources`]; and the views it was baked
+/// from (with [`OwnPhoto::Residual`], the reference and the views of its
+/// [`OwnPhoto::Source`] bake).
+#[allow(clippy::too_many_arguments)]
+pub fn bake_view(
+    backend: &dyn Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    (reference, margin): (usize, u32),
+    holdout: &[usize],
+    own: OwnPhoto,
+    settings: &RenderSettings,
+    progress: &dyn Fn(usize, usize),
+) -> Result<(Mpi, Vec<usize>)> {
+    let k = settings.source_count(backend.config())?;
+    let camera = scene.views[reference].camera;
+    let with_own = own != OwnPhoto::Excluded;
+    let srcs = reference_sources(scene, reference, holdout, with_own, k, settings)?;
+    let mpi = bake_camera(
+        backend,
+        scene,
+        prepared,
+        (&camera, margin),
+        &srcs,
+        settings,
+        progress,
+    )?;
+    if own != OwnPhoto::Residual {
+        return Ok((mpi, srcs));
+    }
+    let others = reference_sources(scene, reference, holdout, false, k, settings)?;
+    let base = bake_camera(
+        backend,
+        scene,
+        prepared,
+        (&camera, margin),
+        &others,
+        settings,
+        progress,
+    )?;
+    Ok((base.with_composite(&mpi.composite())?, srcs))
+}
+
 /// The `n` views that are not held out nearest to view `target` (by camera centre),
 /// nearest first.
 pub fn nearest_kept_views(scene: &Scene, target: usize, holdout: &[usize], n: usize) -> Vec<usize> {
@@ -129,8 +191,8 @@ pub struct MpiEvalOptions {
     /// MPIs per held-out view, baked at its nearest views that are not held out and
     /// blended by distance.
     pub mpis: usize,
-    /// Each MPI's reference photograph among its sources.
-    pub own_photo: bool,
+    /// How each MPI's reference photograph enters it.
+    pub own_photo: OwnPhoto,
     /// Pixels added on every side of each MPI's reference image ([`with_margin`]).
     pub margin: u32,
 }
@@ -170,7 +232,6 @@ pub fn eval_through_mpi(
     mut on_view: impl FnMut(&MpiViewResult),
 ) -> Result<Vec<MpiViewResult>> {
     let k = settings.source_count(backend.config())?;
-    let kb = bake.source_count(backend.config())?;
     if opts.mpis == 0 || opts.mpis > viewer::MAX_MPIS {
         bail!("1 to {} MPIs per view, not {}", viewer::MAX_MPIS, opts.mpis);
     }
@@ -188,17 +249,19 @@ pub fn eval_through_mpi(
         let t0 = Instant::now();
         let mut mpis = Vec::new();
         for &r in &references {
-            let ref_srcs = reference_sources(scene, r, holdout, opts.own_photo, kb, bake)?;
             let none = &|_, _| {};
-            mpis.push(bake_camera(
+            let place = (r, opts.margin);
+            let (mpi, _) = bake_view(
                 backend,
                 scene,
                 &mut prepared,
-                (&scene.views[r].camera, opts.margin),
-                &ref_srcs,
+                place,
+                holdout,
+                opts.own_photo,
                 bake,
                 none,
-            )?);
+            )?;
+            mpis.push(mpi);
         }
         let bake_seconds = t0.elapsed().as_secs_f64();
         let t0 = Instant::now();

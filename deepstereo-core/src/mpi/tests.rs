@@ -383,3 +383,43 @@ fn the_viewer_blends_with_the_cpus_margin_weight() {
         "viewer.html lacks {want}"
     );
 }
+
+#[test]
+fn with_composite_moves_the_colours_to_a_given_composite_and_keeps_the_alphas() -> Result<()> {
+    let (w, h, d) = (7, 5, 6);
+    let n = w * h;
+    let (mut colours, sel) = layers(d, n);
+    // Colours within [0.2, 0.8], so a shift of at most 0.2 clamps nothing.
+    colours.iter_mut().for_each(|c| *c = 0.2 + 0.6 * *c);
+    let inv = crate::geometry::inverse_depths(1.0, f64::INFINITY, d);
+    let mpi = Mpi::from_layers(camera(w as u32, h as u32, DVec3::ZERO), inv, &colours, &sel)?;
+    let mut target = mpi.composite();
+    let shifts = values(n * 3, 3);
+    for (t, s) in target.data.iter_mut().zip(&shifts) {
+        *t += 0.4 * (s - 0.5);
+    }
+    let moved = mpi.with_composite(&target)?;
+    let got = moved.composite();
+    for (p, (a, b)) in got.data.iter().zip(&target.data).enumerate() {
+        assert!((a - b).abs() < 1e-5, "composite {p}: {a} against {b}");
+    }
+    for (a, b) in moved.planes().iter().zip(mpi.planes()) {
+        assert!(a.chunks(4).zip(b.chunks(4)).all(|(x, y)| x[3] == y[3]));
+    }
+    // Colours that would leave [0, 1] are clamped; a target of another size is refused.
+    let white = RgbImage {
+        width: w as u32,
+        height: h as u32,
+        data: vec![1.0; n * 3],
+    };
+    let clamped = mpi.with_composite(&white)?;
+    assert!(clamped
+        .planes()
+        .iter()
+        .all(|p| p.iter().all(|v| (0.0..=1.0).contains(v))));
+    let (before, after) = (mpi.composite(), clamped.composite());
+    assert!(after.data.iter().zip(&before.data).all(|(a, b)| a >= b));
+    let small = RgbImage::new(3, 2);
+    assert!(mpi.with_composite(&small).is_err());
+    Ok(())
+}

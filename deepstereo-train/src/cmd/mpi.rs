@@ -3,7 +3,9 @@
 
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::inference::{pick_sources, PlaneSpan, Prepared, RenderSettings};
-use crate::mpi::{bake_camera, bake_settings, eval_through_mpi, reference_sources, MpiEvalOptions};
+use crate::mpi::{
+    bake_camera, bake_settings, bake_view, eval_through_mpi, MpiEvalOptions, OwnPhoto,
+};
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::Camera;
@@ -21,7 +23,8 @@ pub struct Args {
     /// The model that bakes the layers, and its settings.
     #[command(flatten)]
     pub model: ModelArgs,
-    /// Bake at view I's camera (its own photograph among the sources).
+    /// Bake at view I's camera (showing there the render with its own photograph among
+    /// the sources; see --own-photo-as-source).
     #[arg(long, conflicts_with_all = ["targets", "pose", "eval"])]
     pub target: Option<usize>,
     /// Bake one MPI at each of these views (`I,J,K`, at most 8), blended by distance in
@@ -38,12 +41,19 @@ pub struct Args {
     /// The held-out views: never sources.
     #[command(flatten)]
     pub holdout: HoldoutArgs,
-    /// Bake at --target/--targets views without their own photographs: the planes'
-    /// colours come from the other views only (the reference view is then the network's
-    /// prediction of it, as `render --target` gives, not the photograph). Measured in
-    /// docs/results.md: better from cameras away from the reference.
+    /// Bake at --target/--targets views without their own photographs: the planes come
+    /// from the other views only (the reference view is then the network's prediction of
+    /// it, as `render --target` gives, not the photograph).
     #[arg(long)]
     pub exclude_own_photo: bool,
+    /// Bake at --target/--targets views with their own photograph as one more source, as
+    /// `render --pose` at that camera runs the network. Without it (and without
+    /// --exclude-own-photo), the MPI of the other views is baked and its colours moved so
+    /// that at its reference it shows that render: the same picture there, and the other
+    /// views' depths elsewhere, 1.6 dB closer to held-out views on average than this bake
+    /// (docs/results.md).
+    #[arg(long, conflicts_with = "exclude_own_photo")]
+    pub own_photo_as_source: bool,
     /// Pixels added on every side of each MPI's image beyond its reference camera's (the
     /// principal point moves with them; the network fills them from the sources): an
     /// MPI then covers what cameras moved away from the reference see beyond its image
@@ -74,7 +84,8 @@ pub fn run(a: Args) -> Result<()> {
     let net = a.model.settings()?;
     // The views that may be sources of a bake: neither held out nor, without its
     // photograph, the reference view (a --pose camera is none).
-    let own_left_out = a.exclude_own_photo && a.pose.is_none();
+    let own = own_photo(&a);
+    let own_left_out = own != OwnPhoto::Source && a.pose.is_none();
     let available = n.saturating_sub(holdout.len() + usize::from(own_left_out));
     let settings = bake_settings(&net, backend.config(), available);
     if a.eval {
@@ -87,26 +98,39 @@ pub fn run(a: Args) -> Result<()> {
     let mut names = Vec::new();
     let mut range = 0f64;
     let first = targets[0].0.pose.centre();
-    for (i, (cam, exclude_self)) in targets.iter().enumerate() {
-        let srcs = match exclude_self {
-            Some(v) => reference_sources(&scene, *v, &holdout, !a.exclude_own_photo, k, &settings)?,
-            None => pick_sources(&scene, cam, &holdout, k, &settings),
-        };
+    for (i, (cam, view)) in targets.iter().enumerate() {
         let t0 = std::time::Instant::now();
         let bar = indicatif::ProgressBar::new(0);
         let progress = |done: usize, total: usize| {
             bar.set_length(total as u64);
             bar.set_position(done as u64);
         };
-        let mpi = bake_camera(
-            backend.as_ref(),
-            &scene,
-            &mut prepared,
-            (cam, a.margin),
-            &srcs,
-            &settings,
-            &progress,
-        )?;
+        let (mpi, srcs) = match view {
+            Some(v) => bake_view(
+                backend.as_ref(),
+                &scene,
+                &mut prepared,
+                (*v, a.margin),
+                &holdout,
+                own,
+                &settings,
+                &progress,
+            )?,
+            None => {
+                let srcs = pick_sources(&scene, cam, &holdout, k, &settings);
+                let place = (cam, a.margin);
+                let mpi = bake_camera(
+                    backend.as_ref(),
+                    &scene,
+                    &mut prepared,
+                    place,
+                    &srcs,
+                    &settings,
+                    &progress,
+                )?;
+                (mpi, srcs)
+            }
+        };
         bar.finish_and_clear();
         let name = if targets.len() == 1 {
             ".".to_string()
@@ -142,6 +166,15 @@ pub fn run(a: Args) -> Result<()> {
 }
 
 /// The cameras to bake at, each with the view it is (whose photograph is a source).
+/// How the reference views' own photographs enter the bakes.
+fn own_photo(a: &Args) -> OwnPhoto {
+    match (a.exclude_own_photo, a.own_photo_as_source) {
+        (true, _) => OwnPhoto::Excluded,
+        (false, true) => OwnPhoto::Source,
+        (false, false) => OwnPhoto::Residual,
+    }
+}
+
 fn bake_targets(
     a: &Args,
     scene: &Scene,
@@ -202,7 +235,7 @@ fn run_eval(
     eprintln!("view  references  network dB  MPI dB  MPI-vs-network dB  network s  bake s  MPI s");
     let opts = MpiEvalOptions {
         mpis: a.eval_mpis,
-        own_photo: !a.exclude_own_photo,
+        own_photo: own_photo(a),
         margin: a.margin,
     };
     let per_view = eval_through_mpi(backend, scene, holdout, opts, (settings, bake), |r| {
@@ -244,7 +277,7 @@ fn run_eval(
         "bake_views": bake.source_count(backend.config())?,
         "plane_span": settings.span.unwrap_or(PlaneSpan::Scene),
         "bake_plane_span": bake.span.unwrap_or(PlaneSpan::Scene),
-        "own_photo": !a.exclude_own_photo,
+        "own_photo": own_photo(a),
         "margin": a.margin,
         "mpis_per_view": a.eval_mpis,
         "per_view": per_view,
