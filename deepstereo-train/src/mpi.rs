@@ -147,29 +147,25 @@ pub fn bake_view(
     let k = settings.source_count(backend.config())?;
     let camera = scene.views[reference].camera;
     let with_own = own != OwnPhoto::Excluded;
+    let mut bake = |srcs: &[usize]| {
+        bake_camera(
+            backend,
+            scene,
+            prepared,
+            (&camera, margin),
+            srcs,
+            settings,
+            progress,
+        )
+    };
     let srcs = reference_sources(scene, reference, holdout, with_own, k, settings)?;
-    let mpi = bake_camera(
-        backend,
-        scene,
-        prepared,
-        (&camera, margin),
-        &srcs,
-        settings,
-        progress,
-    )?;
+    let mpi = bake(&srcs)?;
     if own != OwnPhoto::Residual {
         return Ok((mpi, srcs));
     }
-    let others = reference_sources(scene, reference, holdout, false, k, settings)?;
-    let base = bake_camera(
-        backend,
-        scene,
-        prepared,
-        (&camera, margin),
-        &others,
-        settings,
-        progress,
-    )?;
+    let base = bake(&reference_sources(
+        scene, reference, holdout, false, k, settings,
+    )?)?;
     Ok((base.with_composite(&mpi.composite())?, srcs))
 }
 
