@@ -39,6 +39,42 @@ fn image(args: &[&str], out: &str) -> RgbImage {
     load(&Path::new(out).join("image.png"))
 }
 
+/// `mpi --target 2` of the scene `s` into `out`, with `extra` options and the model
+/// options [`COMMON`].
+fn bake_view_2(s: &str, out: &str, extra: &[&str]) {
+    let mut args = vec!["mpi", "--scene", s, "--target", "2", "--out", out];
+    args.extend(extra);
+    args.extend(COMMON);
+    ok(&args);
+}
+
+/// `render --mpi mpi` at the camera `scene_pose` names (the scene and `--pose` options),
+/// in `dir`, against the network's `render` with the options `common` (which hold them)
+/// and `with`, and with `common` alone: the MPI is the first (>= 40 dB) and not the
+/// second (at least 3 dB further). Returns both PSNRs.
+fn mpi_is_render_with(
+    dir: &Path,
+    scene_pose: &[&str],
+    mpi: &str,
+    common: &[&str],
+    with: &[&str],
+) -> (f64, f64) {
+    let t = |p: &str| dir.join(p).to_string_lossy().into_owned();
+    let via = image(
+        &[&["render"][..], scene_pose, &["--mpi", mpi]].concat(),
+        &t("via"),
+    );
+    let net = image(&[&["render"][..], with, common].concat(), &t("net_with"));
+    let plain = image(&[&["render"][..], common].concat(), &t("net_without"));
+    let (db, db_plain) = (psnr(&via, &net), psnr(&via, &plain));
+    assert!(db >= 40.0, "MPI vs render {with:?}: {db:.1} dB");
+    assert!(
+        db_plain < db - 3.0,
+        "MPI vs render without {with:?}: {db_plain:.1} dB, with them {db:.1}"
+    );
+    (db, db_plain)
+}
+
 /// View `view` of `inspect --json` as a camera file, changed by `edit`.
 fn edited_pose(
     scene: &Path,
@@ -189,11 +225,8 @@ fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
     let s = s.to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
     let common = COMMON;
-    let mut args = vec!["mpi", "--scene", &s, "--target", "2", "--out"];
     let m = t("mpi");
-    args.push(&m);
-    args.extend(common);
-    ok(&args);
+    bake_view_2(&s, &m, &[]);
     for f in [
         "mpi.json",
         "plane_00.png",
@@ -242,13 +275,8 @@ fn rays_no_mpi_covers_are_filled_alike_on_the_cpu_and_in_the_viewer() {
     let s = scene(tmp.path());
     let s = s.to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
-    let common = COMMON;
     let m0 = t("mpi0");
-    let mut args = vec![
-        "mpi", "--scene", &s, "--target", "2", "--margin", "0", "--out", &m0,
-    ];
-    args.extend(common);
-    ok(&args);
+    bake_view_2(&s, &m0, &["--margin", "0"]);
     let (yaw, pitch) = (0.3, -0.1);
     let mpi0 = io::read_dir(Path::new(&m0))
         .expect("read the MPI")
@@ -460,11 +488,7 @@ fn an_mpi_with_a_margin_is_larger_and_still_exact_at_its_reference() {
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
     let common = COMMON;
     let m = t("mpi");
-    let mut args = vec![
-        "mpi", "--scene", &s, "--target", "2", "--margin", "8", "--out", &m,
-    ];
-    args.extend(common);
-    ok(&args);
+    bake_view_2(&s, &m, &["--margin", "8"]);
     let desc: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(tmp.path().join("mpi/mpi.json")).expect("mpi.json"),
     )
@@ -583,21 +607,8 @@ fn an_mpi_is_baked_from_up_to_8_views_by_default() {
     ];
     let m = t("mpi");
     ok(&[&["mpi", "--margin", "0", "--out", &m][..], &common].concat());
-    let via = image(
-        &["render", "--scene", &s, "--pose", &pose, "--mpi", &m],
-        &t("via"),
-    );
-    let net6 = image(
-        &[&["render", "--views", "6"][..], &common].concat(),
-        &t("net6"),
-    );
-    let net4 = image(&[&["render"][..], &common].concat(), &t("net4"));
-    let (db6, db4) = (psnr(&via, &net6), psnr(&via, &net4));
-    assert!(db6 >= 40.0, "MPI vs render --pose --views 6: {db6:.1} dB");
-    assert!(
-        db4 < db6 - 3.0,
-        "MPI vs the 4-view render: {db4:.1} dB, 6 views {db6:.1}"
-    );
+    let scene_pose = ["--scene", &s, "--pose", &pose];
+    mpi_is_render_with(tmp.path(), &scene_pose, &m, &common, &["--views", "6"]);
 }
 
 /// A COLMAP text copy of the generated scene `synth` in `out` (the same cameras and
@@ -701,26 +712,9 @@ fn an_mpi_spreads_its_planes_over_the_depths_its_view_sees() {
         "{inv:?} in {whole:?}"
     );
 
-    let via = image(
-        &[
-            "render", "--scene", &s, "--format", "colmap", "--pose", &pose, "--mpi", &m,
-        ],
-        &t("via"),
-    );
-    let net = image(
-        &[&["render", "--plane-span", "view"][..], &common].concat(),
-        &t("net"),
-    );
-    let net_scene = image(&[&["render"][..], &common].concat(), &t("net_scene"));
-    let (db, db_scene) = (psnr(&via, &net), psnr(&via, &net_scene));
-    assert!(
-        db >= 40.0,
-        "MPI vs render --pose --plane-span view: {db:.1} dB"
-    );
-    assert!(
-        db_scene < db - 3.0,
-        "MPI vs the scene's planes' render: {db_scene:.1} dB, the view's {db:.1}"
-    );
+    let scene_pose = ["--scene", &s, "--format", "colmap", "--pose", &pose];
+    let view = ["--plane-span", "view"];
+    let (db, db_scene) = mpi_is_render_with(tmp.path(), &scene_pose, &m, &common, &view);
     eprintln!(
         "planes {inv:?}; at the reference {db:.1} dB, against the scene's planes {db_scene:.1}"
     );
@@ -737,16 +731,9 @@ fn an_mpi_with_its_own_photograph_keeps_the_other_views_depths() {
     let s = scene(tmp.path()).to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
     let (m, m_src, m_ex) = (t("mpi"), t("mpi_src"), t("mpi_ex"));
-    for (out, flag) in [
-        (&m, None),
-        (&m_src, Some("--own-photo-as-source")),
-        (&m_ex, Some("--exclude-own-photo")),
-    ] {
-        let mut args = vec!["mpi", "--scene", &s, "--target", "2", "--out", out];
-        args.extend(flag);
-        args.extend(COMMON);
-        ok(&args);
-    }
+    bake_view_2(&s, &m, &[]);
+    bake_view_2(&s, &m_src, &["--own-photo-as-source"]);
+    bake_view_2(&s, &m_ex, &["--exclude-own-photo"]);
     for mpi in [&m, &m_src] {
         let (net, via) = at_reference(tmp.path(), &s, mpi, &COMMON);
         let db = psnr(&via, &net);
