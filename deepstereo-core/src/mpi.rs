@@ -172,7 +172,8 @@ impl Mpi {
     /// `(target - C) / A`, `C` the composite and `A` its coverage (`sum_z s_z`, 1 wherever
     /// a plane selects anything), so the composite becomes `C + A (target - C) / A =
     /// target`, exactly where no colour leaves [0, 1] (those are clamped); alphas, and so
-    /// the planes' geometry, are unchanged. A pixel no plane covers stays as it is.
+    /// the planes' geometry, are unchanged. A pixel no plane covers stays as it is, and so
+    /// does the margin ([`Self::margin`]): only the reference image is made `target`.
     pub fn with_composite(&self, target: &RgbImage) -> Result<Self> {
         let (w, h) = (self.width(), self.height());
         if (target.width as usize, target.height as usize) != (w, h) {
@@ -183,8 +184,13 @@ impl Mpi {
         }
         let (now, coverage) = self.composite_with_coverage();
         let mut planes = self.planes.clone();
+        let m = self.margin as usize;
+        let inside = |p: usize| {
+            let (x, y) = (p % w, p / w);
+            x >= m && x + m < w && y >= m && y + m < h
+        };
         for p in 0..w * h {
-            if coverage[p] <= 0.0 {
+            if coverage[p] <= 0.0 || !inside(p) {
                 continue;
             }
             for c in 0..3 {

@@ -124,8 +124,9 @@ pub enum OwnPhoto {
     /// The MPI of the other views, its colours moved so that its composite at the
     /// reference is the render with the photograph among the sources
     /// ([`Mpi::with_composite`]): the planes' depths of [`OwnPhoto::Excluded`], the
-    /// picture of [`OwnPhoto::Source`] at the reference. The default: seen from elsewhere
-    /// it scores above both (docs/results.md, "MPIs").
+    /// picture of [`OwnPhoto::Source`] at the reference; the margin, which the photograph
+    /// does not show, is the other views' alone. The default: seen from elsewhere it
+    /// scores above both (docs/results.md, "MPIs").
     Residual,
 }
 

@@ -421,5 +421,27 @@ fn with_composite_moves_the_colours_to_a_given_composite_and_keeps_the_alphas() 
     assert!(after.data.iter().zip(&before.data).all(|(a, b)| a >= b));
     let small = RgbImage::new(3, 2);
     assert!(mpi.with_composite(&small).is_err());
+    // With a margin, only the reference image moves: the margin's texels keep their
+    // colours (no photograph shows them) and the composite inside is the target.
+    let mut framed = mpi.clone();
+    framed.margin = 1;
+    let moved = framed.with_composite(&target)?;
+    let got = moved.composite();
+    for p in 0..n {
+        let (x, y) = (p % w, p / w);
+        let inside = x >= 1 && x + 1 < w && y >= 1 && y + 1 < h;
+        for z in 0..d {
+            let (a, b) = (
+                &moved.planes()[z][p * 4..p * 4 + 4],
+                &mpi.planes()[z][p * 4..p * 4 + 4],
+            );
+            assert_eq!(inside, a != b, "texel {p} on plane {z}");
+        }
+        if inside {
+            for c in 0..3 {
+                assert!((got.data[p * 3 + c] - target.data[p * 3 + c]).abs() < 1e-5);
+            }
+        }
+    }
     Ok(())
 }
