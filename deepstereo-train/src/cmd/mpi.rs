@@ -50,7 +50,7 @@ pub struct Args {
     /// `render --pose` at that camera runs the network. Without it (and without
     /// --exclude-own-photo), the MPI of the other views is baked and its colours moved so
     /// that at its reference it shows that render: the same picture there, and the other
-    /// views' depths elsewhere, 1.6 dB closer to held-out views on average than this bake
+    /// views' depths elsewhere, 3.0 dB closer to held-out views on average than this bake
     /// (docs/results.md).
     #[arg(long, conflicts_with = "exclude_own_photo")]
     pub own_photo_as_source: bool,
@@ -165,7 +165,6 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
-/// The cameras to bake at, each with the view it is (whose photograph is a source).
 /// How the reference views' own photographs enter the bakes.
 fn own_photo(a: &Args) -> OwnPhoto {
     match (a.exclude_own_photo, a.own_photo_as_source) {
@@ -175,6 +174,8 @@ fn own_photo(a: &Args) -> OwnPhoto {
     }
 }
 
+/// The cameras to bake at, each with the view it is, if any (whose photograph enters its
+/// bake as [`own_photo`] says).
 fn bake_targets(
     a: &Args,
     scene: &Scene,
