@@ -184,11 +184,8 @@ impl Mpi {
         }
         let (now, coverage) = self.composite_with_coverage();
         let mut planes = self.planes.clone();
-        let m = self.margin as usize;
-        let inside = |p: usize| {
-            let (x, y) = (p % w, p / w);
-            x >= m && x + m < w && y >= m && y + m < h
-        };
+        // A texel's centre inside the view the MPI was baked for.
+        let inside = |p: usize| self.in_core((p % w) as f64 + 0.5, (p / w) as f64 + 0.5);
         for p in 0..w * h {
             if coverage[p] <= 0.0 || !inside(p) {
                 continue;
