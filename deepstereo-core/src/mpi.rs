@@ -27,6 +27,7 @@ use rayon::prelude::*;
 pub mod fill;
 pub mod io;
 pub mod planned;
+pub mod smooth;
 pub mod viewer;
 pub mod warp;
 

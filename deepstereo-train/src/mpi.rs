@@ -18,17 +18,34 @@ use serde::Serialize;
 use std::path::Path;
 use std::time::Instant;
 
-/// Bakes the MPI of `camera` (made a pinhole at its mid-readout pose, with `margin`
-/// pixels more on every side: [`with_margin`]) from the scene's views `sources` (the
-/// first `k` of them, `k` from `settings`) at the settings' planes. With pruning on, as
-/// `render` prunes that camera ([`plan_pruning`]): the planes run, and per block the
-/// planes the coarse pass keeps (alpha 0 on the others), so the MPI's composite is the
-/// pruned render; with `--prune off`, every plane of every pixel.
+/// What an MPI's bake adds to the network's layers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BakeOptions {
+    /// Pixels added on every side of the reference image ([`with_margin`]).
+    pub margin: u32,
+    /// The radius (texels) of the box each texel's selection is averaged over
+    /// ([`Mpi::with_smoothed_selection`]); 0: the network's own.
+    pub smooth: usize,
+}
+
+/// The radius `mpi` smooths the selection with when `--smooth` is not given: one MPI at
+/// held-out views of the training scenes and of the evaluation scenes is closer to the
+/// photographs with it than with radius 0 (docs/results.md, "MPIs").
+pub const BAKE_SMOOTH: usize = 10;
+
+/// Bakes the MPI of `camera` (made a pinhole at its mid-readout pose, with
+/// `opts.margin` pixels more on every side: [`with_margin`]) from the scene's views
+/// `sources` (the first `k` of them, `k` from `settings`) at the settings' planes. With
+/// pruning on, as `render` prunes that camera ([`plan_pruning`]): the planes run, and per
+/// block the planes the coarse pass keeps (alpha 0 on the others), so the MPI's composite
+/// is the pruned render; with `--prune off`, every plane of every pixel. Then its
+/// selection is smoothed (`opts.smooth`) and its composite in the reference image
+/// restored to the network's render ([`Mpi::with_composite`]).
 pub fn bake_camera(
     backend: &dyn Backend,
     scene: &Scene,
     prepared: &mut Prepared,
-    (camera, margin): (&Camera, u32),
+    (camera, opts): (&Camera, BakeOptions),
     sources: &[usize],
     settings: &RenderSettings,
     progress: &dyn Fn(usize, usize),
@@ -37,7 +54,7 @@ pub fn bake_camera(
     let k = settings.source_count(&cfg)?;
     let (srcs, inv) = source_inputs(&cfg, scene, prepared, sources, settings)?;
     // The margin is added to the pinhole at the mid-readout pose (its height decides it).
-    let camera = with_margin(&reference_camera(camera), margin);
+    let camera = with_margin(&reference_camera(camera), opts.margin);
     // source_inputs refused fewer than k sources.
     let sources = &sources[..k];
     let inv = spanned_planes(scene, &camera, sources, inv, settings.span);
@@ -56,8 +73,12 @@ pub fn bake_camera(
     } else {
         bake(backend, &camera, &srcs, &inv, settings.tile, progress)?
     };
-    mpi.margin = margin;
-    Ok(mpi)
+    mpi.margin = opts.margin;
+    if opts.smooth == 0 {
+        return Ok(mpi);
+    }
+    let smoothed = mpi.with_smoothed_selection(opts.smooth)?;
+    Ok(smoothed.with_composite(&mpi.composite())?)
 }
 
 /// Source views an MPI of the any-number-of-views family is baked from when `--views`
@@ -130,7 +151,7 @@ pub enum OwnPhoto {
     Residual,
 }
 
-/// Bakes the MPI of view `reference` (not held out), with `margin` and `own` for its
+/// Bakes the MPI of view `reference` (not held out), with `opts` and `own` for its
 /// photograph, from `k` views chosen by [`reference_sources`]; and the views it was baked
 /// from (with [`OwnPhoto::Residual`], the reference and the views of its
 /// [`OwnPhoto::Source`] bake).
@@ -139,7 +160,7 @@ pub fn bake_view(
     backend: &dyn Backend,
     scene: &Scene,
     prepared: &mut Prepared,
-    (reference, margin): (usize, u32),
+    (reference, opts): (usize, BakeOptions),
     holdout: &[usize],
     own: OwnPhoto,
     settings: &RenderSettings,
@@ -153,7 +174,7 @@ pub fn bake_view(
             backend,
             scene,
             prepared,
-            (&camera, margin),
+            (&camera, opts),
             srcs,
             settings,
             progress,
@@ -190,8 +211,8 @@ pub struct MpiEvalOptions {
     pub mpis: usize,
     /// How each MPI's reference photograph enters it.
     pub own_photo: OwnPhoto,
-    /// Pixels added on every side of each MPI's reference image ([`with_margin`]).
-    pub margin: u32,
+    /// The margin and smoothing of each MPI.
+    pub bake: BakeOptions,
 }
 
 /// One held-out view rendered by the network and through MPIs baked at its nearest
@@ -247,7 +268,7 @@ pub fn eval_through_mpi(
         let mut mpis = Vec::new();
         for &r in &references {
             let none = &|_, _| {};
-            let place = (r, opts.margin);
+            let place = (r, opts.bake);
             let (mpi, _) = bake_view(
                 backend,
                 scene,

@@ -445,3 +445,102 @@ fn with_composite_moves_the_colours_to_a_given_composite_and_keeps_the_alphas() 
     }
     Ok(())
 }
+
+#[test]
+fn box_means_match_a_direct_sum_clipped_at_the_border() {
+    let (w, h, d, r) = (9, 6, 2, 2);
+    let x: Vec<f64> = values(d * w * h, 5).into_iter().map(f64::from).collect();
+    let got = smooth::box_mean_planes(&x, d, (w, h), r);
+    for z in 0..d {
+        for y in 0..h {
+            for i in 0..w {
+                let (mut sum, mut count) = (0f64, 0usize);
+                for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
+                    for ii in i.saturating_sub(r)..=(i + r).min(w - 1) {
+                        sum += x[z * w * h + yy * w + ii];
+                        count += 1;
+                    }
+                }
+                let p = z * w * h + y * w + i;
+                assert!((got[p] - sum / count as f64).abs() < 1e-12, "texel {p}");
+            }
+        }
+    }
+}
+
+#[test]
+fn smoothing_averages_the_selection_and_keeps_colours_and_flat_profiles() -> Result<()> {
+    let (w, h, d, r) = (7, 5, 4, 1);
+    let n = w * h;
+    let (colours, sel) = layers(d, n);
+    let inv = crate::geometry::inverse_depths(1.0, f64::INFINITY, d);
+    let cam = camera(w as u32, h as u32, DVec3::ZERO);
+    let mpi = Mpi::from_layers(cam, inv.clone(), &colours, &sel)?;
+    assert_eq!(mpi.with_smoothed_selection(0)?.planes(), mpi.planes());
+    let smoothed = mpi.with_smoothed_selection(r)?;
+    // The smoothed MPI's composite weighs each plane's red by the box mean of its selection.
+    let red: Vec<f32> = (0..d * n).map(|i| colours[i / n * 3 * n + i % n]).collect();
+    let composite = smoothed.composite();
+    for y in 0..h {
+        for x in 0..w {
+            let p = y * w + x;
+            let mut want = 0f64;
+            for z in 0..d {
+                let (mut sum, mut count) = (0f64, 0usize);
+                for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
+                    for xx in x.saturating_sub(r)..=(x + r).min(w - 1) {
+                        sum += sel[z * n + yy * w + xx] as f64;
+                        count += 1;
+                    }
+                }
+                want += sum / count as f64 * red[z * n + p] as f64;
+            }
+            let got = composite.data[p * 3];
+            assert!(
+                (got as f64 - want).abs() < 1e-5,
+                "texel {p}: {got} vs {want}"
+            );
+            for (a, b) in smoothed.planes().iter().zip(mpi.planes()) {
+                assert_eq!(a[p * 4..p * 4 + 3], b[p * 4..p * 4 + 3], "colours at {p}");
+            }
+        }
+    }
+    // One depth profile everywhere stays as it is.
+    let flat_sel: Vec<f32> = (0..d * n).map(|i| [0.1, 0.2, 0.3, 0.4][i / n]).collect();
+    let flat = Mpi::from_layers(cam, inv, &colours, &flat_sel)?;
+    for (a, b) in flat
+        .with_smoothed_selection(3)?
+        .planes()
+        .iter()
+        .zip(flat.planes())
+    {
+        for (u, v) in a.iter().zip(b) {
+            assert!((u - v).abs() < 1e-6);
+        }
+    }
+    Ok(())
+}
+
+#[test]
+fn smoothing_keeps_a_texels_empty_planes_empty() -> Result<()> {
+    let (w, h, d) = (4, 3, 3);
+    let n = w * h;
+    let (colours, _) = layers(d, n);
+    // Every texel selects planes 0 and 2 as 0.25 / 0.75, but texel 5 leaves plane 0 out.
+    let mut sel: Vec<f32> = (0..d * n).map(|i| [0.25, 0.0, 0.75][i / n]).collect();
+    sel[5] = 0.0;
+    sel[2 * n + 5] = 1.0;
+    let inv = crate::geometry::inverse_depths(1.0, f64::INFINITY, d);
+    let mpi = Mpi::from_layers(camera(w as u32, h as u32, DVec3::ZERO), inv, &colours, &sel)?;
+    let smoothed = mpi.with_smoothed_selection(1)?;
+    let alpha = |z: usize, p: usize| smoothed.planes()[z][p * 4 + 3];
+    assert_eq!(alpha(0, 5), 0.0, "texel 5's empty plane filled");
+    assert_eq!(
+        (0..n).map(|p| alpha(1, p)).sum::<f32>(),
+        0.0,
+        "plane 1 filled"
+    );
+    // Texel 0's box (texels 0, 1, 4, 5) holds texel 5's 0 / 1: plane 0 has 0.75 / 4.
+    assert!((alpha(0, 0) - 0.1875).abs() < 1e-6, "{}", alpha(0, 0));
+    Ok(())
+}

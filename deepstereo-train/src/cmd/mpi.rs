@@ -4,7 +4,8 @@
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::inference::{pick_sources, PlaneSpan, Prepared, RenderSettings};
 use crate::mpi::{
-    bake_camera, bake_settings, bake_view, eval_through_mpi, MpiEvalOptions, OwnPhoto,
+    bake_camera, bake_settings, bake_view, eval_through_mpi, BakeOptions, MpiEvalOptions, OwnPhoto,
+    BAKE_SMOOTH,
 };
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
@@ -61,6 +62,13 @@ pub struct Args {
     /// leaves it out. 0: the reference image only.
     #[arg(long, default_value_t = 64)]
     pub margin: u32,
+    /// Each texel's selection (its planes' shares of the picture) averaged over the box
+    /// of (2R+1)x(2R+1) texels around it before it becomes alpha: one depth profile for
+    /// neighbouring pixels instead of the network's pixel-by-pixel choice, which a moved
+    /// camera shows as misplaced detail. The picture at the reference stays the
+    /// network's. 0: the network's selection as it is.
+    #[arg(long, value_name = "R", default_value_t = BAKE_SMOOTH)]
+    pub smooth: usize,
     /// Instead of writing MPIs: render every held-out view through an MPI baked at its
     /// nearest view that is not held out, beside the network's render of it; writes
     /// eval.json into --out.
@@ -110,7 +118,7 @@ pub fn run(a: Args) -> Result<()> {
                 backend.as_ref(),
                 &scene,
                 &mut prepared,
-                (*v, a.margin),
+                (*v, bake_options(&a)),
                 &holdout,
                 own,
                 &settings,
@@ -118,7 +126,7 @@ pub fn run(a: Args) -> Result<()> {
             )?,
             None => {
                 let srcs = pick_sources(&scene, cam, &holdout, k, &settings);
-                let place = (cam, a.margin);
+                let place = (cam, bake_options(&a));
                 let mpi = bake_camera(
                     backend.as_ref(),
                     &scene,
@@ -163,6 +171,14 @@ pub fn run(a: Args) -> Result<()> {
         a.out.join("index.html").display()
     );
     Ok(())
+}
+
+/// The margin and smoothing of every bake.
+fn bake_options(a: &Args) -> BakeOptions {
+    BakeOptions {
+        margin: a.margin,
+        smooth: a.smooth,
+    }
 }
 
 /// How the reference views' own photographs enter the bakes.
@@ -237,7 +253,7 @@ fn run_eval(
     let opts = MpiEvalOptions {
         mpis: a.eval_mpis,
         own_photo: own_photo(a),
-        margin: a.margin,
+        bake: bake_options(a),
     };
     let per_view = eval_through_mpi(backend, scene, holdout, opts, (settings, bake), |r| {
         eprintln!(
@@ -280,6 +296,7 @@ fn run_eval(
         "bake_plane_span": bake.span.unwrap_or(PlaneSpan::Scene),
         "own_photo": own_photo(a),
         "margin": a.margin,
+        "smooth": bake_options(a).smooth,
         "mpis_per_view": a.eval_mpis,
         "per_view": per_view,
         "mean": mean,
