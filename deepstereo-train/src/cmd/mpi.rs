@@ -296,7 +296,7 @@ fn run_eval(
         "bake_plane_span": bake.span.unwrap_or(PlaneSpan::Scene),
         "own_photo": own_photo(a),
         "margin": a.margin,
-        "smooth": bake_options(a).smooth,
+        "smooth": a.smooth,
         "mpis_per_view": a.eval_mpis,
         "per_view": per_view,
         "mean": mean,
