@@ -9,6 +9,7 @@ use crate::inference::{
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::config::Config;
+use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::mpi::planned::layers_planned;
 use deepstereo_core::mpi::{bake, io, reference_camera, render_blend, viewer, with_margin, Mpi};
@@ -33,14 +34,9 @@ pub struct BakeOptions {
 /// photographs with it than with radius 0 (docs/results.md, "MPIs").
 pub const BAKE_SMOOTH: usize = 10;
 
-/// Bakes the MPI of `camera` (made a pinhole at its mid-readout pose, with
-/// `opts.margin` pixels more on every side: [`with_margin`]) from the scene's views
-/// `sources` (the first `k` of them, `k` from `settings`) at the settings' planes. With
-/// pruning on, as `render` prunes that camera ([`plan_pruning`]): the planes run, and per
-/// block the planes the coarse pass keeps (alpha 0 on the others), so the MPI's composite
-/// is the pruned render; with `--prune off`, every plane of every pixel. Then its
-/// selection is smoothed (`opts.smooth`) and its composite in the reference image
-/// restored to the network's render ([`Mpi::with_composite`]).
+/// Bakes the MPI of `camera` as [`network_mpi`] does, then smooths its selection
+/// (`opts.smooth`) and restores its composite in the reference image to the network's
+/// render ([`finish`]).
 pub fn bake_camera(
     backend: &dyn Backend,
     scene: &Scene,
@@ -50,11 +46,31 @@ pub fn bake_camera(
     settings: &RenderSettings,
     progress: &dyn Fn(usize, usize),
 ) -> Result<Mpi> {
+    let place = (camera, opts.margin);
+    let mpi = network_mpi(backend, scene, prepared, place, sources, settings, progress)?;
+    finish(mpi, opts.smooth, None)
+}
+
+/// The network's MPI of `camera` (made a pinhole at its mid-readout pose, with `margin`
+/// pixels more on every side: [`with_margin`]) from the scene's views `sources` (the
+/// first `k` of them, `k` from `settings`) at the settings' planes. With pruning on, as
+/// `render` prunes that camera ([`plan_pruning`]): the planes run, and per block the
+/// planes the coarse pass keeps (alpha 0 on the others), so the MPI's composite is the
+/// pruned render; with `--prune off`, every plane of every pixel.
+fn network_mpi(
+    backend: &dyn Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    (camera, margin): (&Camera, u32),
+    sources: &[usize],
+    settings: &RenderSettings,
+    progress: &dyn Fn(usize, usize),
+) -> Result<Mpi> {
     let cfg = backend.config().clone();
     let k = settings.source_count(&cfg)?;
     let (srcs, inv) = source_inputs(&cfg, scene, prepared, sources, settings)?;
     // The margin is added to the pinhole at the mid-readout pose (its height decides it).
-    let camera = with_margin(&reference_camera(camera), opts.margin);
+    let camera = with_margin(&reference_camera(camera), margin);
     // source_inputs refused fewer than k sources.
     let sources = &sources[..k];
     let inv = spanned_planes(scene, &camera, sources, inv, settings.span);
@@ -73,12 +89,25 @@ pub fn bake_camera(
     } else {
         bake(backend, &camera, &srcs, &inv, settings.tile, progress)?
     };
-    mpi.margin = opts.margin;
-    if opts.smooth == 0 {
+    mpi.margin = margin;
+    Ok(mpi)
+}
+
+/// `mpi` with its selection smoothed over boxes of radius `smooth`
+/// ([`Mpi::with_smoothed_selection`]; 0: as it is) and its composite in the reference
+/// image made `picture` ([`Mpi::with_composite`]), or, without one, what it was before
+/// smoothing.
+fn finish(mpi: Mpi, smooth: usize, picture: Option<RgbImage>) -> Result<Mpi> {
+    if smooth == 0 && picture.is_none() {
         return Ok(mpi);
     }
-    let smoothed = mpi.with_smoothed_selection(opts.smooth)?;
-    Ok(smoothed.with_composite(&mpi.composite())?)
+    let picture = picture.unwrap_or_else(|| mpi.composite());
+    let smoothed = if smooth > 0 {
+        mpi.with_smoothed_selection(smooth)?
+    } else {
+        mpi
+    };
+    Ok(smoothed.with_composite(&picture)?)
 }
 
 /// Source views an MPI of the any-number-of-views family is baked from when `--views`
@@ -169,26 +198,23 @@ pub fn bake_view(
     let k = settings.source_count(backend.config())?;
     let camera = scene.views[reference].camera;
     let with_own = own != OwnPhoto::Excluded;
-    let mut bake = |srcs: &[usize]| {
-        bake_camera(
-            backend,
-            scene,
-            prepared,
-            (&camera, opts),
-            srcs,
-            settings,
-            progress,
-        )
-    };
     let srcs = reference_sources(scene, reference, holdout, with_own, k, settings)?;
-    let mpi = bake(&srcs)?;
     if own != OwnPhoto::Residual {
+        let place = (&camera, opts);
+        let mpi = bake_camera(backend, scene, prepared, place, &srcs, settings, progress)?;
         return Ok((mpi, srcs));
     }
+    // The render with the photograph gives only its picture; the other views' MPI its
+    // depths, smoothed once and moved straight to that picture.
+    let mut bake = |srcs: &[usize]| {
+        let place = (&camera, opts.margin);
+        network_mpi(backend, scene, prepared, place, srcs, settings, progress)
+    };
+    let picture = bake(&srcs)?.composite();
     let base = bake(&reference_sources(
         scene, reference, holdout, false, k, settings,
     )?)?;
-    Ok((base.with_composite(&mpi.composite())?, srcs))
+    Ok((finish(base, opts.smooth, Some(picture))?, srcs))
 }
 
 /// The `n` views that are not held out nearest to view `target` (by camera centre),
