@@ -466,14 +466,24 @@ fn run(v: &[f64], up: bool, s: f64, o: f64, side: f64) -> std::ops::Range<usize>
 /// A plane as [`Mpi::render`] samples it: the colour premultiplied by the alpha (so
 /// bilinear sampling does not bleed the colour of transparent texels), and a border of
 /// one texel that repeats the edge, so a sample never clamps: texel `(x, y)` of the
-/// plane is `data[(y + 1) * stride + x + 1]`.
+/// plane is `data[(y + 1) * stride + x + 1]`; and which blocks of it are empty, so that
+/// sampling skips them (a baked plane is transparent over much of the image: on a
+/// juicebox path, 45% of the samples were).
 #[derive(Clone, Debug)]
 struct Texture {
     width: usize,
     height: usize,
     stride: usize,
     data: Vec<[f32; 4]>,
+    /// Per block of `data` (`1 << BLOCK_SHIFT` texels on a side; row-major, `blocks` per
+    /// row): whether a bilinear sample whose top-left texel lies in the block can see a
+    /// non-zero alpha (the block and the texel row and column after it).
+    occupied: Vec<bool>,
+    blocks: usize,
 }
+
+/// The side of [`Texture`]'s occupancy blocks, as a shift: 8 texels.
+const BLOCK_SHIFT: usize = 3;
 
 impl Texture {
     /// From straight RGBA `[H, W, 4]` in [0, 1].
@@ -489,16 +499,20 @@ impl Texture {
             let sy = y.saturating_sub(1).min(h - 1);
             data.extend((0..stride).map(|x| texel(x.saturating_sub(1).min(w - 1), sy)));
         }
+        let (blocks, occupied) = occupancy(&data, stride, h + 2);
         Self {
             width: w,
             height: h,
             stride,
             data,
+            occupied,
+            blocks,
         }
     }
 
     /// The bilinear premultiplied RGBA at pixel coordinate `(u, v)` (centres at
-    /// `i + 0.5`; edge pixels extend half a pixel); `None` outside the image.
+    /// `i + 0.5`; edge pixels extend half a pixel); `None` outside the image, and where
+    /// the four texels lie in an empty block ([`occupancy`]; the sample would be zero).
     #[inline]
     fn sample(&self, u: f64, v: f64) -> Option<[f32; 4]> {
         if !(u >= 0.0 && v >= 0.0 && u <= self.width as f64 && v <= self.height as f64) {
@@ -508,6 +522,9 @@ impl Texture {
         // truncating is the floor, and texels xi..=xi + 1, yi..=yi + 1 all exist.
         let (fx, fy) = (u + 0.5, v + 0.5);
         let (xi, yi) = (fx as usize, fy as usize);
+        if !self.occupied[(yi >> BLOCK_SHIFT) * self.blocks + (xi >> BLOCK_SHIFT)] {
+            return None;
+        }
         let (ax, ay) = ((fx - xi as f64) as f32, (fy - yi as f64) as f32);
         let i = yi * self.stride + xi;
         let q = &self.data[i..i + self.stride + 2];
@@ -520,6 +537,27 @@ impl Texture {
         }
         Some(out)
     }
+}
+
+/// Blocks per row and, per block of `1 << BLOCK_SHIFT` texels on a side (row-major), whether
+/// a texel of the block or of the row and column after it has a non-zero alpha: a
+/// bilinear footprint whose top-left texel lies in a block that is not occupied samples
+/// only zeros (premultiplied, so colour too).
+fn occupancy(data: &[[f32; 4]], stride: usize, rows: usize) -> (usize, Vec<bool>) {
+    let side = 1 << BLOCK_SHIFT;
+    let (bw, bh) = (stride.div_ceil(side), rows.div_ceil(side));
+    let mut occupied = vec![false; bw * bh];
+    for (i, _) in data.iter().enumerate().filter(|(_, t)| t[3] > 0.0) {
+        let (x, y) = (i % stride, i / stride);
+        // Blocks whose footprints reach texel (x, y): its own, and the one before it in
+        // x and y when the texel opens its block's row or column.
+        for by in (y.saturating_sub(1) >> BLOCK_SHIFT)..=(y >> BLOCK_SHIFT) {
+            for bx in (x.saturating_sub(1) >> BLOCK_SHIFT)..=(x >> BLOCK_SHIFT) {
+                occupied[by * bw + bx] = true;
+            }
+        }
+    }
+    (bw, occupied)
 }
 
 /// The weight of a blended MPI's margin against the views the MPIs were baked for

@@ -125,6 +125,53 @@ fn rows_visit_by_bisection_exactly_as_ray_by_ray() -> Result<()> {
 }
 
 #[test]
+fn empty_blocks_hold_only_transparent_footprints_and_skipping_them_changes_nothing() -> Result<()> {
+    // Planes empty in squares of 16 texels whose edges are the blocks' (the bordered
+    // texture's texel x + 1 is the plane's x), so that the last row and column of a block
+    // reach into the next square.
+    let (w, h, d) = (50, 37, 6);
+    let (colours, mut sel) = layers(d, w * h);
+    for (i, s) in sel.iter_mut().enumerate() {
+        let (z, x, y) = (i / (w * h), i % w, (i / w) % h);
+        if ((x + 1) / 16 + (y + 1) / 16 + z) % 2 == 0 {
+            *s = 0.0;
+        }
+    }
+    let inv = crate::geometry::inverse_depths(0.5, f64::INFINITY, d);
+    let mut mpi = Mpi::from_layers(camera(w as u32, h as u32, DVec3::ZERO), inv, &colours, &sel)?;
+    mpi.margin = 5;
+    let mut empty = 0;
+    for t in &mpi.textures {
+        // Every bilinear footprint (top-left texel (x, y) of the bordered texture) whose
+        // block is not occupied sees four zero alphas.
+        for y in 0..t.height + 1 {
+            for x in 0..t.width + 1 {
+                if t.occupied[(y >> BLOCK_SHIFT) * t.blocks + (x >> BLOCK_SHIFT)] {
+                    continue;
+                }
+                let i = y * t.stride + x;
+                for k in [i, i + 1, i + t.stride, i + t.stride + 1] {
+                    assert_eq!(t.data[k][3], 0.0, "texel {k} in an empty block");
+                }
+            }
+        }
+        empty += t.occupied.iter().filter(|&&o| !o).count();
+    }
+    assert!(empty > 0, "no block is empty");
+    let mut full = mpi.clone();
+    for t in &mut full.textures {
+        t.occupied.iter_mut().for_each(|o| *o = true);
+    }
+    for centre in [DVec3::new(0.2, -0.1, 0.1), DVec3::new(-0.3, 0.2, -0.3)] {
+        let cam = camera(w as u32, h as u32, centre);
+        let (c1, a1, k1) = mpi.render_with_core(&cam);
+        let (c2, a2, k2) = full.render_with_core(&cam);
+        assert_eq!((&c1.data, &a1, &k1), (&c2.data, &a2, &k2), "at {centre}");
+    }
+    Ok(())
+}
+
+#[test]
 fn runs_hold_every_ray_inside_and_little_else() {
     let asc: Vec<f64> = (0..50).map(|i| -1.0 + 0.04 * i as f64).collect();
     let desc: Vec<f64> = asc.iter().rev().cloned().collect();
