@@ -10,7 +10,8 @@
 #        tune_curves.sh writes them: OUT_TUNE/{name}/tuned.safetensors.
 #        SPEED_ONLY=1 runs only the camera-path timing at the end, NO_SPEED=1 skips it;
 #        ONLY="other1 ..." runs only those settings; EXTRA="--views 8 --planes 64" adds
-#        options to every `mpi`.
+#        options to every `mpi`; PEER=PATH/TO/deepstereo also times the same MPIs' paths
+#        with that binary (another version of the renderer) in every round, alternated.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 OUT="${1:-/tmp/deepstereo-mpi-eval}"
@@ -72,13 +73,14 @@ SM="${MODEL//\{name\}/juicebox}"
 if [ -d "$S" ] && [ -z "${NO_SPEED:-}" ]; then
   [ -d "$OUT/speed_mpis3" ] || "$BIN" mpi --scene "$S" --targets 1,9,17 --model "$SM" --out "$OUT/speed_mpis3" 2> /dev/null
   [ -d "$OUT/speed_mpis1" ] || "$BIN" mpi --scene "$S" --target 9 --model "$SM" --out "$OUT/speed_mpis1" 2> /dev/null
-  # path_seconds FRAMES ARGS...: wall seconds of one `render --path spiral`.
+  # path_seconds FRAMES ARGS...: wall seconds of one `render --path spiral` (by $RUN).
+  RUN="$BIN"
   path_seconds() {
     local frames="$1"; shift
     rm -rf "$OUT/speed_path"
     local t0 t1
     t0=$(date +%s.%N)
-    "$BIN" render --scene "$S" "$@" --path spiral --frames "$frames" --out "$OUT/speed_path" 2> /dev/null
+    "$RUN" render --scene "$S" "$@" --path spiral --frames "$frames" --out "$OUT/speed_path" 2> /dev/null
     t1=$(date +%s.%N)
     python3 -c "print($t1 - $t0)"
   }
@@ -93,5 +95,18 @@ n, m1, m3 = (n6 - n2) / 4, (a60 - a12) / 48, (b60 - b12) / 48
 print(f"round {r}: network {n:.3f} s/frame; 1 MPI {m1:.4f} s/frame ({n / m1:.0f}x); "
       f"3 MPIs {m3:.4f} s/frame ({n / m3:.0f}x)")
 PY
+    if [ -n "${PEER:-}" ]; then
+      RUN="$PEER"
+      p12=$(path_seconds 12 --mpi "$OUT/speed_mpis1"); p60=$(path_seconds 60 --mpi "$OUT/speed_mpis1")
+      q12=$(path_seconds 12 --mpi "$OUT/speed_mpis3"); q60=$(path_seconds 60 --mpi "$OUT/speed_mpis3")
+      RUN="$BIN"
+      python3 - "$round" "$a12" "$a60" "$b12" "$b60" "$p12" "$p60" "$q12" "$q60" <<'PY'
+import sys
+r, a12, a60, b12, b60, p12, p60, q12, q60 = sys.argv[1], *map(float, sys.argv[2:])
+m1, m3, p1, p3 = (a60 - a12) / 48, (b60 - b12) / 48, (p60 - p12) / 48, (q60 - q12) / 48
+print(f"round {r}: peer 1 MPI {p1:.4f} s/frame (this one {m1 / p1:.2f}x its time); "
+      f"3 MPIs {p3:.4f} s/frame ({m3 / p3:.2f}x)")
+PY
+    fi
   done
 fi
