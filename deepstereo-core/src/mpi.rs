@@ -23,6 +23,7 @@ use crate::inputs::{tile_inputs, PyramidSource};
 use crate::render::Backend;
 use glam::{DVec2, DVec3};
 use rayon::prelude::*;
+use std::sync::OnceLock;
 
 pub mod fill;
 pub mod io;
@@ -40,8 +41,9 @@ pub struct Mpi {
     pub inv_depths: Vec<f64>,
     /// Per plane, `[H, W, 4]` row-major RGBA in [0, 1], straight (not premultiplied).
     planes: Vec<Vec<f32>>,
-    /// Per plane, what [`Self::render`] samples.
-    textures: Vec<Texture>,
+    /// Per plane, what [`Self::render`] samples: built on the first render (a bake's
+    /// intermediate MPIs and one only written to files never need them).
+    textures: OnceLock<Vec<Texture>>,
     /// Pixels of its image on every side beyond the view it was baked for
     /// ([`with_margin`]; 0: none). The viewer's `?fit=native` leaves them out.
     pub margin: u32,
@@ -108,12 +110,11 @@ impl Mpi {
                 inv_depths.len()
             )));
         }
-        let textures = (planes.par_iter()).map(|p| Texture::of(p, w, h)).collect();
         Ok(Self {
             camera,
             inv_depths,
             planes,
-            textures,
+            textures: OnceLock::new(),
             margin: 0,
         })
     }
@@ -121,6 +122,16 @@ impl Mpi {
     /// Per plane, `[H, W, 4]` row-major RGBA in [0, 1], straight (not premultiplied).
     pub fn planes(&self) -> &[Vec<f32>] {
         &self.planes
+    }
+
+    /// Per plane, what [`Self::render`] samples (built on the first call).
+    fn textures(&self) -> &[Texture] {
+        self.textures.get_or_init(|| {
+            let (w, h) = (self.width(), self.height());
+            (self.planes.par_iter())
+                .map(|p| Texture::of(p, w, h))
+                .collect()
+        })
     }
 
     pub fn width(&self) -> usize {
@@ -320,7 +331,7 @@ impl Mpi {
         let mut trans = vec![1f32; rays.len()];
         // The core's transmittance (all 0 without a core composite: never consulted).
         let mut core_t = vec![if krow.is_some() { 1f32 } else { 0.0 }; rays.len()];
-        for (tex, m) in self.textures.iter().zip(maps) {
+        for (tex, m) in self.textures().iter().zip(maps) {
             let xs = match &runs {
                 Some(r) => r.inside(m, w, h),
                 None => 0..rays.len(),

@@ -141,7 +141,7 @@ fn empty_blocks_hold_only_transparent_footprints_and_skipping_them_changes_nothi
     let mut mpi = Mpi::from_layers(camera(w as u32, h as u32, DVec3::ZERO), inv, &colours, &sel)?;
     mpi.margin = 5;
     let mut empty = 0;
-    for t in &mpi.textures {
+    for t in mpi.textures() {
         // Every bilinear footprint (top-left texel (x, y) of the bordered texture) whose
         // block is not occupied sees four zero alphas.
         for y in 0..t.height + 1 {
@@ -159,7 +159,8 @@ fn empty_blocks_hold_only_transparent_footprints_and_skipping_them_changes_nothi
     }
     assert!(empty > 0, "no block is empty");
     let mut full = mpi.clone();
-    for t in &mut full.textures {
+    full.textures();
+    for t in full.textures.get_mut().into_iter().flatten() {
         t.occupied.iter_mut().for_each(|o| *o = true);
     }
     for centre in [DVec3::new(0.2, -0.1, 0.1), DVec3::new(-0.3, 0.2, -0.3)] {
