@@ -162,6 +162,24 @@ pub fn read(dir: &Path) -> Result<Mpi> {
             "inverse depths must be finite and not negative",
         ));
     }
+    if let Some(i) = (1..json.inverse_depths.len())
+        .find(|&i| json.inverse_depths[i] > json.inverse_depths[i - 1])
+    {
+        return Err(Error::format(
+            &file,
+            format!(
+                "inverse depths must run near to far (not increasing): {} then {}",
+                json.inverse_depths[i - 1],
+                json.inverse_depths[i]
+            ),
+        ));
+    }
+    if let Some(name) = json.planes.iter().find(|n| !is_plain_file_name(n)) {
+        return Err(Error::format(
+            &file,
+            format!("plane {name:?} is not a file name in the MPI's directory"),
+        ));
+    }
     let planes = (json.planes.iter())
         .map(|name| read_plane(&dir.join(name), json.width, json.height))
         .collect::<Result<Vec<_>>>()?;
@@ -190,6 +208,16 @@ pub fn read_dir(dir: &Path) -> Result<Vec<Mpi>> {
         ));
     }
     subs.iter().map(|p| read(p)).collect()
+}
+
+/// Whether `name` names a file directly in a directory: one normal path component (no
+/// separator, `..`, root or prefix).
+fn is_plain_file_name(name: &str) -> bool {
+    let mut parts = Path::new(name).components();
+    matches!(
+        (parts.next(), parts.next()),
+        (Some(std::path::Component::Normal(_)), None)
+    ) && !name.contains(['/', '\\'])
 }
 
 fn read_plane(path: &Path, w: u32, h: u32) -> Result<Vec<f32>> {

@@ -268,9 +268,22 @@ fn the_directory_format_round_trips() -> Result<()> {
     crate::imageio::save_rgb8_png(&dir.path().join("plane_02.png"), 2, 2, &[0; 12])?;
     let err = io::read(dir.path()).expect_err("a 2x2 plane").to_string();
     assert!(err.contains("plane_02.png") && err.contains("2x2"), "{err}");
-    // A margin that leaves nothing of the image is refused, naming the file.
     let json = dir.path().join(io::JSON_NAME);
     let text = std::fs::read_to_string(&json).map_err(|e| Error::io(&json, e))?;
+    // Planes out of order, or named outside the directory, are refused.
+    for (from, to, says) in [
+        ("0.25,", "0.75,", "near to far"),
+        ("\"plane_01.png\"", "\"../plane_01.png\"", "not a file name"),
+        ("\"plane_01.png\"", "\"/etc/passwd\"", "not a file name"),
+        ("\"plane_01.png\"", "\"a\\\\b.png\"", "not a file name"),
+    ] {
+        let bad = text.replace(from, to);
+        assert_ne!(bad, text, "{from} not in mpi.json");
+        std::fs::write(&json, &bad).map_err(|e| Error::io(&json, e))?;
+        let err = io::read(dir.path()).expect_err(to).to_string();
+        assert!(err.contains("mpi.json") && err.contains(says), "{err}");
+    }
+    // A margin that leaves nothing of the image is refused, naming the file.
     let text = text.replace("\"margin\": 1", "\"margin\": 2");
     std::fs::write(&json, text).map_err(|e| Error::io(&json, e))?;
     let err = io::read(dir.path())
