@@ -447,6 +447,12 @@ fn several_mpis_render_a_path_and_bad_input_is_refused() {
         "twice",
     );
     bad(
+        &[
+            "mpi", "--scene", &s, "--target", "1", "--margin", "100000", "--out", &out,
+        ],
+        "--margin 100000",
+    );
+    bad(
         &["mpi", "--scene", &s, "--eval", "--out", &out],
         "held-out views",
     );

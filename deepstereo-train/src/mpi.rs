@@ -69,6 +69,13 @@ fn network_mpi(
     let cfg = backend.config().clone();
     let k = settings.source_count(&cfg)?;
     let (srcs, inv) = source_inputs(&cfg, scene, prepared, sources, settings)?;
+    let side = camera.intrinsics.width.max(camera.intrinsics.height);
+    if margin > side {
+        bail!(
+            "--margin {margin}: at most the reference image's larger side ({side} pixels); \
+             beyond it the network only extrapolates"
+        );
+    }
     // The margin is added to the pinhole at the mid-readout pose (its height decides it).
     let camera = with_margin(&reference_camera(camera), margin);
     // source_inputs refused fewer than k sources.

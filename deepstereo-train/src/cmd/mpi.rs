@@ -59,7 +59,7 @@ pub struct Args {
     /// principal point moves with them; the network fills them from the sources): an
     /// MPI then covers what cameras moved away from the reference see beyond its image
     /// (measured in docs/results.md). `mpi.json` records it; the viewer's `?fit=native`
-    /// leaves it out. 0: the reference image only.
+    /// leaves it out. 0: the reference image only; at most the image's larger side.
     #[arg(long, default_value_t = 64)]
     pub margin: u32,
     /// Each texel's selection (its planes' shares of the picture) averaged over the box
