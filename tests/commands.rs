@@ -101,6 +101,23 @@ fn render_by_view_writes_image_depth_confidence_and_coverage() {
         let name = e.expect("entry").file_name().to_string_lossy().into_owned();
         assert!(!name.contains(".tmp"), "left over: {name}");
     }
+    // A tile far larger than the image renders the same image (one tile covers it).
+    let big = tmp.path().join("render_big_tile");
+    let bd = big.to_string_lossy().into_owned();
+    ok(&[
+        "render", "--scene", &sd, "--target", "2", "--planes", "8", "--tile", "1000000", "--out",
+        &bd,
+    ]);
+    let whole = tmp.path().join("render_whole");
+    let wd = whole.to_string_lossy().into_owned();
+    let side = W.max(H).to_string();
+    ok(&[
+        "render", "--scene", &sd, "--target", "2", "--planes", "8", "--tile", &side, "--out", &wd,
+    ]);
+    assert_eq!(
+        read_npy_f32(&big.join("image.npy")),
+        read_npy_f32(&whole.join("image.npy"))
+    );
 }
 
 #[test]

@@ -452,6 +452,25 @@ fn several_mpis_render_a_path_and_bad_input_is_refused() {
         ],
         "--margin 100000",
     );
+    // Planes beyond any memory: an error, not an abort, from the bake and the render.
+    for cmd in ["mpi", "render"] {
+        bad(
+            &[
+                cmd,
+                "--scene",
+                &s,
+                "--target",
+                "1",
+                "--planes",
+                "100000000",
+                "--prune",
+                "off",
+                "--out",
+                &out,
+            ],
+            "cannot be allocated",
+        );
+    }
     bad(
         &["mpi", "--scene", &s, "--eval", "--out", &out],
         "held-out views",

@@ -455,6 +455,14 @@ impl Config {
         1 << (self.levels - 1)
     }
 
+    /// The side of the tiles a `width x height` image is rendered in when `tile` is asked
+    /// for: at least 1 and at most the image's larger side (a larger tile covers the same
+    /// image and only adds padding), rounded up to [`Self::tile_align`].
+    pub fn tile_side(&self, tile: usize, (width, height): (usize, usize)) -> usize {
+        let a = self.tile_align();
+        tile.clamp(1, width.max(height).max(1)).div_ceil(a) * a
+    }
+
     fn towers(&self) -> [&TowerConfig; 2] {
         [&self.select, &self.colour]
     }
@@ -745,6 +753,19 @@ impl LayerInfo {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tiles_are_aligned_and_no_larger_than_the_image() {
+        let cfg = Config::paper();
+        let a = cfg.tile_align();
+        assert_eq!(cfg.tile_side(0, (100, 50)), a);
+        assert_eq!(
+            cfg.tile_side(usize::MAX, (100, 50)),
+            100usize.div_ceil(a) * a
+        );
+        assert_eq!(cfg.tile_side(33, (100, 50)), 33usize.div_ceil(a) * a);
+        assert_eq!(cfg.tile_side(7, (0, 0)), a);
+    }
 
     #[test]
     fn paper_reads_26_from_8() {

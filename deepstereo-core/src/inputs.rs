@@ -16,7 +16,7 @@ use crate::config::{Config, CUE_CHANNELS, MAX_VIEWS};
 use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
 use crate::sweep::cue::{centre_in, cue_slice, CueRays};
-use crate::sweep::{sweep_into, target_rays, Region, Source, CHANNELS};
+use crate::sweep::{alloc_volume, sweep_into, target_rays, Region, Source, CHANNELS};
 use crate::view_weights::{agree_gate, disagreement, near_views, view_weights};
 use glam::DVec3;
 
@@ -177,7 +177,7 @@ pub fn tile_inputs(
                 image: &s.images[l],
             })
             .collect();
-        let mut buf = vec![0.0f32; inv_depths.len() * sources.len() * CHANNELS * region.len()];
+        let mut buf = alloc_volume(inv_depths.len(), sources.len(), region)?;
         sweep_into(&tcam, region, &srcs, inv_depths, &mut buf);
         let q = disagree
             .as_deref()

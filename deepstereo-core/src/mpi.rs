@@ -668,8 +668,7 @@ pub struct TileGrid {
 
 impl TileGrid {
     pub fn new(cfg: &crate::config::Config, (width, height): (usize, usize), tile: usize) -> Self {
-        let a = cfg.tile_align();
-        let side = tile.max(1).div_ceil(a) * a;
+        let side = cfg.tile_side(tile, (width, height));
         Self {
             side,
             across: width.div_ceil(side),
@@ -754,7 +753,9 @@ pub fn layers_of_tiles(
         return Err(Error::Invalid("at least one depth plane is needed".into()));
     }
     let (n, tile) = (w * h, grid.side);
-    let (mut colours, mut selection) = (vec![0f32; d * 3 * n], vec![0f32; d * n]);
+    let what = |c: usize| format!("MPI layers of {d} planes x {c} x {w}x{h}");
+    let mut colours = crate::sweep::try_zeroed(&[d, 3, n], &what(3))?;
+    let mut selection = crate::sweep::try_zeroed(&[d, n], &what(1))?;
     for (done, &i) in tiles.iter().enumerate() {
         let (x0, y0) = grid.origin(i);
         let (c, s) = tile_layers(backend, camera, sources, inv_depths, (x0, y0), tile)?;

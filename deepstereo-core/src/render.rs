@@ -146,12 +146,11 @@ pub fn render_view_pruned(
     pruner: Option<&Pruner<'_>>,
     progress: &dyn Fn(usize, usize),
 ) -> Result<Rendered> {
-    let a = backend.config().tile_align();
-    let tile = tile.max(1).div_ceil(a) * a;
     let (w, h) = (
         target.intrinsics.width as usize,
         target.intrinsics.height as usize,
     );
+    let tile = backend.config().tile_side(tile, (w, h));
     let d = inv_depths.len();
     if d == 0 {
         return Err(Error::Invalid("at least one depth plane is needed".into()));

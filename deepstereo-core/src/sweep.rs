@@ -117,16 +117,21 @@ pub fn sweep_into(
 /// A zeroed `[D, V, 4, h, w]` buffer for [`sweep_into`], or an error naming the size when
 /// it overflows or cannot be allocated (a huge `--planes` must not abort the process).
 pub fn alloc_volume(planes: usize, views: usize, region: Region) -> Result<Vec<f32>> {
-    let len = [planes, views, CHANNELS, region.width, region.height]
-        .iter()
-        .try_fold(1usize, |a, &b| a.checked_mul(b));
-    let too_big = |detail: String| {
-        Error::Invalid(format!(
-            "a plane-sweep volume of {planes} planes x {views} views x {CHANNELS} x {}x{} \
-             f32 {detail}",
+    try_zeroed(
+        &[planes, views, CHANNELS, region.width, region.height],
+        &format!(
+            "a plane-sweep volume of {planes} planes x {views} views x {CHANNELS} x {}x{}",
             region.width, region.height
-        ))
-    };
+        ),
+    )
+}
+
+/// A zeroed buffer of the product of `dims` f32s, or an error naming `what` and the size
+/// when the product overflows or the memory cannot be had: a huge `--planes`, `--tile` or
+/// image must give an error, not abort the process.
+pub fn try_zeroed(dims: &[usize], what: &str) -> Result<Vec<f32>> {
+    let len = dims.iter().try_fold(1usize, |a, &b| a.checked_mul(b));
+    let too_big = |detail: String| Error::Invalid(format!("{what} f32 {detail}"));
     let len = len.ok_or_else(|| too_big("overflows the address space".into()))?;
     let mut v = Vec::new();
     v.try_reserve_exact(len).map_err(|_| {

@@ -23,8 +23,8 @@ pub struct ModelArgs {
     /// config's, the others being empty views (alpha 0).
     #[arg(long)]
     pub views: Option<usize>,
-    /// Output tile side in pixels when rendering (bounds memory; rounded up to the model's
-    /// alignment). With --prune off the result does not depend on it (with auto, the
+    /// Output tile side in pixels when rendering (bounds memory; at most the image's
+    /// larger side, rounded up to the model's alignment). With --prune off the result does not depend on it (with auto, the
     /// planes are chosen per tile and block).
     #[arg(long, default_value_t = 64)]
     pub tile: usize,
