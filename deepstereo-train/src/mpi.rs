@@ -69,13 +69,7 @@ fn network_mpi(
     let cfg = backend.config().clone();
     let k = settings.source_count(&cfg)?;
     let (srcs, inv) = source_inputs(&cfg, scene, prepared, sources, settings)?;
-    let side = camera.intrinsics.width.max(camera.intrinsics.height);
-    if margin > side {
-        bail!(
-            "--margin {margin}: at most the reference image's larger side ({side} pixels); \
-             beyond it the network only extrapolates"
-        );
-    }
+    check_margin(camera, margin)?;
     // The margin is added to the pinhole at the mid-readout pose (its height decides it).
     let camera = with_margin(&reference_camera(camera), margin);
     // source_inputs refused fewer than k sources.
@@ -211,17 +205,42 @@ pub fn bake_view(
         let mpi = bake_camera(backend, scene, prepared, place, &srcs, settings, progress)?;
         return Ok((mpi, srcs));
     }
-    // The render with the photograph gives only its picture; the other views' MPI its
+    // The render with the photograph gives only its picture, in the reference image (the
+    // margin is the other views' alone, so it is not rendered); the other views' MPI its
     // depths, smoothed once and moved straight to that picture.
-    let mut bake = |srcs: &[usize]| {
-        let place = (&camera, opts.margin);
-        network_mpi(backend, scene, prepared, place, srcs, settings, progress)
-    };
-    let picture = bake(&srcs)?.composite();
-    let base = bake(&reference_sources(
-        scene, reference, holdout, false, k, settings,
-    )?)?;
+    check_margin(&camera, opts.margin)?;
+    let place = (&camera, 0);
+    let photo = network_mpi(backend, scene, prepared, place, &srcs, settings, progress)?;
+    let picture = with_border(&photo.composite(), opts.margin);
+    drop(photo);
+    let others = reference_sources(scene, reference, holdout, false, k, settings)?;
+    let place = (&camera, opts.margin);
+    let base = network_mpi(backend, scene, prepared, place, &others, settings, progress)?;
     Ok((finish(base, opts.smooth, Some(picture))?, srcs))
+}
+
+/// Refuses a margin wider than `camera`'s larger side.
+fn check_margin(camera: &Camera, margin: u32) -> Result<()> {
+    let side = camera.intrinsics.width.max(camera.intrinsics.height);
+    if margin > side {
+        bail!(
+            "--margin {margin}: at most the reference image's larger side ({side} pixels); \
+             beyond it the network only extrapolates"
+        );
+    }
+    Ok(())
+}
+
+/// `image` inside a black border of `margin` pixels on every side.
+fn with_border(image: &RgbImage, margin: u32) -> RgbImage {
+    let (w, m) = (image.width as usize, margin as usize);
+    let mut out = RgbImage::new(image.width + 2 * margin, image.height + 2 * margin);
+    let stride = (w + 2 * m) * 3;
+    for (y, row) in image.data.chunks(w * 3).enumerate() {
+        let at = (y + m) * stride + m * 3;
+        out.data[at..at + w * 3].copy_from_slice(row);
+    }
+    out
 }
 
 /// The `n` views that are not held out nearest to view `target` (by camera centre),
