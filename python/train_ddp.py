@@ -452,4 +452,13 @@ def restore(ckpt: Path, run: RunOptions, model: ref.DeepStereo, opt: RefOptimize
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    code = main()
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        # Every output is written and closed and the process group destroyed. Leaving
+        # without the interpreter's finalization: there, gloo's worker threads can still
+        # hold work whose tensors need the GIL, and a rank then aborts ("terminate called
+        # without an active exception") after a run that succeeded.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
