@@ -190,7 +190,7 @@ pub fn tile_inputs(
         }
         if cfg.pool.as_ref().is_some_and(|p| p.reads_cue()) {
             let centres: Vec<DVec3> = srcs.iter().map(|s| centre_in(&tcam, s.camera)).collect();
-            buf = with_cue(&buf, &tcam, region, &centres, inv_depths, q.as_deref());
+            buf = with_cue(&buf, &tcam, region, &centres, inv_depths, q.as_deref())?;
         }
         levels.push(buf);
         sizes.push((region.height, region.width));
@@ -214,13 +214,22 @@ fn with_cue(
     centres: &[DVec3],
     inv_depths: &[f64],
     q: Option<&[f32]>,
-) -> Vec<f32> {
+) -> Result<Vec<f32>> {
     use rayon::prelude::*;
     let (hw, v) = (region.len(), centres.len());
     let rays = CueRays::new(&target_rays(&target.intrinsics, region));
     let cue_channels = CUE_CHANNELS + usize::from(q.is_some());
     let per_view = (CHANNELS + cue_channels) * hw;
-    let mut out = vec![0.0f32; inv_depths.len() * v * per_view];
+    let mut out = crate::sweep::try_zeroed(
+        &[inv_depths.len(), v, per_view],
+        &format!(
+            "a plane-sweep volume with its cue of {} planes x {v} views x {} x {}x{}",
+            inv_depths.len(),
+            CHANNELS + cue_channels,
+            region.width,
+            region.height
+        ),
+    )?;
     out.par_chunks_mut(per_view)
         .zip(rgba.par_chunks(CHANNELS * hw))
         .enumerate()
@@ -234,7 +243,7 @@ fn with_cue(
                 last.copy_from_slice(&q[slice * hw..][..hw]);
             }
         });
-    out
+    Ok(out)
 }
 
 /// Scales the alpha of view `v` by `weights[v]` in a volume `[D, V, 4, h, w]` of `hw`
