@@ -24,8 +24,8 @@ pub struct ModelArgs {
     #[arg(long)]
     pub views: Option<usize>,
     /// Output tile side in pixels when rendering (bounds memory; at most the image's
-    /// larger side, rounded up to the model's alignment). With --prune off the result does not depend on it (with auto, the
-    /// planes are chosen per tile and block).
+    /// larger side, rounded up to the model's alignment). With --prune off the result
+    /// does not depend on it (with auto, the planes are chosen per tile and block).
     #[arg(long, default_value_t = 64)]
     pub tile: usize,
     /// Leave out what the scene does not need: `auto` keeps the planes within the depth
