@@ -452,6 +452,12 @@ fn several_mpis_render_a_path_and_bad_input_is_refused() {
         ],
         "--margin 100000",
     );
+    for tau in ["--agree=-0.1", "--agree=nan", "--agree=inf"] {
+        bad(
+            &["mpi", "--scene", &s, "--target", "1", tau, "--out", &out],
+            "positive colour scale",
+        );
+    }
     // Planes beyond any memory: an error, not an abort, from the bake and the render.
     for cmd in ["mpi", "render"] {
         bad(
@@ -748,18 +754,20 @@ fn an_mpi_spreads_its_planes_over_the_depths_its_view_sees() {
 /// An MPI baked at a view with its own photograph shows, at that view,
 /// what `render --pose` with the photograph among the sources shows (>= 40 dB), whichever
 /// way the photograph enters: by default the planes are those of the bake without it
-/// (`--exclude-own-photo`: the same alphas, texel for texel) with their colours moved to
-/// that picture; with `--own-photo-as-source` they are the network's layers with it.
+/// (`--exclude-own-photo`), reweighed by the photograph's agreement with the other views
+/// (`--agree 0`: the same alphas, texel for texel), with their colours moved to that
+/// picture; with `--own-photo-as-source` they are the network's layers with it.
 #[test]
 fn an_mpi_with_its_own_photograph_keeps_the_other_views_depths() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let s = scene(tmp.path()).to_string_lossy().into_owned();
     let t = |p: &str| tmp.path().join(p).to_string_lossy().into_owned();
-    let (m, m_src, m_ex) = (t("mpi"), t("mpi_src"), t("mpi_ex"));
+    let (m, m0, m_src, m_ex) = (t("mpi"), t("mpi0"), t("mpi_src"), t("mpi_ex"));
     bake_view_2(&s, &m, &[]);
+    bake_view_2(&s, &m0, &["--agree", "0"]);
     bake_view_2(&s, &m_src, &["--own-photo-as-source"]);
     bake_view_2(&s, &m_ex, &["--exclude-own-photo"]);
-    for mpi in [&m, &m_src] {
+    for mpi in [&m, &m0, &m_src] {
         let (net, via) = at_reference(tmp.path(), &s, mpi, &COMMON);
         let db = psnr(&via, &net);
         assert!(
@@ -768,13 +776,19 @@ fn an_mpi_with_its_own_photograph_keeps_the_other_views_depths() {
         );
     }
     let read = |d: &str| io::read(Path::new(d)).expect("read the MPI");
-    let (own, excluded) = (read(&m), read(&m_ex));
-    let mut moved = 0;
-    for (a, b) in own.planes().iter().zip(excluded.planes()) {
-        for (x, y) in a.chunks(4).zip(b.chunks(4)) {
+    let (own, unweighed, excluded) = (read(&m), read(&m0), read(&m_ex));
+    let (mut moved, mut reweighed) = (0, 0);
+    for ((a, b), c) in (unweighed.planes().iter())
+        .zip(excluded.planes())
+        .zip(own.planes())
+    {
+        for ((x, y), z) in a.chunks(4).zip(b.chunks(4)).zip(c.chunks(4)) {
             assert_eq!(x[3], y[3], "alphas differ");
             moved += usize::from((0..3).any(|c| (x[c] - y[c]).abs() > 1.5 / 255.0));
+            reweighed += usize::from((z[3] - x[3]).abs() > 1.5 / 255.0);
         }
     }
+    assert!(moved > 0, "no colour moved to the photograph's picture");
+    assert!(reweighed > 0, "the photograph's agreement moved no alpha");
     assert!(moved > 0, "no colour moved to the photograph's picture");
 }

@@ -25,6 +25,7 @@ use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 use std::sync::OnceLock;
 
+pub mod agree;
 pub mod fill;
 pub mod io;
 pub mod planned;

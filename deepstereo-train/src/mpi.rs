@@ -6,7 +6,7 @@ use crate::inference::{
     pick_sources, plan_pruning, render_held_out, source_inputs, spanned_planes, PlaneSpan,
     Prepared, RenderSettings,
 };
-use anyhow::{bail, Result};
+use anyhow::{anyhow, bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::config::Config;
 use deepstereo_core::imageio::RgbImage;
@@ -15,24 +15,33 @@ use deepstereo_core::mpi::planned::layers_planned;
 use deepstereo_core::mpi::{bake, io, reference_camera, render_blend, viewer, with_margin, Mpi};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
+use deepstereo_core::sweep::Source;
 use serde::Serialize;
 use std::path::Path;
 use std::time::Instant;
 
 /// What an MPI's bake adds to the network's layers.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct BakeOptions {
     /// Pixels added on every side of the reference image ([`with_margin`]).
     pub margin: u32,
     /// The radius (texels) of the box each texel's selection is averaged over
     /// ([`Mpi::with_smoothed_selection`]); 0: the network's own.
     pub smooth: usize,
+    /// The colour scale of the photograph's agreement with the other views, which
+    /// reweighs the residual bake's selection before it is smoothed
+    /// ([`Mpi::with_photo_agreement`]); 0: not reweighed.
+    pub agree: f64,
 }
 
 /// The radius `mpi` smooths the selection with when `--smooth` is not given: one MPI at
 /// held-out views of the training scenes and of the evaluation scenes is closer to the
 /// photographs with it than with radius 0 (docs/results.md, "MPIs").
 pub const BAKE_SMOOTH: usize = 10;
+
+/// The colour scale `mpi` reweighs the residual bake's selection with when `--agree` is
+/// not given (chosen on training scenes: docs/results.md, "MPIs").
+pub const BAKE_AGREE: f64 = 0.0125;
 
 /// Bakes the MPI of `camera` as [`network_mpi`] does, then smooths its selection
 /// (`opts.smooth`) and restores its composite in the reference image to the network's
@@ -216,7 +225,43 @@ pub fn bake_view(
     let others = reference_sources(scene, reference, holdout, false, k, settings)?;
     let place = (&camera, opts.margin);
     let base = network_mpi(backend, scene, prepared, place, &others, settings, progress)?;
+    let base = agree_with_photo(
+        scene,
+        prepared,
+        (reference, &others[..k.min(others.len())]),
+        base,
+        opts.agree,
+    )?;
     Ok((finish(base, opts.smooth, Some(picture))?, srcs))
+}
+
+/// `mpi` reweighed by view `reference`'s photograph's agreement with the views `others`
+/// at each plane ([`Mpi::with_photo_agreement`]), at full resolution; as it is when
+/// `tau` is 0.
+fn agree_with_photo(
+    scene: &Scene,
+    prepared: &mut Prepared,
+    (reference, others): (usize, &[usize]),
+    mpi: Mpi,
+    tau: f64,
+) -> Result<Mpi> {
+    if tau == 0.0 {
+        return Ok(mpi);
+    }
+    for &i in std::iter::once(&reference).chain(others) {
+        prepared.get(scene, i, 1)?;
+    }
+    let source = |i: usize| {
+        let p = prepared.pyramids[i].as_ref();
+        p.map(|p| Source {
+            camera: &p.cameras[0],
+            image: &p.images[0],
+        })
+        .ok_or_else(|| anyhow!("view {i} was not loaded"))
+    };
+    let photo = source(reference)?;
+    let others: Vec<Source> = others.iter().map(|&i| source(i)).collect::<Result<_>>()?;
+    Ok(mpi.with_photo_agreement(photo, &others, tau)?)
 }
 
 /// Refuses a margin wider than `camera`'s larger side.

@@ -605,3 +605,146 @@ fn smoothing_keeps_a_texels_empty_planes_empty() -> Result<()> {
     assert!((alpha(0, 0) - 0.1875).abs() < 1e-6, "{}", alpha(0, 0));
     Ok(())
 }
+
+/// What `camera` sees of the plane `z = depth` painted with a smooth pattern (colours in
+/// [0.1, 0.9], exact per pixel centre).
+fn painted_plane(camera: &Camera, depth: f64) -> RgbImage {
+    let k = &camera.intrinsics;
+    let (w, h) = (k.width as usize, k.height as usize);
+    let centre = camera.pose.centre();
+    let mut data = Vec::with_capacity(w * h * 3);
+    for y in 0..h {
+        for x in 0..w {
+            let ray = DVec3::new(
+                (x as f64 + 0.5 - k.cx) / k.fx,
+                (y as f64 + 0.5 - k.cy) / k.fy,
+                1.0,
+            );
+            let p = centre + ray * (depth - centre.z);
+            for ch in 0..3 {
+                let phase = ch as f64 * 2.1;
+                data.push(
+                    (0.5 + 0.4 * (10.0 * p.x + phase).sin() * (6.0 * p.y - phase).cos()) as f32,
+                );
+            }
+        }
+    }
+    RgbImage {
+        width: w as u32,
+        height: h as u32,
+        data,
+    }
+}
+
+#[test]
+fn the_photographs_agreement_peaks_on_the_plane_the_surface_lies_on() -> Result<()> {
+    let (w, h, margin) = (24u32, 20u32, 3u32);
+    let inv = vec![1.0 / 1.2, 1.0 / 2.0, 1.0 / 3.5];
+    let reference = camera(w, h, DVec3::ZERO);
+    // On one side of the reference, so that their errors do not cancel out.
+    let mut others: Vec<Camera> = [0.15, 0.3, 0.45]
+        .iter()
+        .map(|&b| camera(w, h, DVec3::new(b, 0.05 * b, 0.0)))
+        .collect();
+    let photo = painted_plane(&reference, 2.0);
+    let mut images: Vec<RgbImage> = others.iter().map(|c| painted_plane(c, 2.0)).collect();
+    // One that sees an occluder (flat white): the closer half of the errors leaves it out.
+    others.push(camera(w, h, DVec3::new(0.2, 0.0, 0.0)));
+    images.push(RgbImage {
+        width: w,
+        height: h,
+        data: vec![0.95; (w * h * 3) as usize],
+    });
+    // And one that sees none of it: it is not among the errors.
+    others.push(camera(w, h, DVec3::new(50.0, 0.0, 0.0)));
+    images.push(painted_plane(&others[4], 2.0));
+    let sources: Vec<crate::sweep::Source> = (others.iter().zip(&images))
+        .map(|(camera, image)| crate::sweep::Source { camera, image })
+        .collect();
+    let photo = crate::sweep::Source {
+        camera: &reference,
+        image: &photo,
+    };
+    // An MPI with its margin, every texel selecting the three planes alike.
+    let cam = with_margin(&reference, margin);
+    let (mw, mh) = (
+        cam.intrinsics.width as usize,
+        cam.intrinsics.height as usize,
+    );
+    let n = mw * mh;
+    let colours = values(3 * 3 * n, 3);
+    let sel = vec![1.0 / 3.0; 3 * n];
+    let mut mpi = Mpi::from_layers(cam, inv, &colours, &sel)?;
+    mpi.margin = margin;
+    let f = mpi.agreement(photo, &sources, 0.1)?;
+    let m = margin as usize;
+    // The margin has no photograph: its factors stay 1.
+    for (p, _) in (0..n).map(|p| (p, ())).filter(|&(p, _)| {
+        let (x, y) = (p % mw, p / mw);
+        x < m || y < m || x >= mw - m || y >= mh - m
+    }) {
+        assert!((0..3).all(|z| f[z * n + p] == 1.0), "margin texel {p}");
+    }
+    // Inside, away from where the far views leave the image, the surface's plane agrees.
+    let reweighed = mpi.with_photo_agreement(photo, &sources, 0.1)?;
+    let share = |mpi: &Mpi, p: usize, z: usize| {
+        let a = |k: usize| mpi.planes()[k][p * 4 + 3] as f64;
+        a(z) * (0..z).map(|k| 1.0 - a(k)).product::<f64>()
+    };
+    let mut checked = 0;
+    for y in m + 4..mh - m - 4 {
+        for x in m + 6..mw - m - 6 {
+            let p = y * mw + x;
+            assert!(f[n + p] > 0.8, "texel {p}: {}", f[n + p]);
+            let (f0, f1, f2) = (f[p], f[n + p], f[2 * n + p]);
+            assert!(f0 < 0.5 * f1 && f2 < 0.5 * f1, "texel {p}: {f0} {f1} {f2}");
+            let shares: Vec<f64> = (0..3).map(|z| share(&reweighed, p, z)).collect();
+            assert!(
+                (shares.iter().sum::<f64>() - 1.0).abs() < 1e-5,
+                "coverage at {p}"
+            );
+            // The flat selection becomes the factors, normalized.
+            let total = (f0 + f1 + f2) as f64;
+            for (z, fz) in [f0, f1, f2].into_iter().enumerate() {
+                let want = fz as f64 / total;
+                assert!((shares[z] - want).abs() < 1e-5, "texel {p}: {shares:?}");
+            }
+            checked += 1;
+        }
+    }
+    assert!(checked >= 20);
+    assert!(mpi.with_photo_agreement(photo, &sources, 0.0).is_err());
+    assert!(mpi.with_photo_agreement(photo, &sources, f64::NAN).is_err());
+    Ok(())
+}
+
+#[test]
+fn reweighing_by_ones_keeps_the_selection_and_by_a_plane_moves_it_there() -> Result<()> {
+    let (w, h, d) = (5, 4, 3);
+    let n = w * h;
+    let (colours, sel) = layers(d, n);
+    let inv = crate::geometry::inverse_depths(1.0, f64::INFINITY, d);
+    let mpi = Mpi::from_layers(camera(w as u32, h as u32, DVec3::ZERO), inv, &colours, &sel)?;
+    let same = mpi.with_reweighed_selection(&vec![1.0; d * n])?;
+    for (a, b) in same.planes().iter().zip(mpi.planes()) {
+        for (u, v) in a.iter().zip(b) {
+            assert!((u - v).abs() < 1e-6);
+        }
+    }
+    // Only plane 2 agrees: every texel selects it alone; colours stay.
+    let only: Vec<f32> = (0..d * n)
+        .map(|i| if i / n == 2 { 0.3 } else { 0.0 })
+        .collect();
+    let moved = mpi.with_reweighed_selection(&only)?;
+    for p in 0..n {
+        let a: Vec<f32> = moved.planes().iter().map(|pl| pl[p * 4 + 3]).collect();
+        assert_eq!(a, vec![0.0, 0.0, 1.0], "texel {p}");
+        for (x, y) in moved.planes().iter().zip(mpi.planes()) {
+            assert_eq!(x[p * 4..p * 4 + 3], y[p * 4..p * 4 + 3]);
+        }
+    }
+    // No plane agrees anywhere: the texel keeps its own selection.
+    let none = mpi.with_reweighed_selection(&vec![0.0; d * n])?;
+    assert_eq!(none.planes(), mpi.planes());
+    Ok(())
+}

@@ -5,7 +5,7 @@ use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::inference::{pick_sources, PlaneSpan, Prepared, RenderSettings};
 use crate::mpi::{
     bake_camera, bake_settings, bake_view, eval_through_mpi, BakeOptions, MpiEvalOptions, OwnPhoto,
-    BAKE_SMOOTH,
+    BAKE_AGREE, BAKE_SMOOTH,
 };
 use crate::outdir::StagedDir;
 use anyhow::{bail, Context, Result};
@@ -69,6 +69,14 @@ pub struct Args {
     /// network's. 0: the network's selection as it is.
     #[arg(long, value_name = "R", default_value_t = BAKE_SMOOTH)]
     pub smooth: usize,
+    /// With the default bake (the photograph moves the colours of its own image): each
+    /// texel's selection, from the other views, weighed per plane by how well the
+    /// photograph agrees with those views there, exp(-e / TAU), e the mean of the closer
+    /// half of their colour errors (RGB in [0, 1]), before it is smoothed: plane-sweep
+    /// stereo with the photograph, which the network cannot do with it among its sources.
+    /// The picture at the reference stays the network's. 0: not reweighed.
+    #[arg(long, value_name = "TAU", default_value_t = BAKE_AGREE, value_parser = parse_agree)]
+    pub agree: f64,
     /// Instead of writing MPIs: render every held-out view through an MPI baked at its
     /// nearest view that is not held out, beside the network's render of it; writes
     /// eval.json into --out.
@@ -173,11 +181,22 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
-/// The margin and smoothing of every bake.
+/// The margin, smoothing and agreement of every bake.
 fn bake_options(a: &Args) -> BakeOptions {
     BakeOptions {
         margin: a.margin,
         smooth: a.smooth,
+        agree: a.agree,
+    }
+}
+
+/// `--agree`: 0 (off) or a positive, finite colour scale.
+fn parse_agree(s: &str) -> std::result::Result<f64, String> {
+    let tau: f64 = s.parse().map_err(|e| format!("{s:?}: {e}"))?;
+    if tau == 0.0 || (tau.is_finite() && tau > 0.0) {
+        Ok(tau)
+    } else {
+        Err(format!("{s}: 0 (off) or a positive colour scale"))
     }
 }
 
@@ -297,6 +316,7 @@ fn run_eval(
         "own_photo": own_photo(a),
         "margin": a.margin,
         "smooth": a.smooth,
+        "agree": a.agree,
         "mpis_per_view": a.eval_mpis,
         "per_view": per_view,
         "mean": mean,
