@@ -225,10 +225,13 @@ pub fn bake_view(
     let others = reference_sources(scene, reference, holdout, false, k, settings)?;
     let place = (&camera, opts.margin);
     let base = network_mpi(backend, scene, prepared, place, &others, settings, progress)?;
+    let others = &others[..k.min(others.len())];
+    let levels = backend.config().levels;
     let base = agree_with_photo(
         scene,
         prepared,
-        (reference, &others[..k.min(others.len())]),
+        levels,
+        (reference, others),
         base,
         opts.agree,
     )?;
@@ -236,11 +239,12 @@ pub fn bake_view(
 }
 
 /// `mpi` reweighed by view `reference`'s photograph's agreement with the views `others`
-/// at each plane ([`Mpi::with_photo_agreement`]), at full resolution; as it is when
-/// `tau` is 0.
+/// at each plane ([`Mpi::with_photo_agreement`]), at full resolution (a view not loaded
+/// yet is loaded with the model's pyramid `levels`); as it is when `tau` is 0.
 fn agree_with_photo(
     scene: &Scene,
     prepared: &mut Prepared,
+    levels: usize,
     (reference, others): (usize, &[usize]),
     mpi: Mpi,
     tau: f64,
@@ -249,7 +253,7 @@ fn agree_with_photo(
         return Ok(mpi);
     }
     for &i in std::iter::once(&reference).chain(others) {
-        prepared.get(scene, i, 1)?;
+        prepared.get(scene, i, levels)?;
     }
     let source = |i: usize| {
         let p = prepared.pyramids[i].as_ref();
