@@ -39,6 +39,15 @@ impl PyramidSource {
             .collect();
         Self { cameras, images }
     }
+
+    /// Level `l` as a source for the plane sweep (its camera and image); `l` must be one
+    /// of its levels.
+    pub fn level(&self, l: usize) -> Source<'_> {
+        Source {
+            camera: &self.cameras[l],
+            image: &self.images[l],
+        }
+    }
 }
 
 impl PyramidSource {
@@ -170,13 +179,7 @@ pub fn tile_inputs(
             target.intrinsics.width >> l,
             target.intrinsics.height >> l,
         );
-        let srcs: Vec<Source> = sources
-            .iter()
-            .map(|s| Source {
-                camera: &s.cameras[l],
-                image: &s.images[l],
-            })
-            .collect();
+        let srcs: Vec<Source> = sources.iter().map(|s| s.level(l)).collect();
         let mut buf = alloc_volume(inv_depths.len(), sources.len(), region)?;
         sweep_into(&tcam, region, &srcs, inv_depths, &mut buf);
         let q = disagree

@@ -437,12 +437,7 @@ fn sweep_baseline(
     let t1 = Instant::now();
     let sources: Vec<Source<'_>> = srcs
         .iter()
-        .filter_map(|&i| {
-            prepared.pyramids[i].as_ref().map(|p| Source {
-                camera: &p.cameras[0],
-                image: &p.images[0],
-            })
-        })
+        .filter_map(|&i| prepared.pyramids[i].as_ref().map(|p| p.level(0)))
         .collect();
     let (ps, _) = plane_sweep(target, &sources, inv);
     (ps, t1.elapsed().as_secs_f64())

@@ -257,11 +257,8 @@ fn agree_with_photo(
     }
     let source = |i: usize| {
         let p = prepared.pyramids[i].as_ref();
-        p.map(|p| Source {
-            camera: &p.cameras[0],
-            image: &p.images[0],
-        })
-        .ok_or_else(|| anyhow!("view {i} was not loaded"))
+        p.map(|p| p.level(0))
+            .ok_or_else(|| anyhow!("view {i} was not loaded"))
     };
     let photo = source(reference)?;
     let others: Vec<Source> = others.iter().map(|&i| source(i)).collect::<Result<_>>()?;

@@ -20,7 +20,7 @@
 //! where the photograph or no source sees the point, and in the margin, `f_z = 1`.
 //! Measured in docs/results.md, "MPIs".
 
-use super::{alphas, Mpi};
+use super::Mpi;
 use crate::error::{Error, Result};
 use crate::sweep::{sweep_into, try_zeroed, Region, Source, CHANNELS};
 use rayon::prelude::*;
@@ -33,7 +33,7 @@ impl Mpi {
     /// This MPI with every texel of the view it was baked for (its margin left out)
     /// reweighed by the agreement of `photo` (the reference view and its photograph)
     /// with `sources` at each plane, `tau` the colour scale (RGB in [0, 1]); alphas
-    /// follow from the new selection ([`alphas`]), colours stay. The composite at the
+    /// follow from the new selection ([`super::alphas`]), colours stay. The composite at the
     /// reference changes: bakes restore it with [`Mpi::with_composite`].
     pub fn with_photo_agreement(
         &self,
@@ -94,29 +94,16 @@ impl Mpi {
     }
 
     /// This MPI with each texel's selection `s_z` made `s_z f_z` (the alphas of
-    /// [`alphas`] normalize it: the farthest plane selected is opaque); a texel whose
+    /// [`super::alphas`] normalize it: the farthest plane selected is opaque); a texel whose
     /// reweighed selection vanishes keeps its own.
     pub(super) fn with_reweighed_selection(&self, factors: &[f32]) -> Result<Self> {
-        let (n, d) = (self.width() * self.height(), self.planes.len());
-        let mut planes = self.planes.clone();
-        let mut sel = vec![0f32; d];
-        for p in 0..n {
-            let mut t = 1f64;
-            for (z, plane) in self.planes.iter().enumerate() {
-                let a = plane[p * 4 + 3] as f64;
-                sel[z] = (a * t * factors[z * n + p] as f64) as f32;
-                t *= 1.0 - a;
+        let (own, n) = (self.shares(), self.width() * self.height());
+        self.with_selection(|p, s| {
+            for (z, v) in s.iter_mut().enumerate() {
+                *v = (own[z * n + p] * factors[z * n + p] as f64) as f32;
             }
-            if sel.iter().all(|&s| s <= 0.0) {
-                continue;
-            }
-            for (z, a) in alphas(&sel).into_iter().enumerate() {
-                planes[z][p * 4 + 3] = a;
-            }
-        }
-        let mut out = Self::new(self.camera, self.inv_depths.clone(), planes)?;
-        out.margin = self.margin;
-        Ok(out)
+            s.iter().any(|&v| v > 0.0)
+        })
     }
 }
 

@@ -24,16 +24,31 @@ impl Mpi {
         let (w, h, d) = (self.width(), self.height(), self.planes.len());
         let own = self.shares();
         let mean = box_mean_planes(&own, d, (w, h), radius);
-        let mut planes = self.planes.clone();
         let n = w * h;
-        let mut s = vec![0f32; d];
-        for p in 0..n {
+        self.with_selection(|p, s| {
             for (z, v) in s.iter_mut().enumerate() {
                 *v = if own[z * n + p] > 0.0 {
                     mean[z * n + p] as f32
                 } else {
                     0.0
                 };
+            }
+            true
+        })
+    }
+
+    /// This MPI with each texel `p`'s alphas made from the selection `new(p, s)` writes
+    /// into `s` (`[D]`, near to far; [`alphas`]), where `new` returns true; colours and
+    /// the other texels stay.
+    pub(super) fn with_selection(
+        &self,
+        mut new: impl FnMut(usize, &mut [f32]) -> bool,
+    ) -> Result<Self> {
+        let mut planes = self.planes.clone();
+        let mut s = vec![0f32; planes.len()];
+        for p in 0..self.width() * self.height() {
+            if !new(p, &mut s) {
+                continue;
             }
             for (z, a) in alphas(&s).into_iter().enumerate() {
                 planes[z][p * 4 + 3] = a;
@@ -46,7 +61,7 @@ impl Mpi {
 
     /// Per plane (near to far) and texel, `[D, H, W]`: its share of the composite at the
     /// reference, `a_z prod_{k < z} (1 - a_k)`.
-    fn shares(&self) -> Vec<f64> {
+    pub(super) fn shares(&self) -> Vec<f64> {
         let n = self.width() * self.height();
         let mut out = vec![0f64; self.planes.len() * n];
         for p in 0..n {
