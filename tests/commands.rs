@@ -534,3 +534,86 @@ fn train_refuses_bad_data_before_writing_anything() {
         assert!(!out.exists(), "{extra:?}: --out was created");
     }
 }
+
+/// `render`'s report of its sources: the network's, and those only pruning's coarse pass
+/// read (empty when none).
+fn render_sources(args: &[&str]) -> (Vec<usize>, Vec<usize>) {
+    let res = ok(args);
+    let list = |s: &str| -> Vec<usize> {
+        let inner = s.split('[').nth(1).and_then(|s| s.split(']').next());
+        let inner = inner.unwrap_or_else(|| panic!("no list in {s:?}"));
+        inner
+            .split(", ")
+            .map(|v| v.parse().expect("index"))
+            .collect()
+    };
+    let line = res.stderr.lines().find(|l| l.starts_with("rendered "));
+    let line = line.unwrap_or_else(|| panic!("no render line: {}", res.stderr));
+    let network = list(line.split("from views").nth(1).expect("views"));
+    let plan = match line.split("chosen with views").nth(1) {
+        Some(rest) => list(rest),
+        None => Vec::new(),
+    };
+    (network, plan)
+}
+
+#[test]
+fn pruning_chooses_the_planes_with_more_views_than_the_network_reads() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let s = scene(tmp.path());
+    let sd = s.to_string_lossy().into_owned();
+    let out = |name: &str| tmp.path().join(name).to_string_lossy().into_owned();
+    let base = [
+        "render", "--scene", &sd, "--target", "2", "--planes", "8", "--views", "2",
+    ];
+    let run = |name: &str, extra: &[&str]| {
+        let o = out(name);
+        let sources = render_sources(&[&base[..], extra, &["--out", &o]].concat());
+        (
+            sources,
+            read_npy_f32(&tmp.path().join(name).join("image.npy")),
+        )
+    };
+    // Every view but the target: the network's two, then the other three.
+    let ((network, plan), more) = run("more", &["--prune-views", "8"]);
+    assert_eq!((network.len(), plan.len()), (2, 3), "{network:?} {plan:?}");
+    let mut all: Vec<usize> = network.iter().chain(&plan).copied().collect();
+    all.sort();
+    assert_eq!(all, vec![0, 1, 3, 4, 5]);
+    assert!(more.1.iter().all(|v| v.is_finite()));
+    // No more than the network's: the renderer that reads only them, to the bit.
+    let ((n0, p0), none) = run("none", &["--prune-views", "0"]);
+    let ((n2, p2), two) = run("two", &["--prune-views", "2"]);
+    assert_eq!((&n0, &n2), (&network, &network));
+    assert!(p0.is_empty() && p2.is_empty());
+    assert!(none == two, "--prune-views 0 and 2 differ at 2 views");
+    // The coarse pass's planes decide what the network runs: more views change them.
+    assert!(
+        more.1 != none.1,
+        "the same image with and without more views"
+    );
+    // Without pruning there is no coarse pass.
+    let ((_, off_plan), off_more) = run("off_more", &["--prune", "off", "--prune-views", "8"]);
+    let (_, off) = run("off", &["--prune", "off"]);
+    assert!(off_plan.is_empty());
+    assert!(
+        off_more == off,
+        "--prune-views changed the render without pruning"
+    );
+    // eval never reads a held-out view, in the coarse pass either.
+    let v = eval_json(
+        &s,
+        "1,4",
+        &["--planes", "8", "--views", "2", "--prune-views", "8"],
+    );
+    for pv in v["per_view"].as_array().expect("per_view") {
+        let ids = |k: &str| -> Vec<u64> {
+            pv[k].as_array().map_or(Vec::new(), |a| {
+                a.iter().filter_map(|x| x.as_u64()).collect()
+            })
+        };
+        let (n, p) = (ids("sources"), ids("plan_sources"));
+        assert_eq!((n.len(), p.len()), (2, 2), "{pv}");
+        assert!(n.iter().chain(&p).all(|i| ![1, 4].contains(i)), "{pv}");
+    }
+}

@@ -36,6 +36,9 @@ pub struct RenderSettings {
     pub tile: usize,
     /// What to leave out (`deepstereo_core::prune`).
     pub prune: PruneOptions,
+    /// Source views pruning's coarse pass reads ([`RenderSettings::plan_count`]): the
+    /// network's and, up to this many in all, the next best-ranked of the scene's others.
+    pub plan_views: usize,
     /// Where the planes lie (`None`: the command's default, [`PlaneSpan::Scene`] but for
     /// `mpi`'s bakes).
     pub span: Option<PlaneSpan>,
@@ -75,7 +78,24 @@ impl RenderSettings {
         }
         Ok(k)
     }
+
+    /// How many views pruning's coarse pass reads when the network reads `k`:
+    /// `plan_views` with pruning on, for the any-number-of-views family, when more than
+    /// `k`; else `k` (the paper's family takes its own count).
+    pub fn plan_count(&self, cfg: &Config, k: usize) -> usize {
+        if self.prune.is_on() && cfg.pool.is_some() {
+            k.max(self.plan_views)
+        } else {
+            k
+        }
+    }
 }
+
+/// Source views pruning's coarse pass reads by default ([`RenderSettings::plan_views`],
+/// `--prune-views`): at 4 views the network renders the six evaluation scenes 0.02-0.35
+/// dB better when the planes it runs are chosen with 8 views, for about 5% more time,
+/// and no better with 12 (docs/performance.md, "Planning with more views").
+pub const DEFAULT_PLAN_VIEWS: usize = 8;
 
 /// The `k` source views for `target`, never one of `exclude` (its own index in the
 /// scene, and in an evaluation every held-out view: sources come from the other views
@@ -126,9 +146,33 @@ impl Prepared {
     }
 }
 
+/// [`pick_sources`]'s `k` views, followed by the views only pruning's coarse pass reads
+/// (none with pruning off): the next best-ranked of the others, never one of `exclude`,
+/// up to [`RenderSettings::plan_count`] in all.
+pub fn pick_planned_sources(
+    scene: &Scene,
+    target: &Camera,
+    exclude: &[usize],
+    (k, cfg): (usize, &Config),
+    settings: &RenderSettings,
+) -> Vec<usize> {
+    let mut picked = pick_sources(scene, target, exclude, k, settings);
+    let plan = settings.plan_count(cfg, k);
+    if plan > k {
+        for j in pick_sources(scene, target, exclude, plan, settings) {
+            if !picked.contains(&j) {
+                picked.push(j);
+            }
+        }
+    }
+    picked
+}
+
 /// What the model takes for the first `k` of `sources` (`k` from `settings`): their
 /// pyramids (loaded on first use) padded, for the paper family, with views that see
-/// nothing up to its input count; and the requested inverse depths, near to far.
+/// nothing up to its input count, then the pyramids of the others (the views only
+/// pruning's coarse pass reads, [`pick_planned_sources`]); and the requested inverse
+/// depths, near to far.
 pub fn source_inputs<'a>(
     cfg: &Config,
     scene: &Scene,
@@ -144,7 +188,10 @@ pub fn source_inputs<'a>(
             sources.len().max(1)
         );
     }
-    let sources = &sources[..k];
+    let (network, plan) = sources.split_at(k);
+    if cfg.pool.is_none() && !plan.is_empty() {
+        bail!("the paper's family reads its {k} views in pruning's coarse pass too");
+    }
     let planes = settings.planes.unwrap_or(cfg.default_render_planes());
     if planes == 0 {
         bail!("--planes must be at least 1");
@@ -152,19 +199,18 @@ pub fn source_inputs<'a>(
     for &i in sources {
         prepared.get(scene, i, cfg.levels)?;
     }
-    prepared.empty = (sources.first())
+    prepared.empty = (network.first())
         .and_then(|&i| prepared.pyramids[i].as_ref())
         .map(|s| PyramidSource::empty(&s.cameras[0], cfg.levels));
     let prepared: &'a Prepared = prepared;
-    let mut srcs: Vec<&PyramidSource> = sources
-        .iter()
-        .filter_map(|&i| prepared.pyramids[i].as_ref())
-        .collect();
+    let pyramid = |&i: &usize| prepared.pyramids[i].as_ref();
+    let mut srcs: Vec<&PyramidSource> = network.iter().filter_map(pyramid).collect();
     if let Some(e) = prepared.empty.as_ref().filter(|_| cfg.pool.is_none()) {
         while srcs.len() < cfg.views {
             srcs.push(e);
         }
     }
+    srcs.extend(plan.iter().filter_map(pyramid));
     Ok((srcs, inverse_depths(scene.near, scene.far, planes)))
 }
 
@@ -181,17 +227,24 @@ pub fn render_camera(
     let cfg = backend.config().clone();
     let k = settings.source_count(&cfg)?;
     let (srcs, requested) = source_inputs(&cfg, scene, prepared, sources, settings)?;
-    let sources = &sources[..k];
+    let network = network_inputs(&srcs, sources.len() - k);
     let requested = spanned_planes(scene, target, sources, requested, settings.span);
     if !settings.prune.is_on() {
-        let r = render_view(backend, target, &srcs, &requested, settings.tile, progress)?;
+        let r = render_view(
+            backend,
+            target,
+            network,
+            &requested,
+            settings.tile,
+            progress,
+        )?;
         return Ok((r, requested));
     }
     let (inv, pruner) = plan_pruning(backend, scene, target, &srcs, sources, &requested, settings)?;
     let mut r = render_view_pruned(
         backend,
         target,
-        &srcs,
+        network,
         &inv,
         settings.tile,
         Some(&pruner),
@@ -206,11 +259,21 @@ pub fn render_camera(
     Ok((r, requested))
 }
 
+/// The network's inputs among [`source_inputs`]'s `srcs`: all but the last `plan_only`
+/// (the views only pruning's coarse pass reads).
+pub fn network_inputs<'a, 'b>(
+    srcs: &'a [&'b PyramidSource],
+    plan_only: usize,
+) -> &'a [&'b PyramidSource] {
+    &srcs[..srcs.len().saturating_sub(plan_only)]
+}
+
 /// Pruning's plan for rendering `target` from `srcs` (the pyramids of the scene's views
-/// `sources`, which pick their depth bounds) at the `requested` inverse depths: the planes
-/// run (fewer, spread evenly, when the requested ones are closer than `max_step` pixels
-/// apart in every source: a subset of the requested planes) and the pruner, with the
-/// network's coarse pass when the settings ask for it.
+/// `sources`, which pick their depth bounds: the network's, then any its coarse pass
+/// reads too) at the `requested` inverse depths: the planes run (fewer, spread evenly,
+/// when the requested ones are closer than `max_step` pixels apart in every source: a
+/// subset of the requested planes) and the pruner, with the network's coarse pass when
+/// the settings ask for it.
 pub fn plan_pruning<'a>(
     backend: &dyn Backend,
     scene: &Scene,
@@ -312,6 +375,11 @@ pub struct ViewResult {
     pub psnr: f64,
     pub ssim: f64,
     pub seconds: f64,
+    /// The network's source views, nearest first.
+    pub sources: Vec<usize>,
+    /// The views only pruning's coarse pass read besides them (absent when none).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub plan_sources: Vec<usize>,
     pub baselines: Baselines,
     /// What pruning left out (absent with `--prune off`).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -362,6 +430,7 @@ pub fn evaluate(
             rendered: r,
             inv_depths: inv,
             sources: srcs,
+            plan_sources,
             seconds,
         } = held;
         let nearest = scene.load_image(srcs[0])?;
@@ -373,6 +442,8 @@ pub fn evaluate(
             psnr: psnr(&r.image, &truth),
             ssim: ssim(&r.image, &truth),
             seconds,
+            sources: srcs,
+            plan_sources,
             baselines: Baselines {
                 nearest: near_score,
                 plane_sweep: Score {
@@ -475,8 +546,10 @@ pub struct HeldOut {
     pub rendered: Rendered,
     /// The requested inverse depths, near to far.
     pub inv_depths: Vec<f64>,
-    /// The source views (none of them held out), nearest first.
+    /// The network's source views (none of them held out), nearest first.
     pub sources: Vec<usize>,
+    /// The views only pruning's coarse pass read (none of them held out either).
+    pub plan_sources: Vec<usize>,
     pub seconds: f64,
 }
 
@@ -498,7 +571,7 @@ pub fn render_held_out(
         );
     }
     let cam = scene.views[t].camera;
-    let sources = pick_sources(scene, &cam, holdout, k, settings);
+    let mut sources = pick_planned_sources(scene, &cam, holdout, (k, backend.config()), settings);
     let t0 = Instant::now();
     let (rendered, inv_depths) = render_camera(
         backend,
@@ -509,10 +582,12 @@ pub fn render_held_out(
         settings,
         &|_, _| {},
     )?;
+    let plan_sources = sources.split_off(k.min(sources.len()));
     Ok(HeldOut {
         rendered,
         inv_depths,
         sources,
+        plan_sources,
         seconds: t0.elapsed().as_secs_f64(),
     })
 }
@@ -536,5 +611,54 @@ pub fn holdout_list(
         (None, Some(k)) => Ok((0..n).step_by(k).collect()),
         (None, None) => bail!("pass --holdout I,J,... or --llffhold N"),
         (Some(_), Some(_)) => bail!("pass either --holdout or --llffhold, not both"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use deepstereo_core::prune::PruneMode;
+
+    /// The views pruning's coarse pass reads besides the network's: the next best-ranked,
+    /// never an excluded one, as many as asked for and the scene offers; none with pruning
+    /// off, for the paper's family, or when no more than the network's are asked for.
+    #[test]
+    fn the_coarse_pass_reads_the_networks_views_then_the_next_ranked() -> Result<()> {
+        let dir = tempfile::tempdir()?;
+        let (scene, tiny, _, mut settings) =
+            crate::test_scene::tiny_case(dir.path(), 5, (40, 32), 32)?;
+        let any = Config::nviews();
+        let target = scene.views[0].camera;
+        let exclude = [0, 3];
+        settings.prune.mode = PruneMode::Auto;
+        settings.plan_views = 4;
+        let picked = pick_planned_sources(&scene, &target, &exclude, (2, &any), &settings);
+        assert_eq!(picked.len(), 4, "{picked:?}");
+        assert_eq!(
+            picked[..2],
+            pick_sources(&scene, &target, &exclude, 2, &settings)[..]
+        );
+        let ranked = pick_sources(&scene, &target, &exclude, 4, &settings);
+        for v in &picked {
+            assert!(!exclude.contains(v) && ranked.contains(v), "{picked:?}");
+            assert_eq!(picked.iter().filter(|w| *w == v).count(), 1, "{picked:?}");
+        }
+        // More than the scene offers: every view not excluded.
+        settings.plan_views = 10;
+        let all = pick_planned_sources(&scene, &target, &exclude, (2, &any), &settings);
+        assert_eq!(all.len(), scene.views.len() - exclude.len(), "{all:?}");
+        for (plan, cfg, mode) in [
+            (10, &tiny, PruneMode::Auto),
+            (10, &any, PruneMode::Off),
+            (2, &any, PruneMode::Auto),
+            (0, &any, PruneMode::Auto),
+        ] {
+            settings.plan_views = plan;
+            settings.prune.mode = mode;
+            let only = pick_planned_sources(&scene, &target, &exclude, (2, cfg), &settings);
+            let network = pick_sources(&scene, &target, &exclude, 2, &settings);
+            assert_eq!(only, network, "plan {plan}, {mode:?}");
+        }
+        Ok(())
     }
 }

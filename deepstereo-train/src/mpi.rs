@@ -3,8 +3,8 @@
 //! through them, beside the network's own renders of those views.
 
 use crate::inference::{
-    pick_sources, plan_pruning, render_held_out, source_inputs, spanned_planes, PlaneSpan,
-    Prepared, RenderSettings,
+    network_inputs, pick_planned_sources, plan_pruning, render_held_out, source_inputs,
+    spanned_planes, PlaneSpan, Prepared, RenderSettings,
 };
 use anyhow::{anyhow, bail, Result};
 use deepstereo_core::camera::Camera;
@@ -62,7 +62,8 @@ pub fn bake_camera(
 
 /// The network's MPI of `camera` (made a pinhole at its mid-readout pose, with `margin`
 /// pixels more on every side: [`with_margin`]) from the scene's views `sources` (the
-/// first `k` of them, `k` from `settings`) at the settings' planes. With pruning on, as
+/// first `k` of them, `k` from `settings`; pruning's coarse pass reads them all) at the
+/// settings' planes. With pruning on, as
 /// `render` prunes that camera ([`plan_pruning`]): the planes run, and per block the
 /// planes the coarse pass keeps (alpha 0 on the others), so the MPI's composite is the
 /// pruned render; with `--prune off`, every plane of every pixel.
@@ -78,18 +79,18 @@ fn network_mpi(
     let cfg = backend.config().clone();
     let k = settings.source_count(&cfg)?;
     let (srcs, inv) = source_inputs(&cfg, scene, prepared, sources, settings)?;
+    // source_inputs refused fewer than k sources.
+    let network = network_inputs(&srcs, sources.len() - k);
     check_margin(camera, margin)?;
     // The margin is added to the pinhole at the mid-readout pose (its height decides it).
     let camera = with_margin(&reference_camera(camera), margin);
-    // source_inputs refused fewer than k sources.
-    let sources = &sources[..k];
     let inv = spanned_planes(scene, &camera, sources, inv, settings.span);
     let mut mpi = if settings.prune.is_on() {
         let (inv, pruner) = plan_pruning(backend, scene, &camera, &srcs, sources, &inv, settings)?;
         let (colours, selection) = layers_planned(
             backend,
             &camera,
-            &srcs,
+            network,
             &inv,
             settings.tile,
             &pruner,
@@ -97,7 +98,7 @@ fn network_mpi(
         )?;
         Mpi::from_layers(camera, inv, &colours, &selection)?
     } else {
-        bake(backend, &camera, &srcs, &inv, settings.tile, progress)?
+        bake(backend, &camera, network, &inv, settings.tile, progress)?
     };
     mpi.margin = margin;
     Ok(mpi)
@@ -148,7 +149,8 @@ pub fn bake_settings(settings: &RenderSettings, cfg: &Config, available: usize) 
 }
 
 /// The sources of an MPI baked at view `reference`: `k` views that are not held out,
-/// chosen as `render` chooses them. With `own_photo`, `reference` itself is among them
+/// chosen as `render` chooses them, followed by those only pruning's coarse pass reads
+/// ([`pick_planned_sources`] with the model `cfg`). With `own_photo`, `reference` itself is among them
 /// (as for `render --pose` at its camera: the MPI then shows the photograph at its
 /// reference); without, the planes' colours come from the other views only (as for
 /// `render --target`).
@@ -157,7 +159,7 @@ pub fn reference_sources(
     reference: usize,
     holdout: &[usize],
     own_photo: bool,
-    k: usize,
+    (k, cfg): (usize, &Config),
     settings: &RenderSettings,
 ) -> Result<Vec<usize>> {
     if holdout.contains(&reference) {
@@ -168,7 +170,13 @@ pub fn reference_sources(
     if !own_photo {
         exclude.push(reference);
     }
-    Ok(pick_sources(scene, &cam, &exclude, k, settings))
+    Ok(pick_planned_sources(
+        scene,
+        &cam,
+        &exclude,
+        (k, cfg),
+        settings,
+    ))
 }
 
 /// How a view's own photograph enters an MPI baked at its camera.
@@ -205,14 +213,16 @@ pub fn bake_view(
     settings: &RenderSettings,
     progress: &dyn Fn(usize, usize),
 ) -> Result<(Mpi, Vec<usize>)> {
-    let k = settings.source_count(backend.config())?;
+    let cfg = backend.config();
+    let k = settings.source_count(cfg)?;
     let camera = scene.views[reference].camera;
     let with_own = own != OwnPhoto::Excluded;
-    let srcs = reference_sources(scene, reference, holdout, with_own, k, settings)?;
+    let srcs = reference_sources(scene, reference, holdout, with_own, (k, cfg), settings)?;
+    let network = srcs[..k.min(srcs.len())].to_vec();
     if own != OwnPhoto::Residual {
         let place = (&camera, opts);
         let mpi = bake_camera(backend, scene, prepared, place, &srcs, settings, progress)?;
-        return Ok((mpi, srcs));
+        return Ok((mpi, network));
     }
     // The render with the photograph gives only its picture, in the reference image (the
     // margin is the other views' alone, so it is not rendered); the other views' MPI its
@@ -222,7 +232,7 @@ pub fn bake_view(
     let photo = network_mpi(backend, scene, prepared, place, &srcs, settings, progress)?;
     let picture = with_border(&photo.composite(), opts.margin);
     drop(photo);
-    let others = reference_sources(scene, reference, holdout, false, k, settings)?;
+    let others = reference_sources(scene, reference, holdout, false, (k, cfg), settings)?;
     let place = (&camera, opts.margin);
     let base = network_mpi(backend, scene, prepared, place, &others, settings, progress)?;
     let others = &others[..k.min(others.len())];
@@ -235,7 +245,7 @@ pub fn bake_view(
         base,
         opts.agree,
     )?;
-    Ok((finish(base, opts.smooth, Some(picture))?, srcs))
+    Ok((finish(base, opts.smooth, Some(picture))?, network))
 }
 
 /// `mpi` reweighed by view `reference`'s photograph's agreement with the views `others`

@@ -1,7 +1,7 @@
 //! Camera paths through a scene's views (LLFF-style: a circle, a spiral, a line) and
 //! rendering them frame by frame, for `render --path` and `demo`.
 
-use crate::inference::{pick_sources, render_camera, Prepared, RenderSettings};
+use crate::inference::{pick_planned_sources, render_camera, Prepared, RenderSettings};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::{Camera, WorldToCamera};
 use deepstereo_core::imageio::RgbImage;
@@ -100,7 +100,7 @@ pub fn render_path(
             let part = done as u64 * BAR_STEPS_PER_FRAME / total.max(1) as u64;
             bar.set_position(base + part);
         };
-        let srcs = pick_sources(scene, cam, &[], views, settings);
+        let srcs = pick_planned_sources(scene, cam, &[], (views, backend.config()), settings);
         let (r, _) = render_camera(backend, scene, prepared, cam, &srcs, settings, &progress)?;
         r.image
             .save_frame_png(&dir.join(format!("frame_{f:04}.png")))?;

@@ -1,6 +1,6 @@
 //! A procedural scene on disk and a `tiny` model for the library's unit tests.
 
-use crate::inference::RenderSettings;
+use crate::inference::{RenderSettings, DEFAULT_PLAN_VIEWS};
 use anyhow::Result;
 use deepstereo_core::config::Config;
 use deepstereo_core::prune::PruneOptions;
@@ -35,6 +35,7 @@ pub fn tiny_case(
         views: None,
         tile,
         prune: PruneOptions::default(),
+        plan_views: DEFAULT_PLAN_VIEWS,
         span: None,
     };
     Ok((scene, cfg, backend, settings))

@@ -2,7 +2,7 @@
 //! with `--eval`, held-out views seen through MPIs beside the network's own renders.
 
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
-use crate::inference::{pick_sources, PlaneSpan, Prepared, RenderSettings};
+use crate::inference::{pick_planned_sources, PlaneSpan, Prepared, RenderSettings};
 use crate::mpi::{
     bake_camera, bake_settings, bake_view, eval_through_mpi, BakeOptions, MpiEvalOptions, OwnPhoto,
     BAKE_AGREE, BAKE_SMOOTH,
@@ -109,7 +109,8 @@ pub fn run(a: Args) -> Result<()> {
     }
     let targets = bake_targets(&a, &scene, &holdout)?;
     let staged = StagedDir::new(&a.out)?;
-    let k = settings.source_count(backend.config())?;
+    let cfg = backend.config();
+    let k = settings.source_count(cfg)?;
     let mut prepared = Prepared::new(&scene);
     let mut names = Vec::new();
     let mut range = 0f64;
@@ -133,7 +134,7 @@ pub fn run(a: Args) -> Result<()> {
                 &progress,
             )?,
             None => {
-                let srcs = pick_sources(&scene, cam, &holdout, k, &settings);
+                let srcs = pick_planned_sources(&scene, cam, &holdout, (k, cfg), &settings);
                 let place = (cam, bake_options(&a));
                 let mpi = bake_camera(
                     backend.as_ref(),
@@ -144,7 +145,7 @@ pub fn run(a: Args) -> Result<()> {
                     &settings,
                     &progress,
                 )?;
-                (mpi, srcs)
+                (mpi, srcs[..k.min(srcs.len())].to_vec())
             }
         };
         bar.finish_and_clear();

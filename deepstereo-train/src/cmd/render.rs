@@ -1,7 +1,7 @@
 //! `deepstereo render`: new views of a scene, tile by tile.
 
 use super::args::{ModelArgs, SceneArgs};
-use crate::inference::{pick_sources, render_camera, Prepared, RenderSettings};
+use crate::inference::{pick_planned_sources, render_camera, Prepared, RenderSettings};
 use crate::outdir::StagedDir;
 use crate::path::{path_cameras, render_path, PathKind};
 use anyhow::{bail, Result};
@@ -70,7 +70,8 @@ pub fn run(a: Args) -> Result<()> {
         return render_mpis(&a, dir, &scene);
     }
     let backend = a.model.backend()?;
-    let v = settings.source_count(backend.config())?;
+    let cfg = backend.config();
+    let v = settings.source_count(cfg)?;
     let mut prepared = Prepared::new(&scene);
     if let Some(kind) = a.path {
         return write_path(
@@ -92,11 +93,17 @@ pub fn run(a: Args) -> Result<()> {
                 );
             }
             let cam = scene.views[t].camera;
-            (cam, pick_sources(&scene, &cam, &[t], v, &settings))
+            (
+                cam,
+                pick_planned_sources(&scene, &cam, &[t], (v, cfg), &settings),
+            )
         }
         (None, Some(p)) => {
             let cam = crate::camera_json::read_pose(p, a.view)?;
-            (cam, pick_sources(&scene, &cam, &[], v, &settings))
+            (
+                cam,
+                pick_planned_sources(&scene, &cam, &[], (v, cfg), &settings),
+            )
         }
         _ => bail!("pass one of --target I, --pose FILE or --path KIND"),
     };
@@ -117,11 +124,16 @@ pub fn run(a: Args) -> Result<()> {
         &progress,
     )?;
     bar.finish_and_clear();
+    let (network, plan) = srcs.split_at(v.min(srcs.len()));
     eprintln!(
-        "rendered {}x{} in {:.2} s from views {srcs:?}",
+        "rendered {}x{} in {:.2} s from views {network:?}{}",
         r.image.width,
         r.image.height,
-        t0.elapsed().as_secs_f64()
+        t0.elapsed().as_secs_f64(),
+        match plan.is_empty() {
+            true => String::new(),
+            false => format!(" (the planes chosen with views {plan:?} too)"),
+        }
     );
     if let Some(p) = &r.prune {
         eprintln!("{}", p.summary());
