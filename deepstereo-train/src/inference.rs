@@ -190,7 +190,10 @@ pub fn source_inputs<'a>(
     }
     let (network, plan) = sources.split_at(k);
     if cfg.pool.is_none() && !plan.is_empty() {
-        bail!("the paper's family reads its {k} views in pruning's coarse pass too");
+        bail!(
+            "{} source views for a model of the paper's family, which reads its {k} alone",
+            sources.len()
+        );
     }
     let planes = settings.planes.unwrap_or(cfg.default_render_planes());
     if planes == 0 {
@@ -271,9 +274,9 @@ pub fn network_inputs<'a, 'b>(
 /// Pruning's plan for rendering `target` from `srcs` (the pyramids of the scene's views
 /// `sources`, which pick their depth bounds: the network's, then any its coarse pass
 /// reads too) at the `requested` inverse depths: the planes run (fewer, spread evenly,
-/// when the requested ones are closer than `max_step` pixels apart in every source: a
-/// subset of the requested planes) and the pruner, with the network's coarse pass when
-/// the settings ask for it.
+/// when the requested ones are closer than `max_step` pixels apart in every one of the
+/// network's sources: a subset of the requested planes) and the pruner, with the
+/// network's coarse pass when the settings ask for it.
 pub fn plan_pruning<'a>(
     backend: &dyn Backend,
     scene: &Scene,
@@ -284,7 +287,9 @@ pub fn plan_pruning<'a>(
     settings: &RenderSettings,
 ) -> Result<(Vec<f64>, Pruner<'a>)> {
     let cfg = backend.config();
-    let k = sources.len().min(srcs.len());
+    // Planes closer than the step the network's own views resolve are thinned; the
+    // depth range and the coarse pass read every view.
+    let k = settings.source_count(cfg)?.min(srcs.len());
     let cams: Vec<&Camera> = srcs[..k].iter().map(|s| &s.cameras[0]).collect();
     let step = max_plane_step(target, &cams, requested);
     let inv: Vec<f64> = thin_planes(requested.len(), step, settings.prune.max_step, cfg.planes)
