@@ -92,9 +92,10 @@ impl RenderSettings {
 }
 
 /// Source views pruning's coarse pass reads by default ([`RenderSettings::plan_views`],
-/// `--prune-views`): at 4 views the network renders the six evaluation scenes 0.02-0.35
-/// dB better when the planes it runs are chosen with 8 views, for about 5% more time,
-/// and no better with 12 (docs/performance.md, "Planning with more views").
+/// `--prune-views`): at 2 and 4 views the network renders the six evaluation scenes
+/// 0.04-0.80 dB better when the planes it runs are chosen with 8 views, for about the
+/// same time, and no better with 12 (docs/performance.md, "Planning with more views";
+/// docs/experiments.md).
 pub const DEFAULT_PLAN_VIEWS: usize = 8;
 
 /// The `k` source views for `target`, never one of `exclude` (its own index in the

@@ -68,9 +68,9 @@ pub struct ModelArgs {
     pub prune_mass: f32,
     /// --prune auto: source views the coarse pass reads when the network reads fewer (the
     /// any-number-of-views family): the network's, then the next best-ranked of the
-    /// others. More views choose the planes better: at 4 views the network's renders
-    /// gain 0.02-0.35 dB on the evaluation scenes for about 5% more time
-    /// (docs/performance.md). 0: only the network's.
+    /// others. More views choose the planes better: at 2 and 4 views the evaluation
+    /// scenes' renders gain 0.04-0.80 dB for about the same time (docs/performance.md).
+    /// 0: only the network's.
     #[arg(long, default_value_t = DEFAULT_PLAN_VIEWS)]
     pub prune_views: usize,
     /// --prune auto: planes kept on each side of every plane the coarse pass keeps.
