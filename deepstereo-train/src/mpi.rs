@@ -63,10 +63,10 @@ pub fn bake_camera(
 /// The network's MPI of `camera` (made a pinhole at its mid-readout pose, with `margin`
 /// pixels more on every side: [`with_margin`]) from the scene's views `sources` (the
 /// first `k` of them, `k` from `settings`; pruning's coarse pass reads them all) at the
-/// settings' planes. With pruning on, as
-/// `render` prunes that camera ([`plan_pruning`]): the planes run, and per block the
-/// planes the coarse pass keeps (alpha 0 on the others), so the MPI's composite is the
-/// pruned render; with `--prune off`, every plane of every pixel.
+/// settings' planes. With pruning on, as `render` prunes that camera ([`plan_pruning`]):
+/// the planes run, and per block the planes the coarse pass keeps (alpha 0 on the
+/// others), so the MPI's composite is the pruned render; with `--prune off`, every plane
+/// of every pixel.
 fn network_mpi(
     backend: &dyn Backend,
     scene: &Scene,
@@ -150,10 +150,10 @@ pub fn bake_settings(settings: &RenderSettings, cfg: &Config, available: usize) 
 
 /// The sources of an MPI baked at view `reference`: `k` views that are not held out,
 /// chosen as `render` chooses them, followed by those only pruning's coarse pass reads
-/// ([`pick_planned_sources`] with the model `cfg`). With `own_photo`, `reference` itself is among them
-/// (as for `render --pose` at its camera: the MPI then shows the photograph at its
-/// reference); without, the planes' colours come from the other views only (as for
-/// `render --target`).
+/// ([`pick_planned_sources`] with the model `cfg`). With `own_photo`, `reference` itself
+/// is among them (as for `render --pose` at its camera: the MPI then shows the
+/// photograph at its reference); without, the planes' colours come from the other views
+/// only (as for `render --target`).
 pub fn reference_sources(
     scene: &Scene,
     reference: usize,
