@@ -616,4 +616,21 @@ fn pruning_chooses_the_planes_with_more_views_than_the_network_reads() {
         assert_eq!((n.len(), p.len()), (2, 2), "{pv}");
         assert!(n.iter().chain(&p).all(|i| ![1, 4].contains(i)), "{pv}");
     }
+    // Planes too close for the network's own views are thinned as without the others
+    // (their wider baselines would keep more).
+    let thinned = |plan: &str| -> Vec<serde_json::Value> {
+        let v = eval_json(
+            &s,
+            "1,4",
+            &["--planes", "96", "--views", "2", "--prune-views", plan],
+        );
+        let views = v["per_view"].as_array().expect("per_view").clone();
+        views
+            .iter()
+            .map(|pv| pv["prune"]["thinned"].clone())
+            .collect()
+    };
+    let own = thinned("0");
+    assert!(own.iter().all(|t| t[1].as_u64() < Some(96)), "{own:?}");
+    assert_eq!(thinned("8"), own);
 }
