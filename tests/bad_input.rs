@@ -188,6 +188,42 @@ fn set_token(line: &str, k: usize, value: &str) -> String {
         .join(" ")
 }
 
+/// A FIFO at `path`: opening it for reading would block, so a case that points a scene
+/// file at one proves, by not timing out, that the reader never opened it.
+fn fifo(path: &Path) {
+    let ok = std::process::Command::new("mkfifo")
+        .arg(path)
+        .status()
+        .is_ok_and(|s| s.success());
+    assert!(ok, "mkfifo {}", path.display());
+}
+
+/// A FIFO beside the scene directory, outside it: `<case>/outside.png`.
+fn outside_fifo(scene: &Path) -> PathBuf {
+    let p = scene.parent().expect("case dir").join("outside.png");
+    fifo(&p);
+    p
+}
+
+/// A JPEG of the base scene's size (16x12) cut 8 bytes into its entropy-coded data (its
+/// headers intact), under a `.png` name.
+fn truncated_jpeg(path: &Path) {
+    let img = image::RgbImage::from_fn(16, 12, |x, y| {
+        image::Rgb([(x * 15) as u8, (y * 20) as u8, 90])
+    });
+    let mut bytes = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 90)
+        .encode_image(&img)
+        .expect("jpeg");
+    let sos = bytes
+        .windows(2)
+        .position(|w| w == [0xff, 0xda])
+        .expect("SOS marker");
+    let header = u16::from_be_bytes([bytes[sos + 2], bytes[sos + 3]]) as usize;
+    bytes.truncate(sos + 2 + header + 8);
+    std::fs::write(path, bytes).expect("write");
+}
+
 fn cases() -> Vec<Case> {
     use Base::*;
     let img = |d: &Path, n: usize| d.join("images").join(format!("img_{n:03}.png"));
@@ -794,6 +830,181 @@ fn cases() -> Vec<Case> {
             Middlebury,
             |d| std::fs::write(d.join("scene_par.txt"), "").expect("write"),
             &["scene_par.txt", "empty file"],
+        ),
+        // ---- paths outside the scene: refused unread (a FIFO would hang the reader) ----
+        case(
+            "outside: nerf file_path ../outside.png (a FIFO)",
+            Nerf,
+            |d| {
+                outside_fifo(d);
+                edit_json(d.join("transforms.json"), |v| {
+                    v["frames"][1]["file_path"] = json!("../outside.png")
+                })
+            },
+            &[
+                "transforms.json",
+                "frame 1",
+                "outside the scene directory",
+                "--allow-outside-paths",
+            ],
+        ),
+        case(
+            "outside: nerf file_path absolute (a FIFO)",
+            Nerf,
+            |d| {
+                let p = outside_fifo(d);
+                edit_json(d.join("transforms.json"), |v| {
+                    v["frames"][0]["file_path"] = json!(p.to_string_lossy())
+                })
+            },
+            &["transforms.json", "frame 0", "outside the scene directory"],
+        ),
+        case(
+            "outside: nerf file_path ../../../../etc/passwd",
+            Nerf,
+            |d| {
+                edit_json(d.join("transforms.json"), |v| {
+                    v["frames"][2]["file_path"] = json!("../../../../../../../../etc/passwd")
+                })
+            },
+            &["transforms.json", "frame 2", "outside the scene directory"],
+        ),
+        case(
+            "outside: nerf image a symbolic link to a FIFO outside",
+            Nerf,
+            move |d| {
+                let p = outside_fifo(d);
+                std::fs::remove_file(img(d, 3)).expect("rm");
+                std::os::unix::fs::symlink(p, img(d, 3)).expect("symlink");
+            },
+            &["transforms.json", "frame 3", "outside the scene directory"],
+        ),
+        case(
+            "outside: colmap text image ../outside.png",
+            ColmapText,
+            |d| {
+                outside_fifo(d);
+                edit_text(d.join("sparse/0/images.txt"), |s| {
+                    s.replace("img_001.png", "../../outside.png")
+                })
+            },
+            &[
+                "images.txt",
+                "line 4",
+                "../../outside.png",
+                "outside the scene directory",
+            ],
+        ),
+        case(
+            "outside: colmap bin image ../outsideX",
+            ColmapBin,
+            |d| {
+                fifo(&d.parent().expect("case").join("outsideX"));
+                edit_bytes(d.join("sparse/0/images.bin"), |b| {
+                    let at = b
+                        .windows(11)
+                        .position(|w| w == b"img_002.png")
+                        .expect("name");
+                    b[at..at + 11].copy_from_slice(b"../outsideX");
+                })
+            },
+            &["images.bin", "../outsideX", "outside the scene directory"],
+        ),
+        case(
+            "outside: middlebury image ../outside.png",
+            Middlebury,
+            |d| {
+                outside_fifo(d);
+                edit_line(d.join("scene_par.txt"), 2, |l| {
+                    l.replacen("img_001.png", "../outside.png", 1)
+                })
+            },
+            &["scene_par.txt", "line 3", "outside the scene directory"],
+        ),
+        case(
+            "outside: llff image a symbolic link to a FIFO outside",
+            Llff,
+            move |d| {
+                let p = outside_fifo(d);
+                std::fs::remove_file(img(d, 2)).expect("rm");
+                std::os::unix::fs::symlink(p, img(d, 2)).expect("symlink");
+            },
+            &["images", "img_002.png", "outside the scene directory"],
+        ),
+        case(
+            "outside: llff poses_bounds.npy a link outside",
+            Llff,
+            |d| {
+                let p = d.parent().expect("case").join("poses.npy");
+                std::fs::rename(d.join("poses_bounds.npy"), &p).expect("mv");
+                std::os::unix::fs::symlink(p, d.join("poses_bounds.npy")).expect("symlink");
+            },
+            &["poses_bounds.npy", "outside the scene directory"],
+        ),
+        case(
+            "llff: poses_bounds.npy is a FIFO",
+            Llff,
+            |d| {
+                std::fs::remove_file(d.join("poses_bounds.npy")).expect("rm");
+                fifo(&d.join("poses_bounds.npy"));
+            },
+            &["poses_bounds.npy", "not a regular file"],
+        ),
+        // ---- corrupt images, absurd cameras, duplicate ids ----
+        case(
+            "llff: truncated JPEG (header intact)",
+            Llff,
+            move |d| truncated_jpeg(&img(d, 1)),
+            &["img_001.png", "corrupt or truncated JPEG"],
+        )
+        .sweep_only(),
+        case(
+            "colmap text: zero focal length in cameras.txt",
+            ColmapText,
+            |d| edit_line(d.join("sparse/0/cameras.txt"), 2, |l| set_token(l, 4, "0")),
+            &[
+                "cameras.txt:3",
+                "camera 2",
+                "focal lengths must be positive",
+            ],
+        ),
+        case(
+            "colmap text: duplicate image id",
+            ColmapText,
+            |d| edit_line(d.join("sparse/0/images.txt"), 3, |l| set_token(l, 0, "1")),
+            &["images.txt:4", "image id 1 appears twice"],
+        ),
+        case(
+            "colmap bin: duplicate image id",
+            ColmapBin,
+            |d| {
+                edit_bytes(d.join("sparse/0/images.bin"), |b| {
+                    let at = b
+                        .windows(11)
+                        .position(|w| w == b"img_001.png")
+                        .expect("name");
+                    // The record before the name: id u32, 7 f64, camera id u32.
+                    let id = at - 4 - 56 - 4;
+                    b[id..id + 4].copy_from_slice(&1u32.to_le_bytes());
+                })
+            },
+            &["images.bin", "image id 1 appears twice"],
+        ),
+        case(
+            "nerf: fl_x = 1e300",
+            Nerf,
+            |d| edit_json(d.join("transforms.json"), |v| v["fl_x"] = json!(1e300)),
+            &[
+                "transforms.json",
+                "focal length",
+                "times the image's larger side",
+            ],
+        ),
+        case(
+            "nerf: principal point 10^6 px away",
+            Nerf,
+            |d| edit_json(d.join("transforms.json"), |v| v["cx"] = json!(1e6)),
+            &["transforms.json", "principal point"],
         ),
         // ---- any scene ----
         case("empty directory", Empty, |_| {}, &["unknown scene format"]),

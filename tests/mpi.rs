@@ -105,6 +105,22 @@ fn pose_file(scene: &Path, view: usize, offset: [f64; 3], out: &Path) -> PathBuf
 /// headless Chromium with software WebGL, as the page's own `canvas.toDataURL` PNG read
 /// back through `--dump-dom`; None when no Chromium runs and none is required.
 fn screenshot(page: &str, dir: &Path, name: &str) -> Option<RgbImage> {
+    let dom = dump_dom(page, dir, name, (W, H))?;
+    let key = "data-capture=\"data:image/png;base64,";
+    let at = dom.find(key).expect("a capture");
+    let b64 = dom[at + key.len()..].split('"').next().unwrap_or_default();
+    let png = base64_decode(b64).expect("base64 PNG");
+    let path = dir.join(format!("{name}.png"));
+    std::fs::write(&path, png).expect("write capture");
+    let img = load(&path);
+    assert_eq!((img.width, img.height), (W, H), "the canvas at ?fit=native");
+    Some(img)
+}
+
+/// The DOM of `page` (`capture=1` added) after its first frame, in headless Chromium with
+/// software WebGL and a `window` (width, height) window; None when no Chromium runs and
+/// none is required.
+fn dump_dom(page: &str, dir: &Path, name: &str, window: (u32, u32)) -> Option<String> {
     let Some(browser) = chromium() else {
         assert!(
             !required("DEEPSTEREO_REQUIRE_CHROMIUM"),
@@ -135,7 +151,7 @@ fn screenshot(page: &str, dir: &Path, name: &str) -> Option<RgbImage> {
                 "--user-data-dir={}",
                 dir.join(format!("profile-{name}-{attempt}")).display()
             ))
-            .arg(format!("--window-size={W},{H}"))
+            .arg(format!("--window-size={},{}", window.0, window.1))
             .arg(format!("{page}&capture=1"))
             .output()
             .expect("run chromium");
@@ -151,14 +167,43 @@ fn screenshot(page: &str, dir: &Path, name: &str) -> Option<RgbImage> {
         assert!(attempt == 0, "{why}");
         eprintln!("trying again: {why}");
     }
-    let at = dom.find(key).expect("a capture");
-    let b64 = dom[at + key.len()..].split('"').next().unwrap_or_default();
-    let png = base64_decode(b64).expect("base64 PNG");
-    let path = dir.join(format!("{name}.png"));
-    std::fs::write(&path, png).expect("write capture");
-    let img = load(&path);
-    assert_eq!((img.width, img.height), (W, H), "the canvas at ?fit=native");
-    Some(img)
+    Some(dom)
+}
+
+/// The viewer in a window of another aspect than its MPI's fills it at the MPI's aspect,
+/// centred (letterboxed), not drawn into a corner.
+fn check_letterbox(url: &str, dir: &Path, mpi_aspect: f64) {
+    for (name, window) in [("wide", (400, 150)), ("tall", (120, 300))] {
+        let Some(dom) = dump_dom(url, dir, name, window) else {
+            return;
+        };
+        let key = "data-fit=\"";
+        let at = dom.find(key).expect("data-fit");
+        let fit: Vec<f64> = dom[at + key.len()..]
+            .split('"')
+            .next()
+            .unwrap_or_default()
+            .split(',')
+            .filter_map(|v| v.parse().ok())
+            .collect();
+        let [left, top, w, h, ww, wh] = fit[..] else {
+            panic!("data-fit: {fit:?}");
+        };
+        let fills = (w - ww).abs() <= 1.0 || (h - wh).abs() <= 1.0;
+        assert!(fills && w <= ww + 1.0 && h <= wh + 1.0, "{name}: {fit:?}");
+        assert!(
+            (w / h - mpi_aspect).abs() < 0.05 * mpi_aspect,
+            "{name}: aspect {fit:?}"
+        );
+        assert!(
+            (left - (ww - w) / 2.0).abs() <= 1.0,
+            "{name}: not centred {fit:?}"
+        );
+        assert!(
+            (top - (wh - h) / 2.0).abs() <= 1.0,
+            "{name}: not centred {fit:?}"
+        );
+    }
 }
 
 /// At view 2's camera of the scene `s` in `dir`: the network's render (`render --pose`
@@ -255,6 +300,7 @@ fn an_mpi_at_its_reference_is_the_networks_render_and_the_viewer_shows_it() {
         db >= 30.0,
         "viewer at ?fit=native vs the MPI's composite: {db:.1} dB"
     );
+    check_letterbox(&format!("{url}?"), tmp.path(), W as f64 / H as f64);
     eprintln!("viewer at the reference: {db:.1} dB");
 
     // Moved along the camera's x and z axes: the viewer and the CPU agree.

@@ -20,6 +20,8 @@ fn load(dir: &Path, format: Option<SceneFormat>, bounds: Option<(f64, f64)>) -> 
         far: bounds.map(|b| b.1),
         downscale: None,
         ignore_rolling_shutter: false,
+        allow_outside_paths: false,
+        max_side: None,
     };
     Scene::load(dir, &opts).unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
 }

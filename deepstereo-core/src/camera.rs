@@ -24,6 +24,14 @@ use serde::{Deserialize, Serialize};
 pub const ROTATION_TOLERANCE: f64 = 1e-3;
 /// Fixed-point iterations used to invert lens distortion.
 const UNDISTORT_ITERATIONS: usize = 20;
+/// Smallest focal length, in units of the image's larger side: a field of view of about
+/// 178 degrees across it (a pinhole model means nothing wider).
+pub const MIN_FOCAL_RATIO: f64 = 0.01;
+/// Largest focal length, in units of the image's larger side: a field of view of about
+/// 0.06 degrees (beyond any lens; `fl_x = 1e300` is a corrupt file, not a telescope).
+pub const MAX_FOCAL_RATIO: f64 = 1000.0;
+/// How far outside the image the principal point may lie, in image sizes.
+pub const MAX_CENTRE_OFFSET: f64 = 10.0;
 
 /// OpenCV radial-tangential distortion of normalized coordinates.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -196,6 +204,32 @@ impl Intrinsics {
             return Err(format!(
                 "unsupported image size {}x{} (each side must be 1 to {MAX_IMAGE_SIDE})",
                 self.width, self.height
+            ));
+        }
+        let side = self.width.max(self.height).max(1) as f64;
+        for f in [self.fx, self.fy] {
+            let ratio = f / side;
+            if !(MIN_FOCAL_RATIO..=MAX_FOCAL_RATIO).contains(&ratio) {
+                // Plain digits for a plausible focal length, an exponent for an absurd one.
+                let f = match f.abs() < 1e7 {
+                    true => f.to_string(),
+                    false => format!("{f:e}"),
+                };
+                return Err(format!(
+                    "focal length {f} is {:.3e} times the image's larger side ({side} px); \
+                     a camera's must be {MIN_FOCAL_RATIO} to {MAX_FOCAL_RATIO} times it \
+                     (a field of view between about 0.06 and 178 degrees)",
+                    ratio
+                ));
+            }
+        }
+        let (w, h) = (self.width as f64, self.height as f64);
+        let far_off =
+            |c: f64, s: f64| c < -MAX_CENTRE_OFFSET * s || c > (1.0 + MAX_CENTRE_OFFSET) * s;
+        if far_off(self.cx, w) || far_off(self.cy, h) {
+            return Err(format!(
+                "principal point ({}, {}) lies more than {MAX_CENTRE_OFFSET} image sizes outside the {}x{} image",
+                self.cx, self.cy, self.width, self.height
             ));
         }
         if let Some(d) = &self.distortion {
@@ -414,6 +448,16 @@ mod tests {
         assert!(Intrinsics { height: 0, ..ok }.validate().is_err());
         assert!(Intrinsics { fx: -1.0, ..ok }.validate().is_err());
         assert!(Intrinsics { cy: f64::NAN, ..ok }.validate().is_err());
+        // Focal lengths 0.01 to 1000 times the larger side; principal points within 10
+        // image sizes of the image.
+        assert!(Intrinsics { fx: 0.1, ..ok }.validate().is_ok());
+        assert!(Intrinsics { fy: 1e4, ..ok }.validate().is_ok());
+        let far = Intrinsics { fx: 1e300, ..ok }.validate().unwrap_err();
+        assert!(far.contains("focal length 1e300"), "{far}");
+        assert!(Intrinsics { fy: 0.09, ..ok }.validate().is_err());
+        assert!(Intrinsics { cx: -100.0, ..ok }.validate().is_ok());
+        assert!(Intrinsics { cx: -101.0, ..ok }.validate().is_err());
+        assert!(Intrinsics { cy: 111.0, ..ok }.validate().is_err());
         let d = Distortion {
             k1: f64::INFINITY,
             ..Default::default()

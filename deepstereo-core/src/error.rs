@@ -31,6 +31,14 @@ pub enum Error {
     /// A directory that matches no known scene format.
     #[error("{path}: {msg}")]
     Format { path: PathBuf, msg: String },
+    /// A scene file naming a path that resolves outside the scene directory.
+    #[error("{file}: {entry}: {path} is outside the scene directory {root}; it is not read (--allow-outside-paths reads it)")]
+    Outside {
+        file: PathBuf,
+        entry: String,
+        path: PathBuf,
+        root: PathBuf,
+    },
     /// An impossible option or argument combination.
     #[error("invalid argument: {0}")]
     Invalid(String),

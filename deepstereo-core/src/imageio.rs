@@ -16,6 +16,54 @@ pub struct RgbImage {
 /// Largest accepted image side, so that a corrupt header cannot request a huge allocation.
 pub const MAX_IMAGE_SIDE: u32 = 32_768;
 
+/// Decodes a JPEG as the `image` crate does (the same decoder and colour conversion), but
+/// in strict mode: a truncated file, a corrupt Huffman stream or a marker where none may
+/// be is an error naming the file, never a picture padded with grey.
+fn decode_jpeg_strict(path: &Path, bytes: &[u8]) -> Result<image::DynamicImage> {
+    use zune_core::bytestream::ZCursor;
+    use zune_core::colorspace::ColorSpace;
+    let side = MAX_IMAGE_SIDE as usize;
+    let options = zune_core::options::DecoderOptions::default()
+        .set_strict_mode(true)
+        .set_max_width(side)
+        .set_max_height(side);
+    let mut d = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
+    let corrupt = |e: zune_jpeg::errors::DecodeErrors| {
+        Error::image(
+            path,
+            format!("corrupt or truncated JPEG ({e}); it is not used: re-export or remove it"),
+        )
+    };
+    d.decode_headers().map_err(corrupt)?;
+    let out = match d.input_colorspace() {
+        Some(cs @ (ColorSpace::RGB | ColorSpace::RGBA | ColorSpace::Luma | ColorSpace::LumaA)) => {
+            cs
+        }
+        _ => ColorSpace::RGB,
+    };
+    d.set_options(d.options().jpeg_set_out_colorspace(out));
+    let px = d.decode().map_err(corrupt)?;
+    let (w, h) = d
+        .dimensions()
+        .ok_or_else(|| Error::image(path, "JPEG without dimensions"))?;
+    let (w, h) = (w as u32, h as u32);
+    let short = || Error::image(path, "the JPEG decoder returned fewer pixels than its size");
+    Ok(match out {
+        ColorSpace::Luma => image::DynamicImage::ImageLuma8(
+            image::ImageBuffer::from_raw(w, h, px).ok_or_else(short)?,
+        ),
+        ColorSpace::LumaA => image::DynamicImage::ImageLumaA8(
+            image::ImageBuffer::from_raw(w, h, px).ok_or_else(short)?,
+        ),
+        ColorSpace::RGBA => image::DynamicImage::ImageRgba8(
+            image::ImageBuffer::from_raw(w, h, px).ok_or_else(short)?,
+        ),
+        _ => image::DynamicImage::ImageRgb8(
+            image::ImageBuffer::from_raw(w, h, px).ok_or_else(short)?,
+        ),
+    })
+}
+
 impl RgbImage {
     pub fn new(width: u32, height: u32) -> Self {
         Self {
@@ -31,7 +79,9 @@ impl RgbImage {
         [self.data[i], self.data[i + 1], self.data[i + 2]]
     }
 
-    /// Decodes a PNG or JPEG file. Grey and RGBA images are converted to RGB.
+    /// Decodes a PNG or JPEG file. Grey and RGBA images are converted to RGB. A damaged
+    /// or truncated file is refused, JPEGs included (their decoder runs in strict mode:
+    /// a lenient one fills what it cannot read with grey and carries on).
     pub fn load(path: &Path) -> Result<Self> {
         let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
         let reader = image::ImageReader::new(std::io::Cursor::new(&bytes))
@@ -46,11 +96,15 @@ impl RgbImage {
                 format!("unsupported image size {w}x{h}"),
             ));
         }
-        let img = image::ImageReader::new(std::io::Cursor::new(&bytes))
+        let reader = image::ImageReader::new(std::io::Cursor::new(&bytes))
             .with_guessed_format()
-            .map_err(|e| Error::image(path, format!("cannot read: {e}")))?
-            .decode()
-            .map_err(|e| Error::image(path, format!("cannot decode: {e}")))?;
+            .map_err(|e| Error::image(path, format!("cannot read: {e}")))?;
+        let img = match reader.format() {
+            Some(image::ImageFormat::Jpeg) => decode_jpeg_strict(path, &bytes)?,
+            _ => reader
+                .decode()
+                .map_err(|e| Error::image(path, format!("cannot decode: {e}")))?,
+        };
         let rgb = img.to_rgb32f();
         let data = rgb.into_raw();
         if data.iter().any(|v| !v.is_finite()) {

@@ -217,8 +217,79 @@ pub fn check_finite(path: &Path, arrays: &[NamedArray]) -> Result<()> {
     Ok(())
 }
 
+/// Checks a safetensors file's header against its data, naming the tensor whose entry is
+/// wrong: each entry's bytes must match its dtype and shape, and the entries must tile the
+/// data in order (the safetensors crate reports a broken entry as an offset error of the
+/// tensor after it). The crate's own checks run after this one.
+pub fn check_layout(path: &Path, bytes: &[u8]) -> Result<()> {
+    let bad = |msg: String| Error::model(path, format!("not a valid safetensors file: {msg}"));
+    let head = bytes
+        .get(..8)
+        .and_then(|b| <[u8; 8]>::try_from(b).ok())
+        .ok_or_else(|| bad("shorter than its 8-byte header length".into()))?;
+    let n = usize::try_from(u64::from_le_bytes(head)).unwrap_or(usize::MAX);
+    let json = bytes.get(8..8usize.saturating_add(n)).ok_or_else(|| {
+        bad(format!(
+            "the header claims {n} bytes, beyond the file's end"
+        ))
+    })?;
+    let header: serde_json::Map<String, serde_json::Value> = serde_json::from_slice(json)
+        .map_err(|e| bad(format!("the header is not a JSON object: {e}")))?;
+    let data_len = bytes.len() - 8 - n;
+    let mut entries = Vec::new();
+    for (name, v) in header.iter().filter(|(k, _)| *k != "__metadata__") {
+        let entry = |msg: &str| bad(format!("tensor '{name}': {msg}"));
+        let size = match v.get("dtype").and_then(|d| d.as_str()) {
+            Some("F64" | "I64" | "U64") => 8u64,
+            Some("F32" | "I32" | "U32") => 4,
+            Some("F16" | "BF16" | "I16" | "U16") => 2,
+            Some("U8" | "I8" | "BOOL" | "F8_E4M3" | "F8_E5M2") => 1,
+            _ => return Err(entry("no known 'dtype'")),
+        };
+        let nums = |key: &str| -> Option<Vec<u64>> {
+            v.get(key)?.as_array()?.iter().map(|x| x.as_u64()).collect()
+        };
+        let shape = nums("shape").ok_or_else(|| entry("no valid 'shape'"))?;
+        let offs = nums("data_offsets")
+            .filter(|o| o.len() == 2 && o[0] <= o[1])
+            .ok_or_else(|| entry("no valid 'data_offsets' [begin, end]"))?;
+        let want = shape.iter().try_fold(size, |a, &d| a.checked_mul(d));
+        if want != Some(offs[1] - offs[0]) {
+            return Err(entry(&format!(
+                "its shape {shape:?} needs {} bytes but its data_offsets {offs:?} hold {}",
+                want.map_or("too many".to_string(), |w| w.to_string()),
+                offs[1] - offs[0]
+            )));
+        }
+        entries.push((offs[0], offs[1], name.as_str()));
+    }
+    entries.sort();
+    let mut end = (0u64, None::<&str>);
+    for &(b, e, name) in &entries {
+        if b != end.0 {
+            return Err(bad(match end.1 {
+                Some(prev) => format!(
+                    "tensor '{prev}' ends at data byte {} but the next one, '{name}', starts at {b}: one of their entries is wrong",
+                    end.0
+                ),
+                None => format!("the first tensor, '{name}', starts at data byte {b}, not 0"),
+            }));
+        }
+        end = (e, Some(name));
+    }
+    if end.0 != data_len as u64 {
+        return Err(bad(format!(
+            "the tensors end at data byte {} but the file holds {data_len} data bytes{}",
+            end.0,
+            end.1.map(|n| format!(" (last: '{n}')")).unwrap_or_default()
+        )));
+    }
+    Ok(())
+}
+
 /// Reads the config stored in a weights file's metadata.
 pub fn read_config(path: &Path, bytes: &[u8]) -> Result<Config> {
+    check_layout(path, bytes)?;
     let (_, meta) = SafeTensors::read_metadata(bytes)
         .map_err(|e| Error::model(path, format!("not a safetensors file: {e}")))?;
     let json = meta
@@ -348,4 +419,59 @@ pub fn assign(path: &Path, st: &SafeTensors<'_>, varmap: &VarMap, prefix: &str) 
         var.set(&t)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_layout;
+    use std::path::Path;
+
+    /// A safetensors file of `header` (JSON) and `data` bytes.
+    fn file(header: &str, data: usize) -> Vec<u8> {
+        let mut b = (header.len() as u64).to_le_bytes().to_vec();
+        b.extend(header.as_bytes());
+        b.extend(vec![0u8; data]);
+        b
+    }
+
+    #[test]
+    fn a_broken_header_entry_is_named_not_the_tensor_after_it() {
+        let p = Path::new("m.safetensors");
+        let good = r#"{"out.bias":{"dtype":"F32","shape":[3],"data_offsets":[0,12]},"out.weight":{"dtype":"F32","shape":[2,3],"data_offsets":[12,36]}}"#;
+        check_layout(p, &file(good, 36)).expect("a valid file");
+        // The bias entry shortened to two values: the gap is named with both tensors.
+        let short = good.replace(
+            r#""shape":[3],"data_offsets":[0,12]"#,
+            r#""shape":[2],"data_offsets":[0,8]"#,
+        );
+        let e = check_layout(p, &file(&short, 36))
+            .expect_err("gap")
+            .to_string();
+        assert!(
+            e.contains("'out.bias' ends at data byte 8") && e.contains("'out.weight'"),
+            "{e}"
+        );
+        // Its shape changed but not its offsets: the bias is named alone.
+        let shape = good.replace(r#""shape":[3]"#, r#""shape":[4]"#);
+        let e = check_layout(p, &file(&shape, 36))
+            .expect_err("shape")
+            .to_string();
+        assert!(
+            e.contains("tensor 'out.bias'") && e.contains("needs 16 bytes"),
+            "{e}"
+        );
+        assert!(!e.contains("out.weight"), "{e}");
+        // Data missing at the end, and a header longer than the file.
+        let e = check_layout(p, &file(good, 30))
+            .expect_err("short")
+            .to_string();
+        assert!(
+            e.contains("30 data bytes") && e.contains("'out.weight'"),
+            "{e}"
+        );
+        let mut long = file(good, 36);
+        long[..8].copy_from_slice(&1_000_000u64.to_le_bytes());
+        let e = check_layout(p, &long).expect_err("long").to_string();
+        assert!(e.contains("beyond the file's end"), "{e}");
+    }
 }

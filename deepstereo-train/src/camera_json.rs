@@ -51,28 +51,65 @@ pub fn far_from_json(v: &Value) -> Option<f64> {
 /// p1, p2]` or null), `R` (row-major), `t`, and `rolling_shutter` ([`shutter_to_json`])
 /// for a rolling-shutter camera.
 pub fn view_json(v: &View) -> Value {
-    let k = &v.camera.intrinsics;
-    let t = v.camera.pose.translation;
+    camera_json(&v.name, &v.camera)
+}
+
+/// A camera as one view of [`view_json`], named `name`.
+pub fn camera_json(name: &str, camera: &Camera) -> Value {
+    let k = &camera.intrinsics;
+    let t = camera.pose.translation;
     let d = k.distortion;
     let mut view = json!({
-        "name": v.name, "width": k.width, "height": k.height,
+        "name": name, "width": k.width, "height": k.height,
         "fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
         "distortion": d.map(|d| [d.k1, d.k2, d.p1, d.p2]),
-        "R": rows(v.camera.pose.rotation), "t": [t.x, t.y, t.z],
+        "R": rows(camera.pose.rotation), "t": [t.x, t.y, t.z],
     });
-    if let (Some(rs), Some(obj)) = (&v.camera.rolling_shutter, view.as_object_mut()) {
+    if let (Some(rs), Some(obj)) = (&camera.rolling_shutter, view.as_object_mut()) {
         obj.insert("rolling_shutter".into(), shutter_to_json(rs));
     }
     view
 }
 
+/// A camera path's cameras in `inspect --json`'s layout (`format` "camera path", the
+/// scene's bounds, views named `frame_NNNN`): `render --path FILE` reads it back.
+pub fn path_json(cams: &[Camera], scene: &Scene) -> Value {
+    let views: Vec<Value> = cams
+        .iter()
+        .enumerate()
+        .map(|(f, c)| camera_json(&format!("frame_{f:04}"), c))
+        .collect();
+    json!({
+        "format": "camera path", "near": scene.near, "far": far_json(scene.far),
+        "bounds_source": scene.bounds_source, "views": views,
+    })
+}
+
+/// Every camera of a JSON file: each view of `inspect --json`'s output (or of a path's
+/// `cameras.json`), or the one camera of a single view.
+pub fn read_cameras(path: &Path) -> Result<Vec<Camera>> {
+    let all = read_json(path)?;
+    match all.get("views").and_then(|v| v.as_array()) {
+        Some(views) if views.is_empty() => bail!("{}: 'views' is empty", path.display()),
+        Some(views) => views
+            .iter()
+            .enumerate()
+            .map(|(i, j)| camera_from_json(j, path).with_context(|| format!("view {i}")))
+            .collect(),
+        None => Ok(vec![camera_from_json(&all, path)?]),
+    }
+}
+
+fn read_json(path: &Path) -> Result<Value> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("{}: invalid JSON", path.display()))
+}
+
 /// Reads a camera from a JSON file (world-to-camera, OpenCV axes): one view, or with
 /// `view` the view of that index in `inspect --json`'s output.
 pub fn read_pose(path: &Path, view: Option<usize>) -> Result<Camera> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let all: serde_json::Value =
-        serde_json::from_str(&text).with_context(|| format!("{}: invalid JSON", path.display()))?;
+    let all = read_json(path)?;
     let j = match (all.get("views").and_then(|v| v.as_array()), view) {
         (Some(views), Some(i)) => views.get(i).with_context(|| {
             format!(
@@ -92,6 +129,11 @@ pub fn read_pose(path: &Path, view: Option<usize>) -> Result<Camera> {
         ),
         (None, None) => &all,
     };
+    camera_from_json(j, path)
+}
+
+/// One view's camera (`path` names the file in errors).
+fn camera_from_json(j: &Value, path: &Path) -> Result<Camera> {
     let num = |k: &str| -> Result<f64> {
         j.get(k)
             .and_then(|v| v.as_f64())

@@ -182,11 +182,19 @@ pub fn source_inputs<'a>(
     settings: &RenderSettings,
 ) -> Result<(Vec<&'a PyramidSource>, Vec<f64>)> {
     let k = settings.source_count(cfg)?;
+    if sources.is_empty() {
+        bail!(
+            "{k} source views are needed and none is left: each of the scene's {} views is \
+             the target or held out (hold out fewer: a larger --llffhold, a shorter --holdout)",
+            scene.views.len()
+        );
+    }
     if sources.len() < k {
         bail!(
-            "{k} source views are needed, the scene offers {} (try --views {})",
+            "{k} source views are needed, {} are left besides the target and any held-out \
+             views (try --views {})",
             sources.len(),
-            sources.len().max(1)
+            sources.len()
         );
     }
     let (network, plan) = sources.split_at(k);

@@ -9,6 +9,7 @@ pub mod cmd;
 pub mod colmap_run;
 pub mod data;
 pub mod inference;
+pub mod interrupt;
 pub mod lr;
 pub mod models;
 pub mod mpi;

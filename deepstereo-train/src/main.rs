@@ -6,6 +6,9 @@ use clap::Parser;
 fn main() {
     deepstereo_train::alloc::tune_allocator();
     let cli = deepstereo_train::cmd::Cli::parse();
+    if let Err(e) = deepstereo_train::interrupt::install() {
+        eprintln!("warning: no handler for Ctrl-C: {e}");
+    }
     if let Err(e) = deepstereo_train::cmd::run(cli) {
         eprintln!("error: {e}");
         for cause in e.chain().skip(1) {

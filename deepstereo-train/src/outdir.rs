@@ -2,9 +2,94 @@
 //! directory beside the output and moves its contents into place only when it succeeds;
 //! when it fails (an error, or a panic unwinding) the staging directory, and any parent
 //! directories made for it, are removed, so a failed command leaves nothing behind.
+//!
+//! Interrupted runs: every staging directory (and every temporary file registered with
+//! [`Pending`]) is listed while it exists, and [`remove_pending`] (called by the SIGINT
+//! and SIGTERM handler, [`crate::interrupt`]) removes them before the process exits. A
+//! SIGKILL cannot be caught: it leaves `.<name>.partial-<pid>/` beside the output, and the
+//! next run into the same output removes those whose process no longer exists.
 
 use anyhow::{bail, Context, Result};
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+/// Paths to remove if the process is interrupted: staging directories and temporary files.
+static PENDING: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
+
+/// A path listed for removal on interruption while this guard lives.
+#[derive(Debug)]
+pub struct Pending(PathBuf);
+
+impl Pending {
+    /// Lists `path` (a file or directory this process is writing) for removal on
+    /// interruption.
+    pub fn new(path: &Path) -> Self {
+        if let Ok(mut p) = PENDING.lock() {
+            p.push(path.to_path_buf());
+        }
+        Self(path.to_path_buf())
+    }
+}
+
+impl Drop for Pending {
+    fn drop(&mut self) {
+        if let Ok(mut p) = PENDING.lock() {
+            if let Some(i) = p.iter().rposition(|q| *q == self.0) {
+                p.swap_remove(i);
+            }
+        }
+    }
+}
+
+/// Removes every listed staging directory and temporary file (on SIGINT or SIGTERM; the
+/// handler runs on a thread of its own, not in the signal's context).
+pub fn remove_pending() {
+    let paths = PENDING.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    for p in paths {
+        if p.is_dir() {
+            let _ = std::fs::remove_dir_all(&p);
+        } else {
+            let _ = std::fs::remove_file(&p);
+        }
+    }
+}
+
+/// Whether a process with this id exists (it may be another program now).
+fn process_alive(pid: u32) -> bool {
+    let Ok(pid) = libc::pid_t::try_from(pid) else {
+        return false;
+    };
+    // SAFETY: kill with signal 0 only checks for the process; it sends nothing.
+    let r = unsafe { libc::kill(pid, 0) };
+    r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+}
+
+/// Removes `.<name>.partial-<pid>` entries in `parent` left by processes that no longer
+/// exist (a run killed with SIGKILL); returns what it removed.
+pub fn remove_stale_stages(parent: &Path, name: &str) -> Vec<PathBuf> {
+    let prefix = format!(".{name}.partial-");
+    let mut removed = Vec::new();
+    let Ok(entries) = std::fs::read_dir(parent) else {
+        return removed;
+    };
+    for e in entries.flatten() {
+        let file = e.file_name();
+        let Some(pid) = file
+            .to_str()
+            .and_then(|f| f.strip_prefix(&prefix))
+            .and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid != std::process::id() && !process_alive(pid) {
+            let path = e.path();
+            if std::fs::remove_dir_all(&path).is_ok() {
+                removed.push(path);
+            }
+        }
+    }
+    removed
+}
 
 /// A staged output directory; see the module doc.
 #[derive(Debug)]
@@ -14,6 +99,8 @@ pub struct StagedDir {
     /// Ancestors created for the stage, deepest first (removed again on failure if empty).
     made: Vec<PathBuf>,
     committed: bool,
+    /// Lists the stage for removal on SIGINT or SIGTERM while it exists.
+    _pending: Pending,
 }
 
 impl StagedDir {
@@ -47,6 +134,12 @@ impl StagedDir {
         }
         std::fs::create_dir_all(parent)
             .with_context(|| format!("cannot create {}", parent.display()))?;
+        for stale in remove_stale_stages(parent, &name.to_string_lossy()) {
+            eprintln!(
+                "note: removed {}, left by an interrupted run",
+                stale.display()
+            );
+        }
         let stage = parent.join(format!(
             ".{}.partial-{}",
             name.to_string_lossy(),
@@ -58,6 +151,7 @@ impl StagedDir {
         }
         let staged = Self {
             target: target.to_path_buf(),
+            _pending: Pending::new(&stage),
             stage,
             made,
             committed: false,

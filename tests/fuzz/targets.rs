@@ -10,7 +10,7 @@
 
 use deepstereo_core::config::{Config, Conv, TowerConfig};
 use deepstereo_core::scene::{
-    self, colmap, llff, middlebury, nerf, npy, LoadOptions, RawScene, Scene, SceneFormat,
+    self, colmap, llff, middlebury, nerf, npy, LoadOptions, RawScene, Scene, SceneFormat, Within,
 };
 use std::path::{Path, PathBuf};
 
@@ -115,11 +115,19 @@ pub fn run(name: &str, data: &[u8], fx: &Fixture) -> Result<(), String> {
             msg(colmap::parse_points3d_bin(&p("points3D.bin"), data)).map(drop)
         }
         "nerf_transforms" => {
-            let raw = msg(nerf::parse_transforms(&p("transforms.json"), data))?;
+            let raw = msg(nerf::parse_transforms(
+                &p("transforms.json"),
+                data,
+                &Within::anywhere(),
+            ))?;
             finish(fx, SceneFormat::Nerf, raw)
         }
         "middlebury_par" => {
-            let raw = msg(middlebury::parse_par(&p("scene_par.txt"), data))?;
+            let raw = msg(middlebury::parse_par(
+                &p("scene_par.txt"),
+                data,
+                &Within::anywhere(),
+            ))?;
             finish(fx, SceneFormat::Middlebury, raw)
         }
         "weights" => {

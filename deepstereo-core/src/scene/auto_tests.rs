@@ -28,7 +28,7 @@ fn opts(rig: Rig) -> SynthOptions {
 /// The scene written to `dir` and read back without its `near`/`far`.
 fn load_without_bounds(dir: &Path, scene: &SynthScene) -> Result<Scene> {
     write_scene(dir, scene)?;
-    let mut raw = nerf::read(dir)?;
+    let mut raw = nerf::read(dir, &crate::scene::Within::anywhere())?;
     raw.bounds = None;
     Scene::from_raw(dir, SceneFormat::Nerf, raw, &LoadOptions::default())
 }
@@ -112,7 +112,7 @@ fn automatic_bounds_are_deterministic_and_write_nothing() -> TestResult {
         .flatten()
         .map(|e| e.path())
         .collect();
-    let mut raw = nerf::read(dir.path())?;
+    let mut raw = nerf::read(dir.path(), &crate::scene::Within::anywhere())?;
     raw.bounds = None;
     let b = Scene::from_raw(dir.path(), SceneFormat::Nerf, raw, &LoadOptions::default())?;
     let after: Vec<_> = std::fs::read_dir(dir.path())?
@@ -131,7 +131,7 @@ fn user_bounds_override_and_one_given_bound_is_kept() -> TestResult {
     let dir = tempfile::tempdir()?;
     write_scene(dir.path(), &synth)?;
     let raw = || -> Result<RawScene> {
-        let mut r = nerf::read(dir.path())?;
+        let mut r = nerf::read(dir.path(), &crate::scene::Within::anywhere())?;
         r.bounds = None;
         Ok(r)
     };
@@ -178,7 +178,7 @@ fn a_single_view_is_refused() -> TestResult {
     let synth = generate(10, &opts(Rig::Forward))?;
     let dir = tempfile::tempdir()?;
     write_scene(dir.path(), &synth)?;
-    let mut raw = nerf::read(dir.path())?;
+    let mut raw = nerf::read(dir.path(), &crate::scene::Within::anywhere())?;
     raw.views.truncate(1);
     let err = estimate(dir.path(), &raw.views)
         .err()

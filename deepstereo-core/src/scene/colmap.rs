@@ -23,7 +23,7 @@
 //! directory, then in the scene directory itself. Views are sorted by image name. Binary
 //! counts are checked against the bytes left in the file before anything is allocated.
 
-use super::{make_view, RawScene, View};
+use super::{make_view, RawScene, View, Within};
 use crate::camera::{Distortion, Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};
 use crate::imageio::MAX_IMAGE_SIDE;
@@ -71,7 +71,7 @@ pub fn model_dir(dir: &Path) -> Option<PathBuf> {
 }
 
 /// Reads a COLMAP scene directory.
-pub fn read(dir: &Path) -> Result<RawScene> {
+pub fn read(dir: &Path, within: &Within) -> Result<RawScene> {
     let model = model_dir(dir).ok_or_else(|| {
         Error::format(
             dir,
@@ -87,6 +87,7 @@ pub fn read(dir: &Path) -> Result<RawScene> {
         }
     };
     let (cam_file, cam_bin) = pick("cameras");
+    within.check(dir, "the camera file", &cam_file)?;
     let cam_bytes = read_file(&cam_file)?;
     let cameras = if cam_bin {
         parse_cameras_bin(&cam_file, &cam_bytes)?
@@ -94,6 +95,7 @@ pub fn read(dir: &Path) -> Result<RawScene> {
         parse_cameras_txt(&cam_file, &cam_bytes)?
     };
     let (img_file, img_bin) = pick("images");
+    within.check(dir, "the image file", &img_file)?;
     let img_bytes = read_file(&img_file)?;
     let images = if img_bin {
         parse_images_bin(&img_file, &img_bytes)?
@@ -101,6 +103,7 @@ pub fn read(dir: &Path) -> Result<RawScene> {
         parse_images_txt(&img_file, &img_bytes)?
     };
     let (pts_file, pts_bin) = pick("points3D");
+    within.check(dir, "the points file", &pts_file)?;
     let points = if !pts_file.is_file() {
         Vec::new()
     } else if pts_bin {
@@ -123,16 +126,21 @@ pub fn read(dir: &Path) -> Result<RawScene> {
                 ),
             )
         })?;
-        let image_path = find_image(dir, &img.name).ok_or_else(|| {
-            Error::image(
-                dir.join("images").join(&img.name),
-                format!(
-                    "image '{}' listed in {} not found in images/ or the scene directory",
-                    img.name,
-                    img_file.display()
-                ),
-            )
-        })?;
+        let entry = match img.line {
+            Some(l) => format!("line {l}: image '{}'", img.name),
+            None => format!("image '{}'", img.name),
+        };
+        let image_path = find_image(dir, &img.name, |p| within.check(&img_file, &entry, p))?
+            .ok_or_else(|| {
+                Error::image(
+                    dir.join("images").join(&img.name),
+                    format!(
+                        "image '{}' listed in {} not found in images/ or the scene directory",
+                        img.name,
+                        img_file.display()
+                    ),
+                )
+            })?;
         views.push(make_view(
             &img_file, &img.name, image_path, intrinsics, img.pose, None,
         )?);
@@ -156,10 +164,20 @@ pub fn read(dir: &Path) -> Result<RawScene> {
     })
 }
 
-fn find_image(dir: &Path, name: &str) -> Option<PathBuf> {
-    [dir.join("images").join(name), dir.join(name)]
-        .into_iter()
-        .find(|p| p.is_file())
+/// The image `name` in `images/` or else in the scene directory; each candidate passes
+/// `allowed` before it is looked at.
+fn find_image(
+    dir: &Path,
+    name: &str,
+    allowed: impl Fn(&Path) -> Result<()>,
+) -> Result<Option<PathBuf>> {
+    for p in [dir.join("images").join(name), dir.join(name)] {
+        allowed(&p)?;
+        if p.is_file() {
+            return Ok(Some(p));
+        }
+    }
+    Ok(None)
 }
 
 /// One entry of `images.{txt,bin}` before its camera is looked up.
@@ -236,6 +254,7 @@ fn intrinsics_from(
     };
     let mut k = Intrinsics::pinhole(fx, fy, cx, cy, w, h);
     k.distortion = (!dist.is_zero()).then_some(dist);
+    k.validate()?;
     Ok(k)
 }
 
@@ -318,13 +337,21 @@ pub fn parse_images_txt(path: &Path, bytes: &[u8]) -> Result<Vec<ImageEntry>> {
     let text = utf8(path, bytes)?;
     let mut lines = text.lines().enumerate().peekable();
     let mut out = Vec::new();
+    let mut ids = HashMap::new();
     while let Some((i, line)) = lines.next() {
         if is_skippable(line) {
             continue;
         }
         let n = i + 1;
         let mut tok = line.split_whitespace();
-        let _id: u64 = parse_num(path, n, tok.next(), "image id")?;
+        let id: u64 = parse_num(path, n, tok.next(), "image id")?;
+        if let Some(first) = ids.insert(id, n) {
+            return Err(Error::parse(
+                path,
+                Some(n),
+                format!("image id {id} appears twice (first on line {first})"),
+            ));
+        }
         let mut v = [0.0f64; 7];
         for (k, slot) in v.iter_mut().enumerate() {
             *slot = parse_num(path, n, tok.next(), &format!("pose value {}", k + 1))?;
@@ -494,8 +521,12 @@ pub fn parse_images_bin(path: &Path, bytes: &[u8]) -> Result<Vec<ImageEntry>> {
     let mut b = Bin::new(path, bytes);
     let n = b.count(MIN_IMAGE_RECORD, "image count")?;
     let mut out = Vec::with_capacity(n);
+    let mut ids = std::collections::HashSet::new();
     for _ in 0..n {
-        let _id = b.u32("image id")?;
+        let id = b.u32("image id")?;
+        if !ids.insert(id) {
+            return Err(b.err(format!("image id {id} appears twice")));
+        }
         let mut v = [0.0f64; 7];
         for slot in v.iter_mut() {
             *slot = b.f64("pose")?;

@@ -23,7 +23,7 @@
 //! the rows. The size is read from the first image's header (every image's size is
 //! checked when it is loaded).
 
-use super::{make_view, RawScene};
+use super::{make_view, RawScene, Within};
 use crate::camera::{CameraToWorld, Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};
 use glam::{DMat3, DVec3};
@@ -39,14 +39,20 @@ const ASPECT_NOTE_TOLERANCE: f64 = 0.01;
 /// Extensions of image files, compared case-insensitively.
 pub const IMAGE_EXTENSIONS: [&str; 3] = ["png", "jpg", "jpeg"];
 
-/// Reads an LLFF scene directory.
-pub fn read(dir: &Path, factor: Option<u32>) -> Result<RawScene> {
+/// Reads an LLFF scene directory; the poses file and every image must resolve inside
+/// `within` (an image folder entry may be a symbolic link).
+pub fn read(dir: &Path, factor: Option<u32>, within: &Within) -> Result<RawScene> {
     let file = dir.join(POSES_FILE);
+    within.check(dir, "the poses file", &file)?;
     let arr = super::npy::read_npy(&file)?;
     let rows = poses_rows(&file, &arr)?;
 
     let (folder, folder_note) = choose_folder(dir, factor)?;
     let images = list_images(&folder)?;
+    for p in &images {
+        let name = p.file_name().unwrap_or_default().to_string_lossy();
+        within.check(&folder, &format!("image '{name}'"), p)?;
+    }
     if images.len() != rows {
         return Err(Error::format(
             &file,
@@ -258,7 +264,9 @@ pub fn list_images(folder: &Path) -> Result<Vec<PathBuf>> {
             .extension()
             .and_then(|e| e.to_str())
             .is_some_and(|e| IMAGE_EXTENSIONS.iter().any(|x| x.eq_ignore_ascii_case(e)));
-        if is_image && path.is_file() {
+        // A symbolic link is listed whatever it points to, so that the scene's check
+        // ([`Within`]) names one that leads outside instead of skipping it silently.
+        if is_image && (path.is_file() || path.is_symlink()) {
             out.push(path);
         }
     }

@@ -13,7 +13,7 @@
 //! (two lines of `(x y z)` after the words "bounding box", as the Middlebury archives
 //! do), its eight corners serve as sparse points for the robust bounds.
 
-use super::{make_view, RawScene};
+use super::{make_view, RawScene, Within};
 use crate::camera::{Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};
 use glam::{DMat3, DVec3};
@@ -39,16 +39,17 @@ pub fn par_file(dir: &Path) -> Option<PathBuf> {
     found.into_iter().next()
 }
 
-/// Reads a Middlebury scene directory.
-pub fn read(dir: &Path) -> Result<RawScene> {
+/// Reads a Middlebury scene directory; every image must resolve inside `within`.
+pub fn read(dir: &Path, within: &Within) -> Result<RawScene> {
     let file = par_file(dir).ok_or_else(|| Error::format(dir, "no *_par.txt file"))?;
+    within.check(dir, "the camera file", &file)?;
     let bytes = std::fs::read(&file).map_err(|e| Error::io(&file, e))?;
-    parse_par(&file, &bytes)
+    parse_par(&file, &bytes, within)
 }
 
 /// Parses the bytes of a `*_par.txt` at `file` (images, and a `README.txt` with the
-/// bounding box, are looked up in its folder).
-pub fn parse_par(file: &Path, bytes: &[u8]) -> Result<RawScene> {
+/// bounding box, are looked up in its folder; each must resolve inside `within`).
+pub fn parse_par(file: &Path, bytes: &[u8], within: &Within) -> Result<RawScene> {
     let dir = file.parent().unwrap_or(Path::new("."));
     let text =
         std::str::from_utf8(bytes).map_err(|_| Error::parse(file, None, "not UTF-8 text"))?;
@@ -104,6 +105,7 @@ pub fn parse_par(file: &Path, bytes: &[u8]) -> Result<RawScene> {
             ));
         }
         let image_path = dir.join(&name);
+        within.check(file, &format!("line {lineno}: image '{name}'"), &image_path)?;
         let (w, h) = super::image_size(&image_path)?;
         let intrinsics = Intrinsics::pinhole(k[0], k[4], k[2], k[5], w, h);
         let r = &vals[9..18];
@@ -132,8 +134,8 @@ pub fn parse_par(file: &Path, bytes: &[u8]) -> Result<RawScene> {
             ),
         ));
     }
-    let points = readme_bbox(&dir.join("README.txt")).unwrap_or_default();
     let mut notes = Vec::new();
+    let points = readme_bbox(dir, within, &mut notes)?.unwrap_or_default();
     if !points.is_empty() {
         notes.push("depth bounds from the bounding box in README.txt".to_string());
     }
@@ -145,10 +147,42 @@ pub fn parse_par(file: &Path, bytes: &[u8]) -> Result<RawScene> {
     })
 }
 
-/// The eight corners of the bounding box stated in a Middlebury README, if any.
-pub(crate) fn readme_bbox(path: &Path) -> Option<Vec<DVec3>> {
-    let text = std::fs::read_to_string(path).ok()?;
-    let start = text.to_ascii_lowercase().find("bounding box")?;
+/// The eight corners of the bounding box stated in `dir/README.txt`, if it states one. A
+/// README that mentions a bounding box whose corners cannot be read adds a warning to
+/// `notes` and gives none; a README outside the scene is refused.
+pub(crate) fn readme_bbox(
+    dir: &Path,
+    within: &Within,
+    notes: &mut Vec<String>,
+) -> Result<Option<Vec<DVec3>>> {
+    let path = dir.join("README.txt");
+    if !path.is_file() {
+        return Ok(None);
+    }
+    within.check(dir, "README.txt", &path)?;
+    let Ok(text) = std::fs::read_to_string(&path) else {
+        notes.push(format!(
+            "warning: {}: not readable UTF-8 text; no bounding box read from it",
+            path.display()
+        ));
+        return Ok(None);
+    };
+    let Some(start) = text.to_ascii_lowercase().find("bounding box") else {
+        return Ok(None);
+    };
+    let corners = bbox_corners(&text[start..]);
+    if corners.is_none() {
+        notes.push(format!(
+            "warning: {}: it mentions a bounding box but not as two lines '(x y z)' of finite numbers; the box is ignored",
+            path.display()
+        ));
+    }
+    Ok(corners)
+}
+
+/// The eight corners of the box whose two corners are the first two `(x y z)` of `text`.
+fn bbox_corners(text: &str) -> Option<Vec<DVec3>> {
+    let start = 0;
     let triples: Vec<DVec3> = text[start..]
         .split('(')
         .skip(1)

@@ -11,8 +11,10 @@ pub mod llff;
 pub mod middlebury;
 pub mod nerf;
 pub mod npy;
+pub mod within;
 
 pub use discover::scene_dirs;
+pub use within::Within;
 
 use crate::camera::{Camera, Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};
@@ -23,6 +25,10 @@ use std::path::{Path, PathBuf};
 
 /// Largest accepted `--downscale`.
 pub const MAX_DOWNSCALE: u32 = 64;
+/// The larger image side, in pixels, that the commands running the network read a scene
+/// at when no `--downscale` is given ([`LoadOptions::max_side`]): camera photographs
+/// (3000-6000 px) are read at 1/4 or 1/8, what the network was trained at.
+pub const WORKING_SIDE: u32 = 1024;
 /// Lower and upper percentiles of sparse-point depths used as near/far bounds.
 pub const POINT_DEPTH_PERCENTILES: (f64, f64) = (0.01, 0.99);
 /// Margin applied to percentile bounds: near is multiplied by `1 - m`, far by `1 + m`.
@@ -121,9 +127,18 @@ pub struct LoadOptions {
     /// Read images at `1 / downscale` resolution (a power of two; box-filtered, odd
     /// trailing rows and columns dropped), intrinsics scaled to match.
     pub downscale: Option<u32>,
+    /// Without `downscale`: read the images at the smallest power-of-two factor that
+    /// brings every view's larger side to at most this many pixels (the working
+    /// resolution of the commands that run the network; a note says so). `None`: the
+    /// files' resolution.
+    pub max_side: Option<u32>,
     /// Treat rolling-shutter cameras as global shutters at their mid-readout pose
     /// ([`Camera::without_rolling_shutter`]), as a reader unaware of the shutter would.
     pub ignore_rolling_shutter: bool,
+    /// Read images that the scene's files name outside the scene directory (after
+    /// resolving `..` and symbolic links); by default they are refused unread
+    /// ([`Within`]).
+    pub allow_outside_paths: bool,
 }
 
 /// A posed image set with resolved depth bounds.
@@ -168,15 +183,19 @@ impl Scene {
             Some(f) => f,
             None => detect(dir)?,
         };
+        let within = match opts.allow_outside_paths {
+            true => Within::anywhere(),
+            false => Within::scene(dir)?,
+        };
         let raw = match format {
-            SceneFormat::Llff => llff::read(dir, opts.factor)?,
-            SceneFormat::Colmap => colmap::read(dir)?,
-            SceneFormat::Nerf => nerf::read(dir)?,
-            SceneFormat::Middlebury => middlebury::read(dir)?,
+            SceneFormat::Llff => llff::read(dir, opts.factor, &within)?,
+            SceneFormat::Colmap => colmap::read(dir, &within)?,
+            SceneFormat::Nerf => nerf::read(dir, &within)?,
+            SceneFormat::Middlebury => middlebury::read(dir, &within)?,
         };
         let mut raw = raw;
-        if raw.bounds.is_none() && raw.points.is_empty() {
-            if let Some(corners) = middlebury::readme_bbox(&dir.join("README.txt")) {
+        if raw.bounds.is_none() && raw.points.is_empty() && format != SceneFormat::Middlebury {
+            if let Some(corners) = middlebury::readme_bbox(dir, &within, &mut raw.notes)? {
                 raw.points = corners;
                 raw.notes
                     .push("depth bounds from the bounding box in README.txt".to_string());
@@ -257,7 +276,31 @@ impl Scene {
             notes: raw.notes,
             downscale_levels: 0,
         }
-        .downscaled(opts.downscale.unwrap_or(1))
+        .working(opts)
+    }
+
+    /// Applies `opts.downscale`, or else the factor `opts.max_side` asks for, with a note.
+    fn working(mut self, opts: &LoadOptions) -> Result<Scene> {
+        if let Some(f) = opts.downscale {
+            return self.downscaled(f);
+        }
+        let Some(limit) = opts.max_side else {
+            return self.downscaled(1);
+        };
+        let side = self.views.iter().map(|v| {
+            let k = &v.camera.intrinsics;
+            k.width.max(k.height)
+        });
+        let side = side.max().unwrap_or(0);
+        let factor = working_factor(side, limit);
+        if factor > 1 {
+            self.notes.push(format!(
+                "working resolution 1/{factor}: the images' larger side is {side} px, \
+                 {} px read (at most {limit}); --downscale 1 reads them whole",
+                side / factor
+            ));
+        }
+        self.downscaled(factor)
     }
 
     /// Loads view `i`'s image, checking it has the size its camera expects.
@@ -336,6 +379,16 @@ impl Scene {
     }
 }
 
+/// The smallest power of two that brings `side` pixels to at most `limit` (1 when it fits,
+/// at most [`MAX_DOWNSCALE`]).
+pub fn working_factor(side: u32, limit: u32) -> u32 {
+    let mut f = 1;
+    while side / f > limit.max(1) && f < MAX_DOWNSCALE {
+        f *= 2;
+    }
+    f
+}
+
 /// The `k` views whose centres are nearest to `c`, optionally excluding one index.
 pub fn nearest_to_point(views: &[View], c: DVec3, k: usize, exclude: Option<usize>) -> Vec<usize> {
     let mut idx: Vec<(f64, usize)> = views
@@ -393,6 +446,21 @@ pub fn detect(dir: &Path) -> Result<SceneFormat> {
     }
     if middlebury::par_file(dir).is_some() {
         return Ok(SceneFormat::Middlebury);
+    }
+    // A marker that is there but no regular file (a FIFO, a device, a directory) is named
+    // as such, not taken for a missing one; it is never opened.
+    for name in [
+        "poses_bounds.npy",
+        "transforms.json",
+        "transforms_train.json",
+    ] {
+        let p = dir.join(name);
+        if p.symlink_metadata().is_ok() {
+            return Err(Error::format(
+                p,
+                "exists but is not a regular file (a FIFO, device, directory or dangling link); it is not read",
+            ));
+        }
     }
     Err(Error::format(
         dir,

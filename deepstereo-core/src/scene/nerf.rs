@@ -26,14 +26,15 @@
 //!
 //! # Other keys
 //! `file_path` is relative to the JSON file's folder; without an existing file at that
-//! path, `.png`, `.jpg` and `.jpeg` are appended in turn (NeRF synthetic omits them).
+//! path, `.png`, `.jpg` and `.jpeg` are appended in turn (NeRF synthetic omits them);
+//! every candidate must resolve inside the scene ([`Within`]) before it is looked at.
 //! Optional top-level `near` and `far` give scene bounds; no bounds are invented.
 //! instant-ngp's `aabb_scale`, `scale` and `offset` only place the scene in its own
 //! training cube and do not change relative geometry, so they are ignored: the world
 //! here is the file's world. Fisheye cameras and nonzero `k3`/`k4` are rejected.
 //! Frames keep the file's order.
 
-use super::{make_view, RawScene};
+use super::{make_view, RawScene, Within};
 use crate::camera::{Camera, CameraToWorld, Distortion, Intrinsics, RollingShutter, WorldToCamera};
 use crate::error::{Error, Result};
 use crate::imageio::MAX_IMAGE_SIDE;
@@ -50,20 +51,22 @@ const LAST_ROW_TOLERANCE: f64 = 1e-6;
 /// Camera models (nerfstudio `camera_model`) that this reader handles.
 const SUPPORTED_MODELS: [&str; 3] = ["OPENCV", "PINHOLE", "SIMPLE_PINHOLE"];
 
-/// Reads a NeRF-style scene directory.
-pub fn read(dir: &Path) -> Result<RawScene> {
+/// Reads a NeRF-style scene directory; every image must resolve inside `within`.
+pub fn read(dir: &Path, within: &Within) -> Result<RawScene> {
     let file = TRANSFORMS_FILES
         .iter()
         .map(|n| dir.join(n))
         .find(|p| p.is_file())
         .ok_or_else(|| Error::format(dir, "no transforms.json or transforms_train.json"))?;
+    within.check(dir, "the scene file", &file)?;
     let bytes = std::fs::read(&file).map_err(|e| Error::io(&file, e))?;
-    parse_transforms(&file, &bytes)
+    parse_transforms(&file, &bytes, within)
 }
 
 /// Parses the bytes of a `transforms.json` at `file` (image paths are resolved, and
-/// image headers read, relative to its folder).
-pub fn parse_transforms(file: &Path, bytes: &[u8]) -> Result<RawScene> {
+/// image headers read, relative to its folder; each must resolve inside `within` before
+/// anything of it is touched).
+pub fn parse_transforms(file: &Path, bytes: &[u8], within: &Within) -> Result<RawScene> {
     let file = file.to_path_buf();
     let dir = file.parent().unwrap_or(Path::new("."));
     let json: Value = serde_json::from_slice(bytes)
@@ -106,12 +109,14 @@ pub fn parse_transforms(file: &Path, bytes: &[u8]) -> Result<RawScene> {
             Some(_) => return Err(ferr("'file_path' must be a non-empty string".into())),
             None => return Err(ferr("missing 'file_path'".into())),
         };
-        let image_path = find_image(base, rel).ok_or_else(|| {
-            Error::image(
-                base.join(rel),
-                format!("{fname}: frame {i}: image not found (also tried .png/.jpg/.jpeg)"),
-            )
-        })?;
+        let entry = format!("frame {i}: file_path '{rel}'");
+        let image_path =
+            find_image(base, rel, |p| within.check(&file, &entry, p))?.ok_or_else(|| {
+                Error::image(
+                    base.join(rel),
+                    format!("{fname}: frame {i}: image not found (also tried .png/.jpg/.jpeg)"),
+                )
+            })?;
         let intrinsics = intrinsics(top, frame, &image_path).map_err(ferr)?;
         let shutter = rolling_shutter(top, frame).map_err(ferr)?;
         let start_key = if frame.contains_key("transform_matrix_start") {
@@ -328,14 +333,23 @@ fn intrinsics(
     Ok(k)
 }
 
-/// The image of a `file_path`, trying the usual extensions when it names no file.
-fn find_image(base: &Path, rel: &str) -> Option<PathBuf> {
-    let direct = base.join(rel);
-    if direct.is_file() {
-        return Some(direct);
+/// The image of a `file_path`, trying the usual extensions when it names no file; each
+/// candidate passes `allowed` before it is looked at.
+fn find_image(
+    base: &Path,
+    rel: &str,
+    allowed: impl Fn(&Path) -> Result<()>,
+) -> Result<Option<PathBuf>> {
+    let candidates = std::iter::once(base.join(rel)).chain(
+        IMAGE_EXTENSIONS
+            .iter()
+            .map(|ext| base.join(format!("{rel}.{ext}"))),
+    );
+    for p in candidates {
+        allowed(&p)?;
+        if p.is_file() {
+            return Ok(Some(p));
+        }
     }
-    IMAGE_EXTENSIONS
-        .iter()
-        .map(|ext| base.join(format!("{rel}.{ext}")))
-        .find(|p| p.is_file())
+    Ok(None)
 }

@@ -44,7 +44,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             scene: dir.clone(),
             ..a.scene.clone()
         };
-        let scene = sa.load()?;
+        let scene = sa.load_working()?;
         let targets = a.holdout.required(scene.views.len(), "eval")?;
         let images = staged.as_ref().map(|st| {
             let d = st.path();

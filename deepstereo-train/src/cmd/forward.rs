@@ -52,7 +52,14 @@ fn read_f32(
         .data()
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
+        .collect::<Vec<f32>>();
+    if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+        bail!(
+            "{}: tensor '{name}' holds a non-finite value ({} at flat index {i}); the network's inputs must be finite",
+            file.display(),
+            data[i]
+        );
+    }
     Ok((view.shape().to_vec(), data))
 }
 

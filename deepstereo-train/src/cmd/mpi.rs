@@ -93,7 +93,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let scene = a.scene.load()?;
+    let scene = a.scene.load_working()?;
     let n = scene.views.len();
     let holdout = a.holdout.list(n)?;
     let backend = a.model.backend()?;

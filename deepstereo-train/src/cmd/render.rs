@@ -3,8 +3,9 @@
 use super::args::{ModelArgs, SceneArgs};
 use crate::inference::{pick_planned_sources, render_camera, Prepared, RenderSettings};
 use crate::outdir::StagedDir;
-use crate::path::{path_cameras, render_path, PathKind};
+use crate::path::{render_path, resolved_path, PathKind};
 use anyhow::{bail, Result};
+use deepstereo_core::camera::Camera;
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::render::{Backend, Rendered};
 use deepstereo_core::scene::npy::write_npy_f32;
@@ -30,9 +31,15 @@ pub struct Args {
     /// With --pose FILE holding `inspect --json`'s output: which of its views to render.
     #[arg(long, requires = "pose")]
     pub view: Option<usize>,
-    /// Render a camera path around the views (LLFF-style) as a numbered PNG sequence.
-    #[arg(long, value_enum)]
-    pub path: Option<PathKind>,
+    /// Render a camera path as a numbered PNG sequence, with its cameras in
+    /// `cameras.json`: `auto` (the default of a bare `--path`: spiral for a forward-facing
+    /// capture, orbit for one around an object), `spiral`, `circle`, `line` (LLFF's, around
+    /// the mean pose), `orbit` (around the point the cameras look at, at their distance and
+    /// height), `interpolate` (a spline through the cameras in capture order), or a JSON
+    /// file of cameras (a path's `cameras.json`, edited or not, or `inspect --json`'s
+    /// output) to render them all.
+    #[arg(long, value_name = "KIND|FILE", num_args = 0..=1, default_missing_value = "auto")]
+    pub path: Option<String>,
     /// Render from the MPIs of this directory (written by `deepstereo mpi`) on the CPU,
     /// blended by distance, instead of running the network: image.png (with --pose or
     /// --target) or the frames of --path.
@@ -41,7 +48,7 @@ pub struct Args {
     /// The model, and how it renders (not used with --mpi).
     #[command(flatten)]
     pub model: ModelArgs,
-    /// Frames of --path.
+    /// Frames of --path (a file's cameras are all rendered).
     #[arg(long, default_value_t = 30)]
     pub frames: usize,
     /// With --path, also write the frames as a video: H.264 MP4 through ffmpeg when it is
@@ -65,7 +72,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.path.is_some() && a.frames == 0 {
         bail!("--frames must be at least 1");
     }
-    let scene = a.scene.load()?;
+    let scene = a.scene.load_working()?;
     if let Some(dir) = &a.mpi {
         return render_mpis(&a, dir, &scene);
     }
@@ -73,10 +80,11 @@ pub fn run(a: Args) -> Result<()> {
     let cfg = backend.config();
     let v = settings.source_count(cfg)?;
     let mut prepared = Prepared::new(&scene);
-    if let Some(kind) = a.path {
+    if let Some(spec) = &a.path {
+        let cams = path_cameras_of(spec, &scene, a.frames)?;
         return write_path(
             &a,
-            kind,
+            &cams,
             backend.as_ref(),
             &scene,
             &mut prepared,
@@ -147,23 +155,57 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
-/// `--path KIND`: the path's frames rendered from `views` sources, and `--video`.
+/// The cameras of `--path SPEC`: a path kind (printing which `auto` chose and why), or a
+/// JSON file of cameras.
+fn path_cameras_of(spec: &str, scene: &Scene, frames: usize) -> Result<Vec<Camera>> {
+    if let Some(kind) = PathKind::parse(spec) {
+        let (cams, chosen, why) = resolved_path(scene, kind, frames)?;
+        match kind {
+            PathKind::Auto => {
+                eprintln!("path: {} ({why}; --path NAME picks another)", chosen.name())
+            }
+            _ => eprintln!("path: {} ({why})", chosen.name()),
+        }
+        return Ok(cams);
+    }
+    let file = Path::new(spec);
+    if !file.is_file() {
+        bail!(
+            "--path {spec}: neither a path kind ({}) nor a JSON file of cameras",
+            PathKind::NAMES
+        );
+    }
+    let cams = crate::camera_json::read_cameras(file)?;
+    eprintln!("path: the {} cameras of {}", cams.len(), file.display());
+    Ok(cams)
+}
+
+/// Writes `cameras.json` (the path's cameras, [`crate::camera_json::path_json`]) into `dir`.
+fn write_cameras(dir: &Path, cams: &[Camera], scene: &Scene) -> Result<()> {
+    let json = crate::camera_json::path_json(cams, scene);
+    let text = serde_json::to_string_pretty(&json)?;
+    deepstereo_core::imageio::write_atomic(&dir.join("cameras.json"), text.as_bytes())?;
+    Ok(())
+}
+
+/// `--path`: the path's frames rendered from `views` sources, its `cameras.json`, and
+/// `--video`.
 fn write_path(
     a: &Args,
-    kind: PathKind,
+    cams: &[Camera],
     backend: &dyn Backend,
     scene: &Scene,
     prepared: &mut Prepared,
     views: usize,
     settings: &RenderSettings,
 ) -> Result<()> {
-    let cams = path_cameras(scene, kind, a.frames)?;
     let staged = StagedDir::new(&a.out)?;
+    write_cameras(staged.path(), cams, scene)?;
     let frames = render_path(
         backend,
         scene,
         prepared,
-        &cams,
+        cams,
         views,
         settings,
         staged.path(),
@@ -174,15 +216,15 @@ fn write_path(
     };
     staged.commit()?;
     eprintln!(
-        "wrote frame_0000.png .. frame_{:04}.png to {}",
-        a.frames - 1,
+        "wrote frame_0000.png .. frame_{:04}.png and cameras.json to {}",
+        frames.len() - 1,
         a.out.display()
     );
     if let Some(v) = video {
         eprintln!(
             "wrote {} ({} frames at {} fps)",
             v.path().display(),
-            a.frames,
+            frames.len(),
             a.fps
         );
     }
@@ -192,8 +234,8 @@ fn write_path(
 /// `--mpi DIR`: the cameras of --path, --pose or --target rendered from MPIs on the CPU.
 fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
     let mpis = crate::mpi::read_mpis(dir)?;
-    let cams = match (a.path, a.target, &a.pose) {
-        (Some(kind), _, _) => path_cameras(scene, kind, a.frames)?,
+    let cams = match (&a.path, a.target, &a.pose) {
+        (Some(spec), _, _) => path_cameras_of(spec, scene, a.frames)?,
         (None, Some(t), None) if t < scene.views.len() => vec![scene.views[t].camera],
         (None, Some(t), None) => bail!(
             "--target {t} is out of range: the scene has {} views",
@@ -203,6 +245,9 @@ fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
         _ => bail!("with --mpi pass one of --path KIND, --target I or --pose FILE"),
     };
     let staged = StagedDir::new(&a.out)?;
+    if a.path.is_some() {
+        write_cameras(staged.path(), &cams, scene)?;
+    }
     let bar = indicatif::ProgressBar::new(cams.len() as u64);
     let t0 = std::time::Instant::now();
     let names = |f: usize| match a.path {

@@ -87,9 +87,9 @@ struct Measured {
 
 pub fn run(a: Args) -> Result<()> {
     let base = a.model.settings()?;
-    let scene = a.scene.load()?;
+    let scene = a.scene.load_working()?;
     let targets = a.holdout.required(scene.views.len(), "report")?;
-    let grid = parse_grid(&a)?;
+    let grid = parse_grid(&a, 1 << scene.downscale_levels)?;
     let staged = StagedDir::new(&a.out)?;
     let out = staged.path().to_path_buf();
     let Measured {
@@ -130,7 +130,7 @@ pub fn run(a: Args) -> Result<()> {
 }
 
 /// The grid options parsed, and the scene read at each scale.
-fn parse_grid(a: &Args) -> Result<Grid> {
+fn parse_grid(a: &Args, base_downscale: u32) -> Result<Grid> {
     let positive = |n: &usize| *n > 0;
     let planes: Vec<usize> = grid(
         &a.planes_grid,
@@ -151,8 +151,8 @@ fn parse_grid(a: &Args) -> Result<Grid> {
         "a power of two",
         |n: &u32| n.is_power_of_two(),
     )?;
-    // Each scale's scene: the base scene, or the same files read at 1/N.
-    let base_downscale = a.scene.downscale.unwrap_or(1);
+    // Each scale's scene: the base scene (read at 1/`base_downscale`), or the same files
+    // read at 1/N of that.
     let scaled: Vec<(u32, Option<Scene>)> = scales
         .iter()
         .map(|&n| -> Result<_> {

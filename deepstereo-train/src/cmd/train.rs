@@ -7,8 +7,6 @@ use crate::optim::OptimizerKind;
 use crate::training::{train, Loss, RunOptions, Schedule};
 use anyhow::bail;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
@@ -161,10 +159,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         // A progress bar on a terminal, plain lines in a log file or a pipe.
         progress: !a.no_progress && std::io::IsTerminal::is_terminal(&std::io::stderr()),
     };
-    let stop = Arc::new(AtomicBool::new(false));
-    let flag = stop.clone();
-    // A second Ctrl-C while saving would be lost: the first one only sets the flag.
-    let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    // The first Ctrl-C sets the flag (a checkpoint is written); a second one aborts.
+    let stop = crate::interrupt::graceful();
     let lines = train(&run, &sched, &a.out, a.resume, stop)?;
     if let Some(last) = lines.last() {
         let num = |v: Option<f64>, digits: usize| {

@@ -14,10 +14,10 @@ use deepstereo_core::config::Config;
 use deepstereo_core::imageio::write_atomic;
 use deepstereo_core::prior::PriorGrid;
 use deepstereo_core::render::CandleBackend;
-use deepstereo_core::scene::{LoadOptions, Scene};
+use deepstereo_core::scene::Scene;
 use deepstereo_core::weights::{self, named_vars};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -177,9 +177,7 @@ pub fn run(a: Args) -> Result<()> {
         opts.views,
         plan.describe()
     );
-    let stop = Arc::new(AtomicBool::new(false));
-    let flag = stop.clone();
-    let _ = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst));
+    let stop = crate::interrupt::graceful();
     let bar = progress_bar(!a.no_progress);
     let original = copy_weights(&start)?;
     let network = match plan.network {
@@ -619,7 +617,7 @@ fn curve_snapshots(
 /// The scene without its held-out views, and their indices in the full scene.
 fn load_tuning_scene(args: &SceneArgs, holdout: &HoldoutArgs) -> Result<(Scene, Vec<usize>)> {
     let mut held = Vec::new();
-    let opts = scene_options(args);
+    let opts = args.working_options();
     let scene = Scene::load_views(&args.scene, &opts, |n| {
         held = holdout.list(n).map_err(|e| e.to_string())?;
         Ok((0..n).filter(|i| !held.contains(i)).collect())
@@ -628,17 +626,6 @@ fn load_tuning_scene(args: &SceneArgs, holdout: &HoldoutArgs) -> Result<(Scene, 
         eprintln!("note: {n}");
     }
     Ok((scene, held))
-}
-
-fn scene_options(a: &SceneArgs) -> LoadOptions {
-    LoadOptions {
-        format: a.format,
-        factor: a.factor,
-        near: a.near,
-        far: a.far,
-        downscale: a.downscale,
-        ignore_rolling_shutter: a.ignore_rolling_shutter,
-    }
 }
 
 /// Refuses an --out that cannot be written, before anything runs.
@@ -653,13 +640,9 @@ fn check_out(out: &Path) -> Result<()> {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    if !dir.is_dir() {
-        bail!(
-            "--out {}: the directory {} does not exist",
-            out.display(),
-            dir.display()
-        );
-    }
+    // Every command creates the missing folders above its outputs (docs/commands.md).
+    std::fs::create_dir_all(&dir)
+        .with_context(|| format!("--out {}: cannot create {}", out.display(), dir.display()))?;
     let probe = dir.join(format!(".deepstereo-tune-probe.{}", std::process::id()));
     std::fs::write(&probe, b"")
         .with_context(|| format!("--out {}: cannot write in {}", out.display(), dir.display()))?;
@@ -765,7 +748,7 @@ fn write_curve(
     holdout: &[usize],
     settings: &RenderSettings,
 ) -> Result<()> {
-    let scene = a.scene.load()?;
+    let scene = a.scene.load_working()?;
     let mut points = Vec::new();
     for (secs, weights, prior) in snapshots {
         let c = if prior.is_some() { tuned } else { cfg };

@@ -27,6 +27,19 @@ impl HoldoutArgs {
         if let Some(&bad) = held.iter().find(|&&i| i >= n) {
             bail!("held-out view {bad} is out of range: the scene has {n} views");
         }
+        let mut distinct = held.clone();
+        distinct.sort_unstable();
+        distinct.dedup();
+        if distinct.len() >= n {
+            bail!(
+                "{} holds out every one of the scene's {n} views: none is left to render \
+                 from (the field's protocol is --llffhold 8)",
+                match self.llffhold {
+                    Some(k) => format!("--llffhold {k}"),
+                    None => "--holdout".to_string(),
+                }
+            );
+        }
         Ok(held)
     }
 

@@ -1,7 +1,7 @@
 //! `--scene` and the options of how to read it: shared by every command that reads a scene.
 
 use clap::Args;
-use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat};
+use deepstereo_core::scene::{LoadOptions, Scene, SceneFormat, WORKING_SIDE};
 use std::path::PathBuf;
 
 /// How to read a scene: shared by every command that takes `--scene`.
@@ -23,26 +23,59 @@ pub struct SceneArgs {
     #[arg(long)]
     pub far: Option<f64>,
     /// Read the images at 1/N resolution (N a power of two), intrinsics scaled to match.
+    /// Commands that run the network default to the working resolution: the smallest N
+    /// that brings the images' larger side to at most 1024 px (a note says which);
+    /// `--downscale 1` reads them whole.
     #[arg(long)]
     pub downscale: Option<u32>,
     /// Ignore rolling shutters: every camera is a global shutter at its mid-readout pose
     /// (the pose `inspect` prints), as a shutter-unaware reader would see the scene.
     #[arg(long)]
     pub ignore_rolling_shutter: bool,
+    /// Read images (and model files) that the scene's files name outside the scene
+    /// directory, after resolving `..` and symbolic links. By default they are refused
+    /// unread: a scene from elsewhere cannot make a command read your other files.
+    #[arg(long)]
+    pub allow_outside_paths: bool,
 }
 
 impl SceneArgs {
-    /// Loads the scene, printing the reader's notes to stderr.
-    pub fn load(&self) -> anyhow::Result<Scene> {
-        let opts = LoadOptions {
+    /// The reader's options these flags give.
+    pub fn options(&self) -> LoadOptions {
+        LoadOptions {
             format: self.format,
             factor: self.factor,
             near: self.near,
             far: self.far,
             downscale: self.downscale,
             ignore_rolling_shutter: self.ignore_rolling_shutter,
-        };
-        let scene = Scene::load(&self.scene, &opts)?;
+            allow_outside_paths: self.allow_outside_paths,
+            max_side: None,
+        }
+    }
+
+    /// [`Self::options`] at the working resolution of the commands that run the network:
+    /// without `--downscale`, the larger side at most [`WORKING_SIDE`] pixels.
+    pub fn working_options(&self) -> LoadOptions {
+        LoadOptions {
+            max_side: Some(WORKING_SIDE),
+            ..self.options()
+        }
+    }
+
+    /// Loads the scene at the working resolution ([`Self::working_options`]), printing the
+    /// reader's notes.
+    pub fn load_working(&self) -> anyhow::Result<Scene> {
+        let scene = Scene::load(&self.scene, &self.working_options())?;
+        for n in &scene.notes {
+            eprintln!("note: {n}");
+        }
+        Ok(scene)
+    }
+
+    /// Loads the scene, printing the reader's notes to stderr.
+    pub fn load(&self) -> anyhow::Result<Scene> {
+        let scene = Scene::load(&self.scene, &self.options())?;
         for n in &scene.notes {
             eprintln!("note: {n}");
         }
