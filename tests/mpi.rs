@@ -173,7 +173,7 @@ fn dump_dom(page: &str, dir: &Path, name: &str, window: (u32, u32)) -> Option<St
 /// The viewer in a window of another aspect than its MPI's fills it at the MPI's aspect,
 /// centred (letterboxed), not drawn into a corner.
 fn check_letterbox(url: &str, dir: &Path, mpi_aspect: f64) {
-    for (name, window) in [("wide", (400, 150)), ("tall", (120, 300))] {
+    for (name, window) in [("wide", (800, 300)), ("tall", (520, 900))] {
         let Some(dom) = dump_dom(url, dir, name, window) else {
             return;
         };

@@ -368,3 +368,48 @@ fn middlebury_round_trip_keeps_file_order() {
         assert_same_camera(&c.name, &v.camera, &c.camera, 1e-9);
     }
 }
+
+/// A scene read at 1/2 takes `images_2/NAME` beside `images/NAME` when it has the size
+/// the downscaled camera expects (as LLFF's and nerfstudio's tools write them), and
+/// box-filters the full image otherwise, or when the folder leads outside the scene.
+#[test]
+fn prescaled_folders_serve_a_downscaled_read() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let scene = synth_scene(tmp.path(), (32, 24), 4, 2, &[]);
+    let opts = LoadOptions {
+        downscale: Some(2),
+        ..Default::default()
+    };
+    let boxed = Scene::load(&scene, &opts)
+        .expect("scene")
+        .load_image(1)
+        .expect("image");
+    let small = scene.join("images_2");
+    std::fs::create_dir(&small).expect("mkdir");
+    // A prescaled view 1 of the right size (16x12): a different picture, so it shows.
+    write_png(&small.join("view_001.png"), 16, 12, 77);
+    // View 2's has the wrong size: the full image is filtered instead.
+    write_png(&small.join("view_002.png"), 15, 12, 78);
+    let s = Scene::load(&scene, &opts).expect("scene");
+    let got = s.load_image(1).expect("image");
+    let want = deepstereo_core::imageio::RgbImage::load(&small.join("view_001.png")).expect("png");
+    assert_eq!(got, want, "the prescaled image");
+    assert_ne!(got, boxed);
+    let full = Scene::load(&scene, &LoadOptions::default()).expect("scene");
+    assert_eq!(
+        s.load_image(2).expect("image"),
+        full.load_image(2).expect("image").downsample2()
+    );
+    // A prescaled folder that is a link outside the scene is not read.
+    std::fs::remove_dir_all(&small).expect("rm");
+    let outside = tmp.path().join("elsewhere");
+    std::fs::create_dir(&outside).expect("mkdir");
+    write_png(&outside.join("view_001.png"), 16, 12, 77);
+    std::os::unix::fs::symlink(&outside, &small).expect("symlink");
+    let s = Scene::load(&scene, &opts).expect("scene");
+    assert_eq!(
+        s.load_image(1).expect("image"),
+        boxed,
+        "read through a link outside"
+    );
+}

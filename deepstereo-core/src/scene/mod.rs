@@ -319,6 +319,13 @@ impl Scene {
                 v.camera.intrinsics.height,
             );
         }
+        if let Some(small) = self.prescaled(&v.image_path, k) {
+            return RgbImage::load_expecting(
+                &small,
+                v.camera.intrinsics.width,
+                v.camera.intrinsics.height,
+            );
+        }
         let mut img = RgbImage::load(&v.image_path)?;
         if img.width >> k != v.camera.intrinsics.width
             || img.height >> k != v.camera.intrinsics.height
@@ -339,6 +346,27 @@ impl Scene {
             img = img.downsample2();
         }
         Ok(img)
+    }
+
+    /// The same image at `1 / 2^k` of `image`'s size in a prescaled folder, as LLFF's
+    /// `imgs2poses` and nerfstudio write them: `images_F/NAME` beside `images/NAME`
+    /// (`F = 2^k`), used when its header has the size the downscaled camera expects and it
+    /// resolves inside the scene; `None` otherwise (the full image is then box-filtered).
+    fn prescaled(&self, image: &Path, k: u32) -> Option<PathBuf> {
+        let (name, folder) = (image.file_name()?, image.parent()?);
+        if folder.file_name()? != "images" {
+            return None;
+        }
+        let small = folder
+            .parent()?
+            .join(format!("images_{}", 1u32 << k))
+            .join(name);
+        let inside = within::resolve(&small)
+            .zip(self.root.canonicalize().ok())
+            .is_some_and(|(p, root)| p.starts_with(root));
+        let view = self.views.iter().find(|v| v.image_path == image)?;
+        let want = (view.camera.intrinsics.width, view.camera.intrinsics.height);
+        (inside && small.is_file() && image_size(&small).ok()? == want).then_some(small)
     }
 
     /// The scene read at `1 / factor` resolution (`factor` a power of two).
