@@ -234,6 +234,12 @@ fn demo_scores_the_embedded_model_against_both_baselines() {
         assert!(out.join(png).is_file(), "{png}");
     }
     assert_eq!(png_size(&out.join("image.png")), (96, 72));
+    // Five panels, 4 px apart, under one strip of titles (at the font's size: "nearest
+    // view" is too wide for 96 px at twice it).
+    assert_eq!(
+        png_size(&out.join("comparison.png")),
+        (5 * 96 + 16, 72 + 15)
+    );
 }
 
 #[test]

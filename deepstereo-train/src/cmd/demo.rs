@@ -9,7 +9,7 @@ use anyhow::{Context, Result};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::{LoadOptions, Scene};
 use deepstereo_core::synth::{generate, scene_seed, write_scene, Rig, SynthOptions};
-use deepstereo_core::viz::{depth_image, side_by_side};
+use deepstereo_core::viz::{depth_image, titled_side_by_side};
 use std::path::PathBuf;
 
 /// Base seed of demo scenes; training uses `--seed` (default 0) and validation that seed
@@ -83,18 +83,21 @@ pub fn run(a: Args) -> Result<()> {
             saved = (|| {
                 r.image.save_png(&out.join("image.png"))?;
                 depth.save_png(&out.join("depth.png"))?;
-                side_by_side(
-                    &[imgs.truth, imgs.nearest, imgs.plane_sweep, &r.image, &depth],
-                    4,
-                )
-                .save_png(&out.join("comparison.png"))?;
+                let panels = [
+                    (imgs.truth, "truth"),
+                    (imgs.nearest, "nearest view"),
+                    (imgs.plane_sweep, "plane sweep"),
+                    (&r.image, "DeepStereo"),
+                    (&depth, "depth"),
+                ];
+                titled_side_by_side(&panels, 4).save_png(&out.join("comparison.png"))?;
                 Ok(())
             })();
         },
     )?;
     saved?;
     print_scores(&report);
-    println!("wrote {0}/image.png, {0}/depth.png and {0}/comparison.png (truth | nearest | plane sweep | DeepStereo | depth)", a.out.display());
+    println!("wrote {0}/image.png, {0}/depth.png and {0}/comparison.png (titled: truth, nearest view, plane sweep, DeepStereo, depth)", a.out.display());
     if a.path_frames > 0 {
         write_path(&a, backend.as_ref(), &scene, &settings, report.views)?;
     }
