@@ -21,7 +21,7 @@ pub struct Colmap {
 }
 
 /// How images are matched.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Matcher {
     /// Every pair (small sets).
     Exhaustive,

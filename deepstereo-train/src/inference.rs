@@ -45,7 +45,7 @@ pub struct RenderSettings {
 }
 
 /// Where a render's planes lie, uniform in inverse depth either way.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum PlaneSpan {
     /// Between the scene's near and far.

@@ -16,7 +16,7 @@ pub static EMBEDDED_MODEL: &[u8] = include_bytes!("../assets/nviews-real.safeten
 pub const EMBEDDED_NAME: &str = "embedded";
 
 /// Which runtime runs the network.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BackendKind {
     Candle,

@@ -13,7 +13,7 @@ pub const ADAGRAD_EPS: f64 = 1e-10;
 pub const ADAM_EPS: f64 = 1e-8;
 pub const ADAM_BETAS: (f64, f64) = (0.9, 0.999);
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum OptimizerKind {
     Adagrad,

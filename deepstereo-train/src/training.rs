@@ -36,7 +36,7 @@ pub const RUN_KEY: &str = "deepstereo.run";
 pub const STEP_KEY: &str = "deepstereo.step";
 
 /// The training loss on the rendered tile.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Loss {
     /// Mean absolute error (the paper's).

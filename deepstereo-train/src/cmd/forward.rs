@@ -25,7 +25,7 @@ pub struct Args {
     #[arg(long)]
     pub out: PathBuf,
     /// Runtime: candle, or ort (onnxruntime on the exported model).
-    #[arg(long, value_enum, default_value_t = BackendKind::Candle)]
+    #[arg(long, value_parser = super::args::choice::<BackendKind>(), default_value = "candle")]
     pub backend: BackendKind,
     /// With `--backend ort`: the ONNX file to run (default: the model exported in memory).
     #[arg(long)]

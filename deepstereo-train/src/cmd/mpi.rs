@@ -45,7 +45,7 @@ pub struct Args {
     /// Bake at --target/--targets views without their own photographs: the planes come
     /// from the other views only (the reference view is then the network's prediction of
     /// it, as `render --target` gives, not the photograph).
-    #[arg(long)]
+    #[arg(long, help_heading = super::args::EXPERT)]
     pub exclude_own_photo: bool,
     /// Bake at --target/--targets views with their own photograph as one more source, as
     /// `render --pose` at that camera runs the network. Without it (and without
@@ -53,21 +53,21 @@ pub struct Args {
     /// that at its reference it shows that render: the same picture there, and the other
     /// views' depths elsewhere, 3.0 dB closer to held-out views on average than this bake
     /// (docs/results.md).
-    #[arg(long, conflicts_with = "exclude_own_photo")]
+    #[arg(long, conflicts_with = "exclude_own_photo", help_heading = super::args::EXPERT)]
     pub own_photo_as_source: bool,
     /// Pixels added on every side of each MPI's image beyond its reference camera's (the
     /// principal point moves with them; the network fills them from the sources): an
     /// MPI then covers what cameras moved away from the reference see beyond its image
     /// (measured in docs/results.md). `mpi.json` records it; the viewer's `?fit=native`
     /// leaves it out. 0: the reference image only; at most the image's larger side.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, help_heading = super::args::EXPERT)]
     pub margin: u32,
     /// Each texel's selection (its planes' shares of the picture) averaged over the box
     /// of (2R+1)x(2R+1) texels around it before it becomes alpha: one depth profile for
     /// neighbouring pixels instead of the network's pixel-by-pixel choice, which a moved
     /// camera shows as misplaced detail. The picture at the reference stays the
     /// network's. 0: the network's selection as it is.
-    #[arg(long, value_name = "R", default_value_t = BAKE_SMOOTH)]
+    #[arg(long, value_name = "R", default_value_t = BAKE_SMOOTH, help_heading = super::args::EXPERT)]
     pub smooth: usize,
     /// With the default bake (the photograph moves the colours of its own image): each
     /// texel's selection, from the other views, weighed per plane by how well the
@@ -75,7 +75,7 @@ pub struct Args {
     /// half of their colour errors (RGB in [0, 1]), before it is smoothed: plane-sweep
     /// stereo with the photograph, which the network cannot do with it among its sources.
     /// The picture at the reference stays the network's. 0: not reweighed.
-    #[arg(long, value_name = "TAU", default_value_t = BAKE_AGREE, value_parser = parse_agree)]
+    #[arg(long, value_name = "TAU", default_value_t = BAKE_AGREE, value_parser = parse_agree, help_heading = super::args::EXPERT)]
     pub agree: f64,
     /// Instead of writing MPIs: render every held-out view through an MPI baked at its
     /// nearest view that is not held out, beside the network's render of it; writes
@@ -84,7 +84,7 @@ pub struct Args {
     pub eval: bool,
     /// With --eval: MPIs per held-out view, baked at its nearest views that are not held
     /// out and blended by distance.
-    #[arg(long, default_value_t = 1, requires = "eval")]
+    #[arg(long, default_value_t = 1, requires = "eval", help_heading = super::args::EXPERT)]
     pub eval_mpis: usize,
     /// Output directory: mpi.json, plane_NN.png, index.html and mpi.js (with --targets,
     /// one mpi_NN/ per MPI beside index.html and mpi.js).

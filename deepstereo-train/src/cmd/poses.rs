@@ -44,7 +44,7 @@ pub struct Args {
     pub colmap: Option<PathBuf>,
     /// Image pairs to match: exhaustive (every pair; small sets) or sequential (each image
     /// with the next ones in name order; video frames).
-    #[arg(long, value_enum, default_value = "exhaustive")]
+    #[arg(long, value_parser = super::args::choice::<Matcher>(), default_value = "exhaustive")]
     pub matcher: Matcher,
     /// Longer image side, in pixels, that features are extracted at (the scene keeps the
     /// full-resolution images and cameras).

@@ -36,7 +36,7 @@ pub struct Args {
     #[arg(long, default_value_t = 5e-4)]
     pub lr: f64,
     /// Optimizer: adagrad (the paper's) or adam.
-    #[arg(long, value_enum, default_value_t = OptimizerKind::Adagrad)]
+    #[arg(long, value_parser = super::args::choice::<OptimizerKind>(), default_value = "adagrad")]
     pub optimizer: OptimizerKind,
     /// Seed of the data order and the procedural scenes.
     #[arg(long, default_value_t = 0)]
@@ -84,7 +84,7 @@ pub struct Args {
     #[arg(long)]
     pub init: Option<std::path::PathBuf>,
     /// Training loss: l1 (the paper's mean absolute error) or l2 (mean squared error).
-    #[arg(long, value_enum, default_value_t = Loss::L1)]
+    #[arg(long, value_parser = super::args::choice::<Loss>(), default_value = "l1")]
     pub loss: Loss,
     /// How samples are drawn.
     #[command(flatten)]

@@ -53,22 +53,22 @@ pub struct Args {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Adam's initial learning rate (a cosine decay to --lr-final times it over the budget).
-    #[arg(long, default_value_t = DEFAULT_LR)]
+    #[arg(long, default_value_t = DEFAULT_LR, help_heading = super::args::EXPERT)]
     pub lr: f64,
     /// The final rate's share of --lr.
-    #[arg(long, default_value_t = DEFAULT_LR_FINAL)]
+    #[arg(long, default_value_t = DEFAULT_LR_FINAL, help_heading = super::args::EXPERT)]
     pub lr_final: f64,
     /// Tiles per step.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, help_heading = super::args::EXPERT)]
     pub batch: usize,
     /// Photometric augmentation and flips of the tiles.
-    #[arg(long)]
+    #[arg(long, help_heading = super::args::EXPERT)]
     pub augment: bool,
     /// Validate (on views set aside from the tuning views) every this many steps.
-    #[arg(long, default_value_t = 25)]
+    #[arg(long, default_value_t = 25, help_heading = super::args::EXPERT)]
     pub validate_every: u64,
     /// Validation batches of --batch tiles each.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, help_heading = super::args::EXPERT)]
     pub val_batches: usize,
     /// The tuned model: a safetensors file with its config (written atomically at the
     /// end, or on Ctrl-C with the best weights so far).
@@ -88,18 +88,18 @@ pub struct Args {
     /// network alone, without a prior. Default with --minutes: what the prior will not
     /// need (one view rendered and a few fit steps timed first), nothing when that is
     /// under 70% of the budget; with --steps: 0.
-    #[arg(long)]
+    #[arg(long, help_heading = super::args::EXPERT)]
     pub network_share: Option<f64>,
     /// Cells along the longest side of the scene prior's grid.
-    #[arg(long, default_value_t = PriorOptions::default().cells)]
+    #[arg(long, default_value_t = PriorOptions::default().cells, help_heading = super::args::EXPERT)]
     pub prior_cells: usize,
     /// Weight of the squared difference of neighbouring cells of the scene prior's
     /// log-weights in its fit (0: none).
-    #[arg(long, default_value_t = PriorOptions::default().smooth)]
+    #[arg(long, default_value_t = PriorOptions::default().smooth, help_heading = super::args::EXPERT)]
     pub prior_smooth: f32,
     /// Keep the scene prior's sharpness at 1 (the network's own selection, reweighed)
     /// instead of fitting it with the grid.
-    #[arg(long)]
+    #[arg(long, help_heading = super::args::EXPERT)]
     pub no_sharpen: bool,
     /// Depth planes a model with a scene prior renders at by default (written into its
     /// config as `render_planes`; `--planes` still overrides it when rendering). Default:
@@ -107,7 +107,7 @@ pub struct Args {
     /// which the tuned model does no more work than the model it started from on the
     /// views set aside and a few tuning views (the coarse pass of `--prune auto` applies
     /// the prior, so the planes run depend on it).
-    #[arg(long)]
+    #[arg(long, help_heading = super::args::EXPERT)]
     pub render_planes: Option<usize>,
     /// Print a line per validation instead of a progress bar (the default when standard
     /// error is not a terminal).

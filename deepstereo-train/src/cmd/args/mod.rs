@@ -2,15 +2,21 @@
 //! how to run a model ([`ModelArgs`]), how training samples are drawn ([`SamplingArgs`]),
 //! and the parsers of the values they take (sizes, ranges, model configs).
 
+pub mod choice;
 pub mod holdout;
 pub mod model;
 pub mod sampling;
 pub mod scene;
 
+pub use choice::choice;
 pub use holdout::HoldoutArgs;
 pub use model::ModelArgs;
 pub use sampling::SamplingArgs;
 pub use scene::SceneArgs;
+
+/// The help heading of the options few runs need (pruning's knobs, how a scene's files are
+/// read, tiling): `--help` lists them after the others, documented in docs/commands.md.
+pub const EXPERT: &str = "Expert options (docs/commands.md)";
 
 use anyhow::{bail, Context};
 use deepstereo_core::config::Config;

@@ -26,7 +26,7 @@ pub struct ModelArgs {
     /// Output tile side in pixels when rendering (bounds memory; at most the image's
     /// larger side, rounded up to the model's alignment). With --prune off the result
     /// does not depend on it (with auto, the planes are chosen per tile and block).
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, help_heading = super::EXPERT)]
     pub tile: usize,
     /// Leave out what the scene does not need: `auto` keeps the planes within the depth
     /// range the scene's sparse points (or per-view bounds) allow, thins planes closer
@@ -40,59 +40,59 @@ pub struct ModelArgs {
     pub prune: PruneMode,
     /// --prune auto: the coarse pass: `network` (the model itself at low resolution) or
     /// `photo` (photo-consistency of the sources).
-    #[arg(long, default_value = "network")]
+    #[arg(long, default_value = "network", help_heading = super::EXPERT)]
     pub prune_coarse: CoarsePass,
     /// --prune auto, network pass: fraction of each coarse pixel's selection probability
     /// the kept planes must hold (1 keeps every plane; lower is faster).
-    #[arg(long, default_value_t = DEFAULT_KEEP)]
+    #[arg(long, default_value_t = DEFAULT_KEEP, help_heading = super::EXPERT)]
     pub prune_keep: f32,
     /// --prune auto, network pass (candle): a coarse pixel also needs no more planes once
     /// those kept hold 70% of its selection and leaving out the rest moves its colour by
     /// at most this (0-1 scale, every channel; 0: the selection probability alone decides).
-    #[arg(long, default_value_t = DEFAULT_ERROR)]
+    #[arg(long, default_value_t = DEFAULT_ERROR, help_heading = super::EXPERT)]
     pub prune_error: f32,
     /// --prune auto, network pass: pyramid level of the coarse render (1: half resolution,
     /// 2: a quarter).
-    #[arg(long, default_value_t = DEFAULT_GUIDE_LEVEL)]
+    #[arg(long, default_value_t = DEFAULT_GUIDE_LEVEL, help_heading = super::EXPERT)]
     pub prune_guide_level: usize,
     /// --prune auto: largest disparity step, in source pixels, between the planes run:
     /// requested planes closer than a pixel in every source are thinned (fewer planes
     /// spread evenly), and beyond that down to the model's own plane count while the step
     /// stays within this (to three quarters of it within 2 pixels; 0: never thin).
-    #[arg(long, default_value_t = DEFAULT_MAX_STEP)]
+    #[arg(long, default_value_t = DEFAULT_MAX_STEP, help_heading = super::EXPERT)]
     pub prune_max_step: f64,
     /// --prune auto, photo pass: fraction of a tile's photo-consistency evidence the kept
     /// planes must hold (1 keeps every plane any coarse sample finds plausible; lower is
     /// faster).
-    #[arg(long, default_value_t = DEFAULT_MASS)]
+    #[arg(long, default_value_t = DEFAULT_MASS, help_heading = super::EXPERT)]
     pub prune_mass: f32,
     /// --prune auto: source views the coarse pass reads when the network reads fewer (the
     /// any-number-of-views family): the network's, then the next best-ranked of the
     /// others. More views choose the planes better: at 2 and 4 views the evaluation
     /// scenes' renders gain 0.04-0.80 dB for about the same time (docs/performance.md).
     /// 0: only the network's.
-    #[arg(long, default_value_t = DEFAULT_PLAN_VIEWS)]
+    #[arg(long, default_value_t = DEFAULT_PLAN_VIEWS, help_heading = super::EXPERT)]
     pub prune_views: usize,
     /// --prune auto: planes kept on each side of every plane the coarse pass keeps.
-    #[arg(long, default_value_t = DEFAULT_MARGIN)]
+    #[arg(long, default_value_t = DEFAULT_MARGIN, help_heading = super::EXPERT)]
     pub prune_margin: usize,
     /// --prune auto, photo pass: a coarse sample finds a plane plausible when its cost is within this
     /// fraction of its cost range of its best.
-    #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
+    #[arg(long, default_value_t = DEFAULT_TOLERANCE, help_heading = super::EXPERT)]
     pub prune_tolerance: f32,
     /// --prune auto, photo pass: radius, in coarse samples (2 pixels apart), of the window the
     /// photo-consistency cost is averaged over.
-    #[arg(long, default_value_t = DEFAULT_WINDOW)]
+    #[arg(long, default_value_t = DEFAULT_WINDOW, help_heading = super::EXPERT)]
     pub prune_window: usize,
     /// Where the planes lie, uniform in inverse depth: `scene` between the scene's near and
     /// far; `view` as many over the depths the camera sees (the nearest to the farthest of
     /// the scene's sparse points in its view, or its sources' per-view bounds, widened by
     /// 10% and a plane), finer where a scene's bounds are wide. Default: `scene`, and
     /// `view` for `mpi`'s bakes.
-    #[arg(long, value_enum)]
+    #[arg(long, value_parser = super::choice::<PlaneSpan>())]
     pub plane_span: Option<PlaneSpan>,
     /// Runtime for the network: candle, or ort (onnxruntime on the exported model).
-    #[arg(long, value_enum, default_value_t = BackendKind::Candle)]
+    #[arg(long, value_parser = super::choice::<BackendKind>(), default_value = "candle")]
     pub backend: BackendKind,
 }
 

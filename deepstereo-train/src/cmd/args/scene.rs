@@ -11,10 +11,10 @@ pub struct SceneArgs {
     #[arg(long)]
     pub scene: PathBuf,
     /// Force the scene format instead of detecting it: llff, colmap, nerf, middlebury.
-    #[arg(long)]
+    #[arg(long, help_heading = super::EXPERT)]
     pub format: Option<SceneFormat>,
     /// LLFF: read images from `images_<FACTOR>/` (default: `images/`, else the smallest).
-    #[arg(long)]
+    #[arg(long, help_heading = super::EXPERT)]
     pub factor: Option<u32>,
     /// Nearest depth of the planes (overrides the scene's bounds).
     #[arg(long)]
@@ -30,12 +30,12 @@ pub struct SceneArgs {
     pub downscale: Option<u32>,
     /// Ignore rolling shutters: every camera is a global shutter at its mid-readout pose
     /// (the pose `inspect` prints), as a shutter-unaware reader would see the scene.
-    #[arg(long)]
+    #[arg(long, help_heading = super::EXPERT)]
     pub ignore_rolling_shutter: bool,
     /// Read images (and model files) that the scene's files name outside the scene
     /// directory, after resolving `..` and symbolic links. By default they are refused
     /// unread: a scene from elsewhere cannot make a command read your other files.
-    #[arg(long)]
+    #[arg(long, help_heading = super::EXPERT)]
     pub allow_outside_paths: bool,
 }
 
