@@ -24,6 +24,9 @@ use serde::{Deserialize, Serialize};
 pub const ROTATION_TOLERANCE: f64 = 1e-3;
 /// Fixed-point iterations used to invert lens distortion.
 const UNDISTORT_ITERATIONS: usize = 20;
+/// A plane point counts as in front of a source camera when its homogeneous `z`
+/// exceeds this fraction of its length (the ray is not behind or exactly sideways).
+pub const IN_FRONT_EPS: f64 = 1e-9;
 /// Smallest focal length, in units of the image's larger side: a field of view of about
 /// 178 degrees across it (a pinhole model means nothing wider).
 pub const MIN_FOCAL_RATIO: f64 = 0.01;

@@ -10,6 +10,7 @@ pub mod imageio;
 pub mod scene;
 
 pub use error::{Error, Result};
+pub mod backend;
 pub mod baseline;
 pub mod config;
 pub mod conv;

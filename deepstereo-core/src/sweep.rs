@@ -21,9 +21,7 @@ use crate::imageio::RgbImage;
 use glam::DVec2;
 use rayon::prelude::*;
 
-/// A plane point counts as in front of a source camera when its homogeneous `z`
-/// exceeds this fraction of its length (the ray is not behind or exactly sideways).
-pub const IN_FRONT_EPS: f64 = 1e-9;
+pub use crate::camera::IN_FRONT_EPS;
 /// Channels per source view in a volume: R, G, B, A.
 pub const CHANNELS: usize = 4;
 

@@ -59,7 +59,7 @@ pub const RS_WINDOW_MARGIN: f64 = 2.0;
 /// Below this `|dF/dt|` (F the time residual) the Newton step is undefined: no projection.
 const RS_MIN_SLOPE: f64 = 1e-12;
 /// In front of the camera: `z > IN_FRONT_EPS * |p|` (as in the plane sweep).
-const IN_FRONT_EPS: f64 = crate::sweep::IN_FRONT_EPS;
+const IN_FRONT_EPS: f64 = super::IN_FRONT_EPS;
 
 /// A rolling shutter: the poses at the start (`t = 0`) and end (`t = 1`) of the motion
 /// and the time of every pixel (see the module docs).

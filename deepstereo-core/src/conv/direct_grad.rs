@@ -15,10 +15,9 @@
 //!   accumulator per group of blocks; groups are summed in a fixed order, so gradients do
 //!   not depend on the schedule.
 
-use super::direct::{self, flat_len, tap_offsets};
+use super::direct::{flat_len, tap_offsets};
 use super::im2col::Geom;
 use super::{plan, winograd};
-use crate::cpu::avx2_fma_available as available;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 
@@ -32,40 +31,15 @@ const BLOCK_PIXELS: usize = 1024;
 /// Accumulator groups per thread (load balance against the memory of accumulators).
 const GROUPS_PER_THREAD: usize = 4;
 
-/// Most taps for [`backward`]: wider layers (the `paper` preset's) ran their training
-/// step ~15% faster on the im2col + gemm backward (8 alternated runs of
-/// `examples/forward_probe.rs paper 1 32 step`), narrow ones (`tiny`'s) on this one.
-const MAX_K: usize = 255;
-
-/// Whether [`backward`] can run this layer: few taps, and the input gradient's
-/// convolution holds a tile (`plan.rs` chooses).
-pub(crate) fn applies(g: &Geom) -> bool {
-    available() && g.k() <= MAX_K && direct::applies(&transposed(g))
-}
-
 /// The input gradient alone, for layers whose weight gradient stays on the im2col path
-/// (more than [`MAX_K`] taps) and whose input gradient's convolution is a Winograd layer
+/// (more than [`plan::MAX_DIRECT_GRAD_K`] taps) and whose input gradient's convolution is a Winograd layer
 /// (`plan.rs`): Winograd's forward on the padded, masked output gradient with flipped
 /// weights, as in [`backward`].
 pub(crate) fn input_grad(g: &Geom, w: &[f32], y: &[f32], dy: &[f32], relu: bool) -> Vec<f32> {
     let mask = Mask { dy, y, relu };
-    let t = transposed(g);
+    let t = g.transposed();
     let (padded, _) = mask.laid_out(g, t.w, g.kh - 1, g.kw - 1);
     winograd::forward(&t, &padded, &flipped(g, w), &vec![0f32; g.cin], false)
-}
-
-/// The input gradient's convolution: `gy` padded to `[n, cout, h + kh - 1, w + kw - 1]`
-/// (1x1: not padded) -> `[n, cin, h, w]`.
-pub(super) fn transposed(g: &Geom) -> Geom {
-    Geom {
-        n: g.n,
-        cin: g.cout,
-        h: if g.direct() { g.h } else { g.h + g.kh - 1 },
-        w: if g.direct() { g.w } else { g.w + g.kw - 1 },
-        cout: g.cin,
-        kh: g.kh,
-        kw: g.kw,
-    }
 }
 
 /// Gradients of `act(conv(x, w) + b)` from `dy` (`y` is the forward output, read when
@@ -80,7 +54,7 @@ pub(crate) fn backward(
     need_dx: bool,
 ) -> (Option<Vec<f32>>, Vec<f32>, Vec<f32>) {
     let mask = Mask { dy, y, relu };
-    let t = transposed(g);
+    let t = g.transposed();
     let wt = flipped(g, w);
     let zero_bias = vec![0f32; g.cin];
     let (ph, pw) = if g.direct() {

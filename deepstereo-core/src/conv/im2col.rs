@@ -31,6 +31,28 @@ pub(crate) struct Geom {
 }
 
 impl Geom {
+    /// The input gradient's convolution: `gy` padded to `[n, cout, h + kh - 1, w + kw - 1]`
+    /// (1x1: not padded) -> `[n, cin, h, w]`.
+    pub(crate) fn transposed(&self) -> Geom {
+        Geom {
+            n: self.n,
+            cin: self.cout,
+            h: if self.direct() {
+                self.h
+            } else {
+                self.h + self.kh - 1
+            },
+            w: if self.direct() {
+                self.w
+            } else {
+                self.w + self.kw - 1
+            },
+            cout: self.cin,
+            kh: self.kh,
+            kw: self.kw,
+        }
+    }
+
     pub fn ho(&self) -> usize {
         self.h + 1 - self.kh
     }

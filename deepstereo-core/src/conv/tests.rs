@@ -359,7 +359,7 @@ fn direct_kernels_match_im2col_on_model_layers() {
                     let e = max_rel(&got, want.dx.as_ref().expect("dx"));
                     assert!(e < 1e-5, "{} dx (Winograd) {g:?} relu {relu}: {e}", l.name);
                 }
-                if direct_grad::applies(&g) {
+                if plan::direct_grad_applies(&g) {
                     let y = kernels::forward(&g, &x, &w, &b, relu);
                     let dy = rand(y.len());
                     let (dx, dw, db) = direct_grad::backward(&g, &x, &w, &y, &dy, relu, true);
@@ -392,7 +392,7 @@ fn direct_kernels_match_im2col_on_model_layers() {
 /// ReLU's mask is checked against candle above; its kinks would blur differences here).
 #[test]
 fn direct_path_finite_differences_f32() -> Result<()> {
-    use super::{direct, direct_cv, direct_grad, im2col::Geom};
+    use super::{direct, direct_cv, im2col::Geom, plan};
     for shape in [(2, 5, 9, 20, 7, 3, 3), (1, 16, 10, 12, 32, 5, 5)] {
         let (n, cin, h, w, cout, kh, kw) = shape;
         let g = Geom {
@@ -408,7 +408,7 @@ fn direct_path_finite_differences_f32() -> Result<()> {
             return Ok(()); // a CPU without AVX2 / FMA: the im2col path is tested above
         }
         assert!(
-            direct_grad::applies(&g) || direct_cv::applies(&g),
+            plan::direct_grad_applies(&g) || direct_cv::applies(&g),
             "{shape:?}"
         );
         let (conv, x) = conv(shape, DType::F32)?;

@@ -2,10 +2,10 @@
 //! per-plane colours) of a render at `1 / 2^level` resolution over the planes of the
 //! depth range, telling each block of the full render which planes its image needs.
 
+use crate::backend::Backend;
 use crate::camera::Camera;
 use crate::error::{Error, Result};
 use crate::inputs::{level_camera, tile_inputs, PyramidSource};
-use crate::render::Backend;
 
 /// The colour bound of [`needed_prefix`] stops only once the kept planes hold at least
 /// this share of the selection (the most probable planes are always kept).

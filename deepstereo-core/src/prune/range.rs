@@ -1,8 +1,8 @@
 //! The planes a target can need at all, from the scene's sparse points or per-view bounds.
 
 use crate::camera::Camera;
+use crate::camera::IN_FRONT_EPS;
 use crate::geometry::{apply_h, plane_homography};
-use crate::sweep::IN_FRONT_EPS;
 use glam::{DMat3, DVec2, DVec3};
 
 /// Fewest points a point set needs to be treated as a cloud (in-frustum filtering);

@@ -2,9 +2,10 @@
 
 use super::{Pruner, TilePlan};
 use crate::baseline::MIN_ALPHA;
+use crate::camera::IN_FRONT_EPS;
 use crate::geometry::apply_h;
 use crate::inputs::PyramidSource;
-use crate::sweep::{sample_bilinear, IN_FRONT_EPS};
+use crate::sweep::sample_bilinear;
 use glam::DVec2;
 use rayon::prelude::*;
 
