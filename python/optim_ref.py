@@ -1,4 +1,4 @@
-"""Adagrad and Adam exactly as `deepstereo-train/src/optim.rs` implements them, in torch.
+"""Adagrad and Adam exactly as `deepstereo-train/src/training/optim.rs` implements them, in torch.
 
 `torch.optim.Adam` computes the same update in a different order (it divides by
 `sqrt(bias_correction2)` after the square root and folds `1 / bias_correction1` into the

@@ -1,26 +1,20 @@
-//! DeepStereo training, evaluation and the `deepstereo` command line.
+//! DeepStereo training, tuning, rendering with a model, and the `deepstereo` command line,
+//! one role a folder (as in burn's examples: model, data, training and inference apart):
 //!
-//! Kept apart as in burn's examples: [`data`] (scenes and the online sampler),
-//! [`optim`] (Adagrad, Adam), [`training`] (the loop), [`cmd`] (the subcommands).
+//! - [`training`]: the training loop, its data (scenes and the online sampler),
+//!   optimisers, learning-rate schedules and scene weights. Uses `deepstereo-core`.
+//! - [`tuning`]: `tune`, its planning, and the scene prior's fit. Uses training's
+//!   optimisers and data, and rendering.
+//! - [`rendering`]: rendering with a model (source choice, render settings, the MPI
+//!   bake, camera paths, the embedded model). Uses `deepstereo-core` only.
+//! - [`cmd`]: the command line: one file a command, the flags they share (`cmd/args`),
+//!   and the helpers only commands use (`cmd/support`: camera JSON, the COLMAP runner,
+//!   videos, output directories, interruption). The roles above never import it.
 
 pub use deepstereo_core::alloc;
-pub mod camera_json;
 pub mod cmd;
-pub mod colmap_run;
-pub mod data;
-pub mod inference;
-pub mod interrupt;
-pub mod lr;
-pub mod models;
-pub mod mpi;
-pub mod optim;
-pub mod outdir;
-pub mod path;
-pub mod prior;
-pub mod scene_weights;
+pub mod rendering;
 #[cfg(test)]
 mod test_scene;
 pub mod training;
-pub mod tune;
-pub mod tune_plan;
-pub mod video;
+pub mod tuning;

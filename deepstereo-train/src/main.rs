@@ -6,7 +6,7 @@ use clap::Parser;
 fn main() {
     deepstereo_train::alloc::tune_allocator();
     let cli = deepstereo_train::cmd::Cli::parse();
-    if let Err(e) = deepstereo_train::interrupt::install() {
+    if let Err(e) = deepstereo_train::cmd::support::interrupt::install() {
         eprintln!("warning: no handler for Ctrl-C: {e}");
     }
     if let Err(e) = deepstereo_train::cmd::run(cli) {

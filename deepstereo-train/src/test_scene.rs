@@ -1,6 +1,6 @@
 //! A procedural scene on disk and a `tiny` model for the library's unit tests.
 
-use crate::inference::{RenderSettings, DEFAULT_PLAN_VIEWS};
+use crate::rendering::{RenderSettings, DEFAULT_PLAN_VIEWS};
 use anyhow::Result;
 use deepstereo_core::config::Config;
 use deepstereo_core::prune::PruneOptions;

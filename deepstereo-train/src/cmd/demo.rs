@@ -2,9 +2,9 @@
 //! view rendered with the embedded model, scored against both baselines.
 
 use super::args::ModelArgs;
-use crate::inference::{evaluate, EvalReport, Prepared, RenderSettings};
-use crate::path::{path_cameras, render_path, PathKind};
-use crate::video::write_video;
+use crate::cmd::support::video::write_video;
+use crate::rendering::path::{path_cameras, render_path, PathKind};
+use crate::rendering::{evaluate, EvalReport, Prepared, RenderSettings};
 use anyhow::{Context, Result};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::{LoadOptions, Scene};
@@ -148,7 +148,7 @@ fn write_path(
 ) -> Result<()> {
     let cams = path_cameras(scene, PathKind::Circle, a.path_frames)?;
     let frames_dir = a.out.join("path");
-    let staged = crate::outdir::StagedDir::new(&frames_dir)?;
+    let staged = crate::cmd::support::outdir::StagedDir::new(&frames_dir)?;
     let t1 = std::time::Instant::now();
     let frames = render_path(
         backend,

@@ -1,7 +1,7 @@
 //! `deepstereo eval`: held-out views against the photographs and the baselines.
 
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
-use crate::inference::{evaluate, mean_over, EvalReport, Mean};
+use crate::rendering::{evaluate, mean_over, EvalReport, Mean};
 use deepstereo_core::imageio::write_atomic;
 use std::path::PathBuf;
 
@@ -35,7 +35,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let backend = a.model.backend()?;
     // Images go to a staged directory, moved into place only when everything succeeded.
     let staged = match &a.images {
-        Some(d) => Some(crate::outdir::StagedDir::new(d)?),
+        Some(d) => Some(crate::cmd::support::outdir::StagedDir::new(d)?),
         None => None,
     };
     let mut reports = Vec::new();

@@ -1,6 +1,6 @@
 //! `deepstereo export`: the network as an ONNX file (weights as initializers).
 
-use crate::models::{load_model, model_name};
+use crate::rendering::models::{load_model, model_name};
 use anyhow::Context;
 use deepstereo_core::imageio::write_atomic;
 use deepstereo_export::{DEFAULT_OPSET, MAX_OPSET, MIN_OPSET};

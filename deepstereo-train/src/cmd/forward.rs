@@ -1,7 +1,7 @@
 //! `deepstereo forward`: the network on tensors from a file (for parity checks).
 
-use crate::inference::BackendKind;
-use crate::models::load_model;
+use crate::rendering::models::load_model;
+use crate::rendering::BackendKind;
 use anyhow::{bail, Context};
 use candle_core::{Device, Tensor};
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};

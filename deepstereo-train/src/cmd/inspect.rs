@@ -2,7 +2,7 @@
 //! and every view's size, intrinsics, centre and world-to-camera `R` (row-major), `t`.
 
 use super::args::SceneArgs;
-use crate::camera_json::scene_json;
+use crate::cmd::support::camera_json::scene_json;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {

@@ -14,6 +14,7 @@ pub mod poses;
 pub mod render;
 pub mod report;
 pub mod samples;
+pub mod support;
 pub mod sweep;
 pub mod synth;
 pub mod train;

@@ -2,12 +2,12 @@
 //! with `--eval`, held-out views seen through MPIs beside the network's own renders.
 
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
-use crate::inference::{pick_planned_sources, PlaneSpan, Prepared, RenderSettings};
-use crate::mpi::{
+use crate::cmd::support::outdir::StagedDir;
+use crate::rendering::mpi::{
     bake_camera, bake_settings, bake_view, eval_through_mpi, BakeOptions, MpiEvalOptions, OwnPhoto,
     BAKE_AGREE, BAKE_SMOOTH,
 };
-use crate::outdir::StagedDir;
+use crate::rendering::{pick_planned_sources, PlaneSpan, Prepared, RenderSettings};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::imageio::write_atomic;
@@ -229,7 +229,7 @@ fn bake_targets(
             })
             .collect::<Result<_>>()?,
         (None, None, Some(p)) => {
-            let cam = crate::camera_json::read_pose(p, a.view)?;
+            let cam = crate::cmd::support::camera_json::read_pose(p, a.view)?;
             return Ok(vec![(cam, None)]);
         }
         _ => bail!("pass one of --target I, --targets I,J,K or --pose FILE (or --eval)"),
@@ -288,7 +288,7 @@ fn run_eval(
             r.mpi_render_seconds
         );
     })?;
-    let m = |f: fn(&crate::mpi::MpiViewResult) -> f64| {
+    let m = |f: fn(&crate::rendering::mpi::MpiViewResult) -> f64| {
         per_view.iter().map(f).sum::<f64>() / per_view.len() as f64
     };
     let mean = serde_json::json!({

@@ -19,7 +19,7 @@
 
 mod masks;
 
-use crate::colmap_run::{log_tail, model_dirs, registered_names, Colmap, Matcher};
+use crate::cmd::support::colmap_run::{log_tail, model_dirs, registered_names, Colmap, Matcher};
 use anyhow::{bail, Context};
 use deepstereo_core::scene::{image_size, LoadOptions, Scene};
 use indicatif::{ProgressBar, ProgressStyle};

@@ -1,9 +1,9 @@
 //! `deepstereo render`: new views of a scene, tile by tile.
 
 use super::args::{ModelArgs, SceneArgs};
-use crate::inference::{pick_planned_sources, render_camera, Prepared, RenderSettings};
-use crate::outdir::StagedDir;
-use crate::path::{render_path, resolved_path, PathKind};
+use crate::cmd::support::outdir::StagedDir;
+use crate::rendering::path::{render_path, resolved_path, PathKind};
+use crate::rendering::{pick_planned_sources, render_camera, Prepared, RenderSettings};
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::imageio::RgbImage;
@@ -56,7 +56,7 @@ pub struct Args {
     #[arg(long, requires = "path")]
     pub video: Option<PathBuf>,
     /// Frames per second of --video.
-    #[arg(long, default_value_t = crate::video::DEFAULT_FPS, requires = "video")]
+    #[arg(long, default_value_t = crate::cmd::support::video::DEFAULT_FPS, requires = "video")]
     pub fps: f64,
     /// Output directory: image.png (and image.npy, [H, W, 3] f32), depth.png (colour-mapped), depth.npy (raw, [H, W] f32),
     /// confidence.png, coverage.png; with --path, frame_XXXX.png.
@@ -67,7 +67,7 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     let settings = a.model.settings()?;
     if let Some(v) = &a.video {
-        crate::video::check(v, a.fps)?;
+        crate::cmd::support::video::check(v, a.fps)?;
     }
     if a.path.is_some() && a.frames == 0 {
         bail!("--frames must be at least 1");
@@ -107,7 +107,7 @@ pub fn run(a: Args) -> Result<()> {
             )
         }
         (None, Some(p)) => {
-            let cam = crate::camera_json::read_pose(p, a.view)?;
+            let cam = crate::cmd::support::camera_json::read_pose(p, a.view)?;
             (
                 cam,
                 pick_planned_sources(&scene, &cam, &[], (v, cfg), &settings),
@@ -175,14 +175,14 @@ fn path_cameras_of(spec: &str, scene: &Scene, frames: usize) -> Result<Vec<Camer
             PathKind::NAMES
         );
     }
-    let cams = crate::camera_json::read_cameras(file)?;
+    let cams = crate::cmd::support::camera_json::read_cameras(file)?;
     eprintln!("path: the {} cameras of {}", cams.len(), file.display());
     Ok(cams)
 }
 
-/// Writes `cameras.json` (the path's cameras, [`crate::camera_json::path_json`]) into `dir`.
+/// Writes `cameras.json` (the path's cameras, [`crate::cmd::support::camera_json::path_json`]) into `dir`.
 fn write_cameras(dir: &Path, cams: &[Camera], scene: &Scene) -> Result<()> {
-    let json = crate::camera_json::path_json(cams, scene);
+    let json = crate::cmd::support::camera_json::path_json(cams, scene);
     let text = serde_json::to_string_pretty(&json)?;
     deepstereo_core::imageio::write_atomic(&dir.join("cameras.json"), text.as_bytes())?;
     Ok(())
@@ -211,7 +211,7 @@ fn write_path(
         staged.path(),
     )?;
     let video = match &a.video {
-        Some(p) => Some(crate::video::write_video(&frames, p, a.fps)?),
+        Some(p) => Some(crate::cmd::support::video::write_video(&frames, p, a.fps)?),
         None => None,
     };
     staged.commit()?;
@@ -233,7 +233,7 @@ fn write_path(
 
 /// `--mpi DIR`: the cameras of --path, --pose or --target rendered from MPIs on the CPU.
 fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
-    let mpis = crate::mpi::read_mpis(dir)?;
+    let mpis = crate::rendering::mpi::read_mpis(dir)?;
     let cams = match (&a.path, a.target, &a.pose) {
         (Some(spec), _, _) => path_cameras_of(spec, scene, a.frames)?,
         (None, Some(t), None) if t < scene.views.len() => vec![scene.views[t].camera],
@@ -241,7 +241,7 @@ fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
             "--target {t} is out of range: the scene has {} views",
             scene.views.len()
         ),
-        (None, None, Some(p)) => vec![crate::camera_json::read_pose(p, a.view)?],
+        (None, None, Some(p)) => vec![crate::cmd::support::camera_json::read_pose(p, a.view)?],
         _ => bail!("with --mpi pass one of --path KIND, --target I or --pose FILE"),
     };
     let staged = StagedDir::new(&a.out)?;
@@ -264,7 +264,7 @@ fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
         secs / frames.len() as f64
     );
     let video = match &a.video {
-        Some(p) => Some(crate::video::write_video(&frames, p, a.fps)?),
+        Some(p) => Some(crate::cmd::support::video::write_video(&frames, p, a.fps)?),
         None => None,
     };
     staged.commit()?;

@@ -3,8 +3,8 @@
 mod html;
 
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
-use crate::inference::{evaluate, make_backend, BackendKind, RenderSettings};
-use crate::outdir::StagedDir;
+use crate::cmd::support::outdir::StagedDir;
+use crate::rendering::{evaluate, make_backend, BackendKind, RenderSettings};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::imageio::write_atomic;
 use deepstereo_core::imageio::RgbImage;

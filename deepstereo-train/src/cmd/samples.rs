@@ -9,8 +9,8 @@
 //! and writes the rest.
 
 use super::args::{load_config, size_of, SamplingArgs};
-use crate::data::{make_batch, Batch, Sampling};
-use crate::scene_weights::SceneWeights;
+use crate::training::data::{make_batch, Batch, Sampling};
+use crate::training::scene_weights::SceneWeights;
 use crate::training::{check_data, training_scenes};
 use anyhow::{bail, Context};
 use deepstereo_core::config::Config;

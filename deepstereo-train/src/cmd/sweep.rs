@@ -48,7 +48,7 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let model = match &args.model {
-        Some(p) => Some(crate::models::load_model(Some(p))?),
+        Some(p) => Some(crate::rendering::models::load_model(Some(p))?),
         None => None,
     };
     let cfg = model.as_ref().map(|t| t.model.config().clone());
@@ -119,7 +119,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     // The PNGs go to a staged directory first, so that a failure leaves neither output.
     let staged = match &args.png {
-        Some(dir) => Some(crate::outdir::StagedDir::new(dir)?),
+        Some(dir) => Some(crate::cmd::support::outdir::StagedDir::new(dir)?),
         None => None,
     };
     if let Some(st) = &staged {

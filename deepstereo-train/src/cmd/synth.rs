@@ -100,7 +100,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     opts.validate()?;
     let bar = indicatif::ProgressBar::new(args.scenes as u64);
     let t0 = std::time::Instant::now();
-    let staged = crate::outdir::StagedDir::new(&args.out)?;
+    let staged = crate::cmd::support::outdir::StagedDir::new(&args.out)?;
     write_scenes_progress(staged.path(), args.scenes, args.seed, &opts, &|_| {
         bar.inc(1)
     })

@@ -1,9 +1,9 @@
 //! `deepstereo train`: train a model on procedural and/or real scenes.
 
 use super::args::{load_config, size_of, SamplingArgs};
-use crate::data::MpiPairs;
-use crate::lr::{LrSchedule, DEFAULT_LR_FINAL};
-use crate::optim::OptimizerKind;
+use crate::training::data::MpiPairs;
+use crate::training::lr::{LrSchedule, DEFAULT_LR_FINAL};
+use crate::training::optim::OptimizerKind;
 use crate::training::{train, Loss, RunOptions, Schedule};
 use anyhow::bail;
 use std::path::PathBuf;
@@ -160,7 +160,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         progress: !a.no_progress && std::io::IsTerminal::is_terminal(&std::io::stderr()),
     };
     // The first Ctrl-C sets the flag (a checkpoint is written); a second one aborts.
-    let stop = crate::interrupt::graceful();
+    let stop = crate::cmd::support::interrupt::graceful();
     let lines = train(&run, &sched, &a.out, a.resume, stop)?;
     if let Some(last) = lines.last() {
         let num = |v: Option<f64>, digits: usize| {

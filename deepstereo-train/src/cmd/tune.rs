@@ -3,11 +3,13 @@
 //! with `--model`.
 
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
-use crate::data::SceneData;
-use crate::inference::{evaluate, RenderSettings};
-use crate::prior::{fit_scene, PriorBudget, PriorNeed, PriorOptions, PriorProgress, SceneFit};
-use crate::tune::{tune, validation_views, Budget, Progress, TuneOptions, TuneResult};
-use crate::tune_plan;
+use crate::rendering::{evaluate, RenderSettings};
+use crate::training::data::SceneData;
+use crate::tuning::plan;
+use crate::tuning::prior::{
+    fit_scene, PriorBudget, PriorNeed, PriorOptions, PriorProgress, SceneFit,
+};
+use crate::tuning::{tune, validation_views, Budget, Progress, TuneOptions, TuneResult};
 use anyhow::{bail, Context, Result};
 use candle_core::Tensor;
 use deepstereo_core::config::Config;
@@ -130,7 +132,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     check_split(&a)?;
     check_out(&a.out)?;
-    let start = crate::models::load_model(a.model.model.as_deref())?;
+    let start = crate::rendering::models::load_model(a.model.model.as_deref())?;
     let cfg = start.model.config().clone();
     if cfg.pool.is_none() {
         bail!(
@@ -163,7 +165,7 @@ pub fn run(a: Args) -> Result<()> {
         val_batches: a.val_batches,
         snapshots: curve_minutes.iter().map(|m| m * 60.0).collect(),
     };
-    crate::tune::check(&opts, &data)?;
+    crate::tuning::check(&opts, &data)?;
     if let Some(dir) = &a.curve {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("--curve {}: cannot create the directory", dir.display()))?;
@@ -177,7 +179,7 @@ pub fn run(a: Args) -> Result<()> {
         opts.views,
         plan.describe()
     );
-    let stop = crate::interrupt::graceful();
+    let stop = crate::cmd::support::interrupt::graceful();
     let bar = progress_bar(!a.no_progress);
     let original = copy_weights(&start)?;
     let network = match plan.network {
@@ -367,7 +369,7 @@ struct Plan {
     need: Option<PriorNeed>,
     /// Seconds kept for choosing the render planes after the prior.
     reserve: f64,
-    /// The share of each view's tiles the prior reads ([`tune_plan::view_share`]).
+    /// The share of each view's tiles the prior reads ([`plan::view_share`]).
     view_share: f64,
     /// When tuning began.
     clock: Instant,
@@ -412,7 +414,7 @@ fn check_split(a: &Args) -> Result<()> {
 }
 
 /// Splits the budget: `--network-share` as given, or (with a time budget) what the
-/// prior will not need, measured on the scene ([`crate::tune_plan`]).
+/// prior will not need, measured on the scene ([`crate::tuning::plan`]).
 fn plan(
     a: &Args,
     budget: Budget,
@@ -441,8 +443,8 @@ fn plan(
     };
     let reserve = match (need, a.render_planes) {
         (Some(n), None) => {
-            let targets = tune_plan::choice_targets(&tuning_targets(scene, validation), validation);
-            tune_plan::choice_reserve(&n, targets.len(), seconds_of(budget))
+            let targets = plan::choice_targets(&tuning_targets(scene, validation), validation);
+            plan::choice_reserve(&n, targets.len(), seconds_of(budget))
         }
         _ => 0.0,
     };
@@ -451,11 +453,11 @@ fn plan(
         (Some(f), _, _) => (f, 1.0),
         (None, Budget::Seconds(b), Some(n)) => {
             let left = b - clock.elapsed().as_secs_f64();
-            let t = tune_plan::network_seconds(left, n.seconds(), reserve);
+            let t = plan::network_seconds(left, n.seconds(), reserve);
             if t > 0.0 {
                 (t / b, 1.0)
             } else {
-                (0.0, tune_plan::view_share(&n, left - reserve))
+                (0.0, plan::view_share(&n, left - reserve))
             }
         }
         _ => (0.0, 1.0),
@@ -503,15 +505,15 @@ fn pick_planes(
     grid: &PriorGrid,
     (scene, validation, settings): (&Scene, &[usize], &RenderSettings),
     seconds: f64,
-) -> Result<tune_plan::PlanesChoice> {
+) -> Result<plan::PlanesChoice> {
     let before = backend_with(cfg, original, start.model.prior().cloned())?;
     let tuned = CandleBackend {
         model: start.model.clone().with_prior(Some(grid.clone())),
         device: candle_core::Device::Cpu,
     };
-    let choices = tune_plan::plane_choices(cfg.planes);
-    let targets = tune_plan::choice_targets(&tuning_targets(scene, validation), validation);
-    let c = tune_plan::choose_render_planes(
+    let choices = plan::plane_choices(cfg.planes);
+    let targets = plan::choice_targets(&tuning_targets(scene, validation), validation);
+    let c = plan::choose_render_planes(
         (&before, &tuned),
         scene,
         (&targets, validation),
@@ -538,7 +540,7 @@ fn pick_planes(
 
 /// Detached copies of a model's weights (in `named_vars` order).
 fn copy_weights(t: &deepstereo_core::weights::Trainable) -> Result<Vec<Tensor>> {
-    crate::tune::copy(&named_vars(&t.varmap))
+    crate::tuning::copy(&named_vars(&t.varmap))
 }
 
 fn steps_of(b: Budget) -> u64 {

@@ -1,10 +1,10 @@
 //! The library's enums as command-line choices: the names flags take and the help
 //! `--help` prints for each. The library types carry no clap derive; this maps to them.
 
-use crate::colmap_run::Matcher;
-use crate::inference::PlaneSpan;
-use crate::models::BackendKind;
-use crate::optim::OptimizerKind;
+use crate::cmd::support::colmap_run::Matcher;
+use crate::rendering::models::BackendKind;
+use crate::rendering::PlaneSpan;
+use crate::training::optim::OptimizerKind;
 use crate::training::Loss;
 use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
 

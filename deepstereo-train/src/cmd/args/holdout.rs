@@ -1,7 +1,7 @@
 //! `--holdout` / `--llffhold`: the views a command holds out. A held-out view is never a
 //! source (and, for `tune`, never a target, its image never read).
 
-use crate::inference::holdout_list;
+use crate::rendering::holdout_list;
 use anyhow::{bail, Result};
 use clap::Args;
 

@@ -1,6 +1,6 @@
 //! Options shared by the commands that run a model: `render`, `eval`, `report`, `demo`.
 
-use crate::inference::{BackendKind, PlaneSpan, RenderSettings, DEFAULT_PLAN_VIEWS};
+use crate::rendering::{BackendKind, PlaneSpan, RenderSettings, DEFAULT_PLAN_VIEWS};
 use anyhow::{bail, Result};
 use deepstereo_core::prune::{
     CoarsePass, PruneMode, PruneOptions, DEFAULT_ERROR, DEFAULT_GUIDE_LEVEL, DEFAULT_KEEP,
@@ -129,10 +129,10 @@ impl ModelArgs {
     }
 
     pub fn backend(&self) -> Result<Box<dyn Backend>> {
-        crate::models::make_backend(self.backend, self.model.as_deref())
+        crate::rendering::models::make_backend(self.backend, self.model.as_deref())
     }
 
     pub fn name(&self) -> String {
-        crate::models::model_name(self.model.as_deref())
+        crate::rendering::models::model_name(self.model.as_deref())
     }
 }

@@ -2,7 +2,7 @@
 //! `samples` is batch `b` of `train` with the same ones).
 
 use super::parse_range_of;
-use crate::scene_weights::SceneWeights;
+use crate::training::scene_weights::SceneWeights;
 use anyhow::Result;
 
 #[derive(Debug, Clone, clap::Args)]

@@ -1,3 +1,7 @@
+//! Training (role): the loop below, its data ([`data`]: scenes and the online sampler),
+//! optimisers ([`optim`]), learning-rate schedules ([`lr`]) and scene weights
+//! ([`scene_weights`]). Uses `deepstereo-core`; never the command line.
+//!
 //! The training loop: L1 loss (or L2, `--loss l2`), Adagrad or Adam, a JSONL log,
 //! validation PSNR, atomic checkpoints (periodic and on Ctrl-C), exact resume, and a guard
 //! against non-finite losses and gradients.
@@ -5,13 +9,18 @@
 //! Files in the run directory: `model.safetensors` (weights + config, what `render` loads),
 //! `checkpoint.safetensors` (weights, optimizer state, step, run options), `log.jsonl`.
 
-use crate::data::{
+pub mod data;
+pub mod lr;
+pub mod optim;
+pub mod scene_weights;
+
+use crate::training::data::{
     make_batch, spawn_loader, synth_scenes, Batch, MpiPairs, PairBatch, Sampling, SceneData,
     VALIDATION_SALT,
 };
-use crate::lr::LrSchedule;
-use crate::optim::{Optimizer, OptimizerKind};
-use crate::scene_weights::SceneWeights;
+use crate::training::lr::LrSchedule;
+use crate::training::optim::{Optimizer, OptimizerKind};
+use crate::training::scene_weights::SceneWeights;
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use deepstereo_core::config::Config;

@@ -11,7 +11,7 @@ use std::path::Path;
 /// The default model: `nviews-real`, the any-number-of-views family trained on real
 /// captures and procedural scenes (the README's model card lists them). `tiny`, the
 /// paper-family default before it, is `assets/tiny.safetensors`.
-pub static EMBEDDED_MODEL: &[u8] = include_bytes!("../assets/nviews-real.safetensors");
+pub static EMBEDDED_MODEL: &[u8] = include_bytes!("../../assets/nviews-real.safetensors");
 /// The name of the embedded model: accepted by `--model` and written in reports.
 pub const EMBEDDED_NAME: &str = "embedded";
 

@@ -22,8 +22,8 @@
 //!   rendered as a held-out view) stays within the starting model's at its own default;
 //!   the fewest when none does.
 
-use crate::inference::{render_held_out, Prepared, RenderSettings};
-use crate::prior::PriorNeed;
+use crate::rendering::{render_held_out, Prepared, RenderSettings};
+use crate::tuning::prior::PriorNeed;
 use anyhow::Result;
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;

@@ -4,7 +4,7 @@
 //! - A command that can stop cleanly (`train`, `tune`) asks for [`graceful`]: the first
 //!   signal sets its flag, and it saves what it has and exits by itself.
 //! - Otherwise, and at a second signal, the handler removes every staging directory and
-//!   temporary file the process is writing ([`crate::outdir::remove_pending`]) and exits
+//!   temporary file the process is writing ([`crate::cmd::support::outdir::remove_pending`]) and exits
 //!   with status 130, leaving the outputs as they were before the run.
 
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -28,7 +28,7 @@ fn on_signal() {
             return;
         }
     }
-    crate::outdir::remove_pending();
+    crate::cmd::support::outdir::remove_pending();
     eprintln!("\ninterrupted: partial outputs removed");
     std::process::exit(EXIT_INTERRUPTED);
 }

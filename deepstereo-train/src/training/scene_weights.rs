@@ -137,7 +137,7 @@ mod tests {
         let mut counts = [0usize; 4];
         let n = 200_000u64;
         for k in 0..n {
-            counts[SceneWeights::draw(&weights, crate::data::mix(k))] += 1;
+            counts[SceneWeights::draw(&weights, crate::training::data::mix(k))] += 1;
         }
         for (c, w) in counts.iter().zip(weights) {
             let expected = n as f64 * w / 5.0;

@@ -126,7 +126,7 @@ fn finish(tmp: &Path, out: &Path, result: Result<()>) -> Result<()> {
 fn write_mp4(prog: &str, frames: &[RgbImage], out: &Path, fps: f64) -> Result<()> {
     let (w, h) = (frames[0].width, frames[0].height);
     let tmp = temp_beside(out);
-    let _pending = crate::outdir::Pending::new(&tmp);
+    let _pending = crate::cmd::support::outdir::Pending::new(&tmp);
     let result = (|| -> Result<()> {
         let mut child = Command::new(prog)
             .args([
@@ -180,7 +180,7 @@ fn write_gif(frames: &[RgbImage], out: &Path, fps: f64) -> Result<()> {
     use image::codecs::gif::{GifEncoder, Repeat};
     use image::{Delay, Frame, RgbaImage};
     let tmp = temp_beside(out);
-    let _pending = crate::outdir::Pending::new(&tmp);
+    let _pending = crate::cmd::support::outdir::Pending::new(&tmp);
     let result = (|| -> Result<()> {
         let file = std::fs::File::create(&tmp)
             .with_context(|| format!("cannot create {}", tmp.display()))?;

@@ -1,5 +1,13 @@
+//! Rendering with a model (role): the settings and source choice below, the embedded
+//! model and model loading ([`models`]), the MPI bake ([`mpi`]) and camera paths
+//! ([`path`]). Uses `deepstereo-core` only; never the command line.
+//!
 //! Rendering scene views with a model (candle or onnxruntime) and evaluating them against
 //! the withheld photographs and the classical baselines.
+
+pub mod models;
+pub mod mpi;
+pub mod path;
 
 use anyhow::{bail, Context, Result};
 use deepstereo_core::baseline::plane_sweep;
@@ -19,7 +27,7 @@ use deepstereo_core::sweep::Source;
 use serde::Serialize;
 use std::time::Instant;
 
-pub use crate::models::{
+pub use crate::rendering::models::{
     candle_backend, make_backend, model_name, BackendKind, EMBEDDED_MODEL, EMBEDDED_NAME,
 };
 

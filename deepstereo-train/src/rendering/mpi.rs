@@ -2,7 +2,7 @@
 //! (`deepstereo_core::mpi` holds the format and the rendering), and held-out views seen
 //! through them, beside the network's own renders of those views.
 
-use crate::inference::{
+use crate::rendering::{
     network_inputs, pick_planned_sources, plan_pruning, render_held_out, source_inputs,
     spanned_planes, PlaneSpan, Prepared, RenderSettings,
 };

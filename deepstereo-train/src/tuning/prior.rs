@@ -5,8 +5,8 @@
 //! do not move, so the fit runs on stored layers, thousands of rays per step, without the
 //! network in the loop.
 
-use crate::inference::{pick_sources, source_inputs, Prepared, RenderSettings};
-use crate::optim::{ADAM_BETAS, ADAM_EPS};
+use crate::rendering::{pick_sources, source_inputs, Prepared, RenderSettings};
+use crate::training::optim::{ADAM_BETAS, ADAM_EPS};
 use anyhow::{bail, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::mpi::{layers, layers_of_tiles, reference_camera, TileGrid};

@@ -7,7 +7,7 @@
 //! [`Config`]. Sample `k` of batch `b` depends only on `(seed, b, k)`, so batches are
 //! identical whatever the number of threads and after a resume.
 
-use crate::scene_weights::SceneWeights;
+use crate::training::scene_weights::SceneWeights;
 use anyhow::{bail, Context};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::config::Config;

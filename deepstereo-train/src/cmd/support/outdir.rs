@@ -5,7 +5,7 @@
 //!
 //! Interrupted runs: every staging directory (and every temporary file registered with
 //! [`Pending`]) is listed while it exists, and [`remove_pending`] (called by the SIGINT
-//! and SIGTERM handler, [`crate::interrupt`]) removes them before the process exits. A
+//! and SIGTERM handler, [`crate::cmd::support::interrupt`]) removes them before the process exits. A
 //! SIGKILL cannot be caught: it leaves `.<name>.partial-<pid>/` beside the output, and the
 //! next run into the same output removes those whose process no longer exists.
 

@@ -1,3 +1,6 @@
+//! Tuning (role): [`tune`](self) below, its planning ([`plan`]) and the scene prior's fit
+//! ([`prior`]). Uses training's optimisers and data, and rendering; never the command line.
+//!
 //! Per-scene fine-tuning: the paper's leave-one-out training applied to the user's own
 //! capture. A model (the embedded default or any other) keeps training on tiles of the
 //! scene's views, each rendered from its nearest other views, and the weights that score
@@ -11,8 +14,13 @@
 //! (`p = step / steps`, or elapsed / budget time with a time budget):
 //! `lr(p) = lr * (f + (1 - f) * (1 + cos(pi * p)) / 2)`.
 
-use crate::data::{make_batch, spawn_loader, Batch, Sampling, SceneData, VALIDATION_SALT};
-use crate::optim::{Optimizer, OptimizerKind};
+pub mod plan;
+pub mod prior;
+
+use crate::training::data::{
+    make_batch, spawn_loader, Batch, Sampling, SceneData, VALIDATION_SALT,
+};
+use crate::training::optim::{Optimizer, OptimizerKind};
 use crate::training::{batch_tensors, validate, Loss};
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor, Var};

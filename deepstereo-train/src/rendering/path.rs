@@ -9,7 +9,7 @@
 //! - `auto`: spiral for a forward-facing capture, orbit for one around an object
 //!   ([`capture_kind`]).
 
-use crate::inference::{pick_planned_sources, render_camera, Prepared, RenderSettings};
+use crate::rendering::{pick_planned_sources, render_camera, Prepared, RenderSettings};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::{Camera, Intrinsics, WorldToCamera};
 use deepstereo_core::imageio::RgbImage;
