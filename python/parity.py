@@ -534,7 +534,7 @@ def main() -> int:
     try:
         models: list[Model] = []
         # The embedded model, and `deepstereo export` without --model exports exactly it.
-        asset = ROOT / "deepstereo-train" / "assets" / "nviews-real.safetensors"
+        asset = ROOT / "deepstereo-train" / "assets" / "nviews-disagree-scratch.safetensors"
         if asset.is_file():
             m = p.load_model("embedded", asset)
             run([binary, "export", "--out", work / "default.onnx"], "export of the embedded model")

@@ -429,10 +429,10 @@ fn tiled_render(cfg: &Config) -> Result<()> {
     Ok(())
 }
 
-/// The shipped default model (`deepstereo-train/assets/nviews-real.safetensors`).
+/// The shipped default model (`deepstereo-train/assets/nviews-disagree-scratch.safetensors`).
 fn shipped() -> Result<deepstereo_core::weights::Trainable> {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../deepstereo-train/assets/nviews-real.safetensors");
+        .join("../deepstereo-train/assets/nviews-disagree-scratch.safetensors");
     Ok(deepstereo_core::weights::load(&path, &Device::Cpu)?)
 }
 

@@ -34,9 +34,9 @@ use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use deepstereo_core::weights::{init_seeded, named_vars, save, tensor_f32};
 use deepstereo_export::export::{export_trainable, input_name, DEFAULT_OPSET};
 use deepstereo_export::OrtBackend;
-use deepstereo_train::data::{make_batch, synth_scenes, Sampling};
-use deepstereo_train::optim::{Optimizer, OptimizerKind};
 use deepstereo_train::training::batch_tensors;
+use deepstereo_train::training::data::{make_batch, synth_scenes, Sampling};
+use deepstereo_train::training::optim::{Optimizer, OptimizerKind};
 use std::path::Path;
 use std::time::Instant;
 

@@ -8,9 +8,9 @@ use deepstereo_core::config::Config;
 use deepstereo_core::model::l1_loss;
 use deepstereo_core::synth::SynthOptions;
 use deepstereo_core::weights::{init_seeded, named_vars};
-use deepstereo_train::data::{make_batch, synth_scenes, Sampling};
-use deepstereo_train::optim::{Optimizer, OptimizerKind};
 use deepstereo_train::training::batch_tensors;
+use deepstereo_train::training::data::{make_batch, synth_scenes, Sampling};
+use deepstereo_train::training::optim::{Optimizer, OptimizerKind};
 use std::time::Instant;
 
 fn median(mut v: Vec<f64>) -> f64 {

@@ -13,7 +13,7 @@ use candle_core::{Device, Tensor};
 use deepstereo_core::model::l1_loss;
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use deepstereo_core::weights::{self, named_vars, tensor_f32};
-use deepstereo_train::optim::{Optimizer, OptimizerKind};
+use deepstereo_train::training::optim::{Optimizer, OptimizerKind};
 use std::path::PathBuf;
 
 fn read(st: &safetensors::SafeTensors<'_>, name: &str) -> Result<Tensor> {

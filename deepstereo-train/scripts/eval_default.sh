@@ -8,7 +8,7 @@
 # Usage: bash deepstereo-train/scripts/eval_default.sh [MODEL] [OUT] [VIEWS...]
 set -euo pipefail
 cd "$(dirname "$0")/../.."
-MODEL="${1:-deepstereo-train/assets/nviews-real.safetensors}"
+MODEL="${1:-deepstereo-train/assets/nviews-disagree-scratch.safetensors}"
 OUT="${2:-/tmp/deepstereo-eval}"
 shift $(( $# > 2 ? 2 : $# ))
 if [ $# -gt 0 ]; then VIEWS=("$@"); else VIEWS=(4 8); fi

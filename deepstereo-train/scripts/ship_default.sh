@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Makes the embedded default model (deepstereo-train/assets/nviews-real.safetensors) from
+# Makes the embedded default model (deepstereo-train/assets/nviews-disagree-scratch.safetensors) from
 # a trained run's weights: the same tensors, bit for bit, with the config's default number
 # of source views set to VIEWS (the any-number-of-views family takes any number; this is
 # only what commands use without --views) and, when the config has none, the view falloff
@@ -19,7 +19,7 @@ cd "$(dirname "$0")/../.."
 MODEL="${1:-deepstereo-train/runs/nviews-disagree-scratch/model.safetensors}"
 VIEWS="${2:-4}"
 FALLOFF="${3:-4:8}"
-OUT="${4:-deepstereo-train/assets/nviews-real.safetensors}"
+OUT="${4:-deepstereo-train/assets/nviews-disagree-scratch.safetensors}"
 .venv/bin/python - "$MODEL" "$VIEWS" "$OUT" "$FALLOFF" <<'PY'
 import json, os, sys
 from safetensors import safe_open

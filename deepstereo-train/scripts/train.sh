@@ -13,7 +13,7 @@
 # DRY_RUN=1 prints the command instead of building and running it, and writes nothing.
 #
 # `disagree-scratch` made the shipped model (runs/nviews-disagree-scratch, from scratch;
-# ship_default.sh turns it into deepstereo-train/assets/nviews-real.safetensors). The
+# ship_default.sh turns it into deepstereo-train/assets/nviews-disagree-scratch.safetensors). The
 # defaults before it: `weigh-scratch` (runs/nviews-weigh-scratch), and before that
 # `default` (runs/nviews-real) then `prox` (runs/nviews-prox). The others are
 # experiments; the ones of commit fda1758 and before started from (or, `scratch`, were

@@ -1,4 +1,4 @@
-//! Numerical stability of the optimizers (`deepstereo_train::optim`; issue 7, with the
+//! Numerical stability of the optimizers (`deepstereo_train::training::optim`; issue 7, with the
 //! geometry and network cases in deepstereo-core's `tests/stability.rs`): huge learning
 //! rates, zero gradients on zero accumulators, and exploding gradients, which `grad_norm`
 //! must flag as non-finite so that the trainer's guard (tested in `tests/guard.rs`) skips
@@ -15,7 +15,7 @@ use anyhow::Result;
 use candle_core::{DType, Device, Tensor, Var};
 use deepstereo_core::model::l1_loss;
 use deepstereo_core::weights::{init, named_vars};
-use deepstereo_train::optim::{Optimizer, OptimizerKind, ADAGRAD_EPS, ADAM_EPS};
+use deepstereo_train::training::optim::{Optimizer, OptimizerKind, ADAGRAD_EPS, ADAM_EPS};
 use fixtures::{inputs, small};
 use table::{row, row_text};
 

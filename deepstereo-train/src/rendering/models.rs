@@ -8,10 +8,12 @@ use deepstereo_core::render::{Backend, CandleBackend};
 use deepstereo_core::weights::{self, Trainable};
 use std::path::Path;
 
-/// The default model: `nviews-real`, the any-number-of-views family trained on real
-/// captures and procedural scenes (the README's model card lists them). `tiny`, the
+/// The default model: the weights of the run `runs/nviews-disagree-scratch` (preset
+/// `nviews-disagree`, the any-number-of-views family), trained on real captures and
+/// procedural scenes (the README's model card lists them), named after that run. `tiny`, the
 /// paper-family default before it, is `assets/tiny.safetensors`.
-pub static EMBEDDED_MODEL: &[u8] = include_bytes!("../../assets/nviews-real.safetensors");
+pub static EMBEDDED_MODEL: &[u8] =
+    include_bytes!("../../assets/nviews-disagree-scratch.safetensors");
 /// The name of the embedded model: accepted by `--model` and written in reports.
 pub const EMBEDDED_NAME: &str = "embedded";
 

@@ -12,7 +12,8 @@ use std::path::PathBuf;
 #[derive(Debug, Clone, clap::Args)]
 pub struct ModelArgs {
     /// Model weights (safetensors with its config), or `embedded` (the default: the
-    /// embedded default model, `nviews-real`; reports name it `embedded`).
+    /// embedded default model, `assets/nviews-disagree-scratch.safetensors`; reports name it
+    /// `embedded`).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Depth planes, uniform in inverse depth between near and far (default: the model's).
