@@ -25,6 +25,22 @@
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 RUNS=deepstereo-train/runs
+# runs/ keeps the shipped model's run and the run in progress; every other run (its
+# config, log, checkpoint and weights) is in git at this commit, and a recipe that starts
+# from one of its files takes it from there (docs/experiments.md lists them).
+RUNS_COMMIT=781c573
+# Restores the file PATH (under runs/) from RUNS_COMMIT when it is not in the tree.
+restore() {
+  local path="$1"
+  if [ -z "$path" ] || [ -e "$path" ] || [[ "$path" != "$RUNS"/* ]]; then return 0; fi
+  mkdir -p "$(dirname "$path")"
+  if git show "$RUNS_COMMIT:$path" > "$path.tmp" 2>/dev/null; then
+    mv "$path.tmp" "$path"
+    echo "restored $path from commit $RUNS_COMMIT"
+  else
+    rm -f "$path.tmp"
+  fi
+}
 PROX_CONFIG=$RUNS/nviews-prox/config.json
 SHIPPED=$RUNS/nviews-prox/model.safetensors
 # The default from commit c40fb32 to c4032f1, where the later fine-tunes start.
@@ -235,6 +251,9 @@ if [ -n "${DRY_RUN:-}" ]; then
   echo
   exit 0
 fi
+restore "${INIT:-}"
+restore "$CONFIG"
+restore "$COPY_CONFIG"
 if [ -n "$COPY_CONFIG" ] && [ ! -f "$CONFIG" ]; then
   mkdir -p "$OUT"
   cp "$COPY_CONFIG" "$CONFIG"
