@@ -386,3 +386,32 @@ fn the_curve_goes_into_a_new_directory() {
         assert!(curve.join(f).is_file(), "no {f} in {}", curve.display());
     }
 }
+
+/// A time budget holds whatever the images' size: when one view's read would take over a
+/// quarter of it, the scene is read at a lower resolution (halved until it fits), with a
+/// note; `--downscale` does not override it. Without a time budget nothing changes.
+#[test]
+fn a_short_budget_reads_a_large_scene_at_a_lower_resolution() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = synth_scene(dir.path(), (512, 384), 8, 4, &[]);
+    let out = dir.path().join("m.safetensors");
+    // 0.2 megapixels: about 5.9 s a view at the bound, against 0.75 s for a 3 s budget.
+    let res = tune(
+        &s,
+        &out,
+        &["--llffhold", "4", "--minutes", "0.05", "--downscale", "1"],
+    );
+    assert_eq!(res.code, Some(0), "{}", res.stderr);
+    for want in ["reading the scene at 1/2", "reading the scene at 1/4"] {
+        assert!(res.stderr.contains(want), "no '{want}':\n{}", res.stderr);
+    }
+    assert!(!res.stderr.contains("at 1/8"), "{}", res.stderr);
+    assert!(out.is_file());
+    let res = tune(&s, &out, &["--llffhold", "4", "--steps", "2"]);
+    assert_eq!(res.code, Some(0), "{}", res.stderr);
+    assert!(
+        !res.stderr.contains("reading the scene at"),
+        "{}",
+        res.stderr
+    );
+}

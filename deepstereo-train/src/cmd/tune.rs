@@ -16,7 +16,7 @@ use deepstereo_core::config::Config;
 use deepstereo_core::imageio::write_atomic;
 use deepstereo_core::prior::PriorGrid;
 use deepstereo_core::render::CandleBackend;
-use deepstereo_core::scene::Scene;
+use deepstereo_core::scene::{Scene, MAX_DOWNSCALE};
 use deepstereo_core::weights::{self, named_vars};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
@@ -141,7 +141,7 @@ pub fn run(a: Args) -> Result<()> {
             cfg.name
         );
     }
-    let (scene, holdout) = load_tuning_scene(&a.scene, &a.holdout)?;
+    let (scene, holdout) = load_tuning_scene(&a.scene, &a.holdout, seconds_budget(budget))?;
     if a.curve.is_some() && holdout.is_empty() {
         bail!("--curve scores held-out views: pass --llffhold N or --holdout I,J,...");
     }
@@ -616,18 +616,58 @@ fn curve_snapshots(
     Ok(out)
 }
 
-/// The scene without its held-out views, and their indices in the full scene.
-fn load_tuning_scene(args: &SceneArgs, holdout: &HoldoutArgs) -> Result<(Scene, Vec<usize>)> {
-    let mut held = Vec::new();
-    let opts = args.working_options();
-    let scene = Scene::load_views(&args.scene, &opts, |n| {
-        held = holdout.list(n).map_err(|e| e.to_string())?;
-        Ok((0..n).filter(|i| !held.contains(i)).collect())
-    })?;
-    for n in &scene.notes {
-        eprintln!("note: {n}");
+/// Seconds the prior takes to read one view of a megapixel at 32 planes, an upper bound:
+/// 22-25 s measured on the 2-core VM with a training run beside it (commit `4a876fd`).
+const SECONDS_PER_MEGAPIXEL: f64 = 30.0;
+/// The largest share of a time budget one view's read may take: beyond it the scene is
+/// read at a lower resolution.
+const MAX_VIEW_SHARE: f64 = 0.25;
+
+fn seconds_budget(b: Budget) -> Option<f64> {
+    match b {
+        Budget::Seconds(s) => Some(s),
+        Budget::Steps(_) => None,
     }
-    Ok((scene, held))
+}
+
+/// The scene without its held-out views, and their indices in the full scene: at the
+/// working resolution (or `--downscale`'s), and with a time budget at most at the
+/// resolution where one view's read fits [`MAX_VIEW_SHARE`] of it (said in a note): a
+/// budget is kept whatever the images' size.
+fn load_tuning_scene(
+    args: &SceneArgs,
+    holdout: &HoldoutArgs,
+    budget: Option<f64>,
+) -> Result<(Scene, Vec<usize>)> {
+    let mut opts = args.working_options();
+    loop {
+        let mut held = Vec::new();
+        let scene = Scene::load_views(&args.scene, &opts, |n| {
+            held = holdout.list(n).map_err(|e| e.to_string())?;
+            Ok((0..n).filter(|i| !held.contains(i)).collect())
+        })?;
+        let factor = 1u32 << scene.downscale_levels;
+        let megapixels = scene
+            .views
+            .iter()
+            .map(|v| v.camera.intrinsics.width as f64 * v.camera.intrinsics.height as f64)
+            .fold(0.0, f64::max)
+            / 1e6;
+        let view_seconds = megapixels * SECONDS_PER_MEGAPIXEL;
+        let over = budget.filter(|b| view_seconds > b * MAX_VIEW_SHARE);
+        if let (Some(b), true) = (over, 2 * factor <= MAX_DOWNSCALE) {
+            eprintln!(
+                "note: at 1/{factor} a view takes about {view_seconds:.0} s to read, over a quarter of the {b:.0} s budget: reading the scene at 1/{} (more --minutes read it finer)",
+                2 * factor
+            );
+            opts.downscale = Some(2 * factor);
+            continue;
+        }
+        for n in &scene.notes {
+            eprintln!("note: {n}");
+        }
+        return Ok((scene, held));
+    }
 }
 
 /// Refuses an --out that cannot be written, before anything runs.
