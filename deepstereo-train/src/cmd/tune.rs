@@ -118,58 +118,20 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let settings = a.model.settings()?;
-    let budget = match (a.minutes, a.steps) {
-        (Some(m), None) if m.is_finite() && m > 0.0 => Budget::Seconds(m * 60.0),
-        (Some(m), None) => bail!("--minutes must be a positive number, got {m}"),
-        (None, Some(0)) => bail!("--steps must be at least 1"),
-        (None, Some(s)) => Budget::Steps(s),
-        _ => bail!("pass --minutes M or --steps S"),
-    };
-    let curve_minutes = match &a.curve {
-        Some(_) => parse_minutes(&a.curve_minutes)?,
-        None => Vec::new(),
-    };
-    check_split(&a)?;
-    check_out(&a.out)?;
-    let start = crate::rendering::models::load_model(a.model.model.as_deref())?;
-    let cfg = start.model.config().clone();
-    if cfg.pool.is_none() {
-        bail!(
-            "{}: tune takes the any-number-of-views family (like the embedded model); '{}' is the paper's family, which takes a fixed number of views",
-            a.model.name(),
-            cfg.name
-        );
-    }
-    let (scene, holdout) = load_tuning_scene(&a.scene, &a.holdout, seconds_budget(budget))?;
-    if a.curve.is_some() && holdout.is_empty() {
-        bail!("--curve scores held-out views: pass --llffhold N or --holdout I,J,...");
-    }
-    let data = SceneData::from_scene(&scene, cfg.levels)?;
-    let validation = validation_views(data.cameras.len());
-    // The config a model with a prior is written with, checked before anything runs.
-    if let Some(p) = a.render_planes {
-        with_render_planes(&cfg, p)?;
-    }
-    let shared = (&scene, &validation[..], &settings);
-    let plan = plan(&a, budget, &start, shared)?;
-    let opts = TuneOptions {
-        budget: plan.network.unwrap_or(Budget::Steps(1)),
-        seed: a.seed,
-        lr: a.lr,
-        lr_final: a.lr_final,
-        batch: a.batch,
-        views: a.model.views.unwrap_or(cfg.views),
-        augment: a.augment,
-        validate_every: a.validate_every,
-        val_batches: a.val_batches,
-        snapshots: curve_minutes.iter().map(|m| m * 60.0).collect(),
-    };
-    crate::tuning::check(&opts, &data)?;
-    if let Some(dir) = &a.curve {
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("--curve {}: cannot create the directory", dir.display()))?;
-    }
+    let (setup, data) = Setup::new(&a)?;
+    let Setup {
+        settings,
+        budget,
+        start,
+        cfg,
+        scene,
+        holdout,
+        validation,
+        ..
+    } = &setup;
+    let shared = (scene, &validation[..], settings);
+    let plan = plan(&a, *budget, start, shared)?;
+    let opts = setup.options(&a, &plan, &data)?;
     eprintln!(
         "tuning {} on {} views ({} held out, {} set aside for validation), {} per tile; {}",
         a.model.name(),
@@ -181,79 +143,35 @@ pub fn run(a: Args) -> Result<()> {
     );
     let stop = crate::cmd::support::interrupt::graceful();
     let bar = progress_bar(!a.no_progress);
-    let original = copy_weights(&start)?;
+    let original = copy_weights(start)?;
     let network = match plan.network {
-        Some(_) => Some(tune_network(&start, data, &validation, &opts, &stop, &bar)?),
+        Some(_) => Some(tune_network(start, data, validation, &opts, &stop, &bar)?),
         None => None,
     };
     let interrupted = network.as_ref().is_some_and(|r| r.interrupted);
-    let prior = match plan.prior {
-        true if !interrupted => {
-            let mut po = prior_options(&a);
-            po.view_share = plan.view_share;
-            let pb = match budget {
-                Budget::Steps(s) => {
-                    po.steps = (s - plan.network.map_or(0, steps_of)) as usize;
-                    PriorBudget::AllViews
-                }
-                Budget::Seconds(b) => {
-                    PriorBudget::Seconds(b - plan.clock.elapsed().as_secs_f64() - plan.reserve)
-                }
-            };
-            let offset = network.as_ref().map_or(0.0, |r| r.seconds);
-            let phase = PriorPhase {
-                scene: &scene,
-                validation: &validation,
-                settings: &settings,
-                opts: po,
-                budget: pb,
-                snapshots: (&opts.snapshots, offset),
-            };
-            Some(phase.run(&start, &stop, &bar)?)
-        }
-        _ => None,
+    let prior = match plan.prior && !interrupted {
+        true => Some(run_prior(
+            &a,
+            &setup,
+            &plan,
+            (&opts, network.as_ref()),
+            (&stop, &bar),
+        )?),
+        false => None,
     };
     bar.finish_and_clear();
     // A grid no step improved on is the model as given: no prior is written.
     let improved = |p: &&SceneFit| p.fit.as_ref().is_some_and(|f| f.best_step > 0);
     let grid = prior.as_ref().filter(improved).and_then(|p| p.grid.clone());
-    // A model with a prior renders at --render-planes or at the planes chosen on the
-    // views set aside; without one, as it was.
-    let (tuned_cfg, choice) = match (&grid, a.render_planes) {
-        (None, _) => (cfg.clone(), None),
-        (Some(_), Some(p)) => (with_render_planes(&cfg, p)?, None),
-        (Some(g), None) => {
-            let left = seconds_of(budget) - plan.clock.elapsed().as_secs_f64();
-            let c = pick_planes(&start, (&cfg, &original), g, shared, left)?;
-            (with_render_planes(&cfg, c.planes)?, Some(c))
-        }
+    let (tuned_cfg, choice) = tuned_config(&a, &setup, &plan, grid.as_ref(), &original)?;
+    let outcome = Outcome {
+        network: network.as_ref(),
+        prior: prior.as_ref(),
+        grid: grid.as_ref(),
+        tuned: &tuned_cfg,
+        choice: choice.as_ref(),
     };
-    let provenance = serde_json::json!({
-        "scene": scene.root,
-        "holdout": holdout,
-        "seed": a.seed,
-        "steps": match budget { Budget::Steps(s) => Some(s), Budget::Seconds(_) => None },
-        "minutes": a.minutes,
-        "network_share": plan.share,
-        "network_share_given": a.network_share.is_some(),
-        "prior_need_seconds": plan.need.map(|n| n.seconds()),
-        "prior_view_share": plan.view_share,
-        "network_steps": network.as_ref().map(|r| r.steps),
-        "network_best_step": network.as_ref().map(|r| r.best_step),
-        "prior_views": prior.as_ref().map(|p| p.views),
-        "prior_steps": prior.as_ref().and_then(|p| p.fit.as_ref()).map(|f| f.steps),
-        "prior_best_step": prior.as_ref().and_then(|p| p.fit.as_ref()).map(|f| f.best_step),
-        "prior_sharpness": grid.as_ref().map(|g| g.sharpness),
-        "lr": a.lr,
-        "lr_final": a.lr_final,
-        "batch": a.batch,
-        "views": opts.views,
-        "augment": a.augment,
-        "render_planes": tuned_cfg.default_render_planes(),
-        "render_planes_work": choice.as_ref().map(|c| &c.work),
-        "render_planes_cut": choice.as_ref().map(|c| c.cut),
-        "start": a.model.name(),
-    });
+    let provenance = provenance(&a, &setup, &plan, &opts, &outcome);
     save_model(
         &a.out,
         &tuned_cfg,
@@ -267,17 +185,195 @@ pub fn run(a: Args) -> Result<()> {
         plan.clock.elapsed().as_secs_f64()
     );
     if let Some(dir) = &a.curve {
-        let snaps = curve_snapshots(
-            &opts,
-            budget,
-            &start,
-            network.as_ref(),
-            prior.as_ref(),
-            grid.as_ref(),
-        )?;
-        write_curve(dir, &a, (&cfg, &tuned_cfg), &snaps, &holdout, &settings)?;
+        let (net, pri) = (network.as_ref(), prior.as_ref());
+        let snaps = curve_snapshots(&opts, *budget, start, net, pri, grid.as_ref())?;
+        write_curve(dir, &a, (cfg, &tuned_cfg), &snaps, holdout, settings)?;
     }
     Ok(())
+}
+
+/// The tuned model's config: with a prior, rendering at --render-planes or at the planes
+/// chosen on the views set aside (and that choice); without one, as it was.
+fn tuned_config(
+    a: &Args,
+    setup: &Setup,
+    plan: &Plan,
+    grid: Option<&PriorGrid>,
+    original: &[Tensor],
+) -> Result<(Config, Option<plan::PlanesChoice>)> {
+    let cfg = &setup.cfg;
+    Ok(match (grid, a.render_planes) {
+        (None, _) => (cfg.clone(), None),
+        (Some(_), Some(p)) => (with_render_planes(cfg, p)?, None),
+        (Some(g), None) => {
+            let left = seconds_of(setup.budget) - plan.clock.elapsed().as_secs_f64();
+            let shared = (&setup.scene, &setup.validation[..], &setup.settings);
+            let c = pick_planes(&setup.start, (cfg, original), g, shared, left)?;
+            (with_render_planes(cfg, c.planes)?, Some(c))
+        }
+    })
+}
+
+/// What a tune reads and starts from, checked before anything runs.
+struct Setup {
+    settings: RenderSettings,
+    budget: Budget,
+    curve_minutes: Vec<f64>,
+    start: deepstereo_core::weights::Trainable,
+    cfg: Config,
+    scene: Scene,
+    holdout: Vec<usize>,
+    validation: Vec<usize>,
+}
+
+impl Setup {
+    /// The setup, and the scene's images for the network's tune.
+    fn new(a: &Args) -> Result<(Self, SceneData)> {
+        let settings = a.model.settings()?;
+        let budget = match (a.minutes, a.steps) {
+            (Some(m), None) if m.is_finite() && m > 0.0 => Budget::Seconds(m * 60.0),
+            (Some(m), None) => bail!("--minutes must be a positive number, got {m}"),
+            (None, Some(0)) => bail!("--steps must be at least 1"),
+            (None, Some(s)) => Budget::Steps(s),
+            _ => bail!("pass --minutes M or --steps S"),
+        };
+        let curve_minutes = match &a.curve {
+            Some(_) => parse_minutes(&a.curve_minutes)?,
+            None => Vec::new(),
+        };
+        check_split(a)?;
+        check_out(&a.out)?;
+        let start = crate::rendering::models::load_model(a.model.model.as_deref())?;
+        let cfg = start.model.config().clone();
+        if cfg.pool.is_none() {
+            bail!(
+                "{}: tune takes the any-number-of-views family (like the embedded model); '{}' is the paper's family, which takes a fixed number of views",
+                a.model.name(),
+                cfg.name
+            );
+        }
+        let (scene, holdout) = load_tuning_scene(&a.scene, &a.holdout, seconds_budget(budget))?;
+        if a.curve.is_some() && holdout.is_empty() {
+            bail!("--curve scores held-out views: pass --llffhold N or --holdout I,J,...");
+        }
+        let data = SceneData::from_scene(&scene, cfg.levels)?;
+        let validation = validation_views(data.cameras.len());
+        // The config a model with a prior is written with, checked before anything runs.
+        if let Some(p) = a.render_planes {
+            with_render_planes(&cfg, p)?;
+        }
+        let setup = Self {
+            settings,
+            budget,
+            curve_minutes,
+            start,
+            cfg,
+            scene,
+            holdout,
+            validation,
+        };
+        Ok((setup, data))
+    }
+
+    /// The network's tuning options under `plan`, checked; `--curve`'s directory made.
+    fn options(&self, a: &Args, plan: &Plan, data: &SceneData) -> Result<TuneOptions> {
+        let opts = TuneOptions {
+            budget: plan.network.unwrap_or(Budget::Steps(1)),
+            seed: a.seed,
+            lr: a.lr,
+            lr_final: a.lr_final,
+            batch: a.batch,
+            views: a.model.views.unwrap_or(self.cfg.views),
+            augment: a.augment,
+            validate_every: a.validate_every,
+            val_batches: a.val_batches,
+            snapshots: self.curve_minutes.iter().map(|m| m * 60.0).collect(),
+        };
+        crate::tuning::check(&opts, data)?;
+        if let Some(dir) = &a.curve {
+            std::fs::create_dir_all(dir).with_context(|| {
+                format!("--curve {}: cannot create the directory", dir.display())
+            })?;
+        }
+        Ok(opts)
+    }
+}
+
+/// The scene prior's fit for what is left of the budget after the network's tune.
+fn run_prior(
+    a: &Args,
+    setup: &Setup,
+    plan: &Plan,
+    (opts, network): (&TuneOptions, Option<&TuneResult>),
+    (stop, bar): (&AtomicBool, &indicatif::ProgressBar),
+) -> Result<SceneFit> {
+    let mut po = prior_options(a);
+    po.view_share = plan.view_share;
+    let pb = match setup.budget {
+        Budget::Steps(s) => {
+            po.steps = (s - plan.network.map_or(0, steps_of)) as usize;
+            PriorBudget::AllViews
+        }
+        Budget::Seconds(b) => {
+            PriorBudget::Seconds(b - plan.clock.elapsed().as_secs_f64() - plan.reserve)
+        }
+    };
+    let offset = network.map_or(0.0, |r| r.seconds);
+    let phase = PriorPhase {
+        scene: &setup.scene,
+        validation: &setup.validation,
+        settings: &setup.settings,
+        opts: po,
+        budget: pb,
+        snapshots: (&opts.snapshots, offset),
+    };
+    phase.run(&setup.start, stop, bar)
+}
+
+/// What the tune found, for the model's provenance.
+struct Outcome<'a> {
+    network: Option<&'a TuneResult>,
+    prior: Option<&'a SceneFit>,
+    grid: Option<&'a PriorGrid>,
+    tuned: &'a Config,
+    choice: Option<&'a plan::PlanesChoice>,
+}
+
+/// The tune's options and what it found, written into the model's metadata.
+fn provenance(
+    a: &Args,
+    setup: &Setup,
+    plan: &Plan,
+    opts: &TuneOptions,
+    o: &Outcome<'_>,
+) -> serde_json::Value {
+    let fit = o.prior.and_then(|p| p.fit.as_ref());
+    serde_json::json!({
+        "scene": setup.scene.root,
+        "holdout": setup.holdout,
+        "seed": a.seed,
+        "steps": match setup.budget { Budget::Steps(s) => Some(s), Budget::Seconds(_) => None },
+        "minutes": a.minutes,
+        "network_share": plan.share,
+        "network_share_given": a.network_share.is_some(),
+        "prior_need_seconds": plan.need.map(|n| n.seconds()),
+        "prior_view_share": plan.view_share,
+        "network_steps": o.network.map(|r| r.steps),
+        "network_best_step": o.network.map(|r| r.best_step),
+        "prior_views": o.prior.map(|p| p.views),
+        "prior_steps": fit.map(|f| f.steps),
+        "prior_best_step": fit.map(|f| f.best_step),
+        "prior_sharpness": o.grid.map(|g| g.sharpness),
+        "lr": a.lr,
+        "lr_final": a.lr_final,
+        "batch": a.batch,
+        "views": opts.views,
+        "augment": a.augment,
+        "render_planes": o.tuned.default_render_planes(),
+        "render_planes_work": o.choice.map(|c| &c.work),
+        "render_planes_cut": o.choice.map(|c| c.cut),
+        "start": a.model.name(),
+    })
 }
 
 /// Fine-tunes the network's weights in place (they end as the best found).
