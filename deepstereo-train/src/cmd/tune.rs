@@ -2,6 +2,15 @@
 //! (the paper's training, on the capture itself), and writes a model every command takes
 //! with `--model`.
 
+mod curve;
+mod phases;
+mod progress;
+mod scene;
+
+use self::curve::*;
+use self::phases::*;
+use self::progress::*;
+use self::scene::*;
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::rendering::{evaluate, RenderSettings};
 use crate::training::data::SceneData;
@@ -25,8 +34,10 @@ use std::time::Instant;
 
 /// Adam's initial rate of the recipe.
 pub const DEFAULT_LR: f64 = 5e-4;
+
 /// The rate's final share (cosine decay over the budget).
 pub const DEFAULT_LR_FINAL: f64 = 0.1;
+
 /// Metadata key of the tune's options in the model it writes.
 pub const TUNE_KEY: &str = "deepstereo.tune";
 
@@ -376,30 +387,6 @@ fn provenance(
     })
 }
 
-/// Fine-tunes the network's weights in place (they end as the best found).
-fn tune_network(
-    start: &deepstereo_core::weights::Trainable,
-    data: SceneData,
-    validation: &[usize],
-    opts: &TuneOptions,
-    stop: &Arc<AtomicBool>,
-    bar: &indicatif::ProgressBar,
-) -> Result<TuneResult> {
-    let r = tune(start, data, validation, opts, stop.clone(), |p| {
-        report(bar, p)
-    })?;
-    let first = r.validation.first().map_or(f64::NAN, |v| v.psnr);
-    eprintln!(
-        "{}network: {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (the weights of step {})",
-        if r.interrupted { "interrupted: " } else { "" },
-        r.steps,
-        r.seconds,
-        r.best_psnr(),
-        r.best_step
-    );
-    Ok(r)
-}
-
 /// Fitting the scene prior on the (tuned) network.
 struct PriorPhase<'a> {
     scene: &'a Scene,
@@ -574,86 +561,6 @@ fn plan(
     })
 }
 
-/// The views a prior is fitted on: all but those set aside.
-fn tuning_targets(scene: &Scene, validation: &[usize]) -> Vec<usize> {
-    (0..scene.views.len())
-        .filter(|i| !validation.contains(i))
-        .collect()
-}
-
-/// `cfg` rendering at `planes` by default, checked.
-fn with_render_planes(cfg: &Config, planes: usize) -> Result<Config> {
-    let c = Config {
-        render_planes: Some(planes),
-        ..cfg.clone()
-    };
-    c.validate()
-        .map_err(|e| anyhow::anyhow!("--render-planes: {e}"))?;
-    Ok(c)
-}
-
-/// The render planes of a tuned model with prior `grid` (its network's weights those
-/// of `start` now), chosen on the views set aside against the model it started from
-/// (`cfg` with the weights `original`, and its own prior if it had one).
-fn pick_planes(
-    start: &deepstereo_core::weights::Trainable,
-    (cfg, original): (&Config, &[Tensor]),
-    grid: &PriorGrid,
-    (scene, validation, settings): (&Scene, &[usize], &RenderSettings),
-    seconds: f64,
-) -> Result<plan::PlanesChoice> {
-    let before = backend_with(cfg, original, start.model.prior().cloned())?;
-    let tuned = CandleBackend {
-        model: start.model.clone().with_prior(Some(grid.clone())),
-        device: candle_core::Device::Cpu,
-    };
-    let choices = plan::plane_choices(cfg.planes);
-    let targets = plan::choice_targets(&tuning_targets(scene, validation), validation);
-    let c = plan::choose_render_planes(
-        (&before, &tuned),
-        scene,
-        (&targets, validation),
-        settings,
-        (&choices, seconds),
-    )?;
-    let tried: Vec<String> = (c.work.iter())
-        .map(|(p, r)| format!("{p} planes {r:.2}x"))
-        .collect();
-    eprintln!(
-        "render planes: {} (work on {} views against the model started from: {}; {:.0} s{})",
-        c.planes,
-        targets.len(),
-        tried.join(", "),
-        c.seconds,
-        if c.cut {
-            "; stopped at the budget's end"
-        } else {
-            ""
-        }
-    );
-    Ok(c)
-}
-
-/// Detached copies of a model's weights (in `named_vars` order).
-fn copy_weights(t: &deepstereo_core::weights::Trainable) -> Result<Vec<Tensor>> {
-    crate::tuning::copy(&named_vars(&t.varmap))
-}
-
-fn steps_of(b: Budget) -> u64 {
-    match b {
-        Budget::Steps(s) => s,
-        Budget::Seconds(_) => 0,
-    }
-}
-
-/// A time budget's seconds; a budget of steps has no time limit.
-fn seconds_of(b: Budget) -> f64 {
-    match b {
-        Budget::Seconds(t) => t,
-        Budget::Steps(_) => f64::INFINITY,
-    }
-}
-
 fn prior_options(a: &Args) -> PriorOptions {
     PriorOptions {
         cells: a.prior_cells,
@@ -663,293 +570,4 @@ fn prior_options(a: &Args) -> PriorOptions {
         seed: a.seed,
         ..PriorOptions::default()
     }
-}
-
-/// A curve time, the network's weights (in `named_vars` order) and the prior.
-type Snapshot = (f64, Vec<Tensor>, Option<PriorGrid>);
-
-/// Per curve time: the network's weights and the prior that a tune stopped then would
-/// have written (`written`: the prior this one wrote).
-fn curve_snapshots(
-    opts: &TuneOptions,
-    budget: Budget,
-    start: &deepstereo_core::weights::Trainable,
-    network: Option<&TuneResult>,
-    prior: Option<&SceneFit>,
-    written: Option<&PriorGrid>,
-) -> Result<Vec<Snapshot>> {
-    let now = copy_weights(start)?;
-    let net_end = network.map_or(0.0, |r| r.seconds);
-    let end = net_end + prior.map_or(0.0, |p| p.seconds);
-    // A tune that read every view before its time was up ends with the model a longer
-    // one would also write: the curve holds it up to the budget.
-    let interrupted =
-        network.is_some_and(|r| r.interrupted) || prior.is_some_and(|p| p.interrupted);
-    let limit = match budget {
-        Budget::Seconds(b) if !interrupted => b.max(end),
-        _ => end,
-    };
-    let mut out = Vec::new();
-    for &t in &opts.snapshots {
-        if t > limit + 1e-9 && t > 0.0 {
-            continue;
-        }
-        let from_prior = prior.and_then(|p| p.snapshots.iter().find(|(s, _)| *s == t));
-        let from_net = network.and_then(|r| r.snapshots.iter().find(|(s, _)| *s == t));
-        out.push(match (t, from_prior, from_net) {
-            (t, _, _) if t == 0.0 => (
-                t,
-                network
-                    .and_then(|r| r.snapshots.first())
-                    .map_or(now.clone(), |s| s.1.clone()),
-                None,
-            ),
-            (t, _, Some((_, w))) if t <= net_end => (t, w.clone(), None),
-            (t, Some((_, g)), _) => (t, now.clone(), Some(g.clone())),
-            (t, _, _) => (t, now.clone(), written.cloned()),
-        });
-    }
-    Ok(out)
-}
-
-/// Seconds the prior takes to read one view of a megapixel at 32 planes, an upper bound:
-/// 22-25 s measured on the 2-core VM with a training run beside it (commit `4a876fd`).
-const SECONDS_PER_MEGAPIXEL: f64 = 30.0;
-/// The largest share of a time budget one view's read may take: beyond it the scene is
-/// read at a lower resolution.
-const MAX_VIEW_SHARE: f64 = 0.25;
-
-fn seconds_budget(b: Budget) -> Option<f64> {
-    match b {
-        Budget::Seconds(s) => Some(s),
-        Budget::Steps(_) => None,
-    }
-}
-
-/// The scene without its held-out views, and their indices in the full scene: at the
-/// working resolution (or `--downscale`'s), and with a time budget at most at the
-/// resolution where one view's read fits [`MAX_VIEW_SHARE`] of it (said in a note): a
-/// budget is kept whatever the images' size.
-fn load_tuning_scene(
-    args: &SceneArgs,
-    holdout: &HoldoutArgs,
-    budget: Option<f64>,
-) -> Result<(Scene, Vec<usize>)> {
-    let mut opts = args.working_options();
-    loop {
-        let mut held = Vec::new();
-        let scene = Scene::load_views(&args.scene, &opts, |n| {
-            held = holdout.list(n).map_err(|e| e.to_string())?;
-            Ok((0..n).filter(|i| !held.contains(i)).collect())
-        })?;
-        let factor = 1u32 << scene.downscale_levels;
-        let megapixels = scene
-            .views
-            .iter()
-            .map(|v| v.camera.intrinsics.width as f64 * v.camera.intrinsics.height as f64)
-            .fold(0.0, f64::max)
-            / 1e6;
-        let view_seconds = megapixels * SECONDS_PER_MEGAPIXEL;
-        let over = budget.filter(|b| view_seconds > b * MAX_VIEW_SHARE);
-        if let (Some(b), true) = (over, 2 * factor <= MAX_DOWNSCALE) {
-            eprintln!(
-                "note: at 1/{factor} a view takes about {view_seconds:.0} s to read, over a quarter of the {b:.0} s budget: reading the scene at 1/{} (more --minutes read it finer)",
-                2 * factor
-            );
-            opts.downscale = Some(2 * factor);
-            continue;
-        }
-        for n in &scene.notes {
-            eprintln!("note: {n}");
-        }
-        return Ok((scene, held));
-    }
-}
-
-/// Refuses an --out that cannot be written, before anything runs.
-fn check_out(out: &Path) -> Result<()> {
-    if out.is_dir() {
-        bail!(
-            "--out {}: is a directory; name a .safetensors file",
-            out.display()
-        );
-    }
-    let dir = match out.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    // Every command creates the missing folders above its outputs (docs/commands.md).
-    std::fs::create_dir_all(&dir)
-        .with_context(|| format!("--out {}: cannot create {}", out.display(), dir.display()))?;
-    let probe = dir.join(format!(".deepstereo-tune-probe.{}", std::process::id()));
-    std::fs::write(&probe, b"")
-        .with_context(|| format!("--out {}: cannot write in {}", out.display(), dir.display()))?;
-    let _ = std::fs::remove_file(&probe);
-    Ok(())
-}
-
-/// Writes the weights with the config, the scene prior and the tune's options,
-/// atomically.
-fn save_model(
-    out: &Path,
-    cfg: &Config,
-    varmap: &candle_nn::VarMap,
-    prior: Option<&PriorGrid>,
-    provenance: &str,
-) -> Result<()> {
-    let extra = [(TUNE_KEY, provenance.to_string())];
-    weights::save_with_prior(out, cfg, varmap, prior, &extra)?;
-    Ok(())
-}
-
-/// Parses `0,1,2.5,...` (minutes, each finite and not negative).
-fn parse_minutes(s: &str) -> Result<Vec<f64>> {
-    let mut out = Vec::new();
-    for t in s.split(',') {
-        let m: f64 = t
-            .trim()
-            .parse()
-            .with_context(|| format!("--curve-minutes: '{t}' is not a number of minutes"))?;
-        if !(m.is_finite() && m >= 0.0) {
-            bail!("--curve-minutes: '{t}' must be 0 or more");
-        }
-        out.push(m);
-    }
-    Ok(out)
-}
-
-fn progress_bar(wanted: bool) -> indicatif::ProgressBar {
-    if !wanted || !std::io::IsTerminal::is_terminal(&std::io::stderr()) {
-        return indicatif::ProgressBar::hidden();
-    }
-    let bar = indicatif::ProgressBar::new(1000);
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "{bar:30} {percent:>3}%  {msg}  {elapsed} done, {eta} left",
-    ) {
-        bar.set_style(style);
-    }
-    bar
-}
-
-fn report(bar: &indicatif::ProgressBar, p: &Progress) {
-    bar.set_position((p.share * 1000.0).round().clamp(0.0, 1000.0) as u64);
-    let val = p
-        .val_psnr
-        .map(|v| format!("  validation {v:.2} dB"))
-        .unwrap_or_default();
-    bar.set_message(format!(
-        "step {}  loss {:.4}{val}  best {:.2} dB",
-        p.step, p.loss, p.best_psnr
-    ));
-    if bar.is_hidden() {
-        if let Some(v) = p.val_psnr {
-            eprintln!(
-                "step {}: loss {:.5}, validation {v:.2} dB (best {:.2}), {:.0}% of the budget",
-                p.step,
-                p.loss,
-                p.best_psnr,
-                p.share * 100.0
-            );
-        }
-    }
-}
-
-fn report_prior(bar: &indicatif::ProgressBar, p: &PriorProgress) {
-    bar.set_position((p.share * 1000.0).round().clamp(0.0, 1000.0) as u64);
-    let (read, total) = p.views;
-    let msg = match p.val_psnr {
-        Some(v) => format!("scene prior: fitting on {read} views, validation {v:.2} dB"),
-        None => format!("scene prior: view {read} of at most {total} read"),
-    };
-    if bar.is_hidden() {
-        eprintln!("{msg}");
-    }
-    bar.set_message(msg);
-}
-
-/// One point of the error-against-time curve.
-#[derive(serde::Serialize)]
-struct CurvePoint {
-    minutes: f64,
-    psnr: f64,
-    ssim: f64,
-    seconds_per_view: f64,
-}
-
-/// Renders the held-out views with each snapshot and writes the curve: a snapshot with a
-/// prior as the tuned model's config renders (`tuned`), one without as `cfg`.
-fn write_curve(
-    dir: &Path,
-    a: &Args,
-    (cfg, tuned): (&Config, &Config),
-    snapshots: &[Snapshot],
-    holdout: &[usize],
-    settings: &RenderSettings,
-) -> Result<()> {
-    let scene = a.scene.load_working()?;
-    let mut points = Vec::new();
-    for (secs, weights, prior) in snapshots {
-        let c = if prior.is_some() { tuned } else { cfg };
-        let backend = backend_with(c, weights, prior.clone())?;
-        let name = format!("tuned {:.1} min", secs / 60.0);
-        let r = evaluate(&backend, &name, &scene, holdout, settings, |_, _| {})?;
-        eprintln!(
-            "{:5.1} min: held-out PSNR {:.2} SSIM {:.3}",
-            secs / 60.0,
-            r.mean.psnr,
-            r.mean.ssim
-        );
-        points.push(CurvePoint {
-            minutes: secs / 60.0,
-            psnr: r.mean.psnr,
-            ssim: r.mean.ssim,
-            seconds_per_view: r.mean.seconds,
-        });
-    }
-    let mut csv = String::from("minutes,psnr,ssim,seconds_per_view\n");
-    for p in &points {
-        csv += &format!(
-            "{},{:.4},{:.5},{:.3}\n",
-            p.minutes, p.psnr, p.ssim, p.seconds_per_view
-        );
-    }
-    let json = serde_json::json!({ "scene": scene.root, "holdout": holdout, "points": points });
-    let plot = deepstereo_core::plot::plot(
-        &format!("tuning {}", scene.root.display()),
-        "minutes of tuning",
-        "held-out PSNR dB",
-        &[deepstereo_core::plot::Series {
-            label: "tuned".into(),
-            colour: [0.1, 0.4, 0.85],
-            points: points.iter().map(|p| (p.minutes, p.psnr)).collect(),
-            line: true,
-            marker: 3,
-            labels: Vec::new(),
-        }],
-        false,
-    );
-    write_atomic(&dir.join("curve.csv"), csv.as_bytes())?;
-    write_atomic(
-        &dir.join("curve.json"),
-        serde_json::to_string_pretty(&json)?.as_bytes(),
-    )?;
-    plot.save_png(&dir.join("curve.png"))?;
-    eprintln!("curve: {}", dir.display());
-    Ok(())
-}
-
-/// A candle backend running `cfg` with these weights (in `named_vars` order).
-fn backend_with(
-    cfg: &Config,
-    values: &[Tensor],
-    prior: Option<PriorGrid>,
-) -> Result<CandleBackend> {
-    let t = weights::init(cfg, &candle_core::Device::Cpu)?;
-    for ((_, var), v) in named_vars(&t.varmap).iter().zip(values) {
-        var.set(v)?;
-    }
-    Ok(CandleBackend {
-        model: t.model.with_prior(prior),
-        device: candle_core::Device::Cpu,
-    })
 }
