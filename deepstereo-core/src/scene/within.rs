@@ -41,8 +41,17 @@ impl Within {
         let Some(root) = &self.root else {
             return Ok(());
         };
-        let resolved = resolve(path);
-        if resolved.as_deref().is_some_and(|p| p.starts_with(root)) {
+        let Some(resolved) = resolve(path) else {
+            return Err(Error::format(
+                path,
+                format!(
+                    "{}: {entry}: cannot be resolved (a dangling symbolic link, or a folder \
+                     that cannot be read); it is not read",
+                    file.display()
+                ),
+            ));
+        };
+        if resolved.starts_with(root) {
             return Ok(());
         }
         Err(Error::Outside {
@@ -123,6 +132,16 @@ mod tests {
             "{msg}"
         );
         assert!(msg.contains("--allow-outside-paths"), "{msg}");
+        std::os::unix::fs::symlink(scene.join("images/gone.png"), scene.join("images/d.png"))
+            .expect("symlink");
+        let msg = w
+            .check(&f, "frame 4", &scene.join("images/d.png"))
+            .expect_err("dangling")
+            .to_string();
+        assert!(
+            msg.contains("dangling") && !msg.contains("outside"),
+            "{msg}"
+        );
         assert!(Within::anywhere()
             .check(&f, "e", Path::new("/etc/passwd"))
             .is_ok());
