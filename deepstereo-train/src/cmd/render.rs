@@ -92,29 +92,33 @@ pub fn run(a: Args) -> Result<()> {
             &settings,
         );
     }
-    let (cam, srcs) = match (a.target, &a.pose) {
-        (Some(t), None) => {
-            if t >= scene.views.len() {
-                bail!(
-                    "--target {t} is out of range: the scene has {} views",
-                    scene.views.len()
-                );
-            }
-            let cam = scene.views[t].camera;
-            (
-                cam,
-                pick_planned_sources(&scene, &cam, &[t], (v, cfg), &settings),
-            )
-        }
-        (None, Some(p)) => {
-            let cam = crate::cmd::support::camera_json::read_pose(p, a.view)?;
-            (
-                cam,
-                pick_planned_sources(&scene, &cam, &[], (v, cfg), &settings),
-            )
-        }
+    write_view(&a, backend.as_ref(), &scene, &mut prepared, v, &settings)
+}
+
+/// `--target I` or `--pose FILE`: one view rendered from `views` sources, with its depth,
+/// confidence and coverage.
+fn write_view(
+    a: &Args,
+    backend: &dyn Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    v: usize,
+    settings: &RenderSettings,
+) -> Result<()> {
+    let cfg = backend.config();
+    let (cam, exclude) = match (a.target, &a.pose) {
+        (Some(t), None) if t < scene.views.len() => (scene.views[t].camera, vec![t]),
+        (Some(t), None) => bail!(
+            "--target {t} is out of range: the scene has {} views",
+            scene.views.len()
+        ),
+        (None, Some(p)) => (
+            crate::cmd::support::camera_json::read_pose(p, a.view)?,
+            vec![],
+        ),
         _ => bail!("pass one of --target I, --pose FILE or --path KIND"),
     };
+    let srcs = pick_planned_sources(scene, &cam, &exclude, (v, cfg), settings);
     let staged = StagedDir::new(&a.out)?;
     let bar = indicatif::ProgressBar::new(0);
     let progress = |done: usize, total: usize| {
@@ -122,15 +126,7 @@ pub fn run(a: Args) -> Result<()> {
         bar.set_position(done as u64);
     };
     let t0 = std::time::Instant::now();
-    let (r, _) = render_camera(
-        backend.as_ref(),
-        &scene,
-        &mut prepared,
-        &cam,
-        &srcs,
-        &settings,
-        &progress,
-    )?;
+    let (r, _) = render_camera(backend, scene, prepared, &cam, &srcs, settings, &progress)?;
     bar.finish_and_clear();
     let (network, plan) = srcs.split_at(v.min(srcs.len()));
     eprintln!(
