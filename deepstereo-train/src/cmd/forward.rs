@@ -73,67 +73,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         .with_context(|| format!("{}: not a safetensors file", a.inputs.display()))?;
     let t0 = std::time::Instant::now();
     let (image, image_shape, selection, selection_shape) = match a.backend {
-        BackendKind::Candle => {
-            let t = load_model(a.model.as_deref())?;
-            let cfg = t.model.config();
-            let mut inputs = Vec::with_capacity(cfg.levels);
-            for l in 0..cfg.levels {
-                let (shape, data) = read_f32(&st, &input_name(l), &a.inputs)?;
-                let (rank, layout) = match cfg.pool {
-                    Some(_) => (6, "[B, D, V, 4, H, W] with B, D and V"),
-                    None => (5, "[B, D, 4V, H, W] with B and D"),
-                };
-                if shape.len() != rank || shape[..rank - 3].contains(&0) {
-                    bail!(
-                        "{}: '{}' must be {layout} at least 1, got {shape:?}",
-                        a.inputs.display(),
-                        input_name(l)
-                    );
-                }
-                inputs.push(Tensor::from_vec(data, shape, &Device::Cpu)?);
-            }
-            let out = t.model.infer(&inputs)?;
-            (
-                out.image.flatten_all()?.to_vec1::<f32>()?,
-                out.image.dims().to_vec(),
-                out.selection.flatten_all()?.to_vec1::<f32>()?,
-                out.selection.dims().to_vec(),
-            )
-        }
-        BackendKind::Ort => {
-            let backend = match (&a.onnx, &a.model) {
-                (Some(onnx), model) => {
-                    let b = OrtBackend::from_file(onnx)?;
-                    if let Some(m) = model {
-                        let t = load_model(Some(m))?;
-                        if t.model.config() != deepstereo_core::render::Backend::config(&b) {
-                            bail!(
-                                "{} is not an export of {}: their configs differ",
-                                onnx.display(),
-                                m.display()
-                            );
-                        }
-                    }
-                    b
-                }
-                (None, model) => OrtBackend::from_model(&load_model(model.as_deref())?)?,
-            };
-            let levels = deepstereo_core::render::Backend::config(&backend).levels;
-            let inputs: Vec<(Vec<usize>, Vec<f32>)> = (0..levels)
-                .map(|l| read_f32(&st, &input_name(l), &a.inputs))
-                .collect::<anyhow::Result<_>>()?;
-            let refs: Vec<(&[usize], &[f32])> = inputs
-                .iter()
-                .map(|(s, d)| (s.as_slice(), d.as_slice()))
-                .collect();
-            let out = backend.forward(&refs)?;
-            (
-                out.image,
-                out.image_shape,
-                out.selection,
-                out.selection_shape,
-            )
-        }
+        BackendKind::Candle => forward_candle(&a, &st)?,
+        BackendKind::Ort => forward_ort(&a, &st)?,
     };
     let backend = format!("{:?}", a.backend).to_lowercase();
     eprintln!(
@@ -152,3 +93,71 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     eprintln!("wrote {}", a.out.display());
     Ok(())
 }
+
+/// The network's image and selection (data and shapes) for the inputs `st`, by candle.
+fn forward_candle(a: &Args, st: &SafeTensors<'_>) -> anyhow::Result<Outputs> {
+    let t = load_model(a.model.as_deref())?;
+    let cfg = t.model.config();
+    let mut inputs = Vec::with_capacity(cfg.levels);
+    for l in 0..cfg.levels {
+        let (shape, data) = read_f32(st, &input_name(l), &a.inputs)?;
+        let (rank, layout) = match cfg.pool {
+            Some(_) => (6, "[B, D, V, 4, H, W] with B, D and V"),
+            None => (5, "[B, D, 4V, H, W] with B and D"),
+        };
+        if shape.len() != rank || shape[..rank - 3].contains(&0) {
+            bail!(
+                "{}: '{}' must be {layout} at least 1, got {shape:?}",
+                a.inputs.display(),
+                input_name(l)
+            );
+        }
+        inputs.push(Tensor::from_vec(data, shape, &Device::Cpu)?);
+    }
+    let out = t.model.infer(&inputs)?;
+    Ok((
+        out.image.flatten_all()?.to_vec1::<f32>()?,
+        out.image.dims().to_vec(),
+        out.selection.flatten_all()?.to_vec1::<f32>()?,
+        out.selection.dims().to_vec(),
+    ))
+}
+
+/// The same by onnxruntime, on `--onnx` or the model exported in memory.
+fn forward_ort(a: &Args, st: &SafeTensors<'_>) -> anyhow::Result<Outputs> {
+    let backend = match (&a.onnx, &a.model) {
+        (Some(onnx), model) => {
+            let b = OrtBackend::from_file(onnx)?;
+            if let Some(m) = model {
+                let t = load_model(Some(m))?;
+                if t.model.config() != deepstereo_core::render::Backend::config(&b) {
+                    bail!(
+                        "{} is not an export of {}: their configs differ",
+                        onnx.display(),
+                        m.display()
+                    );
+                }
+            }
+            b
+        }
+        (None, model) => OrtBackend::from_model(&load_model(model.as_deref())?)?,
+    };
+    let levels = deepstereo_core::render::Backend::config(&backend).levels;
+    let inputs: Vec<(Vec<usize>, Vec<f32>)> = (0..levels)
+        .map(|l| read_f32(st, &input_name(l), &a.inputs))
+        .collect::<anyhow::Result<_>>()?;
+    let refs: Vec<(&[usize], &[f32])> = inputs
+        .iter()
+        .map(|(s, d)| (s.as_slice(), d.as_slice()))
+        .collect();
+    let out = backend.forward(&refs)?;
+    Ok((
+        out.image,
+        out.image_shape,
+        out.selection,
+        out.selection_shape,
+    ))
+}
+
+/// Image and selection: data and shape each.
+type Outputs = (Vec<f32>, Vec<usize>, Vec<f32>, Vec<usize>);
