@@ -13,7 +13,7 @@
 //! (two lines of `(x y z)` after the words "bounding box", as the Middlebury archives
 //! do), its eight corners serve as sparse points for the robust bounds.
 
-use super::{make_view, RawScene, Within};
+use super::{make_view, RawScene, View, Within};
 use crate::camera::{Intrinsics, WorldToCamera};
 use crate::error::{Error, Result};
 use glam::{DMat3, DVec3};
@@ -69,60 +69,7 @@ pub fn parse_par(file: &Path, bytes: &[u8], within: &Within) -> Result<RawScene>
     })?;
     let mut views = Vec::new();
     for (i, line) in lines {
-        let lineno = i + 1;
-        let mut parts = line.split_whitespace();
-        let name = parts.next().unwrap_or_default().to_string();
-        let vals: Vec<f64> = parts
-            .map(|s| {
-                s.parse::<f64>()
-                    .map_err(|_| Error::parse(file, Some(lineno), format!("'{s}' is not a number")))
-            })
-            .collect::<Result<_>>()?;
-        if vals.len() != VALUES_PER_LINE {
-            return Err(Error::parse(
-                file,
-                Some(lineno),
-                format!(
-                    "expected a name and {VALUES_PER_LINE} numbers, got {} numbers",
-                    vals.len()
-                ),
-            ));
-        }
-        if vals.iter().any(|v| !v.is_finite()) {
-            return Err(Error::parse(file, Some(lineno), "non-finite value"));
-        }
-        let k = &vals[0..9];
-        if k[1].abs() > K_TOLERANCE
-            || k[3].abs() > K_TOLERANCE
-            || k[6].abs() > K_TOLERANCE
-            || k[7].abs() > K_TOLERANCE
-            || (k[8] - 1.0).abs() > K_TOLERANCE
-        {
-            return Err(Error::parse(
-                file,
-                Some(lineno),
-                "K must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)",
-            ));
-        }
-        let image_path = dir.join(&name);
-        within.check(file, &format!("line {lineno}: image '{name}'"), &image_path)?;
-        let (w, h) = super::image_size(&image_path)?;
-        let intrinsics = Intrinsics::pinhole(k[0], k[4], k[2], k[5], w, h);
-        let r = &vals[9..18];
-        let rot = DMat3::from_cols(
-            DVec3::new(r[0], r[3], r[6]),
-            DVec3::new(r[1], r[4], r[7]),
-            DVec3::new(r[2], r[5], r[8]),
-        );
-        let t = DVec3::new(vals[18], vals[19], vals[20]);
-        views.push(make_view(
-            file,
-            &name,
-            image_path,
-            intrinsics,
-            WorldToCamera::new_checked(rot, t),
-            None,
-        )?);
+        views.push(parse_line((file, dir, within), i + 1, line)?);
     }
     if views.len() != count {
         return Err(Error::parse(
@@ -145,6 +92,68 @@ pub fn parse_par(file: &Path, bytes: &[u8], within: &Within) -> Result<RawScene>
         points,
         notes,
     })
+}
+
+/// One camera line of a `*_par.txt` (`lineno` counting from 1): its view, the image checked
+/// to lie inside `within` before its header is read.
+fn parse_line(
+    (file, dir, within): (&Path, &Path, &Within),
+    lineno: usize,
+    line: &str,
+) -> Result<View> {
+    let mut parts = line.split_whitespace();
+    let name = parts.next().unwrap_or_default().to_string();
+    let vals: Vec<f64> = parts
+        .map(|s| {
+            s.parse::<f64>()
+                .map_err(|_| Error::parse(file, Some(lineno), format!("'{s}' is not a number")))
+        })
+        .collect::<Result<_>>()?;
+    if vals.len() != VALUES_PER_LINE {
+        return Err(Error::parse(
+            file,
+            Some(lineno),
+            format!(
+                "expected a name and {VALUES_PER_LINE} numbers, got {} numbers",
+                vals.len()
+            ),
+        ));
+    }
+    if vals.iter().any(|v| !v.is_finite()) {
+        return Err(Error::parse(file, Some(lineno), "non-finite value"));
+    }
+    let k = &vals[0..9];
+    if k[1].abs() > K_TOLERANCE
+        || k[3].abs() > K_TOLERANCE
+        || k[6].abs() > K_TOLERANCE
+        || k[7].abs() > K_TOLERANCE
+        || (k[8] - 1.0).abs() > K_TOLERANCE
+    {
+        return Err(Error::parse(
+            file,
+            Some(lineno),
+            "K must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)",
+        ));
+    }
+    let image_path = dir.join(&name);
+    within.check(file, &format!("line {lineno}: image '{name}'"), &image_path)?;
+    let (w, h) = super::image_size(&image_path)?;
+    let intrinsics = Intrinsics::pinhole(k[0], k[4], k[2], k[5], w, h);
+    let r = &vals[9..18];
+    let rot = DMat3::from_cols(
+        DVec3::new(r[0], r[3], r[6]),
+        DVec3::new(r[1], r[4], r[7]),
+        DVec3::new(r[2], r[5], r[8]),
+    );
+    let t = DVec3::new(vals[18], vals[19], vals[20]);
+    make_view(
+        file,
+        &name,
+        image_path,
+        intrinsics,
+        WorldToCamera::new_checked(rot, t),
+        None,
+    )
 }
 
 /// The eight corners of the bounding box stated in `dir/README.txt`, if it states one. A
