@@ -1,5 +1,6 @@
 //! Untrusted input beyond the readers' corpus (`bad_input.rs`): interrupted runs leave no
-//! staging folder, held-out views are named as such, `forward` refuses non-finite inputs,
+//! staging folder, held-out views are named as such, `forward` refuses non-finite inputs, a
+//! broken weights entry is named,
 //! a README whose bounding box cannot be read is named in a warning. Each case states what
 //! the command must print.
 
@@ -221,4 +222,47 @@ fn an_unreadable_bounding_box_is_named_in_a_warning() {
         res.stderr
     );
     assert!(res.stderr.contains("warning"), "{}", res.stderr);
+}
+
+/// A weights file whose header entry for `colour.out.bias` is broken (its data cut short,
+/// leaving a gap before `colour.out.weight`) is refused naming the broken entry, not only
+/// the tensor after it, and nothing is written.
+#[test]
+fn a_broken_weights_entry_is_named() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let scene = synth_scene(tmp.path(), (40, 32), 5, 13, &[]);
+    let asset = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../deepstereo-train/assets/nviews-disagree-scratch.safetensors");
+    let bytes = std::fs::read(&asset).expect("the shipped weights");
+    let n = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")) as usize;
+    let mut header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).expect("header");
+    let bias = &mut header["colour.out.bias"];
+    let begin = bias["data_offsets"][0].as_u64().expect("offset");
+    bias["shape"] = serde_json::json!([2]);
+    bias["data_offsets"] = serde_json::json!([begin, begin + 8]);
+    let head = serde_json::to_vec(&header).expect("json");
+    let mut broken = (head.len() as u64).to_le_bytes().to_vec();
+    broken.extend(head);
+    broken.extend(&bytes[8 + n..]);
+    let model = tmp.path().join("broken.safetensors");
+    std::fs::write(&model, broken).expect("write");
+    let out = tmp.path().join("out");
+    let res = run_deepstereo([
+        "render",
+        "--scene",
+        &scene.to_string_lossy(),
+        "--target",
+        "0",
+        "--model",
+        &model.to_string_lossy(),
+        "--out",
+        &out.to_string_lossy(),
+    ]);
+    assert_ne!(res.code, Some(0));
+    assert!(
+        res.stderr.contains("broken.safetensors") && res.stderr.contains("'colour.out.bias'"),
+        "{}",
+        res.stderr
+    );
+    assert!(!out.exists(), "an output was written");
 }
