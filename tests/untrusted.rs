@@ -1,8 +1,7 @@
 //! Untrusted input beyond the readers' corpus (`bad_input.rs`): interrupted runs leave no
 //! staging folder, held-out views are named as such, `forward` refuses non-finite inputs, a
-//! broken weights entry is named,
-//! a README whose bounding box cannot be read is named in a warning. Each case states what
-//! the command must print.
+//! broken weights entry is named, and a README whose bounding box cannot be read is named
+//! in a warning. Each case states what the command must print.
 
 use deepstereo_tests::*;
 use std::path::{Path, PathBuf};
