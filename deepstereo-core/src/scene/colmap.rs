@@ -112,39 +112,7 @@ pub fn read(dir: &Path, within: &Within) -> Result<RawScene> {
         parse_points3d_txt(&pts_file, &read_file(&pts_file)?)?
     };
 
-    let mut views: Vec<View> = Vec::with_capacity(images.len());
-    for img in images {
-        let intrinsics = *cameras.get(&img.camera_id).ok_or_else(|| {
-            Error::parse(
-                &img_file,
-                img.line,
-                format!(
-                    "image '{}' uses camera {} which is not in {}",
-                    img.name,
-                    img.camera_id,
-                    cam_file.display()
-                ),
-            )
-        })?;
-        let entry = match img.line {
-            Some(l) => format!("line {l}: image '{}'", img.name),
-            None => format!("image '{}'", img.name),
-        };
-        let image_path = find_image(dir, &img.name, |p| within.check(&img_file, &entry, p))?
-            .ok_or_else(|| {
-                Error::image(
-                    dir.join("images").join(&img.name),
-                    format!(
-                        "image '{}' listed in {} not found in images/ or the scene directory",
-                        img.name,
-                        img_file.display()
-                    ),
-                )
-            })?;
-        views.push(make_view(
-            &img_file, &img.name, image_path, intrinsics, img.pose, None,
-        )?);
-    }
+    let mut views = views_of((dir, within), (&img_file, &cam_file), images, &cameras)?;
     views.sort_by(|a, b| a.name.cmp(&b.name));
     if let Some(w) = views
         .windows(2)
@@ -162,6 +130,50 @@ pub fn read(dir: &Path, within: &Within) -> Result<RawScene> {
         points,
         notes: vec![format!("COLMAP: model in {}", model.display())],
     })
+}
+
+/// The views of `images`, their cameras from `cameras` and their images found (inside
+/// `within`) in `images/` or the scene directory; errors name `img_file` and `cam_file`.
+fn views_of(
+    (dir, within): (&Path, &Within),
+    (img_file, cam_file): (&Path, &Path),
+    images: Vec<ImageEntry>,
+    cameras: &HashMap<u32, Intrinsics>,
+) -> Result<Vec<View>> {
+    let mut views: Vec<View> = Vec::with_capacity(images.len());
+    for img in images {
+        let intrinsics = *cameras.get(&img.camera_id).ok_or_else(|| {
+            Error::parse(
+                img_file,
+                img.line,
+                format!(
+                    "image '{}' uses camera {} which is not in {}",
+                    img.name,
+                    img.camera_id,
+                    cam_file.display()
+                ),
+            )
+        })?;
+        let entry = match img.line {
+            Some(l) => format!("line {l}: image '{}'", img.name),
+            None => format!("image '{}'", img.name),
+        };
+        let image_path = find_image(dir, &img.name, |p| within.check(img_file, &entry, p))?
+            .ok_or_else(|| {
+                Error::image(
+                    dir.join("images").join(&img.name),
+                    format!(
+                        "image '{}' listed in {} not found in images/ or the scene directory",
+                        img.name,
+                        img_file.display()
+                    ),
+                )
+            })?;
+        views.push(make_view(
+            img_file, &img.name, image_path, intrinsics, img.pose, None,
+        )?);
+    }
+    Ok(views)
 }
 
 /// The image `name` in `images/` or else in the scene directory; each candidate passes

@@ -104,19 +104,7 @@ pub fn parse_transforms(file: &Path, bytes: &[u8], within: &Within) -> Result<Ra
         let frame = frame
             .as_object()
             .ok_or_else(|| ferr("must be an object".into()))?;
-        let rel = match frame.get("file_path") {
-            Some(Value::String(s)) if !s.is_empty() => s.as_str(),
-            Some(_) => return Err(ferr("'file_path' must be a non-empty string".into())),
-            None => return Err(ferr("missing 'file_path'".into())),
-        };
-        let entry = format!("frame {i}: file_path '{rel}'");
-        let image_path =
-            find_image(base, rel, |p| within.check(&file, &entry, p))?.ok_or_else(|| {
-                Error::image(
-                    base.join(rel),
-                    format!("{fname}: frame {i}: image not found (also tried .png/.jpg/.jpeg)"),
-                )
-            })?;
+        let (rel, image_path) = frame_image((&file, base, within), i, frame)?;
         let intrinsics = intrinsics(top, frame, &image_path).map_err(ferr)?;
         let shutter = rolling_shutter(top, frame).map_err(ferr)?;
         let start_key = if frame.contains_key("transform_matrix_start") {
@@ -331,6 +319,30 @@ fn intrinsics(
     let mut k = Intrinsics::pinhole(fx, fy, cx, cy, w, h);
     k.distortion = (!d.is_zero()).then_some(d);
     Ok(k)
+}
+
+/// Frame `i`'s `file_path` and the image it names (relative to `base`, the folder of the
+/// JSON `file`; it must resolve inside `within`).
+fn frame_image<'a>(
+    (file, base, within): (&Path, &Path, &Within),
+    i: usize,
+    frame: &'a Map<String, Value>,
+) -> Result<(&'a str, PathBuf)> {
+    let ferr = |msg: &str| Error::parse(file, None, format!("frame {i}: {msg}"));
+    let rel = match frame.get("file_path") {
+        Some(Value::String(s)) if !s.is_empty() => s.as_str(),
+        Some(_) => return Err(ferr("'file_path' must be a non-empty string")),
+        None => return Err(ferr("missing 'file_path'")),
+    };
+    let entry = format!("frame {i}: file_path '{rel}'");
+    let fname = file.file_name().unwrap_or_default().to_string_lossy();
+    let image = find_image(base, rel, |p| within.check(file, &entry, p))?.ok_or_else(|| {
+        Error::image(
+            base.join(rel),
+            format!("{fname}: frame {i}: image not found (also tried .png/.jpg/.jpeg)"),
+        )
+    })?;
+    Ok((rel, image))
 }
 
 /// The image of a `file_path`, trying the usual extensions when it names no file; each
