@@ -30,11 +30,6 @@ impl Within {
         Self { root: None }
     }
 
-    /// The scene directory the files must stay in (`None`: anywhere).
-    pub fn root(&self) -> Option<&Path> {
-        self.root.as_deref()
-    }
-
     /// Checks that `path`, named by `entry` of the scene file `file`, resolves inside the
     /// scene; the error names the file, the entry and the path.
     pub fn check(&self, file: &Path, entry: &str, path: &Path) -> Result<()> {

@@ -66,16 +66,17 @@ impl SceneArgs {
     /// Loads the scene at the working resolution ([`Self::working_options`]), printing the
     /// reader's notes.
     pub fn load_working(&self) -> anyhow::Result<Scene> {
-        let scene = Scene::load(&self.scene, &self.working_options())?;
-        for n in &scene.notes {
-            eprintln!("note: {n}");
-        }
-        Ok(scene)
+        self.load_with(&self.working_options())
     }
 
     /// Loads the scene, printing the reader's notes to stderr.
     pub fn load(&self) -> anyhow::Result<Scene> {
-        let scene = Scene::load(&self.scene, &self.options())?;
+        self.load_with(&self.options())
+    }
+
+    /// Loads the scene with `opts`, printing the reader's notes to stderr.
+    fn load_with(&self, opts: &LoadOptions) -> anyhow::Result<Scene> {
+        let scene = Scene::load(&self.scene, opts)?;
         for n in &scene.notes {
             eprintln!("note: {n}");
         }
