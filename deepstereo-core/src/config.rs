@@ -26,6 +26,11 @@ const fn c(kernel: usize, channels: usize) -> Conv {
     Conv { kernel, channels }
 }
 
+/// A 3x3 convolution of `channels`.
+const fn c3(channels: usize) -> Conv {
+    c(3, channels)
+}
+
 /// The 2D part of a tower: per-level convolutions (own weights per level, shared across
 /// planes), then, after nearest upsampling and concatenation, the merge convolutions.
 /// All are followed by ReLU.
@@ -127,6 +132,44 @@ pub struct ViewPool {
     /// (models trained before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub disagree: Option<ViewDisagree>,
+    /// The `features` family: a CNN run once on each source image at each level
+    /// ([`crate::features`]), its maps warped into the sweep after each view's RGBA and
+    /// cue, and read by the encoder beside the colours. `None`: the sweep's RGBA alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub features: Option<SourceFeatures>,
+}
+
+/// The per-source feature CNN ([`ViewPool::features`], [`crate::features::FeatureNet`]):
+/// valid `k x k` convolutions on the image zero-padded by [`Self::radius`], ReLU after all
+/// but the last; weights shared across views and levels.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SourceFeatures {
+    pub convs: Vec<Conv>,
+}
+
+impl SourceFeatures {
+    /// Pixels each side a feature reads beyond its own: `sum (k - 1) / 2`.
+    pub fn radius(&self) -> usize {
+        self.convs.iter().map(|c| c.kernel / 2).sum()
+    }
+    /// Channels of a feature map.
+    pub fn channels(&self) -> usize {
+        self.convs.last().map_or(0, |c| c.channels)
+    }
+    /// Checks the layers: at least one, odd kernels, channels within bounds.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.convs.is_empty() || self.convs.len() > MAX_CONVS {
+            return Err(format!("pool.features: 1 to {MAX_CONVS} convolutions"));
+        }
+        match self.convs.iter().find(|c| {
+            c.kernel % 2 == 0 || c.kernel > MAX_KERNEL || c.channels == 0 || c.channels > MAX_CHANNELS
+        }) {
+            Some(c) => Err(format!(
+                "pool.features: kernels must be odd and at most {MAX_KERNEL}, channels 1 to {MAX_CHANNELS}, got {c:?}"
+            )),
+            None => Ok(()),
+        }
+    }
 }
 
 /// The cue's disagreement channel ([`ViewPool::disagree`]): references are the `near`
@@ -185,7 +228,11 @@ pub const BLEND_LOGIT_BOUND: f64 = 20.0;
 impl ViewPool {
     /// Channels of the encoder's input: [`ENCODER_IN`], plus [`CUE_CHANNELS`] with the cue.
     pub fn encoder_in(&self) -> usize {
-        ENCODER_IN + if self.cue { CUE_CHANNELS } else { 0 }
+        ENCODER_IN + if self.cue { CUE_CHANNELS } else { 0 } + self.feature_channels()
+    }
+    /// Channels of each view's warped source features ([`Self::features`]; 0 without).
+    pub fn feature_channels(&self) -> usize {
+        self.features.as_ref().map_or(0, SourceFeatures::channels)
     }
     /// Whether the model reads each view's cue (in its encoder, or to weigh the views).
     pub fn reads_cue(&self) -> bool {
@@ -201,12 +248,12 @@ impl ViewPool {
             self.cue_channels()
         } else {
             0
-        }
+        } + self.feature_channels()
     }
     /// Channels of one view the encoder reads: RGBA, then the cue with [`Self::cue`]
     /// (with [`Self::weigh`], the weighed RGBA alone).
     pub fn encoder_view_channels(&self) -> usize {
-        4 + if self.cue { CUE_CHANNELS } else { 0 }
+        4 + if self.cue { CUE_CHANNELS } else { 0 } + self.feature_channels()
     }
     /// Channels of one view's features `e_v`.
     pub fn features(&self) -> usize {
@@ -347,6 +394,7 @@ impl Config {
                 weigh: None,
                 agree: None,
                 disagree: None,
+                features: None,
             }),
         }
     }
@@ -389,14 +437,40 @@ impl Config {
         c
     }
 
+    /// [`Self::nviews_disagree`] reading each source once: a feature CNN per source image
+    /// and level ([`ViewPool::features`]: three 3x3 layers of 16 and one of 8, radius 4,
+    /// so 9 pixels at each level and 36 at level 2 in full-resolution pixels), its maps
+    /// warped beside the RGBA, and an encoder of 8 then 6 channels reading them.
+    pub fn nviews_features() -> Self {
+        let mut c = Self::nviews_disagree();
+        c.name = "nviews-features".into();
+        if let Some(p) = c.pool.as_mut() {
+            p.features = Some(SourceFeatures {
+                convs: vec![c3(16), c3(16), c3(16), c3(8)],
+            });
+            p.encoder = vec![
+                Conv {
+                    kernel: 1,
+                    channels: 8,
+                },
+                Conv {
+                    kernel: 1,
+                    channels: 6,
+                },
+            ];
+        }
+        c
+    }
+
     /// The presets' names, as [`Self::preset`] takes them.
-    pub const PRESETS: [&'static str; 6] = [
+    pub const PRESETS: [&'static str; 7] = [
         "tiny",
         "paper",
         "nviews",
         "nviews-cue",
         "nviews-weigh",
         "nviews-disagree",
+        "nviews-features",
     ];
 
     /// A preset by name.
@@ -408,6 +482,7 @@ impl Config {
             "nviews-cue" => Some(Self::nviews_cue()),
             "nviews-weigh" => Some(Self::nviews_weigh()),
             "nviews-disagree" => Some(Self::nviews_disagree()),
+            "nviews-features" => Some(Self::nviews_features()),
             _ => None,
         }
     }
@@ -597,6 +672,9 @@ impl Config {
                 return Err(
                     "pool: colour_skip must be false (the blend feeds the source colours)".into(),
                 );
+            }
+            if let Some(f) = &pool.features {
+                f.validate()?;
             }
         }
         if self.depth_convs.last().map(|c| c.channels) != Some(1) {

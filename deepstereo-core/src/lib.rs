@@ -15,6 +15,7 @@ pub mod baseline;
 pub mod config;
 pub mod conv;
 mod cpu;
+pub mod features;
 pub mod fused;
 pub mod geometry;
 pub mod inputs;

@@ -515,6 +515,7 @@ mod tests {
             weigh: None,
             agree: None,
             disagree: None,
+            features: None,
         };
         let vm = candle_nn::VarMap::new();
         let enc = ViewEncoder::new(

@@ -164,31 +164,42 @@ fn warp_slice(h: &glam::DMat3, rays: &[DVec2], src: &Source<'_>, out: &mut [f32]
     let (r_out, rest) = out.split_at_mut(hw);
     let (g_out, rest) = rest.split_at_mut(hw);
     let (b_out, a_out) = rest.split_at_mut(hw);
-    let intr = &src.camera.intrinsics;
+    project_slice(h, rays, &src.camera.intrinsics, |i, uv| {
+        let rgba = uv.map_or([0.0; 4], |uv| sample_bilinear(src.image, uv.x, uv.y));
+        r_out[i] = rgba[0];
+        g_out[i] = rgba[1];
+        b_out[i] = rgba[2];
+        a_out[i] = rgba[3];
+    });
+}
+
+/// Calls `each(i, uv)` for every ray `rays[i]` (normalized target coordinates) with the
+/// source pixel coordinate `uv` its point on the plane of homography `h` projects to, or
+/// `None` where the point is not in front of the source (`q.z > IN_FRONT_EPS |q|`) or lies
+/// beyond the range where the lens distortion is monotonic.
+#[inline(always)]
+pub(crate) fn project_slice(
+    h: &glam::DMat3,
+    rays: &[DVec2],
+    intr: &Intrinsics,
+    mut each: impl FnMut(usize, Option<DVec2>),
+) {
     let max_r2 = intr.distortion.map_or(f64::INFINITY, |d| d.max_radius2());
     let eps2 = IN_FRONT_EPS * IN_FRONT_EPS;
     for (i, ray) in rays.iter().enumerate() {
         let q = apply_h(h, ray.x, ray.y);
         // In front: q.z > IN_FRONT_EPS * |q|, compared squared.
-        let rgba = if q.z > 0.0 && q.z * q.z > eps2 * q.length_squared() {
+        let uv = if q.z > 0.0 && q.z * q.z > eps2 * q.length_squared() {
             let inv_z = 1.0 / q.z;
             let n = DVec2::new(q.x * inv_z, q.y * inv_z);
-            if n.length_squared() < max_r2 {
-                let uv = match &intr.distortion {
-                    None => DVec2::new(intr.fx * n.x + intr.cx, intr.fy * n.y + intr.cy),
-                    Some(_) => intr.project_normalized(n),
-                };
-                sample_bilinear(src.image, uv.x, uv.y)
-            } else {
-                [0.0; 4]
-            }
+            (n.length_squared() < max_r2).then(|| match &intr.distortion {
+                None => DVec2::new(intr.fx * n.x + intr.cx, intr.fy * n.y + intr.cy),
+                Some(_) => intr.project_normalized(n),
+            })
         } else {
-            [0.0; 4]
+            None
         };
-        r_out[i] = rgba[0];
-        g_out[i] = rgba[1];
-        b_out[i] = rgba[2];
-        a_out[i] = rgba[3];
+        each(i, uv);
     }
 }
 
@@ -259,6 +270,7 @@ pub fn sample_bilinear(img: &RgbImage, u: f64, v: f64) -> [f32; 4] {
     acc.map(|v| v as f32)
 }
 
+pub mod coords;
 pub mod cue;
 pub mod rolling;
 #[cfg(test)]

@@ -79,6 +79,7 @@ fn encoder_with(channels: &[usize], cue: bool) -> Result<(ViewEncoder, VarMap)> 
         weigh: None,
         agree: None,
         disagree: None,
+        features: None,
     };
     let vm = VarMap::new();
     let enc = ViewEncoder::new(

@@ -44,6 +44,7 @@ fn small() -> Config {
             weigh: None,
             agree: None,
             disagree: None,
+            features: None,
         }),
     }
 }

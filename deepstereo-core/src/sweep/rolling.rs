@@ -76,7 +76,24 @@ pub(super) fn sweep_rolling_into(
 /// Warps one source at one plane into `out` (`[4, h, w]`) through per-pixel projection.
 fn rolling_slice(world: &[(DVec3, DVec3)], rho: f64, src: &Source<'_>, out: &mut [f32]) {
     let hw = world.len();
-    let cam = src.camera;
+    project_rolling(world, rho, src.camera, |i, uv| {
+        let rgba = uv.map_or([0.0; 4], |uv| sample_bilinear(src.image, uv.x, uv.y));
+        for (ch, val) in rgba.into_iter().enumerate() {
+            out[ch * hw + i] = val;
+        }
+    });
+}
+
+/// Calls `each(i, uv)` for every world ray `world[i]` with the pixel coordinate `uv` in
+/// `cam` of its point on the plane at inverse depth `rho`, or `None` where there is no
+/// projection (behind the camera, beyond the distortion's monotonic range, or no
+/// rolling-shutter solution).
+pub(crate) fn project_rolling(
+    world: &[(DVec3, DVec3)],
+    rho: f64,
+    cam: &Camera,
+    mut each: impl FnMut(usize, Option<DVec2>),
+) {
     let intr = &cam.intrinsics;
     let projector = RollingProjector::new(cam);
     let (r, c) = (cam.pose.rotation, cam.pose.centre());
@@ -97,9 +114,6 @@ fn rolling_slice(world: &[(DVec3, DVec3)], rho: f64, src: &Source<'_>, out: &mut
                 }
             }
         };
-        let rgba = uv.map_or([0.0; 4], |uv| sample_bilinear(src.image, uv.x, uv.y));
-        for (ch, val) in rgba.into_iter().enumerate() {
-            out[ch * hw + i] = val;
-        }
+        each(i, uv);
     }
 }
