@@ -4,7 +4,8 @@
 
 use crate::config::Config;
 use crate::error::{Error, Result};
-use crate::inputs::TileInputs;
+use crate::features::FeatureNet;
+use crate::inputs::{PyramidSource, TileInputs};
 use crate::model::DeepStereo;
 use crate::prior::PriorGrid;
 use candle_core::{Device, Tensor};
@@ -34,6 +35,42 @@ pub trait Backend: Sync {
     fn prior(&self) -> Option<&PriorGrid> {
         None
     }
+    /// The `features` family's per-source CNN, run on each source image before the
+    /// network ([`PyramidSource::with_features`]); `None` for other models.
+    fn feature_net(&self) -> Option<&FeatureNet> {
+        None
+    }
+}
+
+/// `sources` with the feature maps the backend's model reads, where some lack them:
+/// `None` when the model reads none or every source has them.
+pub fn missing_features(
+    backend: &dyn Backend,
+    sources: &[&PyramidSource],
+) -> Result<Option<Vec<PyramidSource>>> {
+    let levels = backend.config().levels;
+    let wanted = backend
+        .config()
+        .pool
+        .as_ref()
+        .is_some_and(|p| p.features.is_some());
+    if !wanted || sources.iter().all(|s| s.features.len() >= levels) {
+        return Ok(None);
+    }
+    let Some(net) = backend.feature_net() else {
+        return Err(Error::Invalid(format!(
+            "the {} backend cannot compute the model's source features",
+            backend.name()
+        )));
+    };
+    let with = sources
+        .iter()
+        .map(|&s| match s.features.len() >= levels {
+            true => Ok(s.clone()),
+            false => s.clone().with_features(net),
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok(Some(with))
 }
 
 /// The candle backend (CPU, f32).
@@ -60,6 +97,9 @@ impl Backend for CandleBackend {
     }
     fn prior(&self) -> Option<&PriorGrid> {
         self.model.prior()
+    }
+    fn feature_net(&self) -> Option<&FeatureNet> {
+        self.model.feature_net()
     }
 }
 

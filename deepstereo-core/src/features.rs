@@ -28,6 +28,7 @@ use std::sync::Arc;
 pub struct FeatureNet {
     convs: Vec<Conv2d>,
     radius: usize,
+    channels: usize,
 }
 
 impl FeatureNet {
@@ -41,7 +42,13 @@ impl FeatureNet {
         Ok(Self {
             convs,
             radius: cfg.radius(),
+            channels: cfg.channels(),
         })
+    }
+
+    /// Channels `F` of a feature map.
+    pub fn channels(&self) -> usize {
+        self.channels
     }
 
     /// The border `R` each side that the valid convolutions consume.
@@ -168,25 +175,24 @@ fn taps_of(u: f64, v: f64, (img_w, img_h): (i64, i64), window: Window) -> Option
     Some(taps)
 }
 
-/// The image pixels the taps of `coords` (`[2, P]`: all `u`, then all `v`) read in an
-/// image of `img_w x img_h`: the smallest window holding them, `None` when they read none.
-pub fn tap_window(coords: &[f64], (img_w, img_h): (usize, usize)) -> Option<Window> {
-    let p = coords.len() / 2;
-    let (us, vs) = coords.split_at(p);
+/// The image pixels the taps of `coords` (`[D, 2, P]`: per plane all `u`, then all `v`)
+/// read in an image of `img_w x img_h`: the smallest window holding them, `None` when they
+/// read none.
+pub fn tap_window(coords: &[f64], pixels: usize, (img_w, img_h): (usize, usize)) -> Option<Window> {
     let (iw, ih) = (img_w as i64, img_h as i64);
     let mut lo = (i64::MAX, i64::MAX);
     let mut hi = (i64::MIN, i64::MIN);
-    for (&u, &v) in us.iter().zip(vs) {
-        let (sx, sy) = (u - 0.5, v - 0.5);
-        if !(sx > -1.0 && sy > -1.0 && sx < iw as f64 && sy < ih as f64) {
-            continue;
+    for plane in coords.chunks_exact(2 * pixels.max(1)) {
+        let (us, vs) = plane.split_at(pixels);
+        for (&u, &v) in us.iter().zip(vs) {
+            let (sx, sy) = (u - 0.5, v - 0.5);
+            if !(sx > -1.0 && sy > -1.0 && sx < iw as f64 && sy < ih as f64) {
+                continue;
+            }
+            let (x0, y0) = (sx.floor() as i64, sy.floor() as i64);
+            lo = (lo.0.min(x0.max(0)), lo.1.min(y0.max(0)));
+            hi = (hi.0.max((x0 + 1).min(iw - 1)), hi.1.max((y0 + 1).min(ih - 1)));
         }
-        let (x0, y0) = (sx.floor() as i64, sy.floor() as i64);
-        lo = (lo.0.min(x0.max(0)), lo.1.min(y0.max(0)));
-        hi = (
-            hi.0.max((x0 + 1).min(iw - 1)),
-            hi.1.max((y0 + 1).min(ih - 1)),
-        );
     }
     (lo.0 <= hi.0 && lo.1 <= hi.1).then(|| Window {
         x0: lo.0,

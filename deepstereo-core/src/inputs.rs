@@ -14,6 +14,7 @@
 use crate::camera::Camera;
 use crate::config::{Config, CUE_CHANNELS, MAX_VIEWS};
 use crate::error::{Error, Result};
+use crate::features::{FeatureMap, FeatureNet};
 use crate::imageio::RgbImage;
 use crate::sweep::cue::{centre_in, cue_slice, CueRays};
 use crate::sweep::{alloc_volume, sweep_into, target_rays, Region, Source, CHANNELS};
@@ -26,6 +27,9 @@ pub struct PyramidSource {
     /// `cameras[l]`: the camera of pyramid level `l` (intrinsics divided by `2^l`).
     pub cameras: Vec<Camera>,
     pub images: Vec<RgbImage>,
+    /// `features[l]`: the `features` family's map of `images[l]`
+    /// ([`PyramidSource::with_features`]); empty until computed.
+    pub features: Vec<FeatureMap>,
 }
 
 impl PyramidSource {
@@ -37,7 +41,21 @@ impl PyramidSource {
             .enumerate()
             .map(|(l, img)| level_camera(camera, l, img.width, img.height))
             .collect();
-        Self { cameras, images }
+        Self {
+            cameras,
+            images,
+            features: Vec::new(),
+        }
+    }
+
+    /// This source with the feature map of every level from `net`: the CNN runs once
+    /// per level image (the `features` family's "read each source once").
+    pub fn with_features(mut self, net: &FeatureNet) -> Result<Self> {
+        self.features = (self.images.iter())
+            .map(|img| net.image_features(img, &candle_core::Device::Cpu))
+            .collect::<candle_core::Result<_>>()
+            .map_err(|e| Error::Invalid(format!("source features: {e}")))?;
+        Ok(self)
     }
 
     /// Level `l` as a source for the plane sweep (its camera and image); `l` must be one
@@ -68,9 +86,12 @@ impl PyramidSource {
         Self {
             cameras: vec![*camera; levels.max(1)],
             images: vec![RgbImage::new(0, 0); levels.max(1)],
+            features: Vec::new(),
         }
     }
 }
+
+pub mod features;
 
 /// The camera of level `l` (`1 / 2^l` resolution) with the given image size.
 pub fn level_camera(camera: &Camera, l: usize, width: u32, height: u32) -> Camera {
@@ -118,6 +139,24 @@ pub fn check_tile(cfg: &Config, x0: i64, y0: i64, th: usize, tw: usize) -> Resul
 
 /// Builds every level's plane sweep for the output tile at `(x0, y0)` of `th x tw` pixels.
 pub fn tile_inputs(
+    cfg: &Config,
+    target: &Camera,
+    sources: &[&PyramidSource],
+    inv_depths: &[f64],
+    origin: (i64, i64),
+    size: (usize, usize),
+) -> Result<TileInputs> {
+    let mut inputs = tile_inputs_without_features(cfg, target, sources, inv_depths, origin, size)?;
+    let f = cfg.pool.as_ref().map_or(0, |p| p.feature_channels());
+    if f > 0 {
+        features::append_warped(cfg, &mut inputs, (target, sources, inv_depths), origin, f)?;
+    }
+    Ok(inputs)
+}
+
+/// [`tile_inputs`] without the `features` family's warped maps: `[D, V, C_v - F, h_l, w_l]`
+/// per level (training adds them in its graph, [`features::TileWarps`]).
+pub fn tile_inputs_without_features(
     cfg: &Config,
     target: &Camera,
     sources: &[&PyramidSource],
@@ -202,7 +241,7 @@ pub fn tile_inputs(
         levels,
         sizes,
         views: sources.len(),
-        channels: cfg.view_channels(),
+        channels: cfg.view_channels() - cfg.pool.as_ref().map_or(0, |p| p.feature_channels()),
     })
 }
 

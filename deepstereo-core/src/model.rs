@@ -18,6 +18,7 @@
 
 use crate::config::{Config, TowerConfig};
 use crate::conv::{depth_head, pointwise_colours, Conv2d};
+use crate::features::FeatureNet;
 pub use crate::fused::upsample_nearest;
 use crate::fused::{composite, pad_rows, select_softmax, upsample_cat, upsample_crop};
 use crate::pool::{rgba, view_dims, Blend, ViewEncoder, ViewWeigh};
@@ -147,6 +148,10 @@ pub struct DeepStereo {
     pool: Option<(ViewEncoder, Blend)>,
     /// The cue's view weights ([`crate::config::ViewPool::weigh`]).
     weigh: Option<ViewWeigh>,
+    /// The `features` family's per-source CNN ([`crate::features`]); its warped maps
+    /// are part of the inputs ([`Self::forward`]), the network run once per source image
+    /// by whoever builds them ([`crate::inputs::PyramidSource::with_features`], training).
+    features: Option<FeatureNet>,
     /// A scene's selection prior (`deepstereo tune`), applied by the renderers outside
     /// the network ([`crate::prior`]); not part of the ONNX graph.
     prior: Option<std::sync::Arc<crate::prior::PriorGrid>>,
@@ -204,6 +209,10 @@ impl DeepStereo {
             )?),
             None => None,
         };
+        let features = match cfg.pool.as_ref().and_then(|p| p.features.as_ref()) {
+            Some(f) => Some(FeatureNet::new(f, vb.pp("features"))?),
+            None => None,
+        };
         Ok(Self {
             cfg: cfg.clone(),
             select,
@@ -213,12 +222,18 @@ impl DeepStereo {
             colour_out,
             pool,
             weigh,
+            features,
             prior: None,
         })
     }
 
     pub fn config(&self) -> &Config {
         &self.cfg
+    }
+
+    /// The per-source feature CNN of the `features` family.
+    pub fn feature_net(&self) -> Option<&FeatureNet> {
+        self.features.as_ref()
     }
 
     /// The scene prior the model carries (a tuned model), if any.
@@ -259,17 +274,12 @@ impl DeepStereo {
         if inputs.len() != cfg.levels {
             candle_core::bail!("expected {} input levels, got {}", cfg.levels, inputs.len());
         }
-        // With the cue's view weights, every level's alpha weighed first: [B, D, V, 4, H_l, W_l].
+        // With the cue's view weights, every level's alpha weighed first: [B, D, V, 4, H_l, W_l]
+        // (then the warped source features, [B, D, V, 4 + F, H_l, W_l]).
         let weighed = match &self.weigh {
             Some(weigh) => Some(
                 (inputs.iter())
-                    .map(|x| {
-                        if fuse {
-                            weigh.infer(x)
-                        } else {
-                            weigh.forward(x)
-                        }
-                    })
+                    .map(|x| self.weigh_level(weigh, x, fuse))
                     .collect::<Result<Vec<_>>>()?,
             ),
             None => None,
@@ -307,6 +317,24 @@ impl DeepStereo {
             selection,
             colours,
         })
+    }
+
+    /// One input level `x` `[B, D, V, 4 + K (+ F), H, W]` with each view's alpha weighed by
+    /// its cue: `[B, D, V, 4 (+ F), H, W]`, the source features `F` (after the cue) kept.
+    fn weigh_level(&self, weigh: &ViewWeigh, x: &Tensor, fuse: bool) -> Result<Tensor> {
+        let f = self.cfg.pool.as_ref().map_or(0, |p| p.feature_channels());
+        let base = match f {
+            0 => x.clone(),
+            _ => x.narrow(3, 0, x.dim(3)? - f)?.contiguous()?,
+        };
+        let w = match fuse {
+            true => weigh.infer(&base)?,
+            false => weigh.forward(&base)?,
+        }; // [B, D, V, 4, H, W]
+        match f {
+            0 => Ok(w),
+            _ => Tensor::cat(&[&w, &x.narrow(3, x.dim(3)? - f, f)?], 3),
+        }
     }
 
     /// The towers' input per level, `[B, D, C, H_l, W_l]`: the sweep itself (paper

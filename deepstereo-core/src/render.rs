@@ -57,6 +57,13 @@ pub fn render_view_pruned(
         target.intrinsics.height as usize,
     );
     let tile = backend.config().tile_side(tile, (w, h));
+    let computed = crate::backend::missing_features(backend, sources)?;
+    let refs: Vec<&PyramidSource> = computed.iter().flatten().collect();
+    let sources = if computed.is_some() {
+        &refs[..]
+    } else {
+        sources
+    };
     let d = inv_depths.len();
     if d == 0 {
         return Err(Error::Invalid("at least one depth plane is needed".into()));

@@ -66,7 +66,7 @@ fn warping_the_image_as_a_map_gives_the_sweep() -> Result<()> {
         height: h as usize,
     };
     let p = region.len();
-    for window in [Some(whole), tap_window(&coords, (w as usize, h as usize))] {
+    for window in [Some(whole), tap_window(&coords, region.len(), (w as usize, h as usize))] {
         let window = window.expect("the planes see the source");
         let map = padded_crop(&img, window);
         let op = FeatureWarp::new(&coords, planes.len(), (w as usize, h as usize), window)?;
@@ -163,7 +163,7 @@ fn warp_gradient_matches_finite_differences() -> Result<()> {
     };
     let planes = [0.1, 0.9];
     let coords = sweep_coords(&target, region, &[&source], &planes);
-    let window = tap_window(&coords, (w as usize, h as usize)).expect("taps");
+    let window = tap_window(&coords, region.len(), (w as usize, h as usize)).expect("taps");
     let op = FeatureWarp::new(&coords, planes.len(), (w as usize, h as usize), window)?;
     let c = 2;
     let n = c * window.width * window.height;

@@ -89,7 +89,11 @@ pub fn network_guide(
             img = img.downsample2();
         }
         let camera = level_camera(&s.cameras[0], level, img.width, img.height);
-        pyr.push(PyramidSource::new(&camera, &img, cfg.levels));
+        let source = PyramidSource::new(&camera, &img, cfg.levels);
+        pyr.push(match (backend.feature_net(), cfg.pool.as_ref()) {
+            (Some(net), Some(p)) if p.features.is_some() => source.with_features(net)?,
+            _ => source,
+        });
     }
     let srcs: Vec<&PyramidSource> = pyr.iter().collect();
     let (z0, z1) = range;
