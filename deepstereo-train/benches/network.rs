@@ -223,7 +223,7 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
     };
     let scenes = synth_scenes(4, 1, &opts, cfg.levels)?;
     let b = make_batch(&cfg, &Sampling::fixed(&cfg), &scenes, 9, 0, batch)?;
-    let (x, y) = batch_tensors(&b, &Device::Cpu)?;
+    let (x, y) = batch_tensors(&t.model, &b, &Device::Cpu)?;
     let mut train_arrays: Vec<NamedArray> = b
         .levels
         .iter()

@@ -38,7 +38,7 @@ fn bench(cfg: &Config, batch: usize, reps: usize) -> Result<()> {
     let mut fwd_t = Vec::new();
     for b in 0..reps as u64 {
         let batch_data = make_batch(cfg, &Sampling::fixed(cfg), &scenes, 9, b, batch)?;
-        let (x, y) = batch_tensors(&batch_data, &Device::Cpu)?;
+        let (x, y) = batch_tensors(&t.model, &batch_data, &Device::Cpu)?;
         let t0 = Instant::now();
         let out = t.model.forward(&x)?;
         let loss = l1_loss(&out.image, &y)?;

@@ -41,6 +41,7 @@ fn main() -> Result<()> {
         let scenes = synth_scenes(4, 1, &opts, cfg.levels)?;
         let batch = if name == "paper" { 1 } else { 8 };
         let (x, y) = batch_tensors(
+            &t.model,
             &make_batch(&cfg, &Sampling::fixed(&cfg), &scenes, 9, 0, batch)?,
             &Device::Cpu,
         )?;

@@ -13,7 +13,8 @@ use deepstereo_core::camera::Camera;
 use deepstereo_core::config::Config;
 use deepstereo_core::geometry::inverse_depths;
 use deepstereo_core::imageio::RgbImage;
-use deepstereo_core::inputs::{tile_inputs, PyramidSource};
+use deepstereo_core::inputs::features::{tile_warps, TileWarps};
+use deepstereo_core::inputs::{tile_inputs, tile_inputs_without_features, PyramidSource};
 use deepstereo_core::scene::{nearest_to_point, LoadOptions, Scene, View};
 use deepstereo_core::synth::{generate, scene_seed, SynthOptions, SynthScene};
 use rayon::prelude::*;
@@ -179,6 +180,10 @@ pub struct Batch {
     /// With the loss through the MPI renderer ([`Sampling::mpi`]): the warp of each
     /// sample's tile to its neighbouring view and that view's photographs.
     pub mpi: Option<PairBatch>,
+    /// The `features` family: per sample, the crops its feature CNN reads and their
+    /// warps; `levels` then leave the features out (`C_v - F` channels), and the training
+    /// graph appends them ([`crate::training::batch_tensors`]).
+    pub warps: Option<Vec<TileWarps>>,
 }
 
 /// The MPI part of a batch ([`pairs`]).
@@ -259,6 +264,9 @@ impl Sampling {
         self.scene_weights.check()?;
         if let Some(p) = &self.mpi {
             p.check(cfg)?;
+            if cfg.pool.as_ref().is_some_and(|p| p.features.is_some()) {
+                bail!("the MPI loss does not take the features family's models");
+            }
             if self.augment || self.skip_flat.is_some() || self.view_stride != (1, 1) {
                 bail!(
                     "the MPI loss takes neither augmentation, flat-tile skipping nor a view stride"
@@ -310,7 +318,7 @@ fn sample(
     scenes: &[SceneData],
     (seed, b, k): (u64, u64, usize),
     views: usize,
-) -> anyhow::Result<(Vec<Vec<f32>>, Vec<f32>)> {
+) -> anyhow::Result<Sample> {
     let mut state = mix(seed ^ mix(b.wrapping_mul(0x1000_0000_01B3) ^ mix(k as u64)));
     let mut next = || {
         state = mix(state);
@@ -361,7 +369,16 @@ fn sample(
     let empty = PyramidSource::empty(cam, cfg.levels);
     let mut srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
     srcs.resize(views, &empty);
-    let mut inputs = tile_inputs(cfg, cam, &srcs, &inv, (x0 as i64, y0 as i64), (t, t))?;
+    let origin = (x0 as i64, y0 as i64);
+    let radius = cfg.pool.as_ref().and_then(|p| p.features.as_ref()).map(|f| f.radius());
+    let mut inputs = match radius {
+        Some(_) => tile_inputs_without_features(cfg, cam, &srcs, &inv, origin, (t, t))?,
+        None => tile_inputs(cfg, cam, &srcs, &inv, origin, (t, t))?,
+    };
+    let mut warps = match radius {
+        Some(r) => Some(tile_warps(cfg, (cam, &srcs, &inv), origin, &inputs.sizes, r)?),
+        None => None,
+    };
     let mut patch = patch(
         &s.pyramids[target].images[0],
         (x0 as u32, y0 as u32),
@@ -373,14 +390,31 @@ fn sample(
         let gains: Vec<f32> = (0..3)
             .map(|_| (exposure * (1.0 + AUGMENT_WHITE_BALANCE * unit(next()))) as f32)
             .collect();
-        let flip = next() & 1 == 1;
+        // No flip with source features: the CNN sees the sources unmirrored when it
+        // renders, and is not mirror-symmetric (the draw is kept, so other models'
+        // samples stay as they were).
+        let flip = next() & 1 == 1 && warps.is_none();
+        if let Some(w) = warps.as_mut() {
+            w.scale_colours(&gains);
+        }
         let cycle = inputs.channels;
         for (data, &(h, w)) in inputs.levels.iter_mut().zip(&inputs.sizes) {
             augment_planes(data, (h * w, w, cycle), &gains, flip);
         }
         augment_planes(&mut patch, (t * t, t, 3), &gains, flip);
     }
-    Ok((inputs.levels, patch))
+    Ok(Sample {
+        levels: inputs.levels,
+        target: patch,
+        warps,
+    })
+}
+
+/// One sample: its input levels, target patch and, for the features family, warps.
+struct Sample {
+    levels: Vec<Vec<f32>>,
+    target: Vec<f32>,
+    warps: Option<TileWarps>,
 }
 
 /// A tile's offset along a side of `size` pixels from the random `r`: a multiple of `a`
@@ -413,7 +447,12 @@ fn level_shapes(
     (0..cfg.levels)
         .map(|l| {
             let (h, w) = (cfg.input_size(l, th), cfg.input_size(l, tw));
-            cfg.input_shape(batch, cfg.planes, views, h, w)
+            let mut shape = cfg.input_shape(batch, cfg.planes, views, h, w);
+            // The features family's maps are appended in the graph.
+            if let Some(p) = &cfg.pool {
+                shape[3] -= p.feature_channels();
+            }
+            shape
         })
         .collect()
 }
@@ -511,14 +550,15 @@ pub fn make_batch(
     if let Some(pairs) = &sampling.mpi {
         return pair_batch(cfg, sampling, pairs, scenes, (seed, b, batch), views);
     }
-    let samples: Vec<(Vec<Vec<f32>>, Vec<f32>)> = (0..batch)
+    let samples: Vec<Sample> = (0..batch)
         .into_par_iter()
         .map(|k| sample(cfg, sampling, scenes, (seed, b, k), views))
         .collect::<anyhow::Result<_>>()?;
     let t = cfg.tile;
-    let parts: Vec<&[Vec<f32>]> = samples.iter().map(|s| s.0.as_slice()).collect();
+    let parts: Vec<&[Vec<f32>]> = samples.iter().map(|s| s.levels.as_slice()).collect();
     let levels = stack_levels(&parts, cfg.levels);
-    let target = samples.iter().flat_map(|s| s.1.iter().copied()).collect();
+    let target = samples.iter().flat_map(|s| s.target.iter().copied()).collect();
+    let warps = samples.into_iter().map(|s| s.warps).collect::<Option<Vec<_>>>();
     Ok(Batch {
         index: b,
         levels,
@@ -527,6 +567,7 @@ pub fn make_batch(
         target,
         target_shape: [batch, 3, t, t],
         mpi: None,
+        warps,
     })
 }
 
@@ -566,6 +607,7 @@ fn pair_batch(
             target: mpi_target,
             pixels: th * tw,
         }),
+        warps: None,
     })
 }
 

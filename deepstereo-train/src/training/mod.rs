@@ -25,6 +25,7 @@ use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use deepstereo_core::config::Config;
 use deepstereo_core::imageio::write_atomic;
+use deepstereo_core::inputs::features::with_warped_features;
 use deepstereo_core::model::{l1_loss, l2_loss};
 use deepstereo_core::scene::scene_dirs;
 use deepstereo_core::synth::SynthOptions;
@@ -159,13 +160,26 @@ pub struct LogLine {
 }
 
 /// Batch tensors on `device`: inputs per level and the target.
-pub fn batch_tensors(b: &Batch, device: &Device) -> Result<(Vec<Tensor>, Tensor)> {
-    let inputs = b
+///
+/// For the `features` family, the inputs get the sources' feature maps computed by the
+/// model's CNN from the batch's crops and warped in the graph
+/// ([`with_warped_features`]), so the loss trains the CNN too.
+pub fn batch_tensors(
+    model: &deepstereo_core::model::DeepStereo,
+    b: &Batch,
+    device: &Device,
+) -> Result<(Vec<Tensor>, Tensor)> {
+    let mut inputs = b
         .levels
         .iter()
         .zip(&b.level_shapes)
         .map(|(d, s)| Tensor::from_slice(d, s.as_slice(), device))
         .collect::<candle_core::Result<Vec<_>>>()?;
+    match (model.feature_net(), &b.warps) {
+        (Some(net), Some(warps)) => inputs = with_warped_features(net, &inputs, warps)?,
+        (None, None) => {}
+        _ => anyhow::bail!("a batch drawn for another model (source features differ)"),
+    }
     let target = Tensor::from_slice(&b.target, b.target_shape.as_slice(), device)?;
     Ok((inputs, target))
 }
@@ -178,7 +192,7 @@ pub fn validate(
 ) -> Result<f64> {
     let (mut se, mut n) = (0f64, 0usize);
     for b in batches {
-        let (x, y) = batch_tensors(b, device)?;
+        let (x, y) = batch_tensors(model, b, device)?;
         let out = model.infer(&x)?;
         let d = out.image.clamp(0f32, 1f32)?.sub(&y)?;
         se += d.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
@@ -468,7 +482,7 @@ fn optimize(
     device: &Device,
     step: u64,
 ) -> Result<(f64, Option<f64>, f64, bool)> {
-    let (x, y) = batch_tensors(batch, device)?;
+    let (x, y) = batch_tensors(&t.model, batch, device)?;
     let pred = t.model.forward(&x)?;
     let mut loss = run.loss.of(&pred.image, &y)?;
     let mut mpi_v = None;
