@@ -47,52 +47,17 @@ pub fn plane_sweep(
         let n = region.len();
         let mut psv = vec![0f32; d * v * CHANNELS * n];
         sweep_into(target, region, sources, inv_depths, &mut psv);
-        // Per-plane cost and mean colour.
         let per_plane: Vec<(Vec<f32>, Vec<[f32; 3]>)> = (0..d)
             .into_par_iter()
             .map(|z| {
-                let mut cost = vec![UNSEEN_COST; n];
-                let mut mean = vec![[0f32; 3]; n];
-                for p in 0..n {
-                    let (mut s, mut s2, mut cnt) = ([0f32; 3], 0f32, 0f32);
-                    for k in 0..v {
-                        let base = (z * v + k) * CHANNELS * n;
-                        let a = psv[base + 3 * n + p];
-                        if a > MIN_ALPHA {
-                            for c in 0..3 {
-                                let x = psv[base + c * n + p] / a;
-                                s[c] += x;
-                                s2 += x * x;
-                            }
-                            cnt += 1.0;
-                        }
-                    }
-                    if cnt > 0.0 {
-                        mean[p] = [s[0] / cnt, s[1] / cnt, s[2] / cnt];
-                    }
-                    if cnt >= 2.0 {
-                        let m2: f32 = mean[p].iter().map(|m| m * m).sum();
-                        cost[p] = (s2 / cnt - m2).max(0.0) / 3.0;
-                    }
-                }
-                // Box aggregation.
+                let plane = &psv[z * v * CHANNELS * n..][..v * CHANNELS * n];
+                let (cost, mean) = plane_cost(plane, v, n);
                 let rw = region.width;
-                let mut agg = vec![0f32; rows * w];
-                for y in 0..rows {
-                    for x in 0..w {
-                        let mut acc = 0.0;
-                        for dy in 0..=2 * r {
-                            for dx in 0..=2 * r {
-                                acc += cost[(y + dy) * rw + x + dx];
-                            }
-                        }
-                        agg[y * w + x] = acc;
-                    }
-                }
-                let centre: Vec<[f32; 3]> = (0..rows * w)
+                // The mean colours of the output pixels (the band without its margin).
+                let centre = (0..rows * w)
                     .map(|i| mean[(i / w + r) * rw + i % w + r])
                     .collect();
-                (agg, centre)
+                (box_sum(&cost, rw, (w, rows), r), centre)
             })
             .collect();
         for i in 0..rows * w {
@@ -106,4 +71,52 @@ pub fn plane_sweep(
         y0 += rows;
     }
     (img, planes)
+}
+
+/// Per pixel of one plane's sweep `plane` `[V, 4, n]`: the variance of the colours of
+/// the views that see it ([`UNSEEN_COST`] where fewer than two do) and their mean colour.
+fn plane_cost(plane: &[f32], v: usize, n: usize) -> (Vec<f32>, Vec<[f32; 3]>) {
+    let mut cost = vec![UNSEEN_COST; n];
+    let mut mean = vec![[0f32; 3]; n];
+    for p in 0..n {
+        let (mut s, mut s2, mut cnt) = ([0f32; 3], 0f32, 0f32);
+        for k in 0..v {
+            let base = k * CHANNELS * n;
+            let a = plane[base + 3 * n + p];
+            if a > MIN_ALPHA {
+                for c in 0..3 {
+                    let x = plane[base + c * n + p] / a;
+                    s[c] += x;
+                    s2 += x * x;
+                }
+                cnt += 1.0;
+            }
+        }
+        if cnt > 0.0 {
+            mean[p] = [s[0] / cnt, s[1] / cnt, s[2] / cnt];
+        }
+        if cnt >= 2.0 {
+            let m2: f32 = mean[p].iter().map(|m| m * m).sum();
+            cost[p] = (s2 / cnt - m2).max(0.0) / 3.0;
+        }
+    }
+    (cost, mean)
+}
+
+/// The sums of `cost` (rows `rw` wide) over the `(2r+1)^2` box below-right of each of the
+/// `w x rows` output pixels (the box aggregation of the band without its margin).
+fn box_sum(cost: &[f32], rw: usize, (w, rows): (usize, usize), r: usize) -> Vec<f32> {
+    let mut agg = vec![0f32; rows * w];
+    for y in 0..rows {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for dy in 0..=2 * r {
+                for dx in 0..=2 * r {
+                    acc += cost[(y + dy) * rw + x + dx];
+                }
+            }
+            agg[y * w + x] = acc;
+        }
+    }
+    agg
 }

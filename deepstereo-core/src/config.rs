@@ -438,15 +438,15 @@ impl Config {
     }
 
     /// [`Self::nviews_disagree`] reading each source once: a feature CNN per source image
-    /// and level ([`ViewPool::features`]: three 3x3 layers of 16 and one of 8, radius 4,
-    /// so 9 pixels at each level and 36 at level 2 in full-resolution pixels), its maps
+    /// and level ([`ViewPool::features`]: two 3x3 layers of 12 and one of 8, radius 3,
+    /// so 7 pixels at each level and 28 at level 2 in full-resolution pixels), its maps
     /// warped beside the RGBA, and an encoder of 8 then 6 channels reading them.
     pub fn nviews_features() -> Self {
         let mut c = Self::nviews_disagree();
         c.name = "nviews-features".into();
         if let Some(p) = c.pool.as_mut() {
             p.features = Some(SourceFeatures {
-                convs: vec![c3(16), c3(16), c3(16), c3(8)],
+                convs: vec![c3(12), c3(12), c3(8)],
             });
             p.encoder = vec![
                 Conv {

@@ -191,7 +191,10 @@ pub fn tap_window(coords: &[f64], pixels: usize, (img_w, img_h): (usize, usize))
             }
             let (x0, y0) = (sx.floor() as i64, sy.floor() as i64);
             lo = (lo.0.min(x0.max(0)), lo.1.min(y0.max(0)));
-            hi = (hi.0.max((x0 + 1).min(iw - 1)), hi.1.max((y0 + 1).min(ih - 1)));
+            hi = (
+                hi.0.max((x0 + 1).min(iw - 1)),
+                hi.1.max((y0 + 1).min(ih - 1)),
+            );
         }
     }
     (lo.0 <= hi.0 && lo.1 <= hi.1).then(|| Window {

@@ -165,38 +165,8 @@ pub fn tile_inputs_without_features(
     (th, tw): (usize, usize),
 ) -> Result<TileInputs> {
     check_tile(cfg, x0, y0, th, tw)?;
-    if !cfg.accepts_views(sources.len()) {
-        return Err(Error::Invalid(match cfg.pool {
-            Some(_) => format!(
-                "the model takes 1 to {MAX_VIEWS} source views, got {}",
-                sources.len()
-            ),
-            None => format!(
-                "the model takes {} source views, got {}",
-                cfg.views,
-                sources.len()
-            ),
-        }));
-    }
-    // Per-view alpha weights and the near views of the colour gate (crate::view_weights),
-    // when the config has a falloff or a gate.
-    let centres: Vec<_> = sources
-        .iter()
-        .map(|s| match (s.images.first(), s.cameras.first()) {
-            (Some(img), Some(cam)) if img.width > 0 && img.height > 0 => Some(cam.pose.centre()),
-            _ => None,
-        })
-        .collect();
-    let pool = cfg.pool.as_ref();
-    let weights = pool
-        .and_then(|p| p.falloff)
-        .map(|f| view_weights(f, target.pose.centre(), &centres));
-    let agree = pool
-        .and_then(|p| p.agree)
-        .map(|a| (near_views(a.near, target.pose.centre(), &centres), a.sigma));
-    let disagree = pool
-        .and_then(|p| p.disagree)
-        .map(|d| near_views(d.near, target.pose.centre(), &centres));
+    check_view_count(cfg, sources.len())?;
+    let mods = ViewMods::new(cfg, target, sources);
     let mut levels = Vec::with_capacity(cfg.levels);
     let mut sizes = Vec::with_capacity(cfg.levels);
     for l in 0..cfg.levels {
@@ -221,15 +191,7 @@ pub fn tile_inputs_without_features(
         let srcs: Vec<Source> = sources.iter().map(|s| s.level(l)).collect();
         let mut buf = alloc_volume(inv_depths.len(), sources.len(), region)?;
         sweep_into(&tcam, region, &srcs, inv_depths, &mut buf);
-        let q = disagree
-            .as_deref()
-            .map(|near| disagreement(&buf, near, region.len()));
-        if let Some((near, sigma)) = &agree {
-            agree_gate(&mut buf, near, *sigma, region.len());
-        }
-        if let Some(w) = weights.as_deref().filter(|w| w.iter().any(|&g| g != 1.0)) {
-            scale_alpha(&mut buf, w, region.len());
-        }
+        let q = mods.apply(&mut buf, region.len());
         if cfg.pool.as_ref().is_some_and(|p| p.reads_cue()) {
             let centres: Vec<DVec3> = srcs.iter().map(|s| centre_in(&tcam, s.camera)).collect();
             buf = with_cue(&buf, &tcam, region, &centres, inv_depths, q.as_deref())?;
@@ -243,6 +205,73 @@ pub fn tile_inputs_without_features(
         views: sources.len(),
         channels: cfg.view_channels() - cfg.pool.as_ref().map_or(0, |p| p.feature_channels()),
     })
+}
+
+/// Fails unless the model takes `views` source views.
+fn check_view_count(cfg: &Config, views: usize) -> Result<()> {
+    if cfg.accepts_views(views) {
+        return Ok(());
+    }
+    Err(Error::Invalid(match cfg.pool {
+        Some(_) => format!("the model takes 1 to {MAX_VIEWS} source views, got {views}"),
+        None => format!("the model takes {} source views, got {views}", cfg.views),
+    }))
+}
+
+/// What the config does to each swept level per view: the alpha weights, the colour
+/// gate's near views and width, and the near views of the disagreement cue
+/// (crate::view_weights), each where the config has it.
+struct ViewMods {
+    weights: Option<Vec<f64>>,
+    agree: Option<(Vec<bool>, f32)>,
+    disagree: Option<Vec<bool>>,
+}
+
+impl ViewMods {
+    fn new(cfg: &Config, target: &Camera, sources: &[&PyramidSource]) -> Self {
+        let centres: Vec<_> = sources
+            .iter()
+            .map(|s| match (s.images.first(), s.cameras.first()) {
+                (Some(img), Some(cam)) if img.width > 0 && img.height > 0 => {
+                    Some(cam.pose.centre())
+                }
+                _ => None,
+            })
+            .collect();
+        let pool = cfg.pool.as_ref();
+        let c = target.pose.centre();
+        ViewMods {
+            weights: pool
+                .and_then(|p| p.falloff)
+                .map(|f| view_weights(f, c, &centres)),
+            agree: pool
+                .and_then(|p| p.agree)
+                .map(|a| (near_views(a.near, c, &centres), a.sigma)),
+            disagree: pool
+                .and_then(|p| p.disagree)
+                .map(|d| near_views(d.near, c, &centres)),
+        }
+    }
+
+    /// The disagreement cue of the swept volume `buf` (`n` pixels per plane), then the
+    /// colour gate and the alpha weights applied to it.
+    fn apply(&self, buf: &mut [f32], n: usize) -> Option<Vec<f32>> {
+        let q = self
+            .disagree
+            .as_deref()
+            .map(|near| disagreement(buf, near, n));
+        if let Some((near, sigma)) = &self.agree {
+            agree_gate(buf, near, *sigma, n);
+        }
+        if let Some(w) = self
+            .weights
+            .as_deref()
+            .filter(|w| w.iter().any(|&g| g != 1.0))
+        {
+            scale_alpha(buf, w, n);
+        }
+        q
+    }
 }
 
 /// The volume `rgba` `[D, V, 4, h, w]` with every view's cue after its RGBA:

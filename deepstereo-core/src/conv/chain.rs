@@ -131,16 +131,7 @@ pub fn depth_head(
     if b * d != n || convs.is_empty() {
         bail!("depth_head: {n} planes are not batches of {planes}, or no convolutions");
     }
-    let last = convs.len() - 1;
-    let layers = convs
-        .iter()
-        .enumerate()
-        .map(|(i, cv)| Layer::new(cv, i < last))
-        .collect::<Result<Vec<_>>>()?;
-    let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
-    if layers[0].cin != c || !chained || layers[last].cout != 1 {
-        bail!("depth_head: convolutions do not chain from {c} channels to 1");
-    }
+    let layers = depth_layers(c, convs)?;
     let Some(ls) = log_scale.flatten_all()?.to_vec1::<f32>()?.first().copied() else {
         bail!("depth_head: empty log_scale");
     };
@@ -166,14 +157,8 @@ pub fn depth_head(
         par_blocks(b * blocks, init, |(bufs, soft), blk| {
             let (bi, q0) = (blk / blocks, (blk % blocks) * PX);
             let np = PX.min(p - q0);
-            let (pad0, src) = (pads[0], &s[bi * d * c * p..][..d * c * p]);
-            for (row, plane) in src.chunks_exact(c * p).enumerate() {
-                for (ch, x) in plane.chunks_exact(p).enumerate() {
-                    let dst = &mut bufs[0][((row + pad0) * c + ch) * PX..][..PX];
-                    dst[..np].copy_from_slice(&x[q0..q0 + np]);
-                    dst[np..].fill(0.0);
-                }
-            }
+            let src = &s[bi * d * c * p..][..d * c * p];
+            load_columns(src, (c, p), (q0, np), &mut bufs[0][pads[0] * c * PX..]);
             for (i, l) in layers.iter().enumerate() {
                 let (lo, hi) = bufs.split_at_mut(i + 1);
                 let pd = pads.get(i + 1).copied().unwrap_or(0);
@@ -200,6 +185,34 @@ pub fn depth_head(
         Ok(())
     })?;
     Tensor::from_vec(out, (b, d, p), s.device()).map(Some)
+}
+
+/// The layers of [`depth_head`] (ReLU after all but the last), checked to chain from `c`
+/// channels to 1.
+fn depth_layers(c: usize, convs: &[Conv2d]) -> Result<Vec<Layer>> {
+    let last = convs.len() - 1;
+    let layers = convs
+        .iter()
+        .enumerate()
+        .map(|(i, cv)| Layer::new(cv, i < last))
+        .collect::<Result<Vec<_>>>()?;
+    let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
+    if layers[0].cin != c || !chained || layers[last].cout != 1 {
+        bail!("depth_head: convolutions do not chain from {c} channels to 1");
+    }
+    Ok(layers)
+}
+
+/// Columns `q0..q0 + np` of every plane of `src` (`[D, c, p]`) into `dst`, one row of
+/// [`PX`] per plane and channel (the rest of each row zeroed).
+fn load_columns(src: &[f32], (c, p): (usize, usize), (q0, np): (usize, usize), dst: &mut [f32]) {
+    for (row, plane) in src.chunks_exact(c * p).enumerate() {
+        for (ch, x) in plane.chunks_exact(p).enumerate() {
+            let d = &mut dst[(row * c + ch) * PX..][..PX];
+            d[..np].copy_from_slice(&x[q0..q0 + np]);
+            d[np..].fill(0.0);
+        }
+    }
 }
 
 /// The colours `[N, 3, th, tw]` of a colour tower of 1x1 convolutions (`convs`, ReLU
@@ -247,18 +260,8 @@ fn pointwise_run(
     if crop + th > h || crop + tw > w || convs.is_empty() {
         bail!("pointwise_colours: a {th}x{tw} tile at {crop} does not fit {h}x{w}");
     }
-    let layers = convs
-        .iter()
-        .map(|cv| Layer::new(cv, true))
-        .collect::<Result<Vec<_>>>()?;
-    let head = Layer::new(out, head_relu)?;
+    let (layers, head) = pointwise_layers(c, convs, (out, head_relu), skip)?;
     let f = layers[layers.len() - 1].cout;
-    let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
-    let head_in = f + if skip { c } else { 0 };
-    let pointwise = layers.iter().chain([&head]).all(|l| l.k == 1);
-    if layers[0].cin != c || !chained || head.cin != head_in || !pointwise {
-        bail!("pointwise_colours: 1x1 convolutions do not chain from {c} channels");
-    }
     let (p, cout) = (th * tw, head.cout);
     // Scratch: `cat` = [features f; input c] (the output layer's input), two ping-pong
     // buffers for the layers in between, and the output block.
@@ -280,22 +283,8 @@ fn pointwise_run(
         par_blocks(n * blocks, init, |(cat, pp, yb), blk| {
             let (ni, q0) = (blk / blocks, (blk % blocks) * PX);
             let np = PX.min(p - q0);
-            // The block's pixels, row run by row run, into the input part of `cat`.
             let plane = &x[ni * c * h * w..][..c * h * w];
-            let mut q = q0;
-            while q < q0 + np {
-                let (r, col) = (q / tw, q % tw);
-                let run = (tw - col).min(q0 + np - q);
-                let src = (r + crop) * w + col + crop;
-                for ch in 0..c {
-                    let dst = &mut cat[(f + ch) * PX + q - q0..][..run];
-                    dst.copy_from_slice(&plane[ch * h * w + src..][..run]);
-                }
-                q += run;
-            }
-            for ch in 0..c {
-                cat[(f + ch) * PX + np..(f + ch + 1) * PX].fill(0.0);
-            }
+            gather_block(plane, (c, h, w), (crop, tw), (q0, np), &mut cat[f * PX..]);
             // SAFETY: `fast` checked the CPU; every buffer holds its layer's channels x
             // PX; the first layer reads `cat`'s input part, the last writes its features.
             unsafe {
@@ -320,4 +309,53 @@ fn pointwise_run(
         Ok(())
     })?;
     Tensor::from_vec(y, (n, cout, th, tw), x.device()).map(Some)
+}
+
+/// The layers of [`pointwise_run`] (each with ReLU) and its output layer (ReLU where
+/// `head_relu`), checked to be 1x1 convolutions that chain from `c` channels, the output
+/// layer reading the last features and, with `skip`, the input after them.
+fn pointwise_layers(
+    c: usize,
+    convs: &[&Conv2d],
+    (out, head_relu): (&Conv2d, bool),
+    skip: bool,
+) -> Result<(Vec<Layer>, Layer)> {
+    let layers = convs
+        .iter()
+        .map(|cv| Layer::new(cv, true))
+        .collect::<Result<Vec<_>>>()?;
+    let head = Layer::new(out, head_relu)?;
+    let f = layers[layers.len() - 1].cout;
+    let chained = layers.windows(2).all(|l| l[0].cout == l[1].cin);
+    let head_in = f + if skip { c } else { 0 };
+    let pointwise = layers.iter().chain([&head]).all(|l| l.k == 1);
+    if layers[0].cin != c || !chained || head.cin != head_in || !pointwise {
+        bail!("pointwise_colours: 1x1 convolutions do not chain from {c} channels");
+    }
+    Ok((layers, head))
+}
+
+/// Pixels `q0..q0 + np` of the `th x tw` tile at `(crop, crop)` of `plane` `[c, h, w]`,
+/// row run by row run, into `dst` (`c` rows of [`PX`]; the rest of each row zeroed).
+fn gather_block(
+    plane: &[f32],
+    (c, h, w): (usize, usize, usize),
+    (crop, tw): (usize, usize),
+    (q0, np): (usize, usize),
+    dst: &mut [f32],
+) {
+    let mut q = q0;
+    while q < q0 + np {
+        let (r, col) = (q / tw, q % tw);
+        let run = (tw - col).min(q0 + np - q);
+        let src = (r + crop) * w + col + crop;
+        for ch in 0..c {
+            let d = &mut dst[ch * PX + q - q0..][..run];
+            d.copy_from_slice(&plane[ch * h * w + src..][..run]);
+        }
+        q += run;
+    }
+    for ch in 0..c {
+        dst[ch * PX + np..(ch + 1) * PX].fill(0.0);
+    }
 }

@@ -66,7 +66,10 @@ fn warping_the_image_as_a_map_gives_the_sweep() -> Result<()> {
         height: h as usize,
     };
     let p = region.len();
-    for window in [Some(whole), tap_window(&coords, region.len(), (w as usize, h as usize))] {
+    for window in [
+        Some(whole),
+        tap_window(&coords, region.len(), (w as usize, h as usize)),
+    ] {
         let window = window.expect("the planes see the source");
         let map = padded_crop(&img, window);
         let op = FeatureWarp::new(&coords, planes.len(), (w as usize, h as usize), window)?;

@@ -11,9 +11,9 @@
 //! candle ops; tests compare the two.
 
 use super::pool::{cast, wide};
-use super::{data, on_cpu, slice};
+use super::{bwd2, check_sources, fwd2, on_cpu, read, Kernels2, Real};
 use crate::config::{BLEND_EPS, BLEND_LOGIT_BOUND};
-use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
+use candle_core::{bail, CpuStorage, CustomOp2, Layout, Result, Shape, Tensor};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
 
@@ -21,14 +21,7 @@ use rayon::prelude::*;
 /// `x` `[N, V, 4, P]`: `sum_v w_v rgb_v` with `w_v = a_v exp(L(y_v)) / (sum_u a_u
 /// exp(L(y_u)) + eps)`, `L(y) = B tanh(y / B)`; `[N, 3, P]`. `None` off the CPU.
 pub fn blend_colours(y: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
-    let (n, v, p) = y.dims3()?;
-    if x.dims() != [n, v, 4, p] {
-        bail!(
-            "blend_colours: sources {:?} do not match logits {:?}",
-            x.dims(),
-            y.dims()
-        );
-    }
+    check_sources("blend_colours", x, y.dims3()?, ("logits", y))?;
     if !on_cpu(&[y, x]) {
         return Ok(None);
     }
@@ -163,6 +156,35 @@ impl BlendColours {
     }
 }
 
+impl Kernels2 for BlendColours {
+    const NAME: &'static str = "blend_colours";
+
+    fn forward<T: Real>(y: &[T], x: &[T], shape: &Shape) -> Result<Vec<T>> {
+        Ok(Self::fwd(y, x, shape.dims3()?))
+    }
+
+    fn backward<T: Real>(
+        y: &Tensor,
+        x: &Tensor,
+        _out: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let dims = y.dims3()?;
+        read([y, x, g], |[yd, xd, gd]: [&[T]; 3]| {
+            let dy = Self::bwd(yd, xd, gd, dims);
+            // `dx` only where the sources carry a gradient (their alphas weighed by the cue).
+            let dx = match x.track_op() {
+                true => {
+                    let dx = Self::bwd_x(yd, xd, gd, dims);
+                    Some(Tensor::from_vec(dx, x.shape(), x.device())?)
+                }
+                false => None,
+            };
+            Ok((Some(Tensor::from_vec(dy, y.shape(), y.device())?), dx))
+        })
+    }
+}
+
 impl CustomOp2 for BlendColours {
     fn name(&self) -> &'static str {
         "deepstereo-blend-colours"
@@ -175,63 +197,18 @@ impl CustomOp2 for BlendColours {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (n, v, p) = l1.shape().dims3()?;
-        let y = match s1 {
-            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
-                slice::<f32>(s1, l1)?,
-                slice::<f32>(s2, l2)?,
-                (n, v, p),
-            )),
-            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
-                slice::<f64>(s1, l1)?,
-                slice::<f64>(s2, l2)?,
-                (n, v, p),
-            )),
-            _ => bail!("blend_colours: f32 or f64 only"),
-        };
-        Ok((y, Shape::from((n, 3, p))))
+        let (n, _, p) = l1.shape().dims3()?;
+        Ok((fwd2::<Self>(s1, l1, s2, l2)?, Shape::from((n, 3, p))))
     }
 
     fn bwd(
         &self,
         y: &Tensor,
         x: &Tensor,
-        _out: &Tensor,
+        out: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let dims = y.dims3()?;
-        let g = g.contiguous()?;
-        fn run<T: WithDType + Float + NumAssignOps + AsPrimitive<f64>>(
-            y: &Tensor,
-            x: &Tensor,
-            g: &Tensor,
-            dims: (usize, usize, usize),
-        ) -> Result<(Tensor, Option<Tensor>)> {
-            let (ys, yl) = y.storage_and_layout();
-            let (xs, xl) = x.storage_and_layout();
-            let (gs, gl) = g.storage_and_layout();
-            let (yd, xd, gd) = (
-                data::<T>(&ys, yl)?,
-                data::<T>(&xs, xl)?,
-                data::<T>(&gs, gl)?,
-            );
-            let dy = BlendColours::bwd(yd, xd, gd, dims);
-            // `dx` only where the sources carry a gradient (their alphas weighed by the cue).
-            let dx = match x.track_op() {
-                true => {
-                    let dx = BlendColours::bwd_x(yd, xd, gd, dims);
-                    Some(Tensor::from_vec(dx, x.shape(), x.device())?)
-                }
-                false => None,
-            };
-            Ok((Tensor::from_vec(dy, y.shape(), y.device())?, dx))
-        }
-        let (dy, dx) = match y.dtype() {
-            DType::F32 => run::<f32>(y, x, &g, dims)?,
-            DType::F64 => run::<f64>(y, x, &g, dims)?,
-            dt => bail!("blend_colours: f32 or f64 only, got {dt:?}"),
-        };
-        Ok((Some(dy), dx))
+        bwd2::<Self>(y, x, out, g)
     }
 }
 
@@ -299,6 +276,31 @@ impl AddViewsRelu {
     }
 }
 
+impl Kernels2 for AddViewsRelu {
+    const NAME: &'static str = "add_views_relu";
+
+    fn forward<T: Real>(a: &[T], b: &[T], shape: &Shape) -> Result<Vec<T>> {
+        let (_, v, c, p) = shape.dims4()?;
+        Ok(Self::fwd(a, b, (v, c * p)))
+    }
+
+    fn backward<T: Real>(
+        a: &Tensor,
+        b: &Tensor,
+        y: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (_, v, c, p) = a.dims4()?;
+        let (da, db) = read([y, g], |[yd, gd]: [&[T]; 2]| {
+            Ok(Self::bwd(yd, gd, (v, c * p)))
+        })?;
+        Ok((
+            Some(Tensor::from_vec(da, a.shape(), a.device())?),
+            Some(Tensor::from_vec(db, b.shape(), b.device())?),
+        ))
+    }
+}
+
 impl CustomOp2 for AddViewsRelu {
     fn name(&self) -> &'static str {
         "deepstereo-add-views-relu"
@@ -311,21 +313,7 @@ impl CustomOp2 for AddViewsRelu {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (n, v, c, p) = l1.shape().dims4()?;
-        let y = match s1 {
-            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
-                slice::<f32>(s1, l1)?,
-                slice::<f32>(s2, l2)?,
-                (v, c * p),
-            )),
-            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
-                slice::<f64>(s1, l1)?,
-                slice::<f64>(s2, l2)?,
-                (v, c * p),
-            )),
-            _ => bail!("add_views_relu: f32 or f64 only"),
-        };
-        Ok((y, Shape::from((n, v, c, p))))
+        Ok((fwd2::<Self>(s1, l1, s2, l2)?, l1.shape().clone()))
     }
 
     fn bwd(
@@ -335,30 +323,6 @@ impl CustomOp2 for AddViewsRelu {
         y: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (_, v, c, p) = a.dims4()?;
-        let g = g.contiguous()?;
-        fn run<T: WithDType + Float + NumAssignOps>(
-            a: &Tensor,
-            b: &Tensor,
-            y: &Tensor,
-            g: &Tensor,
-            vcp: (usize, usize),
-        ) -> Result<(Tensor, Tensor)> {
-            let (da, db) = {
-                let (ys, yl) = y.storage_and_layout();
-                let (gs, gl) = g.storage_and_layout();
-                AddViewsRelu::bwd(data::<T>(&ys, yl)?, data::<T>(&gs, gl)?, vcp)
-            };
-            Ok((
-                Tensor::from_vec(da, a.shape(), a.device())?,
-                Tensor::from_vec(db, b.shape(), b.device())?,
-            ))
-        }
-        let (da, db) = match a.dtype() {
-            DType::F32 => run::<f32>(a, b, y, &g, (v, c * p))?,
-            DType::F64 => run::<f64>(a, b, y, &g, (v, c * p))?,
-            dt => bail!("add_views_relu: f32 or f64 only, got {dt:?}"),
-        };
-        Ok((Some(da), Some(db)))
+        bwd2::<Self>(a, b, y, g)
     }
 }

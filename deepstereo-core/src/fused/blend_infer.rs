@@ -113,100 +113,132 @@ unsafe fn item_avx2(ctx: &Ctx, i: usize, o: &mut [f32]) {
 /// Item `i`'s blended colours `o` `[3, th * tw]`, row by row.
 #[inline(always)]
 fn item(ctx: &Ctx, i: usize, o: &mut [f32]) {
-    let (ed, xd, fd, layers) = (ctx.ed, ctx.xd, ctx.fd, ctx.layers);
-    let ((v, cf, cc, h, w), (th, tw, pad)) = (ctx.dims, ctx.tile);
-    let (p, last, c0) = (th * tw, layers.len() - 1, layers[0].cout);
+    let layers = ctx.layers;
+    let (v, (th, tw, _)) = (ctx.dims.0, ctx.tile);
+    let (p, c0) = (th * tw, layers[0].cout);
     let widest = layers.iter().map(|l| l.cout).max().unwrap_or(1);
     // Scratch: the colour part of layer 0 per pixel of a row, two layer buffers, and the
     // f64 sums over views of one row.
     let mut yf = vec![0f32; c0 * tw];
-    let (mut ha, mut hb) = (vec![0f32; widest * tw], vec![0f32; widest * tw]);
+    let mut h = (vec![0f32; widest * tw], vec![0f32; widest * tw]);
     let mut den = vec![0f64; tw];
     let mut num = vec![0f64; 3 * tw];
-    let l0 = &layers[0];
-    let two_layers = layers.len() == 2 && c0 <= MAX_HIDDEN && layers[1].cout == 1;
     for r in 0..th {
-        yf.iter_mut().for_each(|y| *y = 0.0);
-        for oc in 0..c0 {
-            let yo = &mut yf[oc * tw..][..tw];
-            for ic in 0..cc {
-                let wgt = l0.weight[oc * l0.cin + cf + ic];
-                let fr = &fd[((i * cc + ic) * th + r) * tw..][..tw];
-                for (y, &fv) in yo.iter_mut().zip(fr) {
-                    *y += wgt * fv;
-                }
-            }
-        }
+        colour_part(ctx, (i, r), &mut yf);
         den.iter_mut().for_each(|d| *d = BLEND_EPS);
         num.iter_mut().for_each(|s| *s = 0.0);
         for k in 0..v {
-            let row = |c: usize| -> &[f32] {
-                &ed[(((i * v + k) * cf + c) * h + r + pad) * w + pad..][..tw]
-            };
-            if two_layers {
-                // The common blend (one hidden layer): pixels in register blocks.
-                let (l1, full) = (&layers[1], tw / LANES * LANES);
-                for b0 in (0..full).step_by(LANES) {
-                    logits_block::<LANES>((l0, l1, cf), (&yf, tw), &row, b0, &mut ha);
-                }
-                for b0 in full..tw {
-                    logits_block::<1>((l0, l1, cf), (&yf, tw), &row, b0, &mut ha);
-                }
-            } else {
-                // Layer 0: the features' part, the bias and the colour part.
-                for oc in 0..c0 {
-                    let ho = &mut ha[oc * tw..][..tw];
-                    ho.copy_from_slice(&yf[oc * tw..][..tw]);
-                    for ic in 0..cf {
-                        let wgt = l0.weight[oc * l0.cin + ic];
-                        for (y, &ev) in ho.iter_mut().zip(row(ic)) {
-                            *y += wgt * ev;
-                        }
-                    }
-                    let b = l0.bias[oc];
-                    for y in ho.iter_mut() {
-                        *y += b;
-                        if last > 0 {
-                            *y = y.max(0.0);
-                        }
-                    }
-                }
-                for (li, l) in layers.iter().enumerate().skip(1) {
-                    for oc in 0..l.cout {
-                        let ho = &mut hb[oc * tw..][..tw];
-                        ho.iter_mut().for_each(|y| *y = l.bias[oc]);
-                        for ic in 0..l.cin {
-                            let wgt = l.weight[oc * l.cin + ic];
-                            for (y, &hv) in ho.iter_mut().zip(&ha[ic * tw..][..tw]) {
-                                *y += wgt * hv;
-                            }
-                        }
-                        if li < last {
-                            ho.iter_mut().for_each(|y| *y = y.max(0.0));
-                        }
-                    }
-                    std::mem::swap(&mut ha, &mut hb);
-                }
-            }
-            // `ha[..tw]` holds the logits: their bounded weights, then the sums over views.
-            let weights = &mut ha[..tw];
+            view_logits(ctx, (i, k, r), &yf, (&mut h.0, &mut h.1));
+            // `h.0[..tw]` holds the logits: their bounded weights, then the sums over views.
+            let weights = &mut h.0[..tw];
             bounded_exp_slice(weights);
-            let src = |ch: usize| -> &[f32] {
-                &xd[(((i * v + k) * 4 + ch) * h + r + pad) * w + pad..][..tw]
-            };
-            let (rgb, alpha) = ([src(0), src(1), src(2)], src(3));
-            for c in 0..tw {
-                let ex = wide(weights[c] * alpha[c]);
-                den[c] += ex;
-                for (ch, s) in rgb.iter().enumerate() {
-                    num[ch * tw + c] += ex * wide(s[c]);
-                }
-            }
+            add_view(ctx, (i, k, r), weights, &mut den, &mut num);
         }
         for ch in 0..3 {
             for c in 0..tw {
                 o[ch * p + r * tw + c] = (num[ch * tw + c] / den[c]) as f32;
             }
+        }
+    }
+}
+
+/// Row `r` of item `i`: the colour features' part of layer 0 into `yf` `[C_0, tw]`.
+#[inline(always)]
+fn colour_part(ctx: &Ctx, (i, r): (usize, usize), yf: &mut [f32]) {
+    let ((_, cf, cc, _, _), (th, tw, _)) = (ctx.dims, ctx.tile);
+    let l0 = &ctx.layers[0];
+    yf.iter_mut().for_each(|y| *y = 0.0);
+    for oc in 0..l0.cout {
+        let yo = &mut yf[oc * tw..][..tw];
+        for ic in 0..cc {
+            let wgt = l0.weight[oc * l0.cin + cf + ic];
+            let fr = &ctx.fd[((i * cc + ic) * th + r) * tw..][..tw];
+            for (y, &fv) in yo.iter_mut().zip(fr) {
+                *y += wgt * fv;
+            }
+        }
+    }
+}
+
+/// View `k`'s logits at row `r` of item `i` into `ha[..tw]` (`hb`: scratch), from the
+/// colour part `yf` ([`colour_part`]) and the view's features.
+#[inline(always)]
+fn view_logits(
+    ctx: &Ctx,
+    (i, k, r): (usize, usize, usize),
+    yf: &[f32],
+    (ha, hb): (&mut Vec<f32>, &mut Vec<f32>),
+) {
+    let (layers, (v, cf, _, h, w), (_, tw, pad)) = (ctx.layers, ctx.dims, ctx.tile);
+    let (l0, last, c0) = (&layers[0], layers.len() - 1, layers[0].cout);
+    let row =
+        |c: usize| -> &[f32] { &ctx.ed[(((i * v + k) * cf + c) * h + r + pad) * w + pad..][..tw] };
+    if layers.len() == 2 && c0 <= MAX_HIDDEN && layers[1].cout == 1 {
+        // The common blend (one hidden layer): pixels in register blocks.
+        let (l1, full) = (&layers[1], tw / LANES * LANES);
+        for b0 in (0..full).step_by(LANES) {
+            logits_block::<LANES>((l0, l1, cf), (yf, tw), &row, b0, ha);
+        }
+        for b0 in full..tw {
+            logits_block::<1>((l0, l1, cf), (yf, tw), &row, b0, ha);
+        }
+        return;
+    }
+    // Layer 0: the features' part, the bias and the colour part.
+    for oc in 0..c0 {
+        let ho = &mut ha[oc * tw..][..tw];
+        ho.copy_from_slice(&yf[oc * tw..][..tw]);
+        for ic in 0..cf {
+            let wgt = l0.weight[oc * l0.cin + ic];
+            for (y, &ev) in ho.iter_mut().zip(row(ic)) {
+                *y += wgt * ev;
+            }
+        }
+        let b = l0.bias[oc];
+        for y in ho.iter_mut() {
+            *y += b;
+            if last > 0 {
+                *y = y.max(0.0);
+            }
+        }
+    }
+    for (li, l) in layers.iter().enumerate().skip(1) {
+        for oc in 0..l.cout {
+            let ho = &mut hb[oc * tw..][..tw];
+            ho.iter_mut().for_each(|y| *y = l.bias[oc]);
+            for ic in 0..l.cin {
+                let wgt = l.weight[oc * l.cin + ic];
+                for (y, &hv) in ho.iter_mut().zip(&ha[ic * tw..][..tw]) {
+                    *y += wgt * hv;
+                }
+            }
+            if li < last {
+                ho.iter_mut().for_each(|y| *y = y.max(0.0));
+            }
+        }
+        std::mem::swap(ha, hb);
+    }
+}
+
+/// View `k`'s share of row `r` of item `i`: its bounded `weights` times its alphas added
+/// to `den`, and times its colours to `num` `[3, tw]` (f64).
+#[inline(always)]
+fn add_view(
+    ctx: &Ctx,
+    (i, k, r): (usize, usize, usize),
+    weights: &[f32],
+    den: &mut [f64],
+    num: &mut [f64],
+) {
+    let ((v, _, _, h, w), (_, tw, pad)) = (ctx.dims, ctx.tile);
+    let src =
+        |ch: usize| -> &[f32] { &ctx.xd[(((i * v + k) * 4 + ch) * h + r + pad) * w + pad..][..tw] };
+    let (rgb, alpha) = ([src(0), src(1), src(2)], src(3));
+    for c in 0..tw {
+        let ex = wide(weights[c] * alpha[c]);
+        den[c] += ex;
+        for (ch, s) in rgb.iter().enumerate() {
+            num[ch * tw + c] += ex * wide(s[c]);
         }
     }
 }

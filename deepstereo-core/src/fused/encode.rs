@@ -111,129 +111,188 @@ struct Dims {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn item_avx2(xi: &[f32], layers: &[Dense], d: Dims, st: &mut [f32], fe: &mut [f32]) {
-    let Dims {
-        v,
-        cv,
-        c,
-        p,
-        widest,
-    } = d;
-    // Scratch: the encoder's input, two layer buffers, every view's features, f64 sums.
-    let mut input = vec![0f32; (ENCODER_IN + cv - 4) * CHUNK];
-    let (mut ha, mut hb) = (vec![0f32; widest * CHUNK], vec![0f32; widest * CHUNK]);
-    let mut e = vec![0f32; v * c * CHUNK];
-    let mut cover = [0f64; CHUNK];
-    let mut den = [0f64; CHUNK];
-    let mut s64 = [0f64; CHUNK];
-    let mut mean = [0f32; 3 * CHUNK];
+    let mut sc = Scratch::new(d);
     let mut j0 = 0;
-    while j0 < p {
-        let len = CHUNK.min(p - j0);
-        let plane = |k: usize, ch: usize| &xi[(k * cv + ch) * p + j0..][..len];
-        // The coverage and the mean colour (pool_front's sums: view 0's term first).
-        for k in 0..v {
-            for (s, &a) in cover[..len].iter_mut().zip(plane(k, 3)) {
-                *s = if k == 0 { wide(a) } else { *s + wide(a) };
-            }
-        }
-        for ch in 0..3 {
-            for k in 0..v {
-                let (a, col) = (plane(k, 3), plane(k, ch));
-                for j in 0..len {
-                    let t = wide(a[j]) * wide(col[j]);
-                    s64[j] = if k == 0 { t } else { s64[j] + t };
-                }
-            }
-            let (m, out) = (
-                &mut mean[ch * CHUNK..][..len],
-                &mut st[ch * p + j0..][..len],
-            );
-            for j in 0..len {
-                m[j] = cast(s64[j] / (cover[j] + POOL_EPS));
-                out[j] = m[j];
-            }
-        }
-        for (o, &cv) in st[3 * p + j0..][..len].iter_mut().zip(&cover[..len]) {
-            *o = cast(cv / (cv + 1.0));
-        }
-        // The encoder, view by view, into `e`.
-        for k in 0..v {
-            for ch in 0..4 {
-                input[ch * CHUNK..][..len].copy_from_slice(plane(k, ch));
-            }
-            for ch in 0..3 {
-                let (src, m) = (plane(k, ch), &mean[ch * CHUNK..][..len]);
-                let dst = &mut input[(4 + ch) * CHUNK..][..len];
-                for j in 0..len {
-                    dst[j] = src[j] - m[j];
-                }
-            }
-            for ch in 4..cv {
-                input[(ENCODER_IN + ch - 4) * CHUNK..][..len].copy_from_slice(plane(k, ch));
-            }
-            // Layer 0 from the input, the hidden layers between `ha` and `hb`, the last
-            // into the view's features.
-            let ek = &mut e[k * c * CHUNK..][..c * CHUNK];
-            let nl = layers.len();
-            if nl == 1 {
-                dense_relu(&layers[0], &input, ek, len);
-            } else {
-                dense_relu(&layers[0], &input, &mut ha, len);
-                for (li, l) in layers.iter().enumerate().skip(1) {
-                    match (li + 1 == nl, li % 2) {
-                        (true, 1) => dense_relu(l, &ha, ek, len),
-                        (true, _) => dense_relu(l, &hb, ek, len),
-                        (false, 1) => dense_relu(l, &ha, &mut hb, len),
-                        (false, _) => dense_relu(l, &hb, &mut ha, len),
-                    }
-                }
-            }
+    while j0 < d.p {
+        let ch = Chunk {
+            xi,
+            d,
+            j0,
+            len: CHUNK.min(d.p - j0),
+        };
+        mean_cover(ch, &mut sc, st);
+        for k in 0..d.v {
+            encode_view(ch, layers, k, &mut sc);
             if !fe.is_empty() {
-                for ch in 0..c {
-                    fe[(k * c + ch) * p + j0..][..len]
-                        .copy_from_slice(&e[(k * c + ch) * CHUNK..][..len]);
+                for c in 0..d.c {
+                    fe[(k * d.c + c) * d.p + j0..][..ch.len]
+                        .copy_from_slice(&sc.e[(k * d.c + c) * CHUNK..][..ch.len]);
                 }
             }
         }
-        // Alpha-weighted moments of the features over views (pooled_stats' sums).
-        for (s, &a) in den[..len].iter_mut().zip(plane(0, 3)) {
-            *s = POOL_EPS + wide(a);
+        feature_moments(ch, &mut sc, st);
+        j0 += ch.len;
+    }
+}
+
+/// The per-thread scratch of [`item_avx2`]: the encoder's input, two layer buffers, every
+/// view's features, and the f64 sums, of one chunk.
+struct Scratch {
+    input: Vec<f32>,
+    ha: Vec<f32>,
+    hb: Vec<f32>,
+    e: Vec<f32>,
+    cover: [f64; CHUNK],
+    den: [f64; CHUNK],
+    s64: [f64; CHUNK],
+    mean: [f32; 3 * CHUNK],
+}
+
+impl Scratch {
+    #[inline(always)]
+    fn new(d: Dims) -> Self {
+        Scratch {
+            input: vec![0f32; (ENCODER_IN + d.cv - 4) * CHUNK],
+            ha: vec![0f32; d.widest * CHUNK],
+            hb: vec![0f32; d.widest * CHUNK],
+            e: vec![0f32; d.v * d.c * CHUNK],
+            cover: [0f64; CHUNK],
+            den: [0f64; CHUNK],
+            s64: [0f64; CHUNK],
+            mean: [0f32; 3 * CHUNK],
         }
-        for k in 1..v {
-            for (s, &a) in den[..len].iter_mut().zip(plane(k, 3)) {
-                *s += wide(a);
+    }
+}
+
+/// One chunk of a plane: pixels `j0..j0 + len` of the sources `xi` `[V, C_v, P]`.
+#[derive(Clone, Copy)]
+struct Chunk<'a> {
+    xi: &'a [f32],
+    d: Dims,
+    j0: usize,
+    len: usize,
+}
+
+impl<'a> Chunk<'a> {
+    /// Channel `ch` of view `k` over the chunk.
+    #[inline(always)]
+    fn plane(&self, k: usize, ch: usize) -> &'a [f32] {
+        &self.xi[(k * self.d.cv + ch) * self.d.p + self.j0..][..self.len]
+    }
+}
+
+/// The coverage and the mean colour (pool_front's sums: view 0's term first) into the
+/// scratch and `st`'s first four rows.
+#[inline(always)]
+fn mean_cover(x: Chunk, sc: &mut Scratch, st: &mut [f32]) {
+    let (Dims { v, p, .. }, j0, len) = (x.d, x.j0, x.len);
+    for k in 0..v {
+        for (s, &a) in sc.cover[..len].iter_mut().zip(x.plane(k, 3)) {
+            *s = if k == 0 { wide(a) } else { *s + wide(a) };
+        }
+    }
+    for ch in 0..3 {
+        for k in 0..v {
+            let (a, col) = (x.plane(k, 3), x.plane(k, ch));
+            for j in 0..len {
+                let t = wide(a[j]) * wide(col[j]);
+                sc.s64[j] = if k == 0 { t } else { sc.s64[j] + t };
             }
         }
-        for ch in 0..c {
-            for k in 0..v {
-                let (a, ek) = (plane(k, 3), &e[(k * c + ch) * CHUNK..][..len]);
-                for j in 0..len {
-                    let t = wide(a[j]) * wide(ek[j]);
-                    s64[j] = if k == 0 { t } else { s64[j] + t };
-                }
-            }
-            for j in 0..len {
-                s64[j] /= den[j];
-            }
-            let mut var = [0f64; CHUNK];
-            for k in 0..v {
-                let (a, ek) = (plane(k, 3), &e[(k * c + ch) * CHUNK..][..len]);
-                for j in 0..len {
-                    let dev = wide(ek[j]) - s64[j];
-                    let t = wide(a[j]) * dev * dev;
-                    var[j] = if k == 0 { t } else { var[j] + t };
-                }
-            }
-            let mo = &mut st[(4 + ch) * p + j0..][..len];
-            for j in 0..len {
-                mo[j] = cast(s64[j]);
-            }
-            let vo = &mut st[(4 + c + ch) * p + j0..][..len];
-            for j in 0..len {
-                vo[j] = cast(var[j] / den[j]);
+        let (m, out) = (
+            &mut sc.mean[ch * CHUNK..][..len],
+            &mut st[ch * p + j0..][..len],
+        );
+        for j in 0..len {
+            m[j] = cast(sc.s64[j] / (sc.cover[j] + POOL_EPS));
+            out[j] = m[j];
+        }
+    }
+    for (o, &cv) in st[3 * p + j0..][..len].iter_mut().zip(&sc.cover[..len]) {
+        *o = cast(cv / (cv + 1.0));
+    }
+}
+
+/// The encoder on view `k` of the chunk: its input (RGBA, colour minus the mean, the
+/// cue), layer 0 from it, the hidden layers between `ha` and `hb`, the last into the
+/// view's features in `e`.
+#[inline(always)]
+fn encode_view(x: Chunk, layers: &[Dense], k: usize, sc: &mut Scratch) {
+    let (Dims { cv, c, .. }, len) = (x.d, x.len);
+    let input = &mut sc.input;
+    for ch in 0..4 {
+        input[ch * CHUNK..][..len].copy_from_slice(x.plane(k, ch));
+    }
+    for ch in 0..3 {
+        let (src, m) = (x.plane(k, ch), &sc.mean[ch * CHUNK..][..len]);
+        let dst = &mut input[(4 + ch) * CHUNK..][..len];
+        for j in 0..len {
+            dst[j] = src[j] - m[j];
+        }
+    }
+    for ch in 4..cv {
+        input[(ENCODER_IN + ch - 4) * CHUNK..][..len].copy_from_slice(x.plane(k, ch));
+    }
+    let ek = &mut sc.e[k * c * CHUNK..][..c * CHUNK];
+    let (ha, hb) = (&mut sc.ha, &mut sc.hb);
+    let nl = layers.len();
+    if nl == 1 {
+        dense_relu(&layers[0], input, ek, len);
+    } else {
+        dense_relu(&layers[0], input, ha, len);
+        for (li, l) in layers.iter().enumerate().skip(1) {
+            match (li + 1 == nl, li % 2) {
+                (true, 1) => dense_relu(l, ha, ek, len),
+                (true, _) => dense_relu(l, hb, ek, len),
+                (false, 1) => dense_relu(l, ha, hb, len),
+                (false, _) => dense_relu(l, hb, ha, len),
             }
         }
-        j0 += len;
+    }
+}
+
+/// Alpha-weighted moments of the features over views (pooled_stats' sums) into `st`'s
+/// rows after the first four.
+#[inline(always)]
+fn feature_moments(x: Chunk, sc: &mut Scratch, st: &mut [f32]) {
+    let (Dims { v, c, p, .. }, j0, len) = (x.d, x.j0, x.len);
+    let (den, s64, e) = (&mut sc.den, &mut sc.s64, &sc.e);
+    for (s, &a) in den[..len].iter_mut().zip(x.plane(0, 3)) {
+        *s = POOL_EPS + wide(a);
+    }
+    for k in 1..v {
+        for (s, &a) in den[..len].iter_mut().zip(x.plane(k, 3)) {
+            *s += wide(a);
+        }
+    }
+    for ch in 0..c {
+        for k in 0..v {
+            let (a, ek) = (x.plane(k, 3), &e[(k * c + ch) * CHUNK..][..len]);
+            for j in 0..len {
+                let t = wide(a[j]) * wide(ek[j]);
+                s64[j] = if k == 0 { t } else { s64[j] + t };
+            }
+        }
+        for j in 0..len {
+            s64[j] /= den[j];
+        }
+        let mut var = [0f64; CHUNK];
+        for k in 0..v {
+            let (a, ek) = (x.plane(k, 3), &e[(k * c + ch) * CHUNK..][..len]);
+            for j in 0..len {
+                let dev = wide(ek[j]) - s64[j];
+                let t = wide(a[j]) * dev * dev;
+                var[j] = if k == 0 { t } else { var[j] + t };
+            }
+        }
+        let mo = &mut st[(4 + ch) * p + j0..][..len];
+        for j in 0..len {
+            mo[j] = cast(s64[j]);
+        }
+        let vo = &mut st[(4 + c + ch) * p + j0..][..len];
+        for j in 0..len {
+            vo[j] = cast(var[j] / den[j]);
+        }
     }
 }
 

@@ -1,9 +1,9 @@
 //! The network's head: [`select_softmax`] (selection probabilities) and [`composite`]
 //! (the rendered colour).
 
-use super::{data, on_cpu, par_columns, slice, COLUMNS};
+use super::{bwd2, fwd2, on_cpu, par_columns, read, Kernels2, Real, COLUMNS};
 use crate::cpu::{softmax_columns, SharedMut};
-use candle_core::{bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType};
+use candle_core::{bail, CpuStorage, CustomOp2, Layout, Result, Shape, Tensor, WithDType};
 use num_traits::Float;
 use rayon::prelude::*;
 
@@ -84,6 +84,31 @@ impl SelectSoftmax {
     }
 }
 
+impl Kernels2 for SelectSoftmax {
+    const NAME: &'static str = "select_softmax";
+
+    fn forward<T: Real>(x: &[T], log_scale: &[T], shape: &Shape) -> Result<Vec<T>> {
+        let (_, d, p) = shape.dims3()?;
+        Ok(Self::fwd(x, log_scale[0].exp(), (d, p)))
+    }
+
+    fn backward<T: Real>(
+        x: &Tensor,
+        ls: &Tensor,
+        s: &Tensor,
+        ds: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (_, d, p) = x.dims3()?;
+        let (dx, dls) = read([x, s, ds, ls], |[x, s, g, ls]: [&[T]; 4]| {
+            Ok(Self::bwd_typed(x, s, g, ls[0].exp(), (d, p)))
+        })?;
+        Ok((
+            Some(Tensor::from_vec(dx, x.shape(), x.device())?),
+            Some(Tensor::from_vec(vec![dls], 1, x.device())?),
+        ))
+    }
+}
+
 impl CustomOp2 for SelectSoftmax {
     fn name(&self) -> &'static str {
         "deepstereo-select-softmax"
@@ -96,19 +121,7 @@ impl CustomOp2 for SelectSoftmax {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (_, d, p) = l1.shape().dims3()?;
-        let y = match s1 {
-            CpuStorage::F32(_) => {
-                let a = slice::<f32>(s2, l2)?[0].exp();
-                CpuStorage::F32(Self::fwd(slice::<f32>(s1, l1)?, a, (d, p)))
-            }
-            CpuStorage::F64(_) => {
-                let a = slice::<f64>(s2, l2)?[0].exp();
-                CpuStorage::F64(Self::fwd(slice::<f64>(s1, l1)?, a, (d, p)))
-            }
-            _ => bail!("select_softmax: f32 or f64 only"),
-        };
-        Ok((y, l1.shape().clone()))
+        Ok((fwd2::<Self>(s1, l1, s2, l2)?, l1.shape().clone()))
     }
 
     fn bwd(
@@ -118,39 +131,7 @@ impl CustomOp2 for SelectSoftmax {
         s: &Tensor,
         ds: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (_, d, p) = x.dims3()?;
-        let ds = ds.contiguous()?;
-        fn run<T: WithDType + Float>(
-            x: &Tensor,
-            ls: &Tensor,
-            s: &Tensor,
-            ds: &Tensor,
-            dp: (usize, usize),
-        ) -> Result<(Tensor, Tensor)> {
-            let (dx, dls) = {
-                let (xs, xl) = x.storage_and_layout();
-                let (ss, sl) = s.storage_and_layout();
-                let (gs, gl) = ds.storage_and_layout();
-                let (ls_s, ls_l) = ls.storage_and_layout();
-                let a = data::<T>(&ls_s, ls_l)?[0].exp();
-                let (x, s, g) = (
-                    data::<T>(&xs, xl)?,
-                    data::<T>(&ss, sl)?,
-                    data::<T>(&gs, gl)?,
-                );
-                SelectSoftmax::bwd_typed(x, s, g, a, dp)
-            };
-            Ok((
-                Tensor::from_vec(dx, x.shape(), x.device())?,
-                Tensor::from_vec(vec![dls], 1, x.device())?,
-            ))
-        }
-        let (dx, dls) = match x.dtype() {
-            DType::F32 => run::<f32>(x, ls, s, &ds, (d, p))?,
-            DType::F64 => run::<f64>(x, ls, s, &ds, (d, p))?,
-            dt => bail!("select_softmax: f32 or f64 only, got {dt:?}"),
-        };
-        Ok((Some(dx), Some(dls)))
+        bwd2::<Self>(x, ls, s, ds)
     }
 }
 
@@ -225,6 +206,31 @@ impl Composite {
     }
 }
 
+impl Kernels2 for Composite {
+    const NAME: &'static str = "composite";
+
+    fn forward<T: Real>(col: &[T], sel: &[T], shape: &Shape) -> Result<Vec<T>> {
+        let (_, d, c, p) = shape.dims4()?;
+        Ok(Self::fwd(col, sel, (d, c, p)))
+    }
+
+    fn backward<T: Real>(
+        col: &Tensor,
+        sel: &Tensor,
+        _out: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let (_, d, c, p) = col.dims4()?;
+        let (dc, ds) = read([col, sel, g], |[cd, sd, gd]: [&[T]; 3]| {
+            Ok(Self::bwd_typed(cd, sd, gd, (d, c, p)))
+        })?;
+        Ok((
+            Some(Tensor::from_vec(dc, col.shape(), col.device())?),
+            Some(Tensor::from_vec(ds, sel.shape(), sel.device())?),
+        ))
+    }
+}
+
 impl CustomOp2 for Composite {
     fn name(&self) -> &'static str {
         "deepstereo-composite"
@@ -237,59 +243,17 @@ impl CustomOp2 for Composite {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (b, d, c, p) = l1.shape().dims4()?;
-        let y = match s1 {
-            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
-                slice::<f32>(s1, l1)?,
-                slice::<f32>(s2, l2)?,
-                (d, c, p),
-            )),
-            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
-                slice::<f64>(s1, l1)?,
-                slice::<f64>(s2, l2)?,
-                (d, c, p),
-            )),
-            _ => bail!("composite: f32 or f64 only"),
-        };
-        Ok((y, Shape::from((b, c, p))))
+        let (b, _, c, p) = l1.shape().dims4()?;
+        Ok((fwd2::<Self>(s1, l1, s2, l2)?, Shape::from((b, c, p))))
     }
 
     fn bwd(
         &self,
         col: &Tensor,
         sel: &Tensor,
-        _out: &Tensor,
+        out: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (_, d, c, p) = col.dims4()?;
-        let g = g.contiguous()?;
-        fn run<T: WithDType>(
-            col: &Tensor,
-            sel: &Tensor,
-            g: &Tensor,
-            dcp: (usize, usize, usize),
-        ) -> Result<(Tensor, Tensor)> {
-            let (dc, ds) = {
-                let (cs, cl) = col.storage_and_layout();
-                let (ss, sl) = sel.storage_and_layout();
-                let (gs, gl) = g.storage_and_layout();
-                Composite::bwd_typed(
-                    data::<T>(&cs, cl)?,
-                    data::<T>(&ss, sl)?,
-                    data::<T>(&gs, gl)?,
-                    dcp,
-                )
-            };
-            Ok((
-                Tensor::from_vec(dc, col.shape(), col.device())?,
-                Tensor::from_vec(ds, sel.shape(), sel.device())?,
-            ))
-        }
-        let (dc, ds) = match col.dtype() {
-            DType::F32 => run::<f32>(col, sel, &g, (d, c, p))?,
-            DType::F64 => run::<f64>(col, sel, &g, (d, c, p))?,
-            dt => bail!("composite: f32 or f64 only, got {dt:?}"),
-        };
-        Ok((Some(dc), Some(ds)))
+        bwd2::<Self>(col, sel, out, g)
     }
 }

@@ -40,7 +40,13 @@ pub use upsample::{upsample_cat, upsample_crop, upsample_nearest};
 pub use weigh::weigh_views;
 
 use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};
+use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
+
+/// The float types the fused CPU kernels run on (f32 and f64), with what their loops use.
+trait Real: WithDType + Float + NumAssignOps + AsPrimitive<f64> + Send + Sync {}
+impl Real for f32 {}
+impl Real for f64 {}
 
 /// The contiguous elements of a CPU storage under `l`.
 fn slice<'a, T: WithDType>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [T]> {
@@ -76,6 +82,94 @@ fn data<'a, T: WithDType>(s: &'a Storage, l: &Layout) -> Result<&'a [T]> {
         bail!("fused op: CPU tensor expected")
     };
     slice(cpu, l)
+}
+
+/// The contiguous CPU data of the tensors `ts` as `T`, handed to `f` while their storages
+/// are read-locked.
+fn read<T: WithDType, R, const K: usize>(
+    ts: [&Tensor; K],
+    f: impl FnOnce([&[T]; K]) -> Result<R>,
+) -> Result<R> {
+    let guards = ts.map(|t| t.storage_and_layout());
+    let mut slices: [&[T]; K] = [&[]; K];
+    for (d, (st, l)) in slices.iter_mut().zip(&guards) {
+        *d = data::<T>(st, l)?;
+    }
+    f(slices)
+}
+
+/// A fused two-input op's kernels on CPU slices, for either float type; [`fwd2`] and
+/// [`bwd2`] dispatch on the dtype.
+trait Kernels2 {
+    /// The op's name in errors.
+    const NAME: &'static str;
+
+    /// The output from the inputs' contiguous data; `shape` is the first input's.
+    fn forward<T: Real>(a: &[T], b: &[T], shape: &candle_core::Shape) -> Result<Vec<T>>;
+
+    /// The inputs' gradients from the inputs `a` and `b`, the output `y` and its
+    /// contiguous gradient `g`.
+    fn backward<T: Real>(
+        a: &Tensor,
+        b: &Tensor,
+        y: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)>;
+}
+
+/// [`Kernels2::forward`] on CPU storages of either float type.
+fn fwd2<K: Kernels2>(
+    s1: &CpuStorage,
+    l1: &Layout,
+    s2: &CpuStorage,
+    l2: &Layout,
+) -> Result<CpuStorage> {
+    Ok(match s1 {
+        CpuStorage::F32(_) => CpuStorage::F32(K::forward(
+            slice::<f32>(s1, l1)?,
+            slice::<f32>(s2, l2)?,
+            l1.shape(),
+        )?),
+        CpuStorage::F64(_) => CpuStorage::F64(K::forward(
+            slice::<f64>(s1, l1)?,
+            slice::<f64>(s2, l2)?,
+            l1.shape(),
+        )?),
+        _ => bail!("{}: f32 or f64 only", K::NAME),
+    })
+}
+
+/// [`Kernels2::backward`] for `a`'s float type, with the output gradient made contiguous.
+fn bwd2<K: Kernels2>(
+    a: &Tensor,
+    b: &Tensor,
+    y: &Tensor,
+    g: &Tensor,
+) -> Result<(Option<Tensor>, Option<Tensor>)> {
+    let g = g.contiguous()?;
+    match a.dtype() {
+        DType::F32 => K::backward::<f32>(a, b, y, &g),
+        DType::F64 => K::backward::<f64>(a, b, y, &g),
+        dt => bail!("{}: f32 or f64 only, got {dt:?}", K::NAME),
+    }
+}
+
+/// Fails unless the sources `x` are `[N, V, 4, P]` with `(n, v, p)` those of `other` (the
+/// op's `what`, e.g. its logits).
+fn check_sources(
+    op: &str,
+    x: &Tensor,
+    (n, v, p): (usize, usize, usize),
+    (what, other): (&str, &Tensor),
+) -> Result<()> {
+    if x.dims() != [n, v, 4, p] {
+        bail!(
+            "{op}: sources {:?} do not match {what} {:?}",
+            x.dims(),
+            other.dims()
+        );
+    }
+    Ok(())
 }
 
 /// Whether the fused CPU kernels run these tensors (else: the candle composition).

@@ -17,11 +17,9 @@
 //! `P` is the pixels of a plane (`H * W`). Off the CPU, or for dtypes other than f32 and
 //! f64, the same maths runs as candle ops (`pool.rs`); tests compare the two.
 
-use super::{data, on_cpu, slice};
+use super::{bwd2, check_sources, fwd2, on_cpu, read, slice, Kernels2, Real};
 use crate::config::POOL_EPS;
-use candle_core::{
-    bail, CpuStorage, CustomOp1, CustomOp2, DType, Layout, Result, Shape, Tensor, WithDType,
-};
+use candle_core::{bail, CpuStorage, CustomOp1, CustomOp2, DType, Layout, Result, Shape, Tensor};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
 
@@ -56,18 +54,16 @@ pub fn pool_front(x: &Tensor) -> Result<Option<(Tensor, Tensor)>> {
         let front = y.narrow(1, 7 * v, 4)?; // [N, 4, P]
         return Ok(Some((enc, front)));
     }
-    fn run<T: WithDType + Float + NumAssignOps + AsPrimitive<f64>>(
-        x: &Tensor,
-        (n, v, p): (usize, usize, usize),
-    ) -> Result<(Tensor, Tensor)> {
-        let (st, l) = x.storage_and_layout();
-        let xs = data::<T>(&st, l)?;
-        let mut enc = vec![T::zero(); n * v * 7 * p];
-        let mut front = vec![T::zero(); n * 4 * p];
-        enc.par_chunks_mut(v * 7 * p)
-            .zip(front.par_chunks_mut(4 * p))
-            .zip(xs.par_chunks(v * 4 * p))
-            .for_each(|((enc, front), xi)| front_item(xi, (v, p), enc, front));
+    fn run<T: Real>(x: &Tensor, (n, v, p): (usize, usize, usize)) -> Result<(Tensor, Tensor)> {
+        let (enc, front) = read([x], |[xs]: [&[T]; 1]| {
+            let mut enc = vec![T::zero(); n * v * 7 * p];
+            let mut front = vec![T::zero(); n * 4 * p];
+            enc.par_chunks_mut(v * 7 * p)
+                .zip(front.par_chunks_mut(4 * p))
+                .zip(xs.par_chunks(v * 4 * p))
+                .for_each(|((enc, front), xi)| front_item(xi, (v, p), enc, front));
+            Ok((enc, front))
+        })?;
         let dev = x.device();
         Ok((
             Tensor::from_vec(enc, (n * v, 7, p), dev)?,
@@ -212,21 +208,17 @@ impl CustomOp1 for PoolFront {
     }
 
     fn bwd(&self, x: &Tensor, _y: &Tensor, g: &Tensor) -> Result<Option<Tensor>> {
-        let (n, v, _, p) = x.dims4()?;
+        fn run<T: Real>(x: &Tensor, g: &Tensor) -> Result<Tensor> {
+            let (n, v, _, p) = x.dims4()?;
+            let dx = read([x, g], |[xd, gd]: [&[T]; 2]| {
+                Ok(PoolFront::bwd(xd, gd, (n, v, p)))
+            })?;
+            Tensor::from_vec(dx, x.shape(), x.device())
+        }
         let g = g.contiguous()?;
-        let (xs, xl) = x.storage_and_layout();
-        let (gs, gl) = g.storage_and_layout();
         let dx = match x.dtype() {
-            DType::F32 => Tensor::from_vec(
-                Self::bwd(data::<f32>(&xs, xl)?, data::<f32>(&gs, gl)?, (n, v, p)),
-                x.shape(),
-                x.device(),
-            )?,
-            DType::F64 => Tensor::from_vec(
-                Self::bwd(data::<f64>(&xs, xl)?, data::<f64>(&gs, gl)?, (n, v, p)),
-                x.shape(),
-                x.device(),
-            )?,
+            DType::F32 => run::<f32>(x, &g)?,
+            DType::F64 => run::<f64>(x, &g)?,
             dt => bail!("pool_front: f32 or f64 only, got {dt:?}"),
         };
         Ok(Some(dx))
@@ -238,13 +230,7 @@ impl CustomOp1 for PoolFront {
 /// `None` off the CPU.
 pub fn view_stats(e: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
     let (n, v, _, p) = e.dims4()?;
-    if x.dims() != [n, v, 4, p] {
-        bail!(
-            "view_stats: sources {:?} do not match features {:?}",
-            x.dims(),
-            e.dims()
-        );
-    }
+    check_sources("view_stats", x, (n, v, p), ("features", e))?;
     if !on_cpu(&[e, x]) {
         return Ok(None);
     }
@@ -372,30 +358,25 @@ pub fn pooled_stats(front: &Tensor, e: &Tensor, x: &Tensor) -> Result<Option<Ten
         return Ok(None);
     }
     let (front, e, x) = (front.contiguous()?, e.contiguous()?, x.contiguous()?);
-    fn run<T: WithDType + Float + AsPrimitive<f64>>(
+    fn run<T: Real>(
         front: &Tensor,
         e: &Tensor,
         x: &Tensor,
         (n, nf, v, c, p): (usize, usize, usize, usize, usize),
     ) -> Result<Tensor> {
-        let (fs, fl) = front.storage_and_layout();
-        let (es, el) = e.storage_and_layout();
-        let (xs, xl) = x.storage_and_layout();
-        let (fd, ed, xd) = (
-            data::<T>(&fs, fl)?,
-            data::<T>(&es, el)?,
-            data::<T>(&xs, xl)?,
-        );
-        let mut out = vec![T::zero(); n * (nf + 2 * c) * p];
-        out.par_chunks_mut((nf + 2 * c) * p)
-            .zip(fd.par_chunks(nf * p))
-            .enumerate()
-            .for_each(|(i, (o, f))| {
-                let (head, rest) = o.split_at_mut(nf * p);
-                head.copy_from_slice(f);
-                let (means, vars) = rest.split_at_mut(c * p);
-                moments(ed, xd, (i, v, c, p), means, vars);
-            });
+        let out = read([front, e, x], |[fd, ed, xd]: [&[T]; 3]| {
+            let mut out = vec![T::zero(); n * (nf + 2 * c) * p];
+            out.par_chunks_mut((nf + 2 * c) * p)
+                .zip(fd.par_chunks(nf * p))
+                .enumerate()
+                .for_each(|(i, (o, f))| {
+                    let (head, rest) = o.split_at_mut(nf * p);
+                    head.copy_from_slice(f);
+                    let (means, vars) = rest.split_at_mut(c * p);
+                    moments(ed, xd, (i, v, c, p), means, vars);
+                });
+            Ok(out)
+        })?;
         Tensor::from_vec(out, (n, nf + 2 * c, p), e.device()) // [N, F + 2C, P]
     }
     let dims = (n, nf, v, c, p);
@@ -504,6 +485,35 @@ impl ViewStats {
     }
 }
 
+impl Kernels2 for ViewStats {
+    const NAME: &'static str = "view_stats";
+
+    fn forward<T: Real>(e: &[T], x: &[T], shape: &Shape) -> Result<Vec<T>> {
+        Ok(Self::fwd(e, x, shape.dims4()?))
+    }
+
+    fn backward<T: Real>(
+        e: &Tensor,
+        x: &Tensor,
+        _y: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let dims = e.dims4()?;
+        read([e, x, g], |[ed, xd, gd]: [&[T]; 3]| {
+            let de = Tensor::from_vec(Self::bwd(ed, xd, gd, dims), e.shape(), e.device())?;
+            // `dx` only where the sources carry a gradient (their alphas weighed by the cue).
+            let dx = match x.track_op() {
+                true => {
+                    let dx = Self::bwd_x(ed, xd, gd, dims);
+                    Some(Tensor::from_vec(dx, x.shape(), x.device())?)
+                }
+                false => None,
+            };
+            Ok((Some(de), dx))
+        })
+    }
+}
+
 impl CustomOp2 for ViewStats {
     fn name(&self) -> &'static str {
         "deepstereo-view-stats"
@@ -516,62 +526,17 @@ impl CustomOp2 for ViewStats {
         s2: &CpuStorage,
         l2: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (n, v, c, p) = l1.shape().dims4()?;
-        let y = match s1 {
-            CpuStorage::F32(_) => CpuStorage::F32(Self::fwd(
-                slice::<f32>(s1, l1)?,
-                slice::<f32>(s2, l2)?,
-                (n, v, c, p),
-            )),
-            CpuStorage::F64(_) => CpuStorage::F64(Self::fwd(
-                slice::<f64>(s1, l1)?,
-                slice::<f64>(s2, l2)?,
-                (n, v, c, p),
-            )),
-            _ => bail!("view_stats: f32 or f64 only"),
-        };
-        Ok((y, Shape::from((n, 2 * c, p))))
+        let (n, _, c, p) = l1.shape().dims4()?;
+        Ok((fwd2::<Self>(s1, l1, s2, l2)?, Shape::from((n, 2 * c, p))))
     }
 
     fn bwd(
         &self,
         e: &Tensor,
         x: &Tensor,
-        _y: &Tensor,
+        y: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let dims = e.dims4()?;
-        let g = g.contiguous()?;
-        // `dx` only where the sources carry a gradient (their alphas weighed by the cue).
-        fn run<T: WithDType + Float + NumAssignOps + AsPrimitive<f64>>(
-            e: &Tensor,
-            x: &Tensor,
-            g: &Tensor,
-            dims: (usize, usize, usize, usize),
-        ) -> Result<(Tensor, Option<Tensor>)> {
-            let (es, el) = e.storage_and_layout();
-            let (xs, xl) = x.storage_and_layout();
-            let (gs, gl) = g.storage_and_layout();
-            let (ed, xd, gd) = (
-                data::<T>(&es, el)?,
-                data::<T>(&xs, xl)?,
-                data::<T>(&gs, gl)?,
-            );
-            let de = Tensor::from_vec(ViewStats::bwd(ed, xd, gd, dims), e.shape(), e.device())?;
-            let dx = match x.track_op() {
-                true => {
-                    let dx = ViewStats::bwd_x(ed, xd, gd, dims);
-                    Some(Tensor::from_vec(dx, x.shape(), x.device())?)
-                }
-                false => None,
-            };
-            Ok((de, dx))
-        }
-        let (de, dx) = match e.dtype() {
-            DType::F32 => run::<f32>(e, x, &g, dims)?,
-            DType::F64 => run::<f64>(e, x, &g, dims)?,
-            dt => bail!("view_stats: f32 or f64 only, got {dt:?}"),
-        };
-        Ok((Some(de), dx))
+        bwd2::<Self>(e, x, y, g)
     }
 }

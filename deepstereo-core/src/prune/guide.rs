@@ -64,55 +64,26 @@ pub fn network_guide(
 ) -> Result<Option<Guide>> {
     let cfg = backend.config();
     let a = cfg.tile_align();
-    let (w0, h0) = (target.intrinsics.width, target.intrinsics.height);
-    let min_side = a.max(MIN_GUIDE_SIDE);
-    let mut level = level;
-    while level > 0 && (((w0 >> level) as usize) < min_side || ((h0 >> level) as usize) < min_side)
-    {
-        level -= 1;
-    }
-    if level == 0 {
+    let Some(level) = coarse_level(target, level, a.max(MIN_GUIDE_SIDE)) else {
         return Ok(None);
-    }
-    let (w, h) = ((w0 >> level) as usize, (h0 >> level) as usize);
-    let cam = level_camera(target, level, w as u32, h as u32);
-    // The sources' pyramids from their level-`level` image down (downsampling further
-    // where their pyramids stop short of it).
-    let mut pyr = Vec::with_capacity(sources.len());
-    for s in sources {
-        let Some(last) = s.images.len().checked_sub(1) else {
-            return Ok(None);
-        };
-        let from = last.min(level);
-        let mut img = s.images[from].clone();
-        for _ in from..level {
-            img = img.downsample2();
-        }
-        let camera = level_camera(&s.cameras[0], level, img.width, img.height);
-        let source = PyramidSource::new(&camera, &img, cfg.levels);
-        pyr.push(match (backend.feature_net(), cfg.pool.as_ref()) {
-            (Some(net), Some(p)) if p.features.is_some() => source.with_features(net)?,
-            _ => source,
-        });
-    }
-    let srcs: Vec<&PyramidSource> = pyr.iter().collect();
-    let (z0, z1) = range;
-    if z0 > z1 || z1 >= inv_depths.len() {
-        return Err(Error::Invalid(format!(
-            "guide: plane range {z0}..={z1} outside {} planes",
-            inv_depths.len()
-        )));
-    }
-    let all = z1 + 1 - z0;
-    let k = if max_planes == 0 {
-        1
-    } else {
-        all.div_ceil(max_planes).max(1)
     };
-    let mut planes: Vec<usize> = (z0..=z1).step_by(k).collect();
-    if planes.last() != Some(&z1) {
-        planes.push(z1);
-    }
+    let (w, h) = (
+        (target.intrinsics.width >> level) as usize,
+        (target.intrinsics.height >> level) as usize,
+    );
+    let cam = level_camera(target, level, w as u32, h as u32);
+    let Some(pyr) = level_sources(sources, level, cfg.levels) else {
+        return Ok(None);
+    };
+    // The features family's maps of the guide's images (small: computed again here).
+    let pyr = match (backend.feature_net(), cfg.pool.as_ref()) {
+        (Some(net), Some(p)) if p.features.is_some() => (pyr.into_iter())
+            .map(|s| s.with_features(net))
+            .collect::<Result<Vec<_>>>()?,
+        _ => pyr,
+    };
+    let srcs: Vec<&PyramidSource> = pyr.iter().collect();
+    let (planes, k) = guide_plane_list(range, inv_depths.len(), max_planes)?;
     let band: Vec<f64> = planes.iter().map(|&z| inv_depths[z]).collect();
     let nz = band.len();
     // Tiles of twice the render's side (the guide runs at most half the planes per call,
@@ -137,21 +108,8 @@ pub fn network_guide(
                 // reweighed selection needs.
                 grid.reweigh_tile(&cam, &band, (x0, y0), (th, tw), &mut s);
             }
-            for z in 0..nz {
-                for y in y0..(y0 + th).min(h) {
-                    for x in x0..(x0 + tw).min(w) {
-                        let v = s[(z * th + y - y0) * tw + x - x0];
-                        sel[(z * h + y) * w + x] = if v.is_finite() { v } else { 1.0 };
-                        if layers {
-                            for ch in 0..3 {
-                                let v = c[((z * 3 + ch) * th + y - y0) * tw + x - x0];
-                                rgb[((z * 3 + ch) * h + y) * w + x] =
-                                    if v.is_finite() { v } else { 0.5 };
-                            }
-                        }
-                    }
-                }
-            }
+            let rgb = layers.then_some((c.as_slice(), rgb.as_mut_slice()));
+            copy_tile((&s, &mut sel), rgb, (x0, y0, tw, th), (nz, w, h));
         }
     }
     Ok(Some(Guide {
@@ -164,6 +122,89 @@ pub fn network_guide(
         sel,
         rgb: layers.then_some(rgb),
     }))
+}
+
+/// The pyramid level of the coarse render: `level`, lowered until the target's image
+/// there keeps `min_side` pixels on each side; `None` at level 0.
+fn coarse_level(target: &Camera, level: usize, min_side: usize) -> Option<usize> {
+    let (w0, h0) = (target.intrinsics.width, target.intrinsics.height);
+    let mut level = level;
+    while level > 0 && (((w0 >> level) as usize) < min_side || ((h0 >> level) as usize) < min_side)
+    {
+        level -= 1;
+    }
+    (level > 0).then_some(level)
+}
+
+/// The sources' pyramids from their level-`level` image down (downsampling further
+/// where their pyramids stop short of it); `None` where a source has no image.
+fn level_sources(
+    sources: &[&PyramidSource],
+    level: usize,
+    levels: usize,
+) -> Option<Vec<PyramidSource>> {
+    let mut pyr = Vec::with_capacity(sources.len());
+    for s in sources {
+        let last = s.images.len().checked_sub(1)?;
+        let from = last.min(level);
+        let mut img = s.images[from].clone();
+        for _ in from..level {
+            img = img.downsample2();
+        }
+        let camera = level_camera(&s.cameras[0], level, img.width, img.height);
+        pyr.push(PyramidSource::new(&camera, &img, levels));
+    }
+    Some(pyr)
+}
+
+/// The guide planes of the range `z0..=z1` of `n` planes: every `k`-th and the last,
+/// `k = ceil(planes / max_planes)` (`max_planes` 0: all); with `k`.
+fn guide_plane_list(
+    (z0, z1): (usize, usize),
+    n: usize,
+    max_planes: usize,
+) -> Result<(Vec<usize>, usize)> {
+    if z0 > z1 || z1 >= n {
+        return Err(Error::Invalid(format!(
+            "guide: plane range {z0}..={z1} outside {n} planes"
+        )));
+    }
+    let all = z1 + 1 - z0;
+    let k = if max_planes == 0 {
+        1
+    } else {
+        all.div_ceil(max_planes).max(1)
+    };
+    let mut planes: Vec<usize> = (z0..=z1).step_by(k).collect();
+    if planes.last() != Some(&z1) {
+        planes.push(z1);
+    }
+    Ok((planes, k))
+}
+
+/// One tile's selection `s` `[nz, th, tw]` at `(x0, y0)` into the guide's `sel`
+/// `[nz, h, w]` (non-finite values as 1), and with `rgb` its colours `[nz, 3, th, tw]`
+/// into the guide's (non-finite values as 0.5).
+fn copy_tile(
+    (s, sel): (&[f32], &mut [f32]),
+    mut rgb: Option<(&[f32], &mut [f32])>,
+    (x0, y0, tw, th): (usize, usize, usize, usize),
+    (nz, w, h): (usize, usize, usize),
+) {
+    for z in 0..nz {
+        for y in y0..(y0 + th).min(h) {
+            for x in x0..(x0 + tw).min(w) {
+                let v = s[(z * th + y - y0) * tw + x - x0];
+                sel[(z * h + y) * w + x] = if v.is_finite() { v } else { 1.0 };
+                if let Some((c, rgb)) = rgb.as_mut() {
+                    for ch in 0..3 {
+                        let v = c[((z * 3 + ch) * th + y - y0) * tw + x - x0];
+                        rgb[((z * 3 + ch) * h + y) * w + x] = if v.is_finite() { v } else { 0.5 };
+                    }
+                }
+            }
+        }
+    }
 }
 
 impl Guide {

@@ -69,13 +69,13 @@
 //! margins those estimates keep); the sweeps the network itself runs on project every
 //! pixel through the rolling shutters exactly.
 
-#[cfg(test)]
-mod calibrate;
 mod guide;
 mod plan;
 mod range;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_calibrate;
 #[cfg(test)]
 mod tests_guide;
 mod views;

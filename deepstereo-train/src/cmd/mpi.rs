@@ -4,10 +4,10 @@
 use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
 use crate::cmd::support::outdir::StagedDir;
 use crate::rendering::mpi::{
-    bake_camera, bake_settings, bake_view, eval_through_mpi, BakeOptions, MpiEvalOptions, OwnPhoto,
-    BAKE_AGREE, BAKE_SMOOTH,
+    bake_at, bake_settings, eval_through_mpi, BakeOptions, MpiEvalOptions, OwnPhoto, BAKE_AGREE,
+    BAKE_SMOOTH,
 };
-use crate::rendering::{pick_planned_sources, PlaneSpan, Prepared, RenderSettings};
+use crate::rendering::{PlaneSpan, Prepared, RenderSettings};
 use anyhow::{bail, Context, Result};
 use deepstereo_core::camera::Camera;
 use deepstereo_core::imageio::write_atomic;
@@ -109,9 +109,43 @@ pub fn run(a: Args) -> Result<()> {
     }
     let targets = bake_targets(&a, &scene, &holdout)?;
     let staged = StagedDir::new(&a.out)?;
-    let cfg = backend.config();
-    let k = settings.source_count(cfg)?;
-    let mut prepared = Prepared::new(&scene);
+    let bake = Bake {
+        backend: backend.as_ref(),
+        scene: &scene,
+        holdout: &holdout,
+        own,
+        settings: &settings,
+    };
+    let (names, range) = bake_all(&a, &bake, &targets, staged.path())?;
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    viewer::write(staged.path(), &refs, range)?;
+    staged.commit()?;
+    eprintln!(
+        "wrote the viewer: open {} in a browser (?fit=native: the reference view pixel for pixel)",
+        a.out.join("index.html").display()
+    );
+    Ok(())
+}
+
+/// What every bake of a run shares.
+struct Bake<'a> {
+    backend: &'a dyn Backend,
+    scene: &'a Scene,
+    holdout: &'a [usize],
+    own: OwnPhoto,
+    settings: &'a RenderSettings,
+}
+
+/// Bakes an MPI at each target into `dir` (`.` for one, else `mpi_NN`), with progress
+/// bars and a line each on stderr; the directory names, and the farthest distance of a
+/// reference or source camera from the first target's (the viewer's range of motion).
+fn bake_all(
+    a: &Args,
+    b: &Bake,
+    targets: &[(Camera, Option<usize>)],
+    dir: &Path,
+) -> Result<(Vec<String>, f64)> {
+    let mut prepared = Prepared::new(b.scene);
     let mut names = Vec::new();
     let mut range = 0f64;
     let first = targets[0].0.pose.centre();
@@ -122,39 +156,23 @@ pub fn run(a: Args) -> Result<()> {
             bar.set_length(total as u64);
             bar.set_position(done as u64);
         };
-        let (mpi, srcs) = match view {
-            Some(v) => bake_view(
-                backend.as_ref(),
-                &scene,
-                &mut prepared,
-                (*v, bake_options(&a)),
-                &holdout,
-                own,
-                &settings,
-                &progress,
-            )?,
-            None => {
-                let srcs = pick_planned_sources(&scene, cam, &holdout, (k, cfg), &settings);
-                let place = (cam, bake_options(&a));
-                let mpi = bake_camera(
-                    backend.as_ref(),
-                    &scene,
-                    &mut prepared,
-                    place,
-                    &srcs,
-                    &settings,
-                    &progress,
-                )?;
-                (mpi, srcs[..k.min(srcs.len())].to_vec())
-            }
-        };
+        let (mpi, srcs) = bake_at(
+            b.backend,
+            b.scene,
+            &mut prepared,
+            (cam, *view, bake_options(a)),
+            b.holdout,
+            b.own,
+            b.settings,
+            &progress,
+        )?;
         bar.finish_and_clear();
         let name = if targets.len() == 1 {
             ".".to_string()
         } else {
             format!("mpi_{i:02}")
         };
-        io::write(&mpi, &staged.path().join(&name))?;
+        io::write(&mpi, &dir.join(&name))?;
         let depth = |r: Option<&f64>| r.map_or(f64::NAN, |&r| 1.0 / r);
         eprintln!(
             "baked {}x{}, {} planes at depths {:.4}-{:.4}, in {:.2} s from views {srcs:?} into {}",
@@ -167,19 +185,12 @@ pub fn run(a: Args) -> Result<()> {
             a.out.join(&name).display()
         );
         for &s in &srcs {
-            range = range.max((scene.views[s].camera.pose.centre() - first).length());
+            range = range.max((b.scene.views[s].camera.pose.centre() - first).length());
         }
         range = range.max((mpi.camera.pose.centre() - first).length());
         names.push(name);
     }
-    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
-    viewer::write(staged.path(), &refs, range)?;
-    staged.commit()?;
-    eprintln!(
-        "wrote the viewer: open {} in a browser (?fit=native: the reference view pixel for pixel)",
-        a.out.join("index.html").display()
-    );
-    Ok(())
+    Ok((names, range))
 }
 
 /// The margin, smoothing and agreement of every bake.

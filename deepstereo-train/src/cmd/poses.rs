@@ -222,6 +222,33 @@ fn stage<T>(n: usize, name: &str, f: impl FnOnce() -> anyhow::Result<T>) -> anyh
     r
 }
 
+/// The photographs into `img_dir` and, with `masks`, their masks into `mask_dir`.
+fn copy_inputs(
+    images: &[PathBuf],
+    masks: Option<&[PathBuf]>,
+    (img_dir, mask_dir): (&Path, &Path),
+) -> anyhow::Result<()> {
+    std::fs::create_dir(img_dir).with_context(|| img_dir.display().to_string())?;
+    for p in images {
+        let name = p.file_name().context("image without a file name")?;
+        std::fs::copy(p, img_dir.join(name))
+            .with_context(|| format!("cannot copy {}", p.display()))?;
+    }
+    if let Some(m) = masks {
+        masks::copy_masks(m, images, mask_dir)?;
+    }
+    Ok(())
+}
+
+/// Removes COLMAP's scratch file or directory `p`, if it is there (best effort).
+fn remove_scratch(p: &Path) {
+    let _ = if p.is_dir() {
+        std::fs::remove_dir_all(p)
+    } else {
+        std::fs::remove_file(p)
+    };
+}
+
 fn build(
     args: &Args,
     images: &[PathBuf],
@@ -234,16 +261,7 @@ fn build(
     let (db, work) = (tmp.join("database.db"), tmp.join("mapper"));
     let mask_dir = tmp.join("masks");
     stage(1, "copying images", || {
-        std::fs::create_dir(&img_dir).with_context(|| img_dir.display().to_string())?;
-        for p in images {
-            let name = p.file_name().context("image without a file name")?;
-            std::fs::copy(p, img_dir.join(name))
-                .with_context(|| format!("cannot copy {}", p.display()))?;
-        }
-        if let Some(m) = masks {
-            masks::copy_masks(m, images, &mask_dir)?;
-        }
-        Ok(())
+        copy_inputs(images, masks, (&img_dir, &mask_dir))
     })?;
     let params = match args.focal {
         Some(f) => {
@@ -286,11 +304,7 @@ fn build(
     })?;
     drop_unregistered(images, &names, &img_dir);
     for p in [&db, &work, &mask_dir] {
-        let _ = if p.is_dir() {
-            std::fs::remove_dir_all(p)
-        } else {
-            std::fs::remove_file(p)
-        };
+        remove_scratch(p);
     }
     let scene = Scene::load(tmp, &LoadOptions::default())
         .context("the scene COLMAP made cannot be read back")?;

@@ -483,36 +483,59 @@ fn point(
     targets: &[usize],
     settings: &RenderSettings,
 ) -> Result<Point> {
-    let Some(small) = scaled else {
-        let mut pictures = Vec::new();
-        let r = evaluate(backend, model, scene, targets, settings, |v, im| {
-            pictures.push(ViewPictures {
-                target: v.target,
-                name: v.name.clone(),
-                truth: im.truth.clone(),
-                rendered: im.rendered.image.clone(),
-                plane_sweep: im.plane_sweep.clone(),
-                nearest: im.nearest.clone(),
-                psnr: [
-                    v.psnr,
-                    v.baselines.plane_sweep.psnr,
-                    v.baselines.nearest.psnr,
-                ],
-            });
-        })?;
-        let b = &r.mean.baselines;
-        return Ok(Point {
-            backend: r.backend.clone(),
-            net: (r.mean.psnr, r.mean.ssim, r.mean.seconds),
-            plane_sweep: (
-                b.plane_sweep.psnr,
-                b.plane_sweep.ssim,
-                b.plane_sweep.seconds.unwrap_or(0.0),
-            ),
-            nearest: (b.nearest.psnr, b.nearest.ssim),
-            pictures,
+    match scaled {
+        None => point_full(backend, model, scene, targets, settings),
+        Some(small) => point_scaled(backend, model, (scene, small, n), targets, settings),
+    }
+}
+
+/// [`point`] at the scene's own resolution: the evaluation's scores and pictures.
+fn point_full(
+    backend: &dyn Backend,
+    model: &str,
+    scene: &Scene,
+    targets: &[usize],
+    settings: &RenderSettings,
+) -> Result<Point> {
+    let mut pictures = Vec::new();
+    let r = evaluate(backend, model, scene, targets, settings, |v, im| {
+        pictures.push(ViewPictures {
+            target: v.target,
+            name: v.name.clone(),
+            truth: im.truth.clone(),
+            rendered: im.rendered.image.clone(),
+            plane_sweep: im.plane_sweep.clone(),
+            nearest: im.nearest.clone(),
+            psnr: [
+                v.psnr,
+                v.baselines.plane_sweep.psnr,
+                v.baselines.nearest.psnr,
+            ],
         });
-    };
+    })?;
+    let b = &r.mean.baselines;
+    Ok(Point {
+        backend: r.backend.clone(),
+        net: (r.mean.psnr, r.mean.ssim, r.mean.seconds),
+        plane_sweep: (
+            b.plane_sweep.psnr,
+            b.plane_sweep.ssim,
+            b.plane_sweep.seconds.unwrap_or(0.0),
+        ),
+        nearest: (b.nearest.psnr, b.nearest.ssim),
+        pictures,
+    })
+}
+
+/// [`point`] at 1/`n` of the scene's resolution (`small`): the renders upsampled and
+/// scored against the photographs of `scene`.
+fn point_scaled(
+    backend: &dyn Backend,
+    model: &str,
+    (scene, small, n): (&Scene, &Scene, u32),
+    targets: &[usize],
+    settings: &RenderSettings,
+) -> Result<Point> {
     // [network, plane sweep, nearest] x (PSNR, SSIM) per view, scored at full resolution.
     let mut scored: Vec<Result<Scored>> = Vec::new();
     let r = evaluate(backend, model, small, targets, settings, |v, im| {

@@ -8,6 +8,7 @@
 pub mod models;
 pub mod mpi;
 pub mod path;
+pub mod sweep;
 
 use anyhow::{bail, Context, Result};
 use deepstereo_core::baseline::plane_sweep;

@@ -121,6 +121,34 @@ fn finish(mpi: Mpi, smooth: usize, picture: Option<RgbImage>) -> Result<Mpi> {
     Ok(smoothed.with_composite(&picture)?)
 }
 
+/// An MPI baked at `camera`: at view `view`'s (its photograph entering as `own` says,
+/// see [`bake_view`]), or, at a camera that is no view, from the sources a render there
+/// would read ([`bake_camera`]); with the sources it read.
+#[allow(clippy::too_many_arguments)]
+pub fn bake_at(
+    backend: &dyn Backend,
+    scene: &Scene,
+    prepared: &mut Prepared,
+    (camera, view, opts): (&Camera, Option<usize>, BakeOptions),
+    holdout: &[usize],
+    own: OwnPhoto,
+    settings: &RenderSettings,
+    progress: &dyn Fn(usize, usize),
+) -> Result<(Mpi, Vec<usize>)> {
+    if let Some(v) = view {
+        let place = (v, opts);
+        return bake_view(
+            backend, scene, prepared, place, holdout, own, settings, progress,
+        );
+    }
+    let cfg = backend.config();
+    let k = settings.source_count(cfg)?;
+    let srcs = pick_planned_sources(scene, camera, holdout, (k, cfg), settings);
+    let place = (camera, opts);
+    let mpi = bake_camera(backend, scene, prepared, place, &srcs, settings, progress)?;
+    Ok((mpi, srcs[..k.min(srcs.len())].to_vec()))
+}
+
 /// Source views an MPI of the any-number-of-views family is baked from when `--views`
 /// is not given. An MPI is seen from cameras around its reference, and sources beyond
 /// the nearest four see what those cameras see: one MPI from 8 views is 0.6 dB better at

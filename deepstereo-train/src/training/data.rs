@@ -370,13 +370,23 @@ fn sample(
     let mut srcs: Vec<&PyramidSource> = src.iter().map(|&i| &s.pyramids[i]).collect();
     srcs.resize(views, &empty);
     let origin = (x0 as i64, y0 as i64);
-    let radius = cfg.pool.as_ref().and_then(|p| p.features.as_ref()).map(|f| f.radius());
+    let radius = cfg
+        .pool
+        .as_ref()
+        .and_then(|p| p.features.as_ref())
+        .map(|f| f.radius());
     let mut inputs = match radius {
         Some(_) => tile_inputs_without_features(cfg, cam, &srcs, &inv, origin, (t, t))?,
         None => tile_inputs(cfg, cam, &srcs, &inv, origin, (t, t))?,
     };
     let mut warps = match radius {
-        Some(r) => Some(tile_warps(cfg, (cam, &srcs, &inv), origin, &inputs.sizes, r)?),
+        Some(r) => Some(tile_warps(
+            cfg,
+            (cam, &srcs, &inv),
+            origin,
+            &inputs.sizes,
+            r,
+        )?),
         None => None,
     };
     let mut patch = patch(
@@ -557,8 +567,14 @@ pub fn make_batch(
     let t = cfg.tile;
     let parts: Vec<&[Vec<f32>]> = samples.iter().map(|s| s.levels.as_slice()).collect();
     let levels = stack_levels(&parts, cfg.levels);
-    let target = samples.iter().flat_map(|s| s.target.iter().copied()).collect();
-    let warps = samples.into_iter().map(|s| s.warps).collect::<Option<Vec<_>>>();
+    let target = samples
+        .iter()
+        .flat_map(|s| s.target.iter().copied())
+        .collect();
+    let warps = samples
+        .into_iter()
+        .map(|s| s.warps)
+        .collect::<Option<Vec<_>>>();
     Ok(Batch {
         index: b,
         levels,

@@ -5,16 +5,20 @@
 //! do not move, so the fit runs on stored layers, thousands of rays per step, without the
 //! network in the loop.
 
-use crate::rendering::{pick_sources, source_inputs, Prepared, RenderSettings};
+mod need;
+mod rays;
+
+pub use need::PriorNeed;
+use need::{fit_rays, FitTime};
+pub use rays::{collect_view, Rays};
+
+use crate::rendering::{Prepared, RenderSettings};
 use crate::training::optim::{ADAM_BETAS, ADAM_EPS};
 use anyhow::{bail, Result};
-use deepstereo_core::camera::Camera;
-use deepstereo_core::mpi::{layers, layers_of_tiles, reference_camera, TileGrid};
-use deepstereo_core::prior::{Cell, PriorGrid, MAX_LOG_WEIGHT, SHARPNESS_RANGE};
+use deepstereo_core::prior::{PriorGrid, MAX_LOG_WEIGHT, SHARPNESS_RANGE};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
 use deepstereo_core::synth::Rng;
-use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -93,214 +97,6 @@ impl PriorOptions {
     }
 }
 
-/// Stored rays: per ray its plane selection and colours, the photograph's colour, and
-/// (once a grid exists) its plane points' cells.
-pub struct Rays {
-    pub planes: usize,
-    pub selection: Vec<f32>,
-    pub colours: Vec<[f32; 3]>,
-    pub truth: Vec<[f32; 3]>,
-    /// Per view read: its camera (as the layers were rendered), planes and first ray.
-    views: Vec<(Camera, Vec<f64>, usize)>,
-    /// Each ray's pixel `(x, y)`.
-    pixels: Vec<(usize, usize)>,
-    /// Expected surface point of each ray (the selection's mean inverse depth).
-    surface: Vec<DVec3>,
-    cells: Vec<Cell>,
-}
-
-impl Rays {
-    pub fn new(planes: usize) -> Self {
-        Self {
-            planes,
-            selection: Vec::new(),
-            colours: Vec::new(),
-            truth: Vec::new(),
-            views: Vec::new(),
-            pixels: Vec::new(),
-            surface: Vec::new(),
-            cells: Vec::new(),
-        }
-    }
-
-    pub fn len(&self) -> usize {
-        self.truth.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.truth.is_empty()
-    }
-
-    /// Views read.
-    pub fn views(&self) -> usize {
-        self.views.len()
-    }
-}
-
-/// Renders the layers of view `t` of `scene` from its nearest other views (none of
-/// `exclude`) and keeps `count` random rays of it: of the whole view when `share` is 1
-/// or more, else of `ceil(share * tiles)` of its tiles drawn at random (the network runs
-/// on those alone).
-#[allow(clippy::too_many_arguments)]
-pub fn collect_view(
-    backend: &dyn Backend,
-    scene: &Scene,
-    prepared: &mut Prepared,
-    t: usize,
-    exclude: &[usize],
-    settings: &RenderSettings,
-    (rng, count, share): (&mut Rng, usize, f64),
-    rays: &mut Rays,
-) -> Result<()> {
-    let k = settings.source_count(backend.config())?;
-    let cam = reference_camera(&scene.views[t].camera);
-    let mut ex = exclude.to_vec();
-    ex.push(t);
-    let sources = pick_sources(scene, &cam, &ex, k, settings);
-    let (srcs, inv) = source_inputs(backend.config(), scene, prepared, &sources, settings)?;
-    if inv.len() != rays.planes {
-        bail!(
-            "{} planes where the prior expects {}",
-            inv.len(),
-            rays.planes
-        );
-    }
-    let truth = scene.load_image(t)?;
-    let (w, h) = (truth.width as usize, truth.height as usize);
-    if (w, h)
-        != (
-            cam.intrinsics.width as usize,
-            cam.intrinsics.height as usize,
-        )
-    {
-        bail!("view {t}: its image is {w}x{h}, its camera another size");
-    }
-    let (c, s, pixels) = if share >= 1.0 {
-        let (c, s) = layers(backend, &cam, &srcs, &inv, settings.tile, &|_, _| {})?;
-        (c, s, pick_distinct(rng, w * h, count))
-    } else {
-        let grid = TileGrid::new(backend.config(), (w, h), settings.tile);
-        let k = ((share.max(0.0) * grid.len() as f64).ceil() as usize).max(1);
-        let tiles = pick_distinct(rng, grid.len(), k.min(grid.len()));
-        let (c, s) = layers_of_tiles(backend, &cam, &srcs, &inv, (grid, &tiles), &|_, _| {})?;
-        let covered: Vec<usize> = tiles.iter().flat_map(|&i| grid.pixels(i)).collect();
-        let picked = pick_distinct(rng, covered.len(), count);
-        let mut pixels: Vec<usize> = picked.into_iter().map(|i| covered[i]).collect();
-        pixels.sort_unstable();
-        (c, s, pixels)
-    };
-    rays.push(&cam, &inv, (&c, &s), &truth.data, &pixels);
-    Ok(())
-}
-
-/// `count` distinct numbers of `0..n` (all when `count >= n`), ascending.
-fn pick_distinct(rng: &mut Rng, n: usize, count: usize) -> Vec<usize> {
-    if count >= n {
-        return (0..n).collect();
-    }
-    let mut all: Vec<usize> = (0..n).collect();
-    for i in 0..count {
-        let j = i + rng.below(n - i);
-        all.swap(i, j);
-    }
-    let mut out = all[..count].to_vec();
-    out.sort_unstable();
-    out
-}
-
-impl Rays {
-    fn push(
-        &mut self,
-        cam: &Camera,
-        inv: &[f64],
-        (colours, selection): (&[f32], &[f32]),
-        truth: &[f32],
-        pixels: &[usize],
-    ) {
-        let d = inv.len();
-        let w = cam.intrinsics.width as usize;
-        let n = selection.len() / d;
-        let centre = cam.pose.centre();
-        self.views.push((*cam, inv.to_vec(), self.len()));
-        for &p in pixels {
-            let (x, y) = (p % w, p / w);
-            let uv = DVec2::new(x as f64 + 0.5, y as f64 + 0.5);
-            let unit = cam.unproject(uv, 1.0) - centre;
-            let mut mean_rho = 0f64;
-            for (z, &rho) in inv.iter().enumerate() {
-                let s = selection[z * n + p];
-                self.selection.push(s);
-                self.colours.push(std::array::from_fn(|ch| {
-                    colours[(z * 3 + ch) * n + p].clamp(0.0, 1.0)
-                }));
-                mean_rho += s as f64 * rho;
-            }
-            self.surface.push(match mean_rho > 0.0 {
-                true => centre + unit / mean_rho,
-                false => DVec3::NAN,
-            });
-            self.pixels.push((x, y));
-            self.truth
-                .push([truth[p * 3], truth[p * 3 + 1], truth[p * 3 + 2]]);
-        }
-    }
-
-    /// A grid of zeros over the box of the rays' expected surface points (the 2nd to
-    /// 98th percentile on each axis, grown by a tenth of its size on every side).
-    pub fn grid(&self, cells: usize) -> Result<PriorGrid> {
-        let mut lo = DVec3::ZERO;
-        let mut hi = DVec3::ZERO;
-        for a in 0..3 {
-            let mut v: Vec<f64> = (self.surface.iter())
-                .map(|p| p[a])
-                .filter(|x| x.is_finite())
-                .collect();
-            if v.len() < 2 {
-                bail!("the network saw no surface to place a prior grid around");
-            }
-            v.sort_by(f64::total_cmp);
-            let top = v.len() - 1;
-            let (a0, a1) = (v[top * 2 / 100], v[top * 98 / 100]);
-            let pad = 0.1 * (a1 - a0).max(1e-6 * (1.0 + a0.abs()));
-            lo[a] = a0 - pad;
-            hi[a] = a1 + pad;
-        }
-        Ok(PriorGrid::zeros(lo, hi, cells)?)
-    }
-
-    /// Locates every ray's plane points in `grid`.
-    pub fn locate(&mut self, grid: &PriorGrid) {
-        let mut cells = Vec::with_capacity(self.len() * self.planes);
-        for (i, (cam, inv, first)) in self.views.iter().enumerate() {
-            let end = self.views.get(i + 1).map_or(self.len(), |v| v.2);
-            cells.extend(grid.locate_rays(cam, inv, &self.pixels[*first..end]));
-        }
-        self.cells = cells;
-    }
-
-    /// The PSNR of the rays rendered with `grid` (located in it) against their
-    /// photographs.
-    pub fn psnr(&self, grid: &PriorGrid) -> f64 {
-        let d = self.planes;
-        let se: f64 = (0..self.len())
-            .into_par_iter()
-            .map(|r| {
-                let span = r * d..(r + 1) * d;
-                let (_, c) = grid.render_ray(
-                    &self.selection[span.clone()],
-                    &self.colours[span.clone()],
-                    &self.cells[span],
-                );
-                (0..3)
-                    .map(|k| ((c[k].clamp(0.0, 1.0) - self.truth[r][k]) as f64).powi(2))
-                    .sum::<f64>()
-            })
-            .sum();
-        let mse = se / (3 * self.len().max(1)) as f64;
-        -10.0 * mse.max(1e-12).log10()
-    }
-}
-
 /// What a fit did.
 #[derive(Clone, Debug)]
 pub struct Fit {
@@ -334,7 +130,6 @@ pub fn fit(
     stop: &AtomicBool,
     mut on_validate: impl FnMut(usize, f64),
 ) -> Fit {
-    let d = rays.planes;
     let nr = rays.len();
     let mut adam: Vec<AdamScalar> = (0..grid.values.len()).map(|_| Default::default()).collect();
     let mut rng = Rng::new(opts.seed ^ 0xf17_9a1d);
@@ -366,32 +161,7 @@ pub fn fit(
             break;
         }
         let picks: Vec<usize> = (0..batch).map(|_| rng.below(nr)).collect();
-        let scale = 1.0 / (3.0 * batch as f32);
-        let g: &PriorGrid = grid;
-        let parts: Vec<(Vec<f32>, f32)> = picks
-            .par_chunks(batch.div_ceil(threads))
-            .map(|chunk| {
-                let (mut grad, mut grad_g) = (vec![0f32; g.values.len()], 0f32);
-                for &r in chunk {
-                    let span = r * d..(r + 1) * d;
-                    g.ray_gradient(
-                        &rays.selection[span.clone()],
-                        &rays.colours[span.clone()],
-                        &rays.cells[span],
-                        rays.truth[r],
-                        scale,
-                        &mut grad,
-                        &mut grad_g,
-                    );
-                }
-                (grad, grad_g)
-            })
-            .collect();
-        let (mut grad, mut grad_g) = (vec![0f32; grid.values.len()], 0f32);
-        for (p, pg) in parts {
-            grad.iter_mut().zip(p).for_each(|(a, b)| *a += b);
-            grad_g += pg;
-        }
+        let (mut grad, grad_g) = batch_gradient(grid, rays, &picks, threads);
         smoothness_gradient(grid, opts.smooth, &mut grad);
         let c = AdamScalar::corrections(step as i32);
         for ((b, a), g) in grid.values.iter_mut().zip(&mut adam).zip(&grad) {
@@ -417,6 +187,43 @@ pub fn fit(
     }
     (grid.values, grid.sharpness) = (best.0, best.1);
     out
+}
+
+/// The gradient of the mean L1 error of the rays `picks` to the grid's log-weights and
+/// to its sharpness, summed over `threads` parts in parallel (in part order).
+fn batch_gradient(
+    grid: &PriorGrid,
+    rays: &Rays,
+    picks: &[usize],
+    threads: usize,
+) -> (Vec<f32>, f32) {
+    let (d, batch) = (rays.planes, picks.len());
+    let scale = 1.0 / (3.0 * batch as f32);
+    let parts: Vec<(Vec<f32>, f32)> = picks
+        .par_chunks(batch.div_ceil(threads))
+        .map(|chunk| {
+            let (mut grad, mut grad_g) = (vec![0f32; grid.values.len()], 0f32);
+            for &r in chunk {
+                let span = r * d..(r + 1) * d;
+                grid.ray_gradient(
+                    &rays.selection[span.clone()],
+                    &rays.colours[span.clone()],
+                    &rays.cells[span],
+                    rays.truth[r],
+                    scale,
+                    &mut grad,
+                    &mut grad_g,
+                );
+            }
+            (grad, grad_g)
+        })
+        .collect();
+    let (mut grad, mut grad_g) = (vec![0f32; grid.values.len()], 0f32);
+    for (p, pg) in parts {
+        grad.iter_mut().zip(p).for_each(|(a, b)| *a += b);
+        grad_g += pg;
+    }
+    (grad, grad_g)
 }
 
 /// Adam's moments for one value (the prior's own Adam: a plain loop over the grid's
@@ -483,7 +290,34 @@ pub enum PriorBudget {
     Seconds(f64),
 }
 
+impl PriorBudget {
+    /// Whether a time budget leaves too little, `elapsed` seconds in, for reading one more
+    /// view and then fitting on `next` views (`reserve`: the fit's measured time).
+    fn spent(self, elapsed: f64, reserve: Option<FitTime>, next: usize) -> bool {
+        match self {
+            PriorBudget::Seconds(b) => elapsed + reserve.map_or(0.0, |r| r.of(next)) >= b,
+            PriorBudget::AllViews => false,
+        }
+    }
+
+    /// The share of the budget used `elapsed` seconds in, with `collected` views read (of
+    /// them `read` of the `total` fitting views); at most 1.
+    fn share(
+        self,
+        (elapsed, reserve): (f64, Option<FitTime>),
+        collected: usize,
+        (read, total): (usize, usize),
+    ) -> f64 {
+        match self {
+            PriorBudget::Seconds(b) => (elapsed + reserve.map_or(0.0, |r| r.of(collected))) / b,
+            PriorBudget::AllViews => read as f64 / total.max(1) as f64,
+        }
+        .min(1.0)
+    }
+}
+
 /// What fitting a scene's prior did.
+#[derive(Default)]
 pub struct SceneFit {
     /// The fitted grid (`None` when interrupted before any view was read).
     pub grid: Option<PriorGrid>,
@@ -539,10 +373,8 @@ pub fn fit_scene(
     // The planes the network was trained at (not a tuned model's render_planes): the
     // grid is in world space and applies at any plane count.
     let planes = settings.planes.unwrap_or(backend.config().planes);
-    let order: Vec<usize> = spread_order(train)
-        .into_iter()
-        .take(opts.max_views)
-        .collect();
+    let mut order = spread_order(train);
+    order.truncate(opts.max_views);
     let total = order.len();
     let per_view = opts.rays_per_view_of(total);
     let mut prepared = Prepared::new(scene);
@@ -553,63 +385,29 @@ pub fn fit_scene(
         collect_view(backend, scene, &mut prepared, v, &[], settings, r, &mut val)?;
     }
     let mut rays = Rays::new(planes);
-    let mut out = SceneFit {
-        grid: None,
-        fit: None,
-        views: 0,
-        rays: 0,
-        seconds: 0.0,
-        snapshots: Vec::new(),
-        interrupted: false,
-    };
+    let mut out = SceneFit::default();
     let mut reserve = None;
-    let never = AtomicBool::new(false);
     for &t in &order {
         let elapsed = t0.elapsed().as_secs_f64() - paused;
-        if let PriorBudget::Seconds(b) = budget {
-            let next = rays.views() + val.views() + 1;
-            if elapsed + reserve.map_or(0.0, |r: FitTime| r.of(next)) >= b {
-                break;
-            }
+        if budget.spent(elapsed, reserve, rays.views() + val.views() + 1) {
+            break;
         }
         if stop.load(Ordering::SeqCst) {
             out.interrupted = true;
             break;
         }
-        let r = (&mut rng, per_view, opts.view_share);
-        collect_view(
-            backend,
-            scene,
-            &mut prepared,
-            t,
-            &[],
-            settings,
-            r,
-            &mut rays,
-        )?;
+        let (r, p) = ((&mut rng, per_view, opts.view_share), &mut prepared);
+        collect_view(backend, scene, p, t, &[], settings, r, &mut rays)?;
         let elapsed = t0.elapsed().as_secs_f64() - paused;
         if reserve.is_none() {
             reserve = Some(FitTime::measure(&mut rays, val.len(), opts)?);
         }
-        for &s in snapshots {
-            // Times before this phase began belong to the network's fine-tune.
-            let due = s >= clock_offset && s <= clock_offset + elapsed;
-            if due && !out.snapshots.iter().any(|(x, _)| *x == s) {
-                let p0 = Instant::now();
-                let (grid, _) = fit_rays(&mut rays, &mut val, opts, &never, |_, _| {})?;
-                out.snapshots.push((s, grid));
-                paused += p0.elapsed().as_secs_f64();
-            }
-        }
+        let window = (clock_offset, clock_offset + elapsed);
+        paused += snapshot_fits(snapshots, window, (&mut rays, &mut val), opts, &mut out)?;
+        let collected = rays.views() + val.views();
         progress(&PriorProgress {
             views: (rays.views(), total),
-            share: match budget {
-                PriorBudget::Seconds(b) => {
-                    (elapsed + reserve.map_or(0.0, |r| r.of(rays.views() + val.views()))) / b
-                }
-                PriorBudget::AllViews => rays.views() as f64 / total.max(1) as f64,
-            }
-            .min(1.0),
+            share: budget.share((elapsed, reserve), collected, (rays.views(), total)),
             val_psnr: None,
         });
     }
@@ -618,20 +416,13 @@ pub fn fit_scene(
         out.seconds = t0.elapsed().as_secs_f64() - paused;
         return Ok(out);
     }
-    let views = (rays.views(), total);
+    let left = match budget {
+        PriorBudget::Seconds(b) => Some(b - (t0.elapsed().as_secs_f64() - paused)),
+        PriorBudget::AllViews => None,
+    };
     // With a time budget, the fit takes the steps that end within it.
-    let mut fo = opts.clone();
-    if let (PriorBudget::Seconds(b), Some(r)) = (budget, reserve) {
-        let left = b - (t0.elapsed().as_secs_f64() - paused);
-        fo.steps = r.steps_within(left, rays.views() + val.views(), opts.steps);
-    }
-    let (grid, fit) = fit_rays(&mut rays, &mut val, &fo, stop, |_, psnr| {
-        progress(&PriorProgress {
-            views,
-            share: 1.0,
-            val_psnr: Some(psnr),
-        })
-    })?;
+    let budget = (opts, left, reserve);
+    let (grid, fit) = final_fit((&mut rays, &mut val), total, budget, stop, progress)?;
     out.interrupted |= fit.interrupted;
     out.views = rays.views();
     out.rays = rays.len();
@@ -641,172 +432,59 @@ pub fn fit_scene(
     Ok(out)
 }
 
-/// What reading a scene's views and fitting its prior will take, estimated before it
-/// runs (for a tune that splits its time between the network and the prior).
-#[derive(Clone, Copy, Debug)]
-pub struct PriorNeed {
-    /// Views [`fit_scene`] would read (validation views included).
-    pub views: usize,
-    /// Seconds to render one view's layers (measured on one validation view).
-    pub per_view: f64,
-    fit: FitTime,
-}
-
-impl PriorNeed {
-    /// The factor the measured time per view is scaled by.
-    const MARGIN: f64 = 1.15;
-
-    /// Renders the layers of the first validation view (or the first training view) with
-    /// `backend` and times it, then times a few fit steps on its rays.
-    pub fn measure(
-        backend: &dyn Backend,
-        scene: &Scene,
-        (train, validation): (&[usize], &[usize]),
-        settings: &RenderSettings,
-        opts: &PriorOptions,
-    ) -> Result<Self> {
-        let Some(&probe) = validation.first().or(train.first()) else {
-            bail!("no view to measure the prior's time on");
-        };
-        let planes = settings.planes.unwrap_or(backend.config().planes);
-        let read = train.len().min(opts.max_views);
-        let views = read + validation.len();
-        let per_ray = opts.rays_per_view_of(read);
-        let mut rays = Rays::new(planes);
-        let mut prepared = Prepared::new(scene);
-        let mut rng = Rng::new(opts.seed);
-        let t0 = Instant::now();
-        let r = (&mut rng, per_ray, 1.0);
-        collect_view(
-            backend,
-            scene,
-            &mut prepared,
-            probe,
-            &[],
-            settings,
-            r,
-            &mut rays,
-        )?;
-        let per_view = t0.elapsed().as_secs_f64();
-        let fit = FitTime::measure(&mut rays, validation.len() * per_ray, opts)?;
-        Ok(Self {
-            views,
-            per_view,
-            fit,
-        })
-    }
-
-    /// Seconds to read every view and fit: `views * per_view` (with a margin) and the fit.
-    pub fn seconds(&self) -> f64 {
-        self.seconds_at(1.0)
-    }
-
-    /// Seconds to read every view whole: `views * per_view`, with a margin.
-    fn reading(&self) -> f64 {
-        Self::MARGIN * self.per_view * self.views as f64
-    }
-
-    /// Seconds to read every view at `share` of its tiles (the reading taken to scale with
-    /// them) and fit.
-    pub fn seconds_at(&self, share: f64) -> f64 {
-        self.reading() * share + self.fit.of(self.views)
-    }
-
-    /// The share of each view's tiles at which reading every view and fitting take
-    /// `seconds` (at most 1, at least `least`).
-    pub fn share_within(&self, seconds: f64, least: f64) -> f64 {
-        let share = (seconds - self.fit.of(self.views)) / self.reading().max(1e-9);
-        share.clamp(least.min(1.0), 1.0)
-    }
-}
-
-/// A grid over `rays`, fitted to them.
-fn fit_rays(
-    rays: &mut Rays,
-    val: &mut Rays,
-    opts: &PriorOptions,
+/// [`fit_scene`]'s fit of the rays collected from `total` views: with `left` seconds of a
+/// time budget, the steps that end within it (as `reserve` measured them), else
+/// `opts.steps`; progress after each validation.
+fn final_fit(
+    (rays, val): (&mut Rays, &mut Rays),
+    total: usize,
+    (opts, left, reserve): (&PriorOptions, Option<f64>, Option<FitTime>),
     stop: &AtomicBool,
-    on_validate: impl FnMut(usize, f64),
+    mut progress: impl FnMut(&PriorProgress),
 ) -> Result<(PriorGrid, Fit)> {
-    let mut grid = rays.grid(opts.cells)?;
-    rays.locate(&grid);
-    val.locate(&grid);
-    let fit = fit(&mut grid, rays, val, opts, stop, on_validate);
-    Ok((grid, fit))
-}
-
-/// How long the final fit will take: `fixed + per_view * views` seconds for `views`
-/// views read (placing their rays in the grid grows with them), with
-/// [`FitTime::MARGIN`] more for safety and [`FitTime::SLACK`] seconds besides.
-#[derive(Clone, Copy, Debug)]
-struct FitTime {
-    fixed: f64,
-    per_view: f64,
-    /// Seconds per step, its share of the validations included.
-    per_step: f64,
-}
-
-impl FitTime {
-    /// The factor every measured time is scaled by.
-    const MARGIN: f64 = 1.2;
-    /// Seconds added to the fit's time.
-    const SLACK: f64 = 2.0;
-
-    /// Estimated from a few steps on `rays` (one view's; the grid is thrown away, and
-    /// the rays are placed in the final grid again before the fit), with `val_rays`
-    /// validation rays.
-    fn measure(rays: &mut Rays, val_rays: usize, opts: &PriorOptions) -> Result<Self> {
-        let t0 = Instant::now();
-        let mut grid = rays.grid(opts.cells)?;
-        rays.locate(&grid);
-        let per_view = t0.elapsed().as_secs_f64() / rays.views().max(1) as f64;
-        let steps = 5;
-        let o = PriorOptions {
-            steps,
-            validate_every: usize::MAX,
-            ..opts.clone()
-        };
-        let never = AtomicBool::new(false);
-        let t1 = Instant::now();
-        fit(
-            &mut grid,
-            rays,
-            &Rays::new(rays.planes),
-            &o,
-            &never,
-            |_, _| {},
-        );
-        // A step renders `batch` rays however many there are: scale the probe's up.
-        let probed = opts.batch.min(rays.len()).max(1) as f64;
-        let per_step = t1.elapsed().as_secs_f64() / steps as f64 * opts.batch as f64 / probed;
-        // A validation renders every validation ray once, about as a step renders its batch.
-        let validations = (opts.steps / opts.validate_every.max(1) + 2) as f64;
-        let per_val = per_step * val_rays as f64 / opts.batch.max(1) as f64;
-        let total = per_step * opts.steps as f64 + per_val * validations;
-        Ok(Self {
-            fixed: Self::MARGIN * total + Self::SLACK,
-            per_view: Self::MARGIN * per_view,
-            per_step: total / opts.steps.max(1) as f64,
+    let views = (rays.views(), total);
+    let mut fo = opts.clone();
+    if let (Some(left), Some(r)) = (left, reserve) {
+        fo.steps = r.steps_within(left, rays.views() + val.views(), opts.steps);
+    }
+    fit_rays(rays, val, &fo, stop, |_, psnr| {
+        progress(&PriorProgress {
+            views,
+            share: 1.0,
+            val_psnr: Some(psnr),
         })
-    }
+    })
+}
 
-    /// The most steps (at least 1, at most `steps`) that end within `left` seconds once
-    /// `views` views' rays are placed in the grid.
-    fn steps_within(&self, left: f64, views: usize, steps: usize) -> usize {
-        let room =
-            (left - Self::SLACK - self.per_view * views as f64) / (Self::MARGIN * self.per_step);
-        (room.max(1.0) as usize).min(steps)
+/// The fits of the rays collected so far for each time of `snapshots` within `window`
+/// (on the tune's clock: times before it belong to the network's fine-tune) not yet in
+/// `out`'s snapshots, added there; the seconds they took.
+fn snapshot_fits(
+    snapshots: &[f64],
+    (from, to): (f64, f64),
+    (rays, val): (&mut Rays, &mut Rays),
+    opts: &PriorOptions,
+    out: &mut SceneFit,
+) -> Result<f64> {
+    let never = AtomicBool::new(false);
+    let mut paused = 0.0;
+    for &s in snapshots {
+        let due = s >= from && s <= to;
+        if due && !out.snapshots.iter().any(|(x, _)| *x == s) {
+            let p0 = Instant::now();
+            let (grid, _) = fit_rays(rays, val, opts, &never, |_, _| {})?;
+            out.snapshots.push((s, grid));
+            paused += p0.elapsed().as_secs_f64();
+        }
     }
-
-    /// Seconds for the final fit once `views` views (validation views included) are read.
-    fn of(&self, views: usize) -> f64 {
-        self.fixed + self.per_view * views as f64
-    }
+    Ok(paused)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use deepstereo_core::prior::Cell;
+    use glam::DVec3;
 
     /// `n` rays of `d` planes with random selections and colours, located at random
     /// points of `grid`, whose photographs are their render with `truth`.

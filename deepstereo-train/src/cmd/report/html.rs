@@ -109,44 +109,50 @@ pub fn page(
     }
     h += "</table>\n";
     if let Some(b) = best.and_then(|b| rows.get(b)) {
-        let _ = writeln!(
-            h,
-            "<h2>The best setting: {} at {} planes, {} views, scale 1/{}, prune {}</h2>\n\
-             <p>Each held-out view: the photograph, the network's render, the classical plane \
-             sweep on the same sources and planes, and the nearest source view.</p>",
-            escape(&b.method),
-            b.planes,
-            b.views,
-            b.scale,
-            escape(&b.prune)
-        );
-        for v in pictures {
-            let names = picture_names(v.target);
-            let captions = [
-                "photograph (held out)".to_string(),
-                format!("DeepStereo, {:.2} dB", v.psnr[0]),
-                format!("plane sweep, {:.2} dB", v.psnr[1]),
-                format!("nearest source, {:.2} dB", v.psnr[2]),
-            ];
-            let _ = writeln!(h, "<h3>View {} ({})</h3>\n<div>", v.target, escape(&v.name));
-            // Small renders are shown enlarged by a whole factor (pixelated, not blurred).
-            let zoom = MIN_SHOWN_WIDTH.div_ceil(v.truth.width.max(1)).max(1);
-            for (n, c) in names.iter().zip(&captions) {
-                let _ = writeln!(
-                    h,
-                    "<figure><img src=\"{BEST_DIR}/{n}\" width=\"{}\" height=\"{}\" alt=\"{}\">\
-                     <figcaption>{}</figcaption></figure>",
-                    v.truth.width * zoom,
-                    v.truth.height * zoom,
-                    escape(c),
-                    escape(c)
-                );
-            }
-            h += "</div>\n";
-        }
+        best_section(&mut h, b, pictures);
     }
     h += "</body></html>\n";
     h
+}
+
+/// The best setting's section: its heading and each held-out view's photograph beside
+/// its renders (the pictures in [`BEST_DIR`]).
+fn best_section(h: &mut String, b: &PageRow, pictures: &[ViewPictures]) {
+    let _ = writeln!(
+        h,
+        "<h2>The best setting: {} at {} planes, {} views, scale 1/{}, prune {}</h2>\n\
+         <p>Each held-out view: the photograph, the network's render, the classical plane \
+         sweep on the same sources and planes, and the nearest source view.</p>",
+        escape(&b.method),
+        b.planes,
+        b.views,
+        b.scale,
+        escape(&b.prune)
+    );
+    for v in pictures {
+        let names = picture_names(v.target);
+        let captions = [
+            "photograph (held out)".to_string(),
+            format!("DeepStereo, {:.2} dB", v.psnr[0]),
+            format!("plane sweep, {:.2} dB", v.psnr[1]),
+            format!("nearest source, {:.2} dB", v.psnr[2]),
+        ];
+        let _ = writeln!(h, "<h3>View {} ({})</h3>\n<div>", v.target, escape(&v.name));
+        // Small renders are shown enlarged by a whole factor (pixelated, not blurred).
+        let zoom = MIN_SHOWN_WIDTH.div_ceil(v.truth.width.max(1)).max(1);
+        for (n, c) in names.iter().zip(&captions) {
+            let _ = writeln!(
+                h,
+                "<figure><img src=\"{BEST_DIR}/{n}\" width=\"{}\" height=\"{}\" alt=\"{}\">\
+                 <figcaption>{}</figcaption></figure>",
+                v.truth.width * zoom,
+                v.truth.height * zoom,
+                escape(c),
+                escape(c)
+            );
+        }
+        *h += "</div>\n";
+    }
 }
 
 #[cfg(test)]
