@@ -11,9 +11,9 @@
 //! candle ops; tests compare the two.
 
 use super::pool::{cast, wide};
-use super::{bwd2, check_sources, fwd2, on_cpu, read, Kernels2, Real};
+use super::{apply2, check_sources, on_cpu, read, shaped, source_grad, Kernels2, Real};
 use crate::config::{BLEND_EPS, BLEND_LOGIT_BOUND};
-use candle_core::{bail, CpuStorage, CustomOp2, Layout, Result, Shape, Tensor};
+use candle_core::{bail, Result, Shape, Tensor};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
 
@@ -25,9 +25,7 @@ pub fn blend_colours(y: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
     if !on_cpu(&[y, x]) {
         return Ok(None);
     }
-    y.contiguous()?
-        .apply_op2(&x.contiguous()?, BlendColours)
-        .map(Some)
+    apply2::<BlendColours>(&y.contiguous()?, &x.contiguous()?).map(Some)
 }
 
 struct BlendColours;
@@ -158,6 +156,12 @@ impl BlendColours {
 
 impl Kernels2 for BlendColours {
     const NAME: &'static str = "blend_colours";
+    const OP: &'static str = "deepstereo-blend-colours";
+
+    fn out_shape(shape: &Shape) -> Result<Shape> {
+        let (n, _, p) = shape.dims3()?;
+        Ok(Shape::from((n, 3, p)))
+    }
 
     fn forward<T: Real>(y: &[T], x: &[T], shape: &Shape) -> Result<Vec<T>> {
         Ok(Self::fwd(y, x, shape.dims3()?))
@@ -171,44 +175,9 @@ impl Kernels2 for BlendColours {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let dims = y.dims3()?;
         read([y, x, g], |[yd, xd, gd]: [&[T]; 3]| {
-            let dy = Self::bwd(yd, xd, gd, dims);
-            // `dx` only where the sources carry a gradient (their alphas weighed by the cue).
-            let dx = match x.track_op() {
-                true => {
-                    let dx = Self::bwd_x(yd, xd, gd, dims);
-                    Some(Tensor::from_vec(dx, x.shape(), x.device())?)
-                }
-                false => None,
-            };
-            Ok((Some(Tensor::from_vec(dy, y.shape(), y.device())?), dx))
+            let dy = shaped(Self::bwd(yd, xd, gd, dims), y)?;
+            Ok((Some(dy), source_grad(x, || Self::bwd_x(yd, xd, gd, dims))?))
         })
-    }
-}
-
-impl CustomOp2 for BlendColours {
-    fn name(&self) -> &'static str {
-        "deepstereo-blend-colours"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        let (n, _, p) = l1.shape().dims3()?;
-        Ok((fwd2::<Self>(s1, l1, s2, l2)?, Shape::from((n, 3, p))))
-    }
-
-    fn bwd(
-        &self,
-        y: &Tensor,
-        x: &Tensor,
-        out: &Tensor,
-        g: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        bwd2::<Self>(y, x, out, g)
     }
 }
 
@@ -227,9 +196,7 @@ pub fn add_views_relu(a: &Tensor, b: &Tensor) -> Result<Option<Tensor>> {
     if !on_cpu(&[a, b]) {
         return Ok(None);
     }
-    a.contiguous()?
-        .apply_op2(&b.contiguous()?, AddViewsRelu)
-        .map(Some)
+    apply2::<AddViewsRelu>(&a.contiguous()?, &b.contiguous()?).map(Some)
 }
 
 struct AddViewsRelu;
@@ -278,6 +245,7 @@ impl AddViewsRelu {
 
 impl Kernels2 for AddViewsRelu {
     const NAME: &'static str = "add_views_relu";
+    const OP: &'static str = "deepstereo-add-views-relu";
 
     fn forward<T: Real>(a: &[T], b: &[T], shape: &Shape) -> Result<Vec<T>> {
         let (_, v, c, p) = shape.dims4()?;
@@ -294,35 +262,6 @@ impl Kernels2 for AddViewsRelu {
         let (da, db) = read([y, g], |[yd, gd]: [&[T]; 2]| {
             Ok(Self::bwd(yd, gd, (v, c * p)))
         })?;
-        Ok((
-            Some(Tensor::from_vec(da, a.shape(), a.device())?),
-            Some(Tensor::from_vec(db, b.shape(), b.device())?),
-        ))
-    }
-}
-
-impl CustomOp2 for AddViewsRelu {
-    fn name(&self) -> &'static str {
-        "deepstereo-add-views-relu"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        Ok((fwd2::<Self>(s1, l1, s2, l2)?, l1.shape().clone()))
-    }
-
-    fn bwd(
-        &self,
-        a: &Tensor,
-        b: &Tensor,
-        y: &Tensor,
-        g: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        bwd2::<Self>(a, b, y, g)
+        Ok((Some(shaped(da, a)?), Some(shaped(db, b)?)))
     }
 }

@@ -1,9 +1,9 @@
 //! The network's head: [`select_softmax`] (selection probabilities) and [`composite`]
 //! (the rendered colour).
 
-use super::{bwd2, fwd2, on_cpu, par_columns, read, Kernels2, Real, COLUMNS};
+use super::{apply2, on_cpu, par_columns, read, shaped, Kernels2, Real, COLUMNS};
 use crate::cpu::{softmax_columns, SharedMut};
-use candle_core::{bail, CpuStorage, CustomOp2, Layout, Result, Shape, Tensor, WithDType};
+use candle_core::{bail, Result, Shape, Tensor, WithDType};
 use num_traits::Float;
 use rayon::prelude::*;
 
@@ -21,7 +21,7 @@ pub fn select_softmax(x: &Tensor, log_scale: &Tensor) -> Result<Tensor> {
         let logits = x.tanh()?.broadcast_mul(&log_scale.exp()?)?;
         return candle_nn::ops::softmax(&logits, 1);
     }
-    x.contiguous()?.apply_op2(log_scale, SelectSoftmax)
+    apply2::<SelectSoftmax>(&x.contiguous()?, log_scale)
 }
 
 struct SelectSoftmax;
@@ -86,6 +86,7 @@ impl SelectSoftmax {
 
 impl Kernels2 for SelectSoftmax {
     const NAME: &'static str = "select_softmax";
+    const OP: &'static str = "deepstereo-select-softmax";
 
     fn forward<T: Real>(x: &[T], log_scale: &[T], shape: &Shape) -> Result<Vec<T>> {
         let (_, d, p) = shape.dims3()?;
@@ -102,36 +103,8 @@ impl Kernels2 for SelectSoftmax {
         let (dx, dls) = read([x, s, ds, ls], |[x, s, g, ls]: [&[T]; 4]| {
             Ok(Self::bwd_typed(x, s, g, ls[0].exp(), (d, p)))
         })?;
-        Ok((
-            Some(Tensor::from_vec(dx, x.shape(), x.device())?),
-            Some(Tensor::from_vec(vec![dls], 1, x.device())?),
-        ))
-    }
-}
-
-impl CustomOp2 for SelectSoftmax {
-    fn name(&self) -> &'static str {
-        "deepstereo-select-softmax"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        Ok((fwd2::<Self>(s1, l1, s2, l2)?, l1.shape().clone()))
-    }
-
-    fn bwd(
-        &self,
-        x: &Tensor,
-        ls: &Tensor,
-        s: &Tensor,
-        ds: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        bwd2::<Self>(x, ls, s, ds)
+        let dls = Tensor::from_vec(vec![dls], 1, x.device())?;
+        Ok((Some(shaped(dx, x)?), Some(dls)))
     }
 }
 
@@ -149,9 +122,7 @@ pub fn composite(colours: &Tensor, selection: &Tensor) -> Result<Tensor> {
     if !on_cpu(&[colours, selection]) {
         return colours.broadcast_mul(&selection.unsqueeze(2)?)?.sum(1);
     }
-    colours
-        .contiguous()?
-        .apply_op2(&selection.contiguous()?, Composite)
+    apply2::<Composite>(&colours.contiguous()?, &selection.contiguous()?)
 }
 
 struct Composite;
@@ -208,6 +179,12 @@ impl Composite {
 
 impl Kernels2 for Composite {
     const NAME: &'static str = "composite";
+    const OP: &'static str = "deepstereo-composite";
+
+    fn out_shape(shape: &Shape) -> Result<Shape> {
+        let (b, _, c, p) = shape.dims4()?;
+        Ok(Shape::from((b, c, p)))
+    }
 
     fn forward<T: Real>(col: &[T], sel: &[T], shape: &Shape) -> Result<Vec<T>> {
         let (_, d, c, p) = shape.dims4()?;
@@ -224,36 +201,6 @@ impl Kernels2 for Composite {
         let (dc, ds) = read([col, sel, g], |[cd, sd, gd]: [&[T]; 3]| {
             Ok(Self::bwd_typed(cd, sd, gd, (d, c, p)))
         })?;
-        Ok((
-            Some(Tensor::from_vec(dc, col.shape(), col.device())?),
-            Some(Tensor::from_vec(ds, sel.shape(), sel.device())?),
-        ))
-    }
-}
-
-impl CustomOp2 for Composite {
-    fn name(&self) -> &'static str {
-        "deepstereo-composite"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        let (b, _, c, p) = l1.shape().dims4()?;
-        Ok((fwd2::<Self>(s1, l1, s2, l2)?, Shape::from((b, c, p))))
-    }
-
-    fn bwd(
-        &self,
-        col: &Tensor,
-        sel: &Tensor,
-        out: &Tensor,
-        g: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        bwd2::<Self>(col, sel, out, g)
+        Ok((Some(shaped(dc, col)?), Some(shaped(ds, sel)?)))
     }
 }

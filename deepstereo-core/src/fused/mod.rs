@@ -39,9 +39,12 @@ pub use pool::{pool_front, pooled_stats, view_stats};
 pub use upsample::{upsample_cat, upsample_crop, upsample_nearest};
 pub use weigh::weigh_views;
 
-use candle_core::{bail, CpuStorage, DType, Layout, Result, Storage, Tensor, WithDType};
+use candle_core::{
+    bail, CpuStorage, CustomOp2, DType, Layout, Result, Shape, Storage, Tensor, WithDType,
+};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
+use std::marker::PhantomData;
 
 /// The float types the fused CPU kernels run on (f32 and f64), with what their loops use.
 trait Real: WithDType + Float + NumAssignOps + AsPrimitive<f64> + Send + Sync {}
@@ -100,12 +103,20 @@ fn read<T: WithDType, R, const K: usize>(
 
 /// A fused two-input op's kernels on CPU slices, for either float type; [`fwd2`] and
 /// [`bwd2`] dispatch on the dtype.
-trait Kernels2 {
+trait Kernels2: Send + Sync + 'static {
     /// The op's name in errors.
     const NAME: &'static str;
 
+    /// The candle op's name.
+    const OP: &'static str;
+
+    /// The output's shape from the first input's (by default the same).
+    fn out_shape(a: &Shape) -> Result<Shape> {
+        Ok(a.clone())
+    }
+
     /// The output from the inputs' contiguous data; `shape` is the first input's.
-    fn forward<T: Real>(a: &[T], b: &[T], shape: &candle_core::Shape) -> Result<Vec<T>>;
+    fn forward<T: Real>(a: &[T], b: &[T], shape: &Shape) -> Result<Vec<T>>;
 
     /// The inputs' gradients from the inputs `a` and `b`, the output `y` and its
     /// contiguous gradient `g`.
@@ -115,6 +126,54 @@ trait Kernels2 {
         y: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)>;
+}
+
+/// A [`Kernels2`] as a candle op.
+struct Fused2<K>(PhantomData<K>);
+
+/// The op `K` applied to `a` and `b` (with its backward).
+fn apply2<K: Kernels2>(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    a.apply_op2(b, Fused2::<K>(PhantomData))
+}
+
+impl<K: Kernels2> CustomOp2 for Fused2<K> {
+    fn name(&self) -> &'static str {
+        K::OP
+    }
+
+    fn cpu_fwd(
+        &self,
+        s1: &CpuStorage,
+        l1: &Layout,
+        s2: &CpuStorage,
+        l2: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        Ok((fwd2::<K>(s1, l1, s2, l2)?, K::out_shape(l1.shape())?))
+    }
+
+    fn bwd(
+        &self,
+        a: &Tensor,
+        b: &Tensor,
+        y: &Tensor,
+        g: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        bwd2::<K>(a, b, y, g)
+    }
+}
+
+/// `v` as a tensor of `like`'s shape on its device.
+fn shaped<T: WithDType>(v: Vec<T>, like: &Tensor) -> Result<Tensor> {
+    Tensor::from_vec(v, like.shape(), like.device())
+}
+
+/// The sources' gradient `dx()` where the sources `x` carry one (their alphas weighed by
+/// the cue), else `None`.
+fn source_grad<T: WithDType>(x: &Tensor, dx: impl FnOnce() -> Vec<T>) -> Result<Option<Tensor>> {
+    match x.track_op() {
+        true => shaped(dx(), x).map(Some),
+        false => Ok(None),
+    }
 }
 
 /// [`Kernels2::forward`] on CPU storages of either float type.

@@ -17,9 +17,9 @@
 //! `P` is the pixels of a plane (`H * W`). Off the CPU, or for dtypes other than f32 and
 //! f64, the same maths runs as candle ops (`pool.rs`); tests compare the two.
 
-use super::{bwd2, check_sources, fwd2, on_cpu, read, slice, Kernels2, Real};
+use super::{apply2, check_sources, on_cpu, read, shaped, slice, source_grad, Kernels2, Real};
 use crate::config::POOL_EPS;
-use candle_core::{bail, CpuStorage, CustomOp1, CustomOp2, DType, Layout, Result, Shape, Tensor};
+use candle_core::{bail, CpuStorage, CustomOp1, DType, Layout, Result, Shape, Tensor};
 use num_traits::{AsPrimitive, Float, NumAssignOps};
 use rayon::prelude::*;
 
@@ -234,9 +234,7 @@ pub fn view_stats(e: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
     if !on_cpu(&[e, x]) {
         return Ok(None);
     }
-    e.contiguous()?
-        .apply_op2(&x.contiguous()?, ViewStats)
-        .map(Some)
+    apply2::<ViewStats>(&e.contiguous()?, &x.contiguous()?).map(Some)
 }
 
 /// View `k`'s alpha plane of item `i` in `x` `[N, V, 4, P]`.
@@ -487,6 +485,12 @@ impl ViewStats {
 
 impl Kernels2 for ViewStats {
     const NAME: &'static str = "view_stats";
+    const OP: &'static str = "deepstereo-view-stats";
+
+    fn out_shape(shape: &Shape) -> Result<Shape> {
+        let (n, _, c, p) = shape.dims4()?;
+        Ok(Shape::from((n, 2 * c, p)))
+    }
 
     fn forward<T: Real>(e: &[T], x: &[T], shape: &Shape) -> Result<Vec<T>> {
         Ok(Self::fwd(e, x, shape.dims4()?))
@@ -500,43 +504,8 @@ impl Kernels2 for ViewStats {
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let dims = e.dims4()?;
         read([e, x, g], |[ed, xd, gd]: [&[T]; 3]| {
-            let de = Tensor::from_vec(Self::bwd(ed, xd, gd, dims), e.shape(), e.device())?;
-            // `dx` only where the sources carry a gradient (their alphas weighed by the cue).
-            let dx = match x.track_op() {
-                true => {
-                    let dx = Self::bwd_x(ed, xd, gd, dims);
-                    Some(Tensor::from_vec(dx, x.shape(), x.device())?)
-                }
-                false => None,
-            };
-            Ok((Some(de), dx))
+            let de = shaped(Self::bwd(ed, xd, gd, dims), e)?;
+            Ok((Some(de), source_grad(x, || Self::bwd_x(ed, xd, gd, dims))?))
         })
-    }
-}
-
-impl CustomOp2 for ViewStats {
-    fn name(&self) -> &'static str {
-        "deepstereo-view-stats"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        let (n, _, c, p) = l1.shape().dims4()?;
-        Ok((fwd2::<Self>(s1, l1, s2, l2)?, Shape::from((n, 2 * c, p))))
-    }
-
-    fn bwd(
-        &self,
-        e: &Tensor,
-        x: &Tensor,
-        y: &Tensor,
-        g: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        bwd2::<Self>(e, x, y, g)
     }
 }
