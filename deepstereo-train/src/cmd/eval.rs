@@ -1,18 +1,15 @@
 //! `deepstereo eval`: held-out views against the photographs and the baselines.
 
-use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
+use super::args::{HoldoutArgs, SceneArgs, SceneModelArgs};
 use crate::rendering::{evaluate, mean_over, EvalReport, Mean};
 use deepstereo_core::imageio::write_atomic;
 use std::path::PathBuf;
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The scene whose held-out views are scored.
+    // The scene whose held-out views are scored. The model, and how it renders them.
     #[command(flatten)]
-    pub scene: SceneArgs,
-    /// The model, and how it renders them.
-    #[command(flatten)]
-    pub model: ModelArgs,
+    pub input: SceneModelArgs,
     /// The held-out views (each left out of every source list). `--scene` may also be a
     /// directory of scenes (as `synth` writes): each is evaluated.
     #[command(flatten)]
@@ -26,13 +23,13 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
-    let settings = a.model.settings()?;
-    let dirs = if a.scene.format.is_some() {
-        vec![a.scene.scene.clone()]
+    let settings = a.input.model.settings()?;
+    let dirs = if a.input.scene.format.is_some() {
+        vec![a.input.scene.scene.clone()]
     } else {
-        deepstereo_core::scene::scene_dirs(&a.scene.scene)?
+        deepstereo_core::scene::scene_dirs(&a.input.scene.scene)?
     };
-    let backend = a.model.backend()?;
+    let backend = a.input.model.backend()?;
     // Images go to a staged directory, moved into place only when everything succeeded.
     let staged = match &a.images {
         Some(d) => Some(crate::cmd::support::outdir::StagedDir::new(d)?),
@@ -42,7 +39,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     for dir in &dirs {
         let sa = SceneArgs {
             scene: dir.clone(),
-            ..a.scene.clone()
+            ..a.input.scene.clone()
         };
         let scene = sa.load_working()?;
         let targets = a.holdout.required(scene.views.len(), "eval")?;
@@ -57,7 +54,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         let mut err = None;
         let report = evaluate(
             backend.as_ref(),
-            &a.model.name(),
+            &a.input.model.name(),
             &scene,
             &targets,
             &settings,

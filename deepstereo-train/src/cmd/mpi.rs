@@ -1,7 +1,7 @@
 //! `deepstereo mpi`: multiplane images baked by the network, with a browser viewer; or,
 //! with `--eval`, held-out views seen through MPIs beside the network's own renders.
 
-use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
+use super::args::{HoldoutArgs, SceneModelArgs};
 use crate::cmd::support::outdir::StagedDir;
 use crate::rendering::mpi::{
     bake_at, bake_settings, eval_through_mpi, BakeOptions, MpiEvalOptions, OwnPhoto, BAKE_AGREE,
@@ -18,12 +18,10 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The scene whose views are the sources.
+    // The scene whose views are the sources. The model that bakes the layers, and its
+    // settings.
     #[command(flatten)]
-    pub scene: SceneArgs,
-    /// The model that bakes the layers, and its settings.
-    #[command(flatten)]
-    pub model: ModelArgs,
+    pub input: SceneModelArgs,
     /// Bake at view I's camera (showing there the render with its own photograph among
     /// the sources; see --own-photo-as-source).
     #[arg(long, conflicts_with_all = ["targets", "pose", "eval"])]
@@ -93,11 +91,11 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let scene = a.scene.load_working()?;
+    let scene = a.input.scene.load_working()?;
     let n = scene.views.len();
     let holdout = a.holdout.list(n)?;
-    let backend = a.model.backend()?;
-    let net = a.model.settings()?;
+    let backend = a.input.model.backend()?;
+    let net = a.input.model.settings()?;
     // The views that may be sources of a bake: neither held out nor, without its
     // photograph, the reference view (a --pose camera is none).
     let own = own_photo(&a);
@@ -318,8 +316,8 @@ fn run_eval(
         m(|r| r.network_seconds) / m(|r| r.mpi_render_seconds).max(1e-9)
     );
     let report = serde_json::json!({
-        "scene": a.scene.scene.display().to_string(),
-        "model": a.model.name(),
+        "scene": a.input.scene.scene.display().to_string(),
+        "model": a.input.model.name(),
         "planes": settings.planes.unwrap_or(backend.config().default_render_planes()),
         "views": settings.source_count(backend.config())?,
         "bake_views": bake.source_count(backend.config())?,

@@ -2,7 +2,7 @@
 
 mod html;
 
-use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
+use super::args::{HoldoutArgs, SceneArgs, SceneModelArgs};
 use crate::cmd::support::outdir::StagedDir;
 use crate::rendering::{evaluate, make_backend, BackendKind, RenderSettings};
 use anyhow::{bail, Context, Result};
@@ -19,12 +19,10 @@ use std::path::{Path, PathBuf};
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The scene whose held-out views are scored in every setting.
+    // The scene whose held-out views are scored in every setting. The model, and the
+    // settings a grid does not vary.
     #[command(flatten)]
-    pub scene: SceneArgs,
-    /// The model, and the settings a grid does not vary.
-    #[command(flatten)]
-    pub model: ModelArgs,
+    pub input: SceneModelArgs,
     #[command(flatten)]
     pub holdout: HoldoutArgs,
     /// Plane counts to try, comma-separated.
@@ -86,8 +84,8 @@ struct Measured {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let base = a.model.settings()?;
-    let scene = a.scene.load_working()?;
+    let base = a.input.model.settings()?;
+    let scene = a.input.scene.load_working()?;
     let targets = a.holdout.required(scene.views.len(), "report")?;
     let grid = parse_grid(&a, 1 << scene.downscale_levels)?;
     let staged = StagedDir::new(&a.out)?;
@@ -103,7 +101,7 @@ pub fn run(a: Args) -> Result<()> {
         .map(|r| (r.seconds, r.psnr))
         .collect();
     let front = pareto_front(&net);
-    let (csv, md) = tables(&rows, nearest, &scene, &a.model.name(), &targets)?;
+    let (csv, md) = tables(&rows, nearest, &scene, &a.input.model.name(), &targets)?;
     let img = plot(
         "PSNR against run time (labels: planes)",
         "seconds per image (log)",
@@ -117,7 +115,7 @@ pub fn run(a: Args) -> Result<()> {
     let heading = format!(
         "Scene {}, model {}, held-out views {targets:?}. Scale 1/N: rendered at 1/N of the resolution, upsampled, scored at full resolution.",
         scene.root.display(),
-        a.model.name()
+        a.input.model.name()
     );
     write_page(&out, &heading, &rows, &front, nearest, best)?;
     staged.commit()?;
@@ -164,7 +162,7 @@ fn parse_grid(a: &Args, base_downscale: u32) -> Result<Grid> {
                 .context("--downscale-grid: too large")?;
             let args = SceneArgs {
                 downscale: Some(factor),
-                ..a.scene.clone()
+                ..a.input.scene.clone()
             };
             Ok((n, Some(args.load()?)))
         })
@@ -212,7 +210,7 @@ fn measure(
     };
     let rows = &mut m.rows;
     for (bi, &kind) in g.backends.iter().enumerate() {
-        let backend = make_backend(kind, a.model.model.as_deref())?;
+        let backend = make_backend(kind, a.input.model.model.as_deref())?;
         for (si, (n, scaled_scene)) in g.scaled.iter().enumerate() {
             for (p, (vi, &nv)) in g
                 .planes
@@ -233,7 +231,7 @@ fn measure(
                     let k = settings.source_count(backend.config())?;
                     let pt = point(
                         backend.as_ref(),
-                        &a.model.name(),
+                        &a.input.model.name(),
                         scene,
                         scaled_scene.as_ref(),
                         *n,

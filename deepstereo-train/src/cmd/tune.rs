@@ -11,7 +11,7 @@ use self::curve::*;
 use self::phases::*;
 use self::progress::*;
 use self::scene::*;
-use super::args::{HoldoutArgs, ModelArgs, SceneArgs};
+use super::args::{HoldoutArgs, SceneArgs, SceneModelArgs};
 use crate::rendering::{evaluate, RenderSettings};
 use crate::training::data::SceneData;
 use crate::tuning::plan;
@@ -43,14 +43,11 @@ pub const TUNE_KEY: &str = "deepstereo.tune";
 
 #[derive(Debug, clap::Args)]
 pub struct Args {
-    /// The scene to tune on.
+    // The scene to tune on. The model to start from (`--model`, default the embedded one),
+    // the views per tile (`--views`, default the model's) and, for `--curve`, how held-out
+    // views are rendered.
     #[command(flatten)]
-    pub scene: SceneArgs,
-    /// The model to start from (`--model`, default the embedded one), the views per
-    /// tile (`--views`, default the model's) and, for `--curve`, how held-out views are
-    /// rendered.
-    #[command(flatten)]
-    pub model: ModelArgs,
+    pub input: SceneModelArgs,
     /// The held-out views: never a target, never a source, their images never read
     /// while tuning.
     #[command(flatten)]
@@ -145,7 +142,7 @@ pub fn run(a: Args) -> Result<()> {
     let opts = setup.options(&a, &plan, &data)?;
     eprintln!(
         "tuning {} on {} views ({} held out, {} set aside for validation), {} per tile; {}",
-        a.model.name(),
+        a.input.model.name(),
         data.cameras.len(),
         holdout.len(),
         validation.len(),
@@ -240,7 +237,7 @@ struct Setup {
 impl Setup {
     /// The setup, and the scene's images for the network's tune.
     fn new(a: &Args) -> Result<(Self, SceneData)> {
-        let settings = a.model.settings()?;
+        let settings = a.input.model.settings()?;
         let budget = match (a.minutes, a.steps) {
             (Some(m), None) if m.is_finite() && m > 0.0 => Budget::Seconds(m * 60.0),
             (Some(m), None) => bail!("--minutes must be a positive number, got {m}"),
@@ -254,16 +251,17 @@ impl Setup {
         };
         check_split(a)?;
         check_out(&a.out)?;
-        let start = crate::rendering::models::load_model(a.model.model.as_deref())?;
+        let start = crate::rendering::models::load_model(a.input.model.model.as_deref())?;
         let cfg = start.model.config().clone();
         if cfg.pool.is_none() {
             bail!(
                 "{}: tune takes the any-number-of-views family (like the embedded model); '{}' is the paper's family, which takes a fixed number of views",
-                a.model.name(),
+                a.input.model.name(),
                 cfg.name
             );
         }
-        let (scene, holdout) = load_tuning_scene(&a.scene, &a.holdout, seconds_budget(budget))?;
+        let (scene, holdout) =
+            load_tuning_scene(&a.input.scene, &a.holdout, seconds_budget(budget))?;
         if a.curve.is_some() && holdout.is_empty() {
             bail!("--curve scores held-out views: pass --llffhold N or --holdout I,J,...");
         }
@@ -294,7 +292,7 @@ impl Setup {
             lr: a.lr,
             lr_final: a.lr_final,
             batch: a.batch,
-            views: a.model.views.unwrap_or(self.cfg.views),
+            views: a.input.model.views.unwrap_or(self.cfg.views),
             augment: a.augment,
             validate_every: a.validate_every,
             val_batches: a.val_batches,
@@ -383,7 +381,7 @@ fn provenance(
         "render_planes": o.tuned.default_render_planes(),
         "render_planes_work": o.choice.map(|c| &c.work),
         "render_planes_cut": o.choice.map(|c| c.cut),
-        "start": a.model.name(),
+        "start": a.input.model.name(),
     })
 }
 

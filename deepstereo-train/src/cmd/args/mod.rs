@@ -4,12 +4,14 @@
 
 pub mod choice;
 pub mod holdout;
+pub mod input;
 pub mod model;
 pub mod sampling;
 pub mod scene;
 
 pub use choice::choice;
 pub use holdout::HoldoutArgs;
+pub use input::SceneModelArgs;
 pub use model::ModelArgs;
 pub use sampling::SamplingArgs;
 pub use scene::SceneArgs;

@@ -85,7 +85,7 @@ pub(super) fn write_curve(
     holdout: &[usize],
     settings: &RenderSettings,
 ) -> Result<()> {
-    let scene = a.scene.load_working()?;
+    let scene = a.input.scene.load_working()?;
     let mut points = Vec::new();
     for (secs, weights, prior) in snapshots {
         let c = if prior.is_some() { tuned } else { cfg };
