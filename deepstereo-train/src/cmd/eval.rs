@@ -1,6 +1,6 @@
 //! `deepstereo eval`: held-out views against the photographs and the baselines.
 
-use super::args::{HoldoutArgs, SceneArgs, SceneModelArgs};
+use super::args::{SceneArgs, SceneModelArgs};
 use crate::rendering::{evaluate, mean_over, EvalReport, Mean};
 use deepstereo_core::imageio::write_atomic;
 use std::path::PathBuf;
@@ -8,12 +8,10 @@ use std::path::PathBuf;
 #[derive(Debug, clap::Args)]
 pub struct Args {
     // The scene whose held-out views are scored. The model, and how it renders them.
+    // The held-out views (each left out of every source list).
+    // `--scene` may also be a directory of scenes (as `synth` writes): each is evaluated.
     #[command(flatten)]
     pub input: SceneModelArgs,
-    /// The held-out views (each left out of every source list). `--scene` may also be a
-    /// directory of scenes (as `synth` writes): each is evaluated.
-    #[command(flatten)]
-    pub holdout: HoldoutArgs,
     /// Write the JSON report here (`-` for stdout).
     #[arg(long)]
     pub json: Option<String>,
@@ -42,7 +40,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             ..a.input.scene.clone()
         };
         let scene = sa.load_working()?;
-        let targets = a.holdout.required(scene.views.len(), "eval")?;
+        let targets = a.input.holdout.required(scene.views.len(), "eval")?;
         let images = staged.as_ref().map(|st| {
             let d = st.path();
             if dirs.len() > 1 {

@@ -1,7 +1,7 @@
 //! `deepstereo mpi`: multiplane images baked by the network, with a browser viewer; or,
 //! with `--eval`, held-out views seen through MPIs beside the network's own renders.
 
-use super::args::{HoldoutArgs, SceneModelArgs};
+use super::args::SceneModelArgs;
 use crate::cmd::support::outdir::StagedDir;
 use crate::rendering::mpi::{
     bake_at, bake_settings, eval_through_mpi, BakeOptions, MpiEvalOptions, OwnPhoto, BAKE_AGREE,
@@ -20,6 +20,7 @@ use std::path::{Path, PathBuf};
 pub struct Args {
     // The scene whose views are the sources. The model that bakes the layers, and its
     // settings.
+    // The held-out views: never sources.
     #[command(flatten)]
     pub input: SceneModelArgs,
     /// Bake at view I's camera (showing there the render with its own photograph among
@@ -37,9 +38,6 @@ pub struct Args {
     /// at.
     #[arg(long, requires = "pose")]
     pub view: Option<usize>,
-    /// The held-out views: never sources.
-    #[command(flatten)]
-    pub holdout: HoldoutArgs,
     /// Bake at --target/--targets views without their own photographs: the planes come
     /// from the other views only (the reference view is then the network's prediction of
     /// it, as `render --target` gives, not the photograph).
@@ -93,7 +91,7 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     let scene = a.input.scene.load_working()?;
     let n = scene.views.len();
-    let holdout = a.holdout.list(n)?;
+    let holdout = a.input.holdout.list(n)?;
     let backend = a.input.model.backend()?;
     let net = a.input.model.settings()?;
     // The views that may be sources of a bake: neither held out nor, without its

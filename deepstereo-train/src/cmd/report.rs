@@ -2,7 +2,7 @@
 
 mod html;
 
-use super::args::{HoldoutArgs, SceneArgs, SceneModelArgs};
+use super::args::{SceneArgs, SceneModelArgs};
 use crate::cmd::support::outdir::StagedDir;
 use crate::rendering::{evaluate, make_backend, BackendKind, RenderSettings};
 use anyhow::{bail, Context, Result};
@@ -23,8 +23,6 @@ pub struct Args {
     // settings a grid does not vary.
     #[command(flatten)]
     pub input: SceneModelArgs,
-    #[command(flatten)]
-    pub holdout: HoldoutArgs,
     /// Plane counts to try, comma-separated.
     #[arg(long, default_value = "8,16,32,64,96")]
     pub planes_grid: String,
@@ -86,7 +84,7 @@ struct Measured {
 pub fn run(a: Args) -> Result<()> {
     let base = a.input.model.settings()?;
     let scene = a.input.scene.load_working()?;
-    let targets = a.holdout.required(scene.views.len(), "report")?;
+    let targets = a.input.holdout.required(scene.views.len(), "report")?;
     let grid = parse_grid(&a, 1 << scene.downscale_levels)?;
     let staged = StagedDir::new(&a.out)?;
     let out = staged.path().to_path_buf();

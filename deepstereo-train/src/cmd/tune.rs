@@ -11,7 +11,7 @@ use self::curve::*;
 use self::phases::*;
 use self::progress::*;
 use self::scene::*;
-use super::args::{HoldoutArgs, SceneArgs, SceneModelArgs};
+use super::args::{SceneArgs, SceneModelArgs};
 use crate::rendering::{evaluate, RenderSettings};
 use crate::training::data::SceneData;
 use crate::tuning::plan;
@@ -46,12 +46,10 @@ pub struct Args {
     // The scene to tune on. The model to start from (`--model`, default the embedded one),
     // the views per tile (`--views`, default the model's) and, for `--curve`, how held-out
     // views are rendered.
+    // The held-out views: never a target, never a source, their images
+    // never read while tuning.
     #[command(flatten)]
     pub input: SceneModelArgs,
-    /// The held-out views: never a target, never a source, their images never read
-    /// while tuning.
-    #[command(flatten)]
-    pub holdout: HoldoutArgs,
     /// Tune for this many minutes (of tuning; the output then depends on the machine's
     /// speed).
     #[arg(long, conflicts_with = "steps", required_unless_present = "steps")]
@@ -261,7 +259,7 @@ impl Setup {
             );
         }
         let (scene, holdout) =
-            load_tuning_scene(&a.input.scene, &a.holdout, seconds_budget(budget))?;
+            load_tuning_scene(&a.input.scene, &a.input.holdout, seconds_budget(budget))?;
         if a.curve.is_some() && holdout.is_empty() {
             bail!("--curve scores held-out views: pass --llffhold N or --holdout I,J,...");
         }

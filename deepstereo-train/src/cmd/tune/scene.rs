@@ -2,6 +2,7 @@
 //! model file.
 
 use super::*;
+use crate::cmd::args::HoldoutArgs;
 
 /// Seconds the prior takes to read one view of a megapixel at 32 planes, an upper bound:
 /// 22-25 s measured on the 2-core VM with a training run beside it (commit `4a876fd`).
