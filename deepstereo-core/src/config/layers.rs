@@ -1,0 +1,167 @@
+//! [`Config::layers`]: every layer with its shapes, parameters and cost (the README's
+//! table), and the totals from it.
+
+use super::*;
+
+/// One row of the layer table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LayerInfo {
+    pub name: String,
+    pub kernel: usize,
+    pub in_channels: usize,
+    pub out_channels: usize,
+    /// Output side for a training tile.
+    pub out_size: usize,
+    pub params: usize,
+    pub macs_per_pixel: f64,
+}
+
+impl LayerInfo {
+    fn new(name: String, conv: Conv, cin: usize, out_size: usize, macs_per_pixel: f64) -> Self {
+        Self {
+            name,
+            kernel: conv.kernel,
+            in_channels: cin,
+            out_channels: conv.channels,
+            out_size,
+            params: conv.kernel * conv.kernel * cin * conv.channels + conv.channels,
+            macs_per_pixel,
+        }
+    }
+}
+
+impl Config {
+    /// Parameter count.
+    pub fn parameters(&self) -> usize {
+        self.layers().iter().map(|l| l.params).sum::<usize>() + 1
+    }
+
+    /// Multiply-adds per output pixel, for a training tile, with `self.planes` planes.
+    pub fn macs_per_pixel(&self) -> f64 {
+        self.layers().iter().map(|l| l.macs_per_pixel).sum()
+    }
+
+    /// Every layer with its shapes, parameters and cost, in order (for the README table).
+    pub fn layers(&self) -> Vec<LayerInfo> {
+        let mut out = Vec::new();
+        if let Some(pool) = &self.pool {
+            self.encoder_layers(pool, &mut out);
+        }
+        for (name, tower) in [("select", &self.select), ("colour", &self.colour)] {
+            let ch = self.tower_layers(name, tower, &mut out);
+            if name == "select" {
+                self.depth_layers(ch, &mut out);
+            } else {
+                self.colour_out_layers(ch, &mut out);
+            }
+        }
+        out
+    }
+
+    /// The pool's per-view encoder, on every level's whole input, each of the default
+    /// `views` views.
+    fn encoder_layers(&self, pool: &ViewPool, out: &mut Vec<LayerInfo>) {
+        let t = self.tile;
+        let (d, area) = (self.planes as f64, (t * t) as f64);
+        let pixels: usize = (0..self.levels).map(|l| self.input_size(l, t).pow(2)).sum();
+        let mut ch = pool.encoder_in();
+        for (i, conv) in pool.encoder.iter().enumerate() {
+            let macs = (pixels * ch * conv.channels * self.views) as f64;
+            out.push(LayerInfo::new(
+                format!("views.encode.{i}"),
+                *conv,
+                ch,
+                t,
+                macs * d / area,
+            ));
+            ch = conv.channels;
+        }
+    }
+
+    /// Tower `name`'s per-level and merge convolutions; returns its output channels.
+    fn tower_layers(&self, name: &str, tower: &TowerConfig, out: &mut Vec<LayerInfo>) -> usize {
+        let t = self.tile;
+        let (d, area) = (self.planes as f64, (t * t) as f64);
+        let cin = self.tower_in_channels();
+        let rf = tower.merge_reduction();
+        for l in 0..tower.levels {
+            let mut size = (t >> l) + 2 * tower.pad(l);
+            let mut ch = cin;
+            for (i, conv) in tower.level_convs.iter().enumerate() {
+                size -= conv.kernel - 1;
+                let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
+                out.push(LayerInfo::new(
+                    format!("{name}.levels.{l}.{i}"),
+                    *conv,
+                    ch,
+                    size,
+                    macs * d / area,
+                ));
+                ch = conv.channels;
+            }
+        }
+        let mut ch = tower.level_channels(cin) * tower.levels;
+        let mut size = t + rf;
+        for (i, conv) in tower.merge_convs.iter().enumerate() {
+            size -= conv.kernel - 1;
+            let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
+            out.push(LayerInfo::new(
+                format!("{name}.merge.{i}"),
+                *conv,
+                ch,
+                size,
+                macs * d / area,
+            ));
+            ch = conv.channels;
+        }
+        ch
+    }
+
+    /// The selection tower's depth convolutions, after its `ch` channels.
+    fn depth_layers(&self, mut ch: usize, out: &mut Vec<LayerInfo>) {
+        let d = self.planes as f64;
+        for (i, conv) in self.depth_convs.iter().enumerate() {
+            let macs = (conv.kernel * ch * conv.channels) as f64 * d;
+            let mut info = LayerInfo::new(format!("select.depth.{i}"), *conv, ch, self.tile, macs);
+            info.params = conv.kernel * ch * conv.channels + conv.channels;
+            out.push(info);
+            ch = conv.channels;
+        }
+    }
+
+    /// The colour tower's RGB output after its `ch` channels, and the pool's blend head.
+    fn colour_out_layers(&self, ch: usize, out: &mut Vec<LayerInfo>) {
+        let (t, d) = (self.tile, self.planes as f64);
+        let cin = self.tower_in_channels();
+        let cin_out = ch + if self.colour_skip { cin } else { 0 };
+        let conv = Conv {
+            kernel: 1,
+            channels: 3,
+        };
+        out.push(LayerInfo::new(
+            "colour.out".into(),
+            conv,
+            cin_out,
+            t,
+            (cin_out * 3) as f64 * d,
+        ));
+        if let Some(pool) = &self.pool {
+            let mut hin = pool.features() + ch;
+            let hidden = pool.blend.iter().chain([&Conv {
+                kernel: 1,
+                channels: 1,
+            }]);
+            for (i, conv) in hidden.enumerate() {
+                let macs = (hin * conv.channels * self.views) as f64 * d;
+                out.push(LayerInfo::new(
+                    format!("colour.blend.{i}"),
+                    *conv,
+                    hin,
+                    t,
+                    macs,
+                ));
+                hin = conv.channels;
+            }
+        }
+    }
+}
