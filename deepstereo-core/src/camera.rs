@@ -158,6 +158,11 @@ impl Intrinsics {
         }
     }
 
+    /// The image's `(width, height)` in pixels.
+    pub fn size(&self) -> (usize, usize) {
+        (self.width as usize, self.height as usize)
+    }
+
     /// `K` as a matrix (ignores distortion).
     pub fn k(&self) -> DMat3 {
         DMat3::from_cols(

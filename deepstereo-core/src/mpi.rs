@@ -19,8 +19,6 @@
 use crate::camera::{Camera, Intrinsics};
 use crate::error::{Error, Result};
 use crate::imageio::RgbImage;
-use crate::inputs::{tile_inputs, PyramidSource};
-use crate::render::Backend;
 use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 use std::sync::OnceLock;
@@ -30,8 +28,16 @@ pub mod fill;
 pub mod io;
 pub mod planned;
 pub mod smooth;
+mod texture;
+mod tiles;
 pub mod viewer;
 pub mod warp;
+
+#[cfg(test)]
+use texture::{run, BLOCK_SHIFT};
+use texture::{RowRuns, Texture};
+pub(crate) use tiles::tile_layers;
+pub use tiles::{bake, layers, layers_of_tiles, TileGrid};
 
 /// A multiplane image: straight-alpha RGBA planes in a pinhole reference camera.
 #[derive(Clone, Debug)]
@@ -99,10 +105,7 @@ impl Mpi {
     /// An MPI of `planes` (per plane `[H, W, 4]` straight RGBA in [0, 1], near to far)
     /// at the inverse depths `inv_depths` in the reference `camera`.
     pub fn new(camera: Camera, inv_depths: Vec<f64>, planes: Vec<Vec<f32>>) -> Result<Self> {
-        let (w, h) = (
-            camera.intrinsics.width as usize,
-            camera.intrinsics.height as usize,
-        );
+        let (w, h) = camera.intrinsics.size();
         if planes.len() != inv_depths.len() || planes.iter().any(|p| p.len() != w * h * 4) {
             return Err(Error::Invalid(format!(
                 "an MPI of {w}x{h} needs one RGBA plane of that size per inverse depth ({} \
@@ -151,10 +154,7 @@ impl Mpi {
         colours: &[f32],
         selection: &[f32],
     ) -> Result<Self> {
-        let (w, h) = (
-            camera.intrinsics.width as usize,
-            camera.intrinsics.height as usize,
-        );
+        let (w, h) = camera.intrinsics.size();
         let (d, n) = (inv_depths.len(), w * h);
         if colours.len() != d * 3 * n || selection.len() != d * n {
             return Err(Error::Invalid(format!(
@@ -262,10 +262,7 @@ impl Mpi {
     }
 
     fn render_parts(&self, camera: &Camera, core: bool) -> (RgbImage, Vec<f32>, Option<Vec<f32>>) {
-        let (w, h) = (
-            camera.intrinsics.width as usize,
-            camera.intrinsics.height as usize,
-        );
+        let (w, h) = camera.intrinsics.size();
         let rel = camera.pose.relative_to(&self.camera.pose);
         let maps = self.plane_maps(rel.translation);
         let mut img = RgbImage::new(w as u32, h as u32);
@@ -397,181 +394,6 @@ pub fn plane_maps(k: &Intrinsics, inv_depths: &[f64], t: DVec3) -> Vec<[f64; 5]>
 /// than a tenth of an 8-bit step.
 pub const OPAQUE_T: f32 = 1.0 / 2560.0;
 
-/// A row of rays whose slopes `a` and `b` are each monotonic and finite and whose
-/// `(R r)_z` share one sign: the rays that land inside a plane's image are one run.
-struct RowRuns<'a> {
-    a: &'a [f64],
-    b: &'a [f64],
-    /// Whether `a`, `b` ascend (else they descend).
-    a_up: bool,
-    b_up: bool,
-    rz_sign: f64,
-}
-
-impl<'a> RowRuns<'a> {
-    /// `None` when the row lacks that shape.
-    fn of(a: &'a [f64], b: &'a [f64], rz: &[f64]) -> Option<Self> {
-        let order = |v: &[f64]| -> Option<bool> {
-            if v.iter().any(|x| !x.is_finite()) {
-                return None;
-            }
-            let up = v.windows(2).all(|p| p[0] <= p[1]);
-            let down = v.windows(2).all(|p| p[0] >= p[1]);
-            (up || down).then_some(up)
-        };
-        let rz_sign = rz.first()?.signum();
-        if rz.iter().any(|z| z.signum() != rz_sign || *z == 0.0) {
-            return None;
-        }
-        Some(Self {
-            a,
-            b,
-            a_up: order(a)?,
-            b_up: order(b)?,
-            rz_sign,
-        })
-    }
-
-    /// The run of rays that may land inside the `w x h` image of the plane with map `m`
-    /// ([`Mpi::plane_maps`]): a superset (its bounds widened by a millionth of a pixel)
-    /// of those where `0 <= u <= w` and `0 <= v <= h`; empty when the plane lies behind.
-    fn inside(&self, m: &[f64; 5], w: f64, h: f64) -> std::ops::Range<usize> {
-        if m[0] * self.rz_sign <= 0.0 {
-            return 0..0;
-        }
-        let ra = run(self.a, self.a_up, m[1], m[2], w);
-        let rb = run(self.b, self.b_up, m[3], m[4], h);
-        ra.start.max(rb.start)..ra.end.min(rb.end).max(ra.start.max(rb.start))
-    }
-}
-
-/// The run of the monotonic `v` (ascending when `up`) where `0 <= s v + o <= side`,
-/// widened by a millionth of a pixel.
-fn run(v: &[f64], up: bool, s: f64, o: f64, side: f64) -> std::ops::Range<usize> {
-    const SLACK: f64 = 1e-6;
-    let (lo, hi) = (-SLACK, side + SLACK);
-    if s == 0.0 {
-        return match o >= lo && o <= hi {
-            true => 0..v.len(),
-            false => 0..0,
-        };
-    }
-    // s v + o in [lo, hi]  <=>  v in [vlo, vhi] (the bounds swap when s < 0), widened
-    // again for the division's rounding.
-    let (p, q) = ((lo - o) / s, (hi - o) / s);
-    let (vlo, vhi) = (p.min(q), p.max(q));
-    let pad = 1e-12 * (1.0 + vlo.abs().max(vhi.abs()));
-    let (vlo, vhi) = (vlo - pad, vhi + pad);
-    let (start, end) = match up {
-        true => (
-            v.partition_point(|&x| x < vlo),
-            v.partition_point(|&x| x <= vhi),
-        ),
-        false => (
-            v.partition_point(|&x| x > vhi),
-            v.partition_point(|&x| x >= vlo),
-        ),
-    };
-    start..end.max(start)
-}
-
-/// A plane as [`Mpi::render`] samples it: the colour premultiplied by the alpha (so
-/// bilinear sampling does not bleed the colour of transparent texels), and a border of
-/// one texel that repeats the edge, so a sample never clamps: texel `(x, y)` of the
-/// plane is `data[(y + 1) * stride + x + 1]`; and which blocks of it are empty, so that
-/// sampling skips them (a baked plane is transparent over much of the image: on a
-/// juicebox path, 45% of the samples were).
-#[derive(Clone, Debug)]
-struct Texture {
-    width: usize,
-    height: usize,
-    stride: usize,
-    data: Vec<[f32; 4]>,
-    /// Per block of `data` (`1 << BLOCK_SHIFT` texels on a side; row-major, `blocks` per
-    /// row): whether a bilinear sample whose top-left texel lies in the block can see a
-    /// non-zero alpha (the block and the texel row and column after it).
-    occupied: Vec<bool>,
-    blocks: usize,
-}
-
-/// The side of [`Texture`]'s occupancy blocks, as a shift: 8 texels.
-const BLOCK_SHIFT: usize = 3;
-
-impl Texture {
-    /// From straight RGBA `[H, W, 4]` in [0, 1].
-    fn of(plane: &[f32], w: usize, h: usize) -> Self {
-        let stride = w + 2;
-        let texel = |x: usize, y: usize| {
-            let t = &plane[(y * w + x) * 4..][..4];
-            let [r, g, b, a] = [t[0], t[1], t[2], t[3]];
-            [r * a, g * a, b * a, a]
-        };
-        let mut data = Vec::with_capacity(stride * (h + 2));
-        for y in 0..h + 2 {
-            let sy = y.saturating_sub(1).min(h - 1);
-            data.extend((0..stride).map(|x| texel(x.saturating_sub(1).min(w - 1), sy)));
-        }
-        let (blocks, occupied) = occupancy(&data, stride, h + 2);
-        Self {
-            width: w,
-            height: h,
-            stride,
-            data,
-            occupied,
-            blocks,
-        }
-    }
-
-    /// The bilinear premultiplied RGBA at pixel coordinate `(u, v)` (centres at
-    /// `i + 0.5`; edge pixels extend half a pixel); `None` outside the image, and where
-    /// the four texels lie in an empty block ([`occupancy`]; the sample would be zero).
-    #[inline]
-    fn sample(&self, u: f64, v: f64) -> Option<[f32; 4]> {
-        if !(u >= 0.0 && v >= 0.0 && u <= self.width as f64 && v <= self.height as f64) {
-            return None;
-        }
-        // In the bordered texture the texel centres sit at i - 0.5: fx, fy >= 0.5, so
-        // truncating is the floor, and texels xi..=xi + 1, yi..=yi + 1 all exist.
-        let (fx, fy) = (u + 0.5, v + 0.5);
-        let (xi, yi) = (fx as usize, fy as usize);
-        if !self.occupied[(yi >> BLOCK_SHIFT) * self.blocks + (xi >> BLOCK_SHIFT)] {
-            return None;
-        }
-        let (ax, ay) = ((fx - xi as f64) as f32, (fy - yi as f64) as f32);
-        let i = yi * self.stride + xi;
-        let q = &self.data[i..i + self.stride + 2];
-        let (bx, by) = (1.0 - ax, 1.0 - ay);
-        let (wa, wb, wc, wd) = (bx * by, ax * by, bx * ay, ax * ay);
-        let (pa, pb, pc, pd) = (q[0], q[1], q[self.stride], q[self.stride + 1]);
-        let mut out = [0f32; 4];
-        for (c, o) in out.iter_mut().enumerate() {
-            *o = pa[c] * wa + pb[c] * wb + pc[c] * wc + pd[c] * wd;
-        }
-        Some(out)
-    }
-}
-
-/// Blocks per row and, per block of `1 << BLOCK_SHIFT` texels on a side (row-major), whether
-/// a texel of the block or of the row and column after it has a non-zero alpha: a
-/// bilinear footprint whose top-left texel lies in a block that is not occupied samples
-/// only zeros (premultiplied, so colour too).
-fn occupancy(data: &[[f32; 4]], stride: usize, rows: usize) -> (usize, Vec<bool>) {
-    let side = 1 << BLOCK_SHIFT;
-    let (bw, bh) = (stride.div_ceil(side), rows.div_ceil(side));
-    let mut occupied = vec![false; bw * bh];
-    for (i, _) in data.iter().enumerate().filter(|(_, t)| t[3] > 0.0) {
-        let (x, y) = (i % stride, i / stride);
-        // Blocks whose footprints reach texel (x, y): its own, and the one before it in
-        // x and y when the texel opens its block's row or column.
-        for by in (y.saturating_sub(1) >> BLOCK_SHIFT)..=(y >> BLOCK_SHIFT) {
-            for bx in (x.saturating_sub(1) >> BLOCK_SHIFT)..=(x >> BLOCK_SHIFT) {
-                occupied[by * bw + bx] = true;
-            }
-        }
-    }
-    (bw, occupied)
-}
-
 /// The weight of a blended MPI's margin against the views the MPIs were baked for
 /// ([`render_blend`]'s `delta`; chosen on training scenes, 0.25 over 0.05: +0.1 dB).
 pub const MARGIN_BLEND_WEIGHT: f64 = 0.25;
@@ -606,10 +428,7 @@ pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
             }
         })
         .collect();
-    let (w, h) = (
-        camera.intrinsics.width as usize,
-        camera.intrinsics.height as usize,
-    );
+    let (w, h) = camera.intrinsics.size();
     let mut img = RgbImage::new(w as u32, h as u32);
     img.data.par_chunks_mut(3).enumerate().for_each(|(p, out)| {
         let (mut c, mut total) = ([0f64; 3], 0f64);
@@ -636,174 +455,6 @@ pub fn render_blend(mpis: &[Mpi], camera: &Camera) -> RgbImage {
         .collect();
     fill::fill_holes(&mut img, &covered);
     img
-}
-
-/// Bakes the MPI of `camera` (made a pinhole, [`reference_camera`]) from `sources` at
-/// `inv_depths` (near to far), tile by tile (`tile` rounded up to the model's
-/// alignment); `progress(done, total)` after each tile.
-pub fn bake(
-    backend: &dyn Backend,
-    camera: &Camera,
-    sources: &[&PyramidSource],
-    inv_depths: &[f64],
-    tile: usize,
-    progress: &dyn Fn(usize, usize),
-) -> Result<Mpi> {
-    let camera = reference_camera(camera);
-    let (colours, selection) = layers(backend, &camera, sources, inv_depths, tile, progress)?;
-    Mpi::from_layers(camera, inv_depths.to_vec(), &colours, &selection)
-}
-
-/// The tiles of a `width` x `height` view at side `tile` (rounded up to the model's
-/// alignment, as [`layers`] runs them), row-major: tile `i` covers the pixels
-/// `[x0, x0 + side) x [y0, y0 + side)` clipped to the view, `x0 = (i % across) side`,
-/// `y0 = (i / across) side`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct TileGrid {
-    pub side: usize,
-    pub across: usize,
-    pub down: usize,
-    pub width: usize,
-    pub height: usize,
-}
-
-impl TileGrid {
-    pub fn new(cfg: &crate::config::Config, (width, height): (usize, usize), tile: usize) -> Self {
-        let side = cfg.tile_side(tile, (width, height));
-        Self {
-            side,
-            across: width.div_ceil(side),
-            down: height.div_ceil(side),
-            width,
-            height,
-        }
-    }
-
-    pub fn len(&self) -> usize {
-        self.across * self.down
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// Tile `i`'s first pixel `(x0, y0)`.
-    pub fn origin(&self, i: usize) -> (usize, usize) {
-        ((i % self.across) * self.side, (i / self.across) * self.side)
-    }
-
-    /// The view's pixels (`y * width + x`) tile `i` covers, ascending.
-    pub fn pixels(&self, i: usize) -> impl Iterator<Item = usize> + '_ {
-        let (x0, y0) = self.origin(i);
-        let (x1, y1) = (
-            (x0 + self.side).min(self.width),
-            (y0 + self.side).min(self.height),
-        );
-        (y0..y1).flat_map(move |y| (x0..x1).map(move |x| y * self.width + x))
-    }
-}
-
-/// The network's layers at `camera` (a pinhole: [`reference_camera`]) from `sources` at
-/// `inv_depths`, tile by tile as [`bake`] runs them: colours `[D, 3, H, W]` and the
-/// selection `[D, H, W]`, row-major (finite, or an error), the selection reweighed by
-/// the backend's scene prior when it has one.
-pub fn layers(
-    backend: &dyn Backend,
-    camera: &Camera,
-    sources: &[&PyramidSource],
-    inv_depths: &[f64],
-    tile: usize,
-    progress: &dyn Fn(usize, usize),
-) -> Result<(Vec<f32>, Vec<f32>)> {
-    let (w, h) = (
-        camera.intrinsics.width as usize,
-        camera.intrinsics.height as usize,
-    );
-    let grid = TileGrid::new(backend.config(), (w, h), tile);
-    let all: Vec<usize> = (0..grid.len()).collect();
-    layers_of_tiles(backend, camera, sources, inv_depths, (grid, &all), progress)
-}
-
-/// [`layers`] on the tiles `tiles` of `grid` only (a grid of `camera`'s size): the
-/// network runs on those tiles alone, and the values of every other pixel are 0.
-/// Each tile's values are those [`layers`] gives it (tiles are run independently).
-pub fn layers_of_tiles(
-    backend: &dyn Backend,
-    camera: &Camera,
-    sources: &[&PyramidSource],
-    inv_depths: &[f64],
-    (grid, tiles): (TileGrid, &[usize]),
-    progress: &dyn Fn(usize, usize),
-) -> Result<(Vec<f32>, Vec<f32>)> {
-    let cfg = backend.config();
-    let (w, h) = (
-        camera.intrinsics.width as usize,
-        camera.intrinsics.height as usize,
-    );
-    if (grid.width, grid.height) != (w, h) || grid != TileGrid::new(cfg, (w, h), grid.side) {
-        return Err(Error::Invalid(format!(
-            "a tile grid of {}x{} pixels (side {}) for a {w}x{h} camera",
-            grid.width, grid.height, grid.side
-        )));
-    }
-    if let Some(&i) = tiles.iter().find(|&&i| i >= grid.len()) {
-        return Err(Error::Invalid(format!("tile {i} of {}", grid.len())));
-    }
-    let d = inv_depths.len();
-    if d == 0 {
-        return Err(Error::Invalid("at least one depth plane is needed".into()));
-    }
-    let (n, tile) = (w * h, grid.side);
-    let what = |c: usize| format!("MPI layers of {d} planes x {c} x {w}x{h}");
-    let mut colours = crate::sweep::try_zeroed(&[d, 3, n], &what(3))?;
-    let mut selection = crate::sweep::try_zeroed(&[d, n], &what(1))?;
-    for (done, &i) in tiles.iter().enumerate() {
-        let (x0, y0) = grid.origin(i);
-        let (c, s) = tile_layers(backend, camera, sources, inv_depths, (x0, y0), tile)?;
-        let tt = tile * tile;
-        for p in grid.pixels(i) {
-            let q = (p / w - y0) * tile + (p % w - x0);
-            for z in 0..d {
-                selection[z * n + p] = s[z * tt + q];
-                for ch in 0..3 {
-                    colours[(z * 3 + ch) * n + p] = c[(z * 3 + ch) * tt + q];
-                }
-            }
-        }
-        progress(done + 1, tiles.len());
-    }
-    Ok((colours, selection))
-}
-
-/// The network's colours `[D, 3, tile, tile]` and selection `[D, tile, tile]` on the
-/// square of side `tile` at `(x0, y0)` of `camera` (the selection reweighed by the
-/// backend's scene prior when it has one); an error when any value is not finite.
-pub(crate) fn tile_layers(
-    backend: &dyn Backend,
-    camera: &Camera,
-    sources: &[&PyramidSource],
-    inv_depths: &[f64],
-    (x0, y0): (usize, usize),
-    tile: usize,
-) -> Result<(Vec<f32>, Vec<f32>)> {
-    let inputs = tile_inputs(
-        backend.config(),
-        camera,
-        sources,
-        inv_depths,
-        (x0 as i64, y0 as i64),
-        (tile, tile),
-    )?;
-    let (c, mut s) = backend.run_layers(&inputs, inv_depths.len())?;
-    if let Some(prior) = backend.prior() {
-        prior.apply_tile(camera, inv_depths, (x0, y0), tile, &c, &mut s);
-    }
-    if c.iter().chain(&s).any(|v| !v.is_finite()) {
-        return Err(Error::Invalid(format!(
-            "the network produced non-finite values in the tile at ({x0}, {y0})"
-        )));
-    }
-    Ok((c, s))
 }
 
 #[cfg(test)]

@@ -55,10 +55,7 @@ pub fn layers_planned(
     progress: &dyn Fn(usize, usize),
 ) -> Result<(Vec<f32>, Vec<f32>)> {
     let cfg = backend.config();
-    let (w, h) = (
-        camera.intrinsics.width as usize,
-        camera.intrinsics.height as usize,
-    );
+    let (w, h) = camera.intrinsics.size();
     let d = inv_depths.len();
     if d == 0 {
         return Err(Error::Invalid("at least one depth plane is needed".into()));
