@@ -33,6 +33,13 @@ impl NamedArray {
     }
 }
 
+/// A tensor's data as little-endian f32 values (its dtype is not checked).
+pub fn f32_values(view: &TensorView<'_>) -> Vec<f32> {
+    (view.data().chunks_exact(4))
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect()
+}
+
 /// Serializes `arrays` with `metadata` and writes them to `path` atomically.
 pub fn write_safetensors(
     path: &Path,

@@ -7,7 +7,7 @@
 use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::model::DeepStereo;
-use crate::tensorio::{write_safetensors, NamedArray};
+use crate::tensorio::{f32_values, write_safetensors, NamedArray};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use safetensors::SafeTensors;
@@ -404,11 +404,7 @@ pub fn assign(path: &Path, st: &SafeTensors<'_>, varmap: &VarMap, prefix: &str) 
                 format!("tensor '{key}' is {:?}, expected F32", view.dtype()),
             ));
         }
-        let data: Vec<f32> = view
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
+        let data = f32_values(&view);
         if data.iter().any(|v| !v.is_finite()) {
             return Err(Error::model(
                 path,

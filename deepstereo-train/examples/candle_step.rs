@@ -11,7 +11,7 @@
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use deepstereo_core::model::l1_loss;
-use deepstereo_core::tensorio::{write_safetensors, NamedArray};
+use deepstereo_core::tensorio::{f32_values, write_safetensors, NamedArray};
 use deepstereo_core::weights::{self, named_vars, tensor_f32};
 use deepstereo_train::training::optim::{Optimizer, OptimizerKind};
 use std::path::PathBuf;
@@ -20,11 +20,7 @@ fn read(st: &safetensors::SafeTensors<'_>, name: &str) -> Result<Tensor> {
     let v = st
         .tensor(name)
         .with_context(|| format!("no tensor '{name}'"))?;
-    let data: Vec<f32> = v
-        .data()
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
+    let data = f32_values(&v);
     Ok(Tensor::from_vec(data, v.shape(), &Device::Cpu)?)
 }
 

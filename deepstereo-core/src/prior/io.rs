@@ -6,7 +6,7 @@
 
 use super::{PriorGrid, SHARPNESS_RANGE};
 use crate::error::{Error, Result};
-use crate::tensorio::NamedArray;
+use crate::tensorio::{f32_values, NamedArray};
 use glam::DVec3;
 use safetensors::SafeTensors;
 use std::path::Path;
@@ -86,9 +86,7 @@ pub fn read(path: &Path, bytes: &[u8], st: &SafeTensors<'_>) -> Result<Option<Pr
             view.dtype()
         )));
     }
-    let values: Vec<f32> = (view.data().chunks_exact(4))
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
+    let values = f32_values(&view);
     if values.iter().any(|v| !v.is_finite()) {
         return Err(bad(format!("'{TENSOR}' holds non-finite values")));
     }

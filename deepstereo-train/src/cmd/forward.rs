@@ -4,7 +4,7 @@ use crate::rendering::models::load_model;
 use crate::rendering::BackendKind;
 use anyhow::{bail, Context};
 use candle_core::{Device, Tensor};
-use deepstereo_core::tensorio::{write_safetensors, NamedArray};
+use deepstereo_core::tensorio::{f32_values, write_safetensors, NamedArray};
 use deepstereo_export::{input_name, OrtBackend};
 use safetensors::SafeTensors;
 use std::collections::HashMap;
@@ -48,11 +48,7 @@ fn read_f32(
             view.dtype()
         );
     }
-    let data = view
-        .data()
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect::<Vec<f32>>();
+    let data = f32_values(&view);
     if let Some(i) = data.iter().position(|v| !v.is_finite()) {
         bail!(
             "{}: tensor '{name}' holds a non-finite value ({} at flat index {i}); the network's inputs must be finite",
