@@ -9,10 +9,17 @@
 //! Files in the run directory: `model.safetensors` (weights + config, what `render` loads),
 //! `checkpoint.safetensors` (weights, optimizer state, step, run options), `log.jsonl`.
 
+mod checkpoint;
 pub mod data;
 pub mod lr;
 pub mod optim;
+mod progress;
 pub mod scene_weights;
+
+pub use checkpoint::save_checkpoint;
+use checkpoint::{restore, truncate_log};
+pub use progress::plot_log;
+use progress::{progress_bar, show_line};
 
 use crate::training::data::{
     make_batch, spawn_loader, synth_scenes, Batch, MpiPairs, PairBatch, Sampling, SceneData,
@@ -29,8 +36,7 @@ use deepstereo_core::inputs::features::with_warped_features;
 use deepstereo_core::model::{l1_loss, l2_loss};
 use deepstereo_core::scene::scene_dirs;
 use deepstereo_core::synth::SynthOptions;
-use deepstereo_core::tensorio::{write_safetensors, NamedArray};
-use deepstereo_core::weights::{self, metadata, named_vars, tensor_f32, Trainable};
+use deepstereo_core::weights::{self, named_vars, Trainable};
 use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -343,52 +349,28 @@ pub fn train(
         run.batch,
         2,
     );
-    let bar = progress_bar(sched, start);
-    let mut log = std::fs::OpenOptions::new()
-        .append(true)
-        .create(true)
-        .open(&log_path)?;
-    let (mut bad, mut lines) = (0u32, Vec::new());
-    let (mut window_t, mut window_n) = (Instant::now(), 0usize);
-    let mut step = start;
+    let mut log = StepLog::open(&log_path, progress_bar(sched, start), t0)?;
+    let (mut bad, mut step) = (0u32, start);
     while step < sched.steps {
         let batch = rx.recv().context("the sample loader stopped")??;
         step += 1;
-        window_n += run.batch;
-        let (loss_v, mpi_v, gnorm, skipped) = optimize(run, &t, &mut opt, &batch, &device, step)?;
-        if skipped {
-            bad += 1;
-            if bad >= MAX_CONSECUTIVE_BAD_STEPS {
-                bail!("{bad} consecutive non-finite steps: training stopped; the last good checkpoint is {}", ckpt.display());
-            }
-        } else {
-            bad = 0;
+        log.window.1 += run.batch;
+        let outcome = optimize(run, &t, &mut opt, &batch, &device, step)?;
+        let skipped = outcome.3;
+        bad = if skipped { bad + 1 } else { 0 };
+        if bad >= MAX_CONSECUTIVE_BAD_STEPS {
+            bail!("{bad} consecutive non-finite steps: training stopped; the last good checkpoint is {}", ckpt.display());
         }
         let validate_now = step.is_multiple_of(sched.validate_every) || step == sched.steps;
         if step.is_multiple_of(sched.log_every) || validate_now || skipped {
-            let secs = window_t.elapsed().as_secs_f64();
-            let line = LogLine {
-                step,
-                loss: loss_v.is_finite().then_some(loss_v),
-                lr: opt.lr,
-                samples_per_s: window_n as f64 / secs.max(1e-9),
-                grad_norm: gnorm.is_finite().then_some(gnorm),
-                val_psnr: if validate_now {
-                    Some(validate(&t.model, &val, &device)?)
-                } else {
-                    None
-                },
-                skipped,
-                seconds: t0.elapsed().as_secs_f64(),
-                mpi_loss: mpi_v.filter(|v| v.is_finite()),
+            let val_psnr = || {
+                (validate_now)
+                    .then(|| validate(&t.model, &val, &device))
+                    .transpose()
             };
-            writeln!(log, "{}", serde_json::to_string(&line)?)?;
-            log.flush()?;
-            show_line(&bar, sched, run, loss_v, &line);
-            lines.push(line);
-            (window_t, window_n) = (Instant::now(), 0);
+            log.write((run, sched), step, outcome, opt.lr, val_psnr)?;
         }
-        bar.set_position(step);
+        log.bar.set_position(step);
         let stopping = stop.load(Ordering::SeqCst);
         if step.is_multiple_of(sched.checkpoint_every) || step == sched.steps || stopping {
             save_checkpoint(&ckpt, &out.join("model.safetensors"), run, &t, &opt, step)?;
@@ -402,9 +384,67 @@ pub fn train(
         // `--steps 0`: write the initial model (used to make weights for tests and parity).
         save_checkpoint(&ckpt, &out.join("model.safetensors"), run, &t, &opt, 0)?;
     }
-    bar.finish();
+    log.bar.finish();
     plot_log(&log_path, &out.join("curve.png"))?;
-    Ok(lines)
+    Ok(log.lines)
+}
+
+/// A run's log as its steps write it: `log.jsonl`, the lines written in this call, the
+/// progress bar, the samples since the last line and when that line was written (the
+/// throughput), and when the run started.
+struct StepLog {
+    file: std::fs::File,
+    lines: Vec<LogLine>,
+    bar: indicatif::ProgressBar,
+    window: (Instant, usize),
+    t0: Instant,
+}
+
+impl StepLog {
+    /// Appends to the log at `path`.
+    fn open(path: &Path, bar: indicatif::ProgressBar, t0: Instant) -> Result<Self> {
+        let file = std::fs::OpenOptions::new()
+            .append(true)
+            .create(true)
+            .open(path)?;
+        Ok(Self {
+            file,
+            lines: Vec::new(),
+            bar,
+            window: (Instant::now(), 0),
+            t0,
+        })
+    }
+
+    /// Writes and shows step `step`'s line from its [`optimize`] outcome, the rate `lr`
+    /// and the validation PSNR `val_psnr()` gives (when due).
+    fn write(
+        &mut self,
+        (run, sched): (&RunOptions, &Schedule),
+        step: u64,
+        (loss_v, mpi_v, gnorm, skipped): (f64, Option<f64>, f64, bool),
+        lr: f64,
+        val_psnr: impl FnOnce() -> Result<Option<f64>>,
+    ) -> Result<()> {
+        let secs = self.window.0.elapsed().as_secs_f64();
+        let line = LogLine {
+            step,
+            loss: loss_v.is_finite().then_some(loss_v),
+            lr,
+            samples_per_s: self.window.1 as f64 / secs.max(1e-9),
+            grad_norm: gnorm.is_finite().then_some(gnorm),
+            val_psnr: val_psnr()?,
+            skipped,
+            seconds: self.t0.elapsed().as_secs_f64(),
+            mpi_loss: mpi_v.filter(|v| v.is_finite()),
+        };
+        writeln!(self.file, "{}", serde_json::to_string(&line)?)?;
+        self.file.flush()?;
+        show_line(&self.bar, sched, run, loss_v, &line);
+        self.lines.push(line);
+        self.window = (Instant::now(), 0);
+        Ok(())
+    }
 }
 
 /// The run's options checked (config, batch, sampling, data and scene weights) before
@@ -521,215 +561,6 @@ fn mpi_loss(
     let out = render_warped(&sel, &col, &index, &weight)?; // [B, 3, N_t]
     let target = Tensor::from_slice(&p.target, (b, 3, p.pixels), device)?;
     Ok(masked_l1(&out, &target, &mask)?)
-}
-
-/// Shows a log line: as the progress bar's message, and without a bar as a line on
-/// standard error with the time left.
-fn show_line(
-    bar: &indicatif::ProgressBar,
-    sched: &Schedule,
-    run: &RunOptions,
-    loss_v: f64,
-    line: &LogLine,
-) {
-    let val = |sep: &str| {
-        line.val_psnr
-            .map(|p| format!("{sep}val {p:.2} dB"))
-            .unwrap_or_default()
-    };
-    bar.set_message(format!(
-        "loss {loss_v:.4}  {:.1} samples/s{}",
-        line.samples_per_s,
-        val("  ")
-    ));
-    if !sched.progress {
-        let left =
-            (sched.steps - line.step) as f64 * run.batch as f64 / line.samples_per_s.max(1e-9);
-        eprintln!(
-            "step {}/{}: loss {loss_v:.5} ({:.1} samples/s, {} left){}",
-            line.step,
-            sched.steps,
-            line.samples_per_s,
-            duration(left),
-            val(" ")
-        );
-    }
-}
-
-/// `1h02m`, `3m05s` or `12s`.
-fn duration(seconds: f64) -> String {
-    let s = seconds.clamp(0.0, 1e9) as u64;
-    match (s / 3600, s % 3600 / 60, s % 60) {
-        (0, 0, sec) => format!("{sec}s"),
-        (0, m, sec) => format!("{m}m{sec:02}s"),
-        (h, m, _) => format!("{h}h{m:02}m"),
-    }
-}
-
-fn progress_bar(sched: &Schedule, start: u64) -> indicatif::ProgressBar {
-    if !sched.progress {
-        return indicatif::ProgressBar::hidden();
-    }
-    let bar = indicatif::ProgressBar::new(sched.steps);
-    if let Ok(style) =
-        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps  {msg}  eta {eta}")
-    {
-        bar.set_style(style);
-    }
-    bar.set_position(start);
-    bar
-}
-
-/// Writes the checkpoint and the weights-only model, both atomically.
-pub fn save_checkpoint(
-    ckpt: &Path,
-    model: &Path,
-    run: &RunOptions,
-    t: &Trainable,
-    opt: &Optimizer,
-    step: u64,
-) -> Result<()> {
-    let mut arrays = weights::weight_arrays(&t.varmap)?;
-    weights::check_finite(ckpt, &arrays)?;
-    for (name, tensor) in opt.state() {
-        arrays.push(NamedArray::f32(&name, tensor.dims(), &tensor_f32(&tensor)?));
-    }
-    let meta = metadata(
-        &run.config,
-        &[
-            (RUN_KEY, serde_json::to_string(run)?),
-            (STEP_KEY, step.to_string()),
-            ("optimizer.steps", opt.steps.to_string()),
-        ],
-    )?;
-    write_safetensors(ckpt, &arrays, Some(meta))?;
-    weights::save(model, &run.config, &t.varmap)?;
-    Ok(())
-}
-
-/// Restores weights and optimizer state; returns the step to continue from.
-fn restore(ckpt: &Path, run: &RunOptions, t: &Trainable, opt: &mut Optimizer) -> Result<u64> {
-    let bytes =
-        std::fs::read(ckpt).with_context(|| format!("--resume: cannot read {}", ckpt.display()))?;
-    let (_, meta) = safetensors::SafeTensors::read_metadata(&bytes)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", ckpt.display()))?;
-    let m = meta.metadata().clone().unwrap_or_default();
-    let saved: RunOptions = serde_json::from_str(m.get(RUN_KEY).map(String::as_str).unwrap_or(""))
-        .with_context(|| format!("{}: no run options in the checkpoint", ckpt.display()))?;
-    let same_but_lr = RunOptions {
-        lr_schedule: run.lr_schedule,
-        ..saved.clone()
-    };
-    if &same_but_lr != run {
-        bail!("{}: the checkpoint was made with different options:\n  saved: {saved:?}\n  now:   {run:?}", ckpt.display());
-    }
-    if saved.lr_schedule != run.lr_schedule {
-        eprintln!(
-            "{}: learning-rate schedule changed from {:?} to {:?}",
-            ckpt.display(),
-            saved.lr_schedule,
-            run.lr_schedule
-        );
-    }
-    let step: u64 = m
-        .get(STEP_KEY)
-        .and_then(|s| s.parse().ok())
-        .context("checkpoint has no step")?;
-    let osteps: u64 = m
-        .get("optimizer.steps")
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(step);
-    let st = safetensors::SafeTensors::deserialize(&bytes)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", ckpt.display()))?;
-    weights::assign(ckpt, &st, &t.varmap, "")?;
-    opt.restore(osteps, |name| {
-        let v = st
-            .tensor(name)
-            .map_err(|_| anyhow::anyhow!("{}: missing '{name}'", ckpt.display()))?;
-        let data: Vec<f32> = v
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
-        Ok(Tensor::from_vec(data, v.shape(), &Device::Cpu)?)
-    })?;
-    Ok(step)
-}
-
-/// Keeps only the log lines up to `step` (a resume repeats the steps after it).
-fn truncate_log(path: &Path, step: u64) -> Result<()> {
-    let text = std::fs::read_to_string(path).unwrap_or_default();
-    let kept: String = text
-        .lines()
-        .filter(|l| {
-            serde_json::from_str::<LogLine>(l)
-                .map(|x| x.step <= step)
-                .unwrap_or(false)
-        })
-        .map(|l| format!("{l}\n"))
-        .collect();
-    write_atomic(path, kept.as_bytes())?;
-    Ok(())
-}
-
-/// Plots a run's training loss and validation PSNR against steps, side by side.
-pub fn plot_log(log: &Path, png: &Path) -> Result<()> {
-    use deepstereo_core::plot::{plot, Series};
-    let text =
-        std::fs::read_to_string(log).with_context(|| format!("cannot read {}", log.display()))?;
-    let lines: Vec<LogLine> = text
-        .lines()
-        .filter_map(|l| serde_json::from_str(l).ok())
-        .collect();
-    let loss: Vec<(f64, f64)> = lines
-        .iter()
-        .filter_map(|l| l.loss.map(|v| (l.step as f64, v)))
-        .collect();
-    // Smooth the loss over a window of log lines for readability.
-    let k = (loss.len() / 50).max(1);
-    let smooth: Vec<(f64, f64)> = loss
-        .chunks(k)
-        .map(|c| {
-            (
-                c[c.len() - 1].0,
-                c.iter().map(|p| p.1).sum::<f64>() / c.len() as f64,
-            )
-        })
-        .collect();
-    let val: Vec<(f64, f64)> = lines
-        .iter()
-        .filter_map(|l| l.val_psnr.map(|v| (l.step as f64, v)))
-        .collect();
-    let a = plot(
-        "training loss",
-        "step",
-        "loss",
-        &[Series {
-            label: "train loss".into(),
-            colour: [0.85, 0.2, 0.1],
-            points: smooth,
-            line: true,
-            marker: 0,
-            labels: Vec::new(),
-        }],
-        false,
-    );
-    let b = plot(
-        "validation PSNR (held-out scenes)",
-        "step",
-        "PSNR dB",
-        &[Series {
-            label: "validation".into(),
-            colour: [0.1, 0.4, 0.85],
-            points: val,
-            line: true,
-            marker: 2,
-            labels: Vec::new(),
-        }],
-        false,
-    );
-    deepstereo_core::viz::side_by_side(&[&a, &b], 0).save_png(png)?;
-    Ok(())
 }
 
 #[cfg(test)]
