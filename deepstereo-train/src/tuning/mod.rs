@@ -156,19 +156,7 @@ pub fn tune(
 ) -> Result<TuneResult> {
     check(opts, &scene)?;
     let cfg = t.model.config();
-    let sampling = Sampling {
-        views: (opts.views, opts.views),
-        ..Sampling::fixed(cfg)
-    };
-    sampling.check(cfg)?;
-    let n = scene.cameras.len();
-    scene.targets = Some(validation.to_vec());
-    let val = validation_batches(cfg, &sampling, &scene, opts)?;
-    scene.targets = Some((0..n).filter(|i| !validation.contains(i)).collect());
-    let train_sampling = Sampling {
-        augment: opts.augment,
-        ..sampling
-    };
+    let (val, train_sampling) = split_scene(cfg, &mut scene, validation, opts)?;
     let device = Device::Cpu;
     let vars = named_vars(&t.varmap);
     let mut opt = Optimizer::new(OptimizerKind::Adam, opts.lr, vars.clone())?;
@@ -199,10 +187,7 @@ pub fn tune(
     loop {
         let elapsed = t0.elapsed().as_secs_f64();
         run.snapshot_until(opts, elapsed);
-        let share = match opts.budget {
-            Budget::Steps(s) => step as f64 / s as f64,
-            Budget::Seconds(s) => elapsed / s,
-        };
+        let share = opts.budget.share(step, elapsed);
         if share >= 1.0 {
             break;
         }
@@ -211,21 +196,9 @@ pub fn tune(
             break;
         }
         let batch = rx.recv().context("the sample loader stopped")??;
-        let (x, y) = batch_tensors(&t.model, &batch, &device)?;
-        let pred = t.model.forward(&x)?;
-        let loss = Loss::L1.of(&pred.image, &y)?;
-        let loss_v = loss.to_scalar::<f32>()? as f64;
-        let grads = loss.backward()?;
-        let gnorm = opt.grad_norm(&grads)?;
+        let loss_v = train_step(t, &mut opt, &batch, &device, lr_at(opts, share))?;
         step += 1;
-        if loss_v.is_finite() && gnorm.is_finite() {
-            opt.lr = lr_at(opts, share);
-            opt.step(&grads)?;
-        }
-        let last = match opts.budget {
-            Budget::Steps(s) => step >= s,
-            Budget::Seconds(s) => t0.elapsed().as_secs_f64() >= s,
-        };
+        let last = opts.budget.spent(step, t0.elapsed().as_secs_f64());
         let mut val_psnr = None;
         if step.is_multiple_of(opts.validate_every) || last {
             let psnr = validate(&t.model, &val, &device)?;
@@ -234,10 +207,7 @@ pub fn tune(
         }
         progress(&Progress {
             step,
-            share: share.max(match opts.budget {
-                Budget::Steps(s) => step as f64 / s as f64,
-                Budget::Seconds(s) => t0.elapsed().as_secs_f64() / s,
-            }),
+            share: share.max(opts.budget.share(step, t0.elapsed().as_secs_f64())),
             loss: loss_v,
             val_psnr,
             best_psnr: run.best_psnr,
@@ -254,6 +224,70 @@ pub fn tune(
         interrupted,
         snapshots: run.snapshots,
     })
+}
+
+/// The validation batches of `scene`'s `validation` views, and the sampling of its
+/// training tiles, whose targets `scene` then holds: every view but those.
+fn split_scene(
+    cfg: &deepstereo_core::config::Config,
+    scene: &mut SceneData,
+    validation: &[usize],
+    opts: &TuneOptions,
+) -> Result<(Vec<Batch>, Sampling)> {
+    let sampling = Sampling {
+        views: (opts.views, opts.views),
+        ..Sampling::fixed(cfg)
+    };
+    sampling.check(cfg)?;
+    let n = scene.cameras.len();
+    scene.targets = Some(validation.to_vec());
+    let val = validation_batches(cfg, &sampling, scene, opts)?;
+    scene.targets = Some((0..n).filter(|i| !validation.contains(i)).collect());
+    let train_sampling = Sampling {
+        augment: opts.augment,
+        ..sampling
+    };
+    Ok((val, train_sampling))
+}
+
+/// One Adam step on `batch` at rate `lr` (none where the loss or the gradient norm is not
+/// finite); the L1 loss.
+fn train_step(
+    t: &Trainable,
+    opt: &mut Optimizer,
+    batch: &Batch,
+    device: &Device,
+    lr: f64,
+) -> Result<f64> {
+    let (x, y) = batch_tensors(&t.model, batch, device)?;
+    let pred = t.model.forward(&x)?;
+    let loss = Loss::L1.of(&pred.image, &y)?;
+    let loss_v = loss.to_scalar::<f32>()? as f64;
+    let grads = loss.backward()?;
+    let gnorm = opt.grad_norm(&grads)?;
+    if loss_v.is_finite() && gnorm.is_finite() {
+        opt.lr = lr;
+        opt.step(&grads)?;
+    }
+    Ok(loss_v)
+}
+
+impl Budget {
+    /// The share of the budget that `step` steps in `elapsed` seconds have used.
+    fn share(&self, step: u64, elapsed: f64) -> f64 {
+        match *self {
+            Budget::Steps(s) => step as f64 / s as f64,
+            Budget::Seconds(s) => elapsed / s,
+        }
+    }
+
+    /// Whether `step` steps in `elapsed` seconds have spent the budget.
+    fn spent(&self, step: u64, elapsed: f64) -> bool {
+        match *self {
+            Budget::Steps(s) => step >= s,
+            Budget::Seconds(s) => elapsed >= s,
+        }
+    }
 }
 
 /// What the caller hears after each step.
