@@ -96,10 +96,9 @@ fn camera(k: Intrinsics, r: DMat3, centre: DVec3) -> Camera {
     }
 }
 
-fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let k = Intrinsics::pinhole(450.0, 450.0, 256.0, 192.0, WIDTH, HEIGHT);
-    let target = camera(k, DMat3::IDENTITY, DVec3::ZERO);
-    let sources: Vec<Camera> = (0..VIEWS)
+/// The source cameras: around the target's centre, turned slightly towards it.
+fn source_cameras(k: Intrinsics) -> Vec<Camera> {
+    (0..VIEWS)
         .map(|i| {
             let a = i as f64 * std::f64::consts::FRAC_PI_2;
             let r = DMat3::from_rotation_y(0.05 * a.cos()) * DMat3::from_rotation_x(0.04 * a.sin());
@@ -109,7 +108,110 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 DVec3::new(0.3 * a.cos(), 0.2 * a.sin(), 0.05 * i as f64),
             )
         })
-        .collect();
+        .collect()
+}
+
+/// Times the per-view cue of the sweep's (plane, view) slices (`sweep::cue`), which models
+/// with `pool.cue` compute beside the sweep, against the sweep's `rust_s` seconds.
+fn bench_cue(target: &Camera, sources: &[Camera], region: Region, inv: &[f64], rust_s: f64) {
+    let rays = CueRays::new(&target_rays(&target.intrinsics, region));
+    let centres: Vec<DVec3> = sources.iter().map(|s| centre_in(target, s)).collect();
+    let hw = region.len();
+    let mut cue = vec![0.0f32; PLANES * VIEWS * CUE_CHANNELS * hw];
+    let (cue_s, cue_cpu) = timed(5, || {
+        cue.par_chunks_mut(CUE_CHANNELS * hw)
+            .enumerate()
+            .for_each(|(i, o)| cue_slice(&rays, inv[i / VIEWS], centres[i % VIEWS], o))
+    });
+    println!(
+        "  rust cue_slice, the same slices: {:8.1} ms wall, {:8.1} ms CPU  ({:.2}x the sweep's wall time)",
+        cue_s * 1e3,
+        cue_cpu * 1e3,
+        cue_s / rust_s
+    );
+}
+
+/// Writes the Python side's inputs into `dir`: the pixel homographies (target pixel ->
+/// source pixel, `K_s H(rho) K_t^-1`, row-major), the source images and `meta.json`.
+fn write_python_inputs(
+    dir: &Path,
+    target: &Camera,
+    sources: &[Camera],
+    images: &[RgbImage],
+    inv: &[f64],
+) -> Result<(), Box<dyn std::error::Error>> {
+    let kt_inv = target.intrinsics.k().inverse();
+    let mut hs = Vec::with_capacity(PLANES * VIEWS * 9);
+    for &rho in inv {
+        for s in sources {
+            let rel = target.pose.relative_to(&s.pose);
+            let h = s.intrinsics.k() * plane_homography(&rel, rho) * kt_inv;
+            for r in 0..3 {
+                hs.extend([h.x_axis[r], h.y_axis[r], h.z_axis[r]]);
+            }
+        }
+    }
+    write_npy_f64(&dir.join("homographies.npy"), &[PLANES * VIEWS, 9], &hs)?;
+    let pixels: Vec<f32> = images.iter().flat_map(|i| i.data.iter().copied()).collect();
+    write_npy_f32(
+        &dir.join("images.npy"),
+        &[VIEWS * HEIGHT as usize, WIDTH as usize * 3],
+        &pixels,
+    )?;
+    let meta = serde_json::json!({
+        "planes": PLANES, "views": VIEWS, "height": HEIGHT, "width": WIDTH, "threads": 2,
+        "check_planes": CHECK_PLANES, "dir": dir,
+    });
+    std::fs::write(dir.join("meta.json"), meta.to_string())?;
+    Ok(())
+}
+
+/// Prints the Python side's `report` against the sweep's `rust_s` wall and `rust_cpu`
+/// CPU seconds.
+fn print_python(report: &serde_json::Value, rust_s: f64, rust_cpu: f64) {
+    let torch_ms = report["median_ms"].as_f64().unwrap_or(f64::NAN);
+    let torch_cpu_ms = report["cpu_ms"].as_f64().unwrap_or(f64::NAN);
+    println!(
+        "  pytorch grid_sample ({} threads, torch {}): {torch_ms:8.1} ms wall, {torch_cpu_ms:8.1} ms CPU",
+        report["threads"], report["torch"]
+    );
+    let ratio = torch_ms / (rust_s * 1e3);
+    println!(
+        "  ratio pytorch / rust: {ratio:.2}x wall, {:.2}x CPU ({})",
+        torch_cpu_ms / (rust_cpu * 1e3),
+        if ratio > 1.0 {
+            "rust faster"
+        } else {
+            "pytorch faster"
+        }
+    );
+}
+
+/// Compares the planes PyTorch wrote back (`check`) with ours in `out` (same warps).
+fn compare_planes(out: &[f32], check: &Path, hw: usize) -> Result<(), Box<dyn std::error::Error>> {
+    let theirs = read_npy(check)?;
+    let slice = VIEWS * CHANNELS * hw;
+    let (mut max, mut sum, mut n) = (0.0f64, 0.0f64, 0usize);
+    for (i, &d) in CHECK_PLANES.iter().enumerate() {
+        let ours = &out[d * slice..(d + 1) * slice];
+        for (a, b) in ours.iter().zip(&theirs.data[i * slice..(i + 1) * slice]) {
+            let e = (*a as f64 - b).abs();
+            max = max.max(e);
+            sum += e;
+            n += 1;
+        }
+    }
+    println!(
+        "  same warps: max |rust - pytorch| = {max:.2e}, mean {:.2e} over planes {CHECK_PLANES:?}",
+        sum / n.max(1) as f64
+    );
+    Ok(())
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let k = Intrinsics::pinhole(450.0, 450.0, 256.0, 192.0, WIDTH, HEIGHT);
+    let target = camera(k, DMat3::IDENTITY, DVec3::ZERO);
+    let sources = source_cameras(k);
     let images: Vec<RgbImage> = (0..VIEWS)
         .map(|i| texture(WIDTH, HEIGHT, i as u64 + 1))
         .collect();
@@ -136,22 +238,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         rust_s * 1e9 / (PLANES * VIEWS * hw) as f64
     );
 
-    // The per-view cue of the same (plane, view) slices (`sweep::cue`), which models with
-    // `pool.cue` compute beside the sweep: its cost against the sweep's.
-    let rays = CueRays::new(&target_rays(&target.intrinsics, region));
-    let centres: Vec<DVec3> = sources.iter().map(|s| centre_in(&target, s)).collect();
-    let mut cue = vec![0.0f32; PLANES * VIEWS * CUE_CHANNELS * hw];
-    let (cue_s, cue_cpu) = timed(5, || {
-        cue.par_chunks_mut(CUE_CHANNELS * hw)
-            .enumerate()
-            .for_each(|(i, o)| cue_slice(&rays, inv[i / VIEWS], centres[i % VIEWS], o))
-    });
-    println!(
-        "  rust cue_slice, the same slices: {:8.1} ms wall, {:8.1} ms CPU  ({:.2}x the sweep's wall time)",
-        cue_s * 1e3,
-        cue_cpu * 1e3,
-        cue_s / rust_s
-    );
+    bench_cue(&target, &sources, region, &inv, rust_s);
 
     if std::env::var("SWEEP_BENCH_PY").as_deref() == Ok("0") {
         return Ok(());
@@ -166,34 +253,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         return Ok(());
     }
     let dir = tempfile::tempdir()?;
-    // Pixel homographies, target pixel -> source pixel: K_s H(rho) K_t^-1, row-major.
-    let kt_inv = k.k().inverse();
-    let mut hs = Vec::with_capacity(PLANES * VIEWS * 9);
-    for &rho in &inv {
-        for s in &sources {
-            let rel = target.pose.relative_to(&s.pose);
-            let h = s.intrinsics.k() * plane_homography(&rel, rho) * kt_inv;
-            for r in 0..3 {
-                hs.extend([h.x_axis[r], h.y_axis[r], h.z_axis[r]]);
-            }
-        }
-    }
-    write_npy_f64(
-        &dir.path().join("homographies.npy"),
-        &[PLANES * VIEWS, 9],
-        &hs,
-    )?;
-    let pixels: Vec<f32> = images.iter().flat_map(|i| i.data.iter().copied()).collect();
-    write_npy_f32(
-        &dir.path().join("images.npy"),
-        &[VIEWS * HEIGHT as usize, WIDTH as usize * 3],
-        &pixels,
-    )?;
-    let meta = serde_json::json!({
-        "planes": PLANES, "views": VIEWS, "height": HEIGHT, "width": WIDTH, "threads": 2,
-        "check_planes": CHECK_PLANES, "dir": dir.path(),
-    });
-    std::fs::write(dir.path().join("meta.json"), meta.to_string())?;
+    write_python_inputs(dir.path(), &target, &sources, &images, &inv)?;
     let res = Command::new(&python)
         .arg(&script)
         .arg(dir.path().join("meta.json"))
@@ -206,38 +266,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         return Ok(());
     }
     let report: serde_json::Value = serde_json::from_slice(&res.stdout)?;
-    let torch_ms = report["median_ms"].as_f64().unwrap_or(f64::NAN);
-    let torch_cpu_ms = report["cpu_ms"].as_f64().unwrap_or(f64::NAN);
-    println!(
-        "  pytorch grid_sample ({} threads, torch {}): {torch_ms:8.1} ms wall, {torch_cpu_ms:8.1} ms CPU",
-        report["threads"], report["torch"]
-    );
-    let ratio = torch_ms / (rust_s * 1e3);
-    println!(
-        "  ratio pytorch / rust: {ratio:.2}x wall, {:.2}x CPU ({})",
-        torch_cpu_ms / (rust_cpu * 1e3),
-        if ratio > 1.0 {
-            "rust faster"
-        } else {
-            "pytorch faster"
-        }
-    );
-    // Same warps: compare the planes PyTorch wrote back.
-    let theirs = read_npy(&dir.path().join("check.npy"))?;
-    let slice = VIEWS * CHANNELS * hw;
-    let (mut max, mut sum, mut n) = (0.0f64, 0.0f64, 0usize);
-    for (i, &d) in CHECK_PLANES.iter().enumerate() {
-        let ours = &out[d * slice..(d + 1) * slice];
-        for (a, b) in ours.iter().zip(&theirs.data[i * slice..(i + 1) * slice]) {
-            let e = (*a as f64 - b).abs();
-            max = max.max(e);
-            sum += e;
-            n += 1;
-        }
-    }
-    println!(
-        "  same warps: max |rust - pytorch| = {max:.2e}, mean {:.2e} over planes {CHECK_PLANES:?}",
-        sum / n.max(1) as f64
-    );
+    print_python(&report, rust_s, rust_cpu);
+    compare_planes(&out, &dir.path().join("check.npy"), hw)?;
     Ok(())
 }

@@ -29,14 +29,13 @@ use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device, Tensor};
 use deepstereo_core::config::Config;
 use deepstereo_core::model::l1_loss;
-use deepstereo_core::synth::SynthOptions;
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};
-use deepstereo_core::weights::{init_seeded, named_vars, save, tensor_f32};
+use deepstereo_core::weights::{init_seeded, named_vars, save, tensor_f32, Trainable};
 use deepstereo_export::export::{export_trainable, input_name, DEFAULT_OPSET};
 use deepstereo_export::OrtBackend;
-use deepstereo_train::training::batch_tensors;
-use deepstereo_train::training::data::{make_batch, synth_scenes, Sampling};
+use deepstereo_train::training::data::Batch;
 use deepstereo_train::training::optim::{Optimizer, OptimizerKind};
+use deepstereo_train::training::{batch_tensors, procedural_batch};
 use std::path::Path;
 use std::time::Instant;
 
@@ -103,6 +102,20 @@ fn tile_inputs(cfg: &Config, tile: usize) -> Vec<(Vec<usize>, Vec<f32>)> {
             (shape, data)
         })
         .collect()
+}
+
+/// A training batch's inputs per level and its target, named as the Python side reads
+/// them.
+fn batch_arrays(b: &Batch) -> Vec<NamedArray> {
+    let mut out: Vec<NamedArray> = b
+        .levels
+        .iter()
+        .zip(&b.level_shapes)
+        .enumerate()
+        .map(|(l, (d, s))| NamedArray::f32(&input_name(l), s, d))
+        .collect();
+    out.push(NamedArray::f32("target", &b.target_shape, &b.target));
+    out
 }
 
 fn arrays(levels: &[(Vec<usize>, Vec<f32>)]) -> Vec<NamedArray> {
@@ -199,15 +212,7 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
 
     // Forward of one render tile.
     let levels = tile_inputs(&cfg, tile);
-    write_safetensors(&dir.path().join("tile.safetensors"), &arrays(&levels), None)?;
-    let xs: Vec<Tensor> = levels
-        .iter()
-        .map(|(s, d)| Tensor::from_slice(d, s.as_slice(), &Device::Cpu))
-        .collect::<candle_core::Result<_>>()?;
-    let image = t.model.infer(&xs)?.image;
-    let shape = image.dims().to_vec();
-    let out = vec![NamedArray::f32("image", &shape, &tensor_f32(&image)?)];
-    write_safetensors(&dir.path().join("candle.safetensors"), &out, None)?;
+    let xs = write_tile(dir.path(), &t, &levels)?;
     let ort = OrtBackend::from_bytes(&onnx)?;
     let views: Vec<(&[usize], &[f32])> = levels
         .iter()
@@ -215,24 +220,13 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         .collect();
 
     // One training step on a batch of procedural patches.
-    let opts = SynthOptions {
-        views: 8,
-        width: 160,
-        height: 120,
-        ..SynthOptions::default()
-    };
-    let scenes = synth_scenes(4, 1, &opts, cfg.levels)?;
-    let b = make_batch(&cfg, &Sampling::fixed(&cfg), &scenes, 9, 0, batch)?;
+    let b = procedural_batch(&cfg, batch)?;
     let (x, y) = batch_tensors(&t.model, &b, &Device::Cpu)?;
-    let mut train_arrays: Vec<NamedArray> = b
-        .levels
-        .iter()
-        .zip(&b.level_shapes)
-        .enumerate()
-        .map(|(l, (d, s))| NamedArray::f32(&input_name(l), s, d))
-        .collect();
-    train_arrays.push(NamedArray::f32("target", &b.target_shape, &b.target));
-    write_safetensors(&dir.path().join("batch.safetensors"), &train_arrays, None)?;
+    write_safetensors(
+        &dir.path().join("batch.safetensors"),
+        &batch_arrays(&b),
+        None,
+    )?;
     let mut opt = Optimizer::new(OptimizerKind::Adam, 1e-4, named_vars(&t.varmap))?;
 
     // Every runtime in turn, round after round (see `alternate`).
@@ -271,6 +265,61 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         }
     };
 
+    let max_diff = py.as_ref().map(|p| p.max_diff);
+    let times = Times {
+        fwd,
+        ort_fwd,
+        py_fwd,
+        step,
+        py_step,
+    };
+    print_table(name, &cfg, (tile, batch), mm, &times, max_diff);
+    Ok(())
+}
+
+/// Writes the tile's inputs `levels` and candle's image of them into `dir` (for the
+/// Python side); the inputs as tensors.
+fn write_tile(dir: &Path, t: &Trainable, levels: &[(Vec<usize>, Vec<f32>)]) -> Result<Vec<Tensor>> {
+    write_safetensors(&dir.join("tile.safetensors"), &arrays(levels), None)?;
+    let xs: Vec<Tensor> = levels
+        .iter()
+        .map(|(s, d)| Tensor::from_slice(d, s.as_slice(), &Device::Cpu))
+        .collect::<candle_core::Result<_>>()?;
+    let image = t.model.infer(&xs)?.image;
+    let shape = image.dims().to_vec();
+    let out = vec![NamedArray::f32("image", &shape, &tensor_f32(&image)?)];
+    write_safetensors(&dir.join("candle.safetensors"), &out, None)?;
+    Ok(xs)
+}
+
+/// Best seconds of each runtime: candle's forward, onnxruntime's (Rust), onnxruntime's
+/// (Python) and PyTorch's forward, candle's training step and PyTorch's.
+struct Times {
+    fwd: f64,
+    ort_fwd: f64,
+    py_fwd: Option<(f64, f64)>,
+    step: f64,
+    py_step: Option<f64>,
+}
+
+/// Prints preset `name`'s table: each runtime's time, GFLOP/s, share of the matmul's
+/// `mm` GFLOP/s and time against candle's (`max_diff`: the Python side's outputs
+/// against candle's, when it ran).
+fn print_table(
+    name: &str,
+    cfg: &Config,
+    (tile, batch): (usize, usize),
+    mm: f64,
+    times: &Times,
+    max_diff: Option<f64>,
+) {
+    let &Times {
+        fwd,
+        ort_fwd,
+        py_fwd,
+        step,
+        py_step,
+    } = times;
     // The config's cost model counts multiply-adds per output pixel of a `cfg.tile` tile
     // (the borders the convolutions need included); the render tile has its own.
     let at_tile = Config {
@@ -304,11 +353,11 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
         row("forward", "PyTorch", torch, fwd_flop, fwd);
     }
     row("training step", "candle", step, step_flop, step);
-    if let (Some(torch_step), Some((ort_py, _)), Some(p)) = (py_step, py_fwd, &py) {
+    if let (Some(torch_step), Some((ort_py, _)), Some(max_diff)) = (py_step, py_fwd, max_diff) {
         row("training step", "PyTorch", torch_step, step_flop, step);
         println!(
             "outputs: PyTorch and onnxruntime vs candle, max abs difference {:.1e}",
-            p.max_diff
+            max_diff
         );
         println!(
             "RATIO {name}: candle's speed relative to onnxruntime's forward {:.2}, to PyTorch's training step {:.2} (issue 9 asks for >= 1)",
@@ -316,7 +365,6 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
             torch_step / step
         );
     }
-    Ok(())
 }
 
 fn main() -> Result<()> {

@@ -316,6 +316,19 @@ fn load_scenes(run: &RunOptions) -> Result<(Vec<SceneData>, Vec<Batch>, usize)> 
     Ok((train, val, n_val))
 }
 
+/// A batch of `batch` training tiles from 4 procedural scenes of 8 views at 160x120
+/// (seed 9): the fixed workload of the network benchmark and the forward probe.
+pub fn procedural_batch(cfg: &Config, batch: usize) -> Result<Batch> {
+    let opts = SynthOptions {
+        views: 8,
+        width: 160,
+        height: 120,
+        ..SynthOptions::default()
+    };
+    let scenes = synth_scenes(4, 1, &opts, cfg.levels)?;
+    make_batch(cfg, &Sampling::fixed(cfg), &scenes, 9, 0, batch)
+}
+
 /// Trains (or resumes) a run in `out`. Returns the log lines written in this call.
 pub fn train(
     run: &RunOptions,
