@@ -30,6 +30,19 @@ pub fn blend_colours(y: &Tensor, x: &Tensor) -> Result<Option<Tensor>> {
 
 struct BlendColours;
 
+/// One pixel `j` of a batch item in [`BlendColours`]'s backward: the item's logits `y`,
+/// sources `x` and output gradient `g`, with the pixel's view weights `ex`, their sum
+/// `den` and its blended colour `out`.
+struct Pixel<'a, T> {
+    y: &'a [T],
+    x: &'a [T],
+    g: &'a [T],
+    j: usize,
+    ex: &'a [T],
+    den: f64,
+    out: [f64; 3],
+}
+
 /// `exp(L(y))` with the bounded logit `L(y) = B tanh(y / B)` (`B` = [`BLEND_LOGIT_BOUND`]),
 /// the unnormalised weight of a view that sees the pixel.
 #[inline(always)]
@@ -102,24 +115,48 @@ impl BlendColours {
     ) -> Vec<T> {
         let mut dy = vec![T::zero(); y.len()];
         let b = cast::<T>(BLEND_LOGIT_BOUND);
-        dy.par_chunks_mut(v * p).enumerate().for_each(|(i, d)| {
+        Self::per_pixel((y, x, g), (v, p), (&mut dy, v * p), |d, px| {
+            let (yi, xi, gi, j) = (px.y, px.x, px.g, px.j);
+            for (k, &w) in px.ex.iter().enumerate() {
+                let mut gl = 0f64;
+                for ch in 0..3 {
+                    gl += wide(gi[ch * p + j]) * (wide(xi[(k * 4 + ch) * p + j]) - px.out[ch]);
+                }
+                let t = wide((yi[k * p + j] / b).tanh());
+                d[k * p + j] = cast(gl * wide(w) / px.den * (1.0 - t * t));
+            }
+        });
+        dy
+    }
+
+    /// Runs `f(d, pixel)` on every pixel of every batch item: `d` the item's chunk of
+    /// `grad` (`per` values an item), `pixel` the item's logits, sources and output
+    /// gradient with the pixel's view weights, their sum and its blended colour.
+    fn per_pixel<T: Float + NumAssignOps + Send + Sync + AsPrimitive<f64>>(
+        (y, x, g): (&[T], &[T], &[T]),
+        (v, p): (usize, usize),
+        (grad, per): (&mut [T], usize),
+        f: impl Fn(&mut [T], &Pixel<'_, T>) + Sync,
+    ) {
+        grad.par_chunks_mut(per).enumerate().for_each(|(i, d)| {
             let (yi, xi) = (&y[i * v * p..][..v * p], &x[i * v * 4 * p..][..v * 4 * p]);
             let gi = &g[i * 3 * p..][..3 * p];
             let mut ex = vec![T::zero(); v];
             for j in 0..p {
                 let den = Self::weights(yi, xi, (v, p, j), &mut ex);
                 let out = Self::blended(xi, &ex, den, (p, j));
-                for (k, &w) in ex.iter().enumerate() {
-                    let mut gl = 0f64;
-                    for ch in 0..3 {
-                        gl += wide(gi[ch * p + j]) * (wide(xi[(k * 4 + ch) * p + j]) - out[ch]);
-                    }
-                    let t = wide((yi[k * p + j] / b).tanh());
-                    d[k * p + j] = cast(gl * wide(w) / den * (1.0 - t * t));
-                }
+                let px = Pixel {
+                    y: yi,
+                    x: xi,
+                    g: gi,
+                    j,
+                    ex: &ex,
+                    den,
+                    out,
+                };
+                f(d, &px);
             }
         });
-        dy
     }
 
     /// `dx` `[N, V, 4, P]` from the output gradient `g` (the alphas weighed by the cue
@@ -132,22 +169,16 @@ impl BlendColours {
         (_, v, p): (usize, usize, usize),
     ) -> Vec<T> {
         let mut dx = vec![T::zero(); x.len()];
-        dx.par_chunks_mut(v * 4 * p).enumerate().for_each(|(i, d)| {
-            let (yi, xi) = (&y[i * v * p..][..v * p], &x[i * v * 4 * p..][..v * 4 * p]);
-            let gi = &g[i * 3 * p..][..3 * p];
-            let mut ex = vec![T::zero(); v];
-            for j in 0..p {
-                let den = Self::weights(yi, xi, (v, p, j), &mut ex);
-                let out = Self::blended(xi, &ex, den, (p, j));
-                for (k, &w) in ex.iter().enumerate() {
-                    let mut ga = 0f64;
-                    for (ch, &o) in out.iter().enumerate() {
-                        let gc = wide(gi[ch * p + j]);
-                        d[(k * 4 + ch) * p + j] = cast(gc * wide(w) / den);
-                        ga += gc * (wide(xi[(k * 4 + ch) * p + j]) - o);
-                    }
-                    d[(k * 4 + 3) * p + j] = cast(ga * wide(bounded_exp(yi[k * p + j])) / den);
+        Self::per_pixel((y, x, g), (v, p), (&mut dx, v * 4 * p), |d, px| {
+            let (yi, xi, gi, j, den) = (px.y, px.x, px.g, px.j, px.den);
+            for (k, &w) in px.ex.iter().enumerate() {
+                let mut ga = 0f64;
+                for (ch, &o) in px.out.iter().enumerate() {
+                    let gc = wide(gi[ch * p + j]);
+                    d[(k * 4 + ch) * p + j] = cast(gc * wide(w) / den);
+                    ga += gc * (wide(xi[(k * 4 + ch) * p + j]) - o);
                 }
+                d[(k * 4 + 3) * p + j] = cast(ga * wide(bounded_exp(yi[k * p + j])) / den);
             }
         });
         dx
