@@ -30,6 +30,31 @@ impl LayerInfo {
     }
 }
 
+/// The rows `{prefix}.{i}` of the square convolutions `convs` (valid) on `ch` channels of
+/// side `size`, their multiply-adds times `d / area` (planes over output pixels); returns
+/// the channels after them.
+fn conv_rows(
+    prefix: &str,
+    convs: &[Conv],
+    (mut ch, mut size): (usize, usize),
+    (d, area): (f64, f64),
+    out: &mut Vec<LayerInfo>,
+) -> usize {
+    for (i, conv) in convs.iter().enumerate() {
+        size -= conv.kernel - 1;
+        let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
+        out.push(LayerInfo::new(
+            format!("{prefix}.{i}"),
+            *conv,
+            ch,
+            size,
+            macs * d / area,
+        ));
+        ch = conv.channels;
+    }
+    ch
+}
+
 impl Config {
     /// Parameter count.
     pub fn parameters(&self) -> usize {
@@ -85,36 +110,13 @@ impl Config {
         let cin = self.tower_in_channels();
         let rf = tower.merge_reduction();
         for l in 0..tower.levels {
-            let mut size = (t >> l) + 2 * tower.pad(l);
-            let mut ch = cin;
-            for (i, conv) in tower.level_convs.iter().enumerate() {
-                size -= conv.kernel - 1;
-                let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
-                out.push(LayerInfo::new(
-                    format!("{name}.levels.{l}.{i}"),
-                    *conv,
-                    ch,
-                    size,
-                    macs * d / area,
-                ));
-                ch = conv.channels;
-            }
+            let size = (t >> l) + 2 * tower.pad(l);
+            let prefix = format!("{name}.levels.{l}");
+            conv_rows(&prefix, &tower.level_convs, (cin, size), (d, area), out);
         }
-        let mut ch = tower.level_channels(cin) * tower.levels;
-        let mut size = t + rf;
-        for (i, conv) in tower.merge_convs.iter().enumerate() {
-            size -= conv.kernel - 1;
-            let macs = (size * size * conv.kernel * conv.kernel * ch * conv.channels) as f64;
-            out.push(LayerInfo::new(
-                format!("{name}.merge.{i}"),
-                *conv,
-                ch,
-                size,
-                macs * d / area,
-            ));
-            ch = conv.channels;
-        }
-        ch
+        let ch = tower.level_channels(cin) * tower.levels;
+        let prefix = format!("{name}.merge");
+        conv_rows(&prefix, &tower.merge_convs, (ch, t + rf), (d, area), out)
     }
 
     /// The selection tower's depth convolutions, after its `ch` channels.
