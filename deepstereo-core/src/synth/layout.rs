@@ -229,8 +229,25 @@ fn view_panel(rng: &mut Rng, rig: &RigLayout) -> Geometry {
     let z = content_depth(rng, rig.d0, DEPTH_RATIO);
     let (centre, r_c2w, cam) = view_point(rng, rig, 0.1, z);
     let k = &cam.intrinsics;
-    let (axis_u, axis_v) = oriented_axes(rng, -r_c2w.z_axis);
-    let half = z * (k.width as f64 / k.fx) * rng.range(PANEL_SIZE.0, PANEL_SIZE.1);
+    let side = z * (k.width as f64 / k.fx);
+    panel(
+        rng,
+        (centre, -r_c2w.z_axis),
+        |rng| side * rng.range(PANEL_SIZE.0, PANEL_SIZE.1),
+        k.fx / z,
+    )
+}
+
+/// A rectangle at `centre` facing about `facing` (axes from [`oriented_axes`]), its half
+/// width from `half(rng)`, its aspect random; `px_per_unit` as its texture's scale.
+fn panel(
+    rng: &mut Rng,
+    (centre, facing): (DVec3, DVec3),
+    half: impl FnOnce(&mut Rng) -> f64,
+    px_per_unit: f64,
+) -> Geometry {
+    let (axis_u, axis_v) = oriented_axes(rng, facing);
+    let half = half(rng);
     let aspect = rng.range(PANEL_ASPECT.0, PANEL_ASPECT.1);
     Geometry {
         centre,
@@ -238,7 +255,7 @@ fn view_panel(rng: &mut Rng, rig: &RigLayout) -> Geometry {
         axis_v,
         half_u: half,
         half_v: half * aspect,
-        px_per_unit: k.fx / z,
+        px_per_unit,
     }
 }
 
@@ -247,18 +264,13 @@ fn cluster_panel(rng: &mut Rng, rig: &RigLayout, focus: DVec3, radius: f64) -> G
     let centre = focus + DVec3::new(rng.sym(radius), rng.sym(0.6 * radius), rng.sym(radius));
     let cam = &rig.cameras[rng.below(rig.cameras.len())];
     let to_cam = (cam.pose.centre() - centre).normalize();
-    let (axis_u, axis_v) = oriented_axes(rng, to_cam);
-    let half = radius * rng.range(0.15, 0.5);
-    let aspect = rng.range(PANEL_ASPECT.0, PANEL_ASPECT.1);
     let z = cam.pose.transform_point(centre).z.max(rig.d0);
-    Geometry {
-        centre,
-        axis_u,
-        axis_v,
-        half_u: half,
-        half_v: half * aspect,
-        px_per_unit: cam.intrinsics.fx / z,
-    }
+    panel(
+        rng,
+        (centre, to_cam),
+        |rng| radius * rng.range(0.15, 0.5),
+        cam.intrinsics.fx / z,
+    )
 }
 
 /// A pole (vertical) or bar (horizontal) a few pixels wide.
