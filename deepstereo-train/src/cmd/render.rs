@@ -206,16 +206,23 @@ fn write_path(
         settings,
         staged.path(),
     )?;
-    let video = match &a.video {
-        Some(p) => Some(crate::cmd::support::video::write_video(&frames, p, a.fps)?),
-        None => None,
-    };
-    staged.commit()?;
-    eprintln!(
-        "wrote frame_0000.png .. frame_{:04}.png and cameras.json to {}",
+    let wrote = format!(
+        "frame_0000.png .. frame_{:04}.png and cameras.json to {}",
         frames.len() - 1,
         a.out.display()
     );
+    finish_frames(a, staged, &frames, &wrote)
+}
+
+/// Writes `--video` of `frames` when asked, moves the staged output into place, and
+/// says what it wrote (`wrote`, then the video).
+fn finish_frames(a: &Args, staged: StagedDir, frames: &[RgbImage], wrote: &str) -> Result<()> {
+    let video = match &a.video {
+        Some(p) => Some(crate::cmd::support::video::write_video(frames, p, a.fps)?),
+        None => None,
+    };
+    staged.commit()?;
+    eprintln!("wrote {wrote}");
     if let Some(v) = video {
         eprintln!(
             "wrote {} ({} frames at {} fps)",
@@ -259,21 +266,7 @@ fn render_mpis(a: &Args, dir: &Path, scene: &Scene) -> Result<()> {
         mpis.len(),
         secs / frames.len() as f64
     );
-    let video = match &a.video {
-        Some(p) => Some(crate::cmd::support::video::write_video(&frames, p, a.fps)?),
-        None => None,
-    };
-    staged.commit()?;
-    eprintln!("wrote {}", a.out.display());
-    if let Some(v) = video {
-        eprintln!(
-            "wrote {} ({} frames at {} fps)",
-            v.path().display(),
-            frames.len(),
-            a.fps
-        );
-    }
-    Ok(())
+    finish_frames(a, staged, &frames, &a.out.display().to_string())
 }
 
 /// `cams` rendered from `mpis`, each frame written as PNG into `dir` under `name(f)` by a
