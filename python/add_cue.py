@@ -60,11 +60,7 @@ def main() -> int:
     zeros = np.zeros((w.shape[0], CUE_CHANNELS, 1, 1), dtype=w.dtype)
     tensors["views.encode.0.weight"] = np.ascontiguousarray(np.concatenate([w, zeros], axis=1))
     pool["cue"] = True
-    cfg["name"] = args.name or cfg["name"] + "-cue"
-    out_dir = os.path.dirname(os.path.abspath(args.output))
-    model_file.save(args.output, os.path.join(out_dir, "config.json"), meta, tensors, cfg)
-    print(f"wrote {args.output} ({cfg['name']}: encoder input {w.shape[1]} -> {w.shape[1] + CUE_CHANNELS} channels)")
-    return 0
+    return save(args, (meta, tensors, cfg), "-cue", f"encoder input {w.shape[1]} -> {w.shape[1] + CUE_CHANNELS} channels")
 
 
 def add_weigh(args: argparse.Namespace, meta: dict, tensors: dict, cfg: dict) -> int:
@@ -81,11 +77,7 @@ def add_weigh(args: argparse.Namespace, meta: dict, tensors: dict, cfg: dict) ->
     tensors[f"views.weigh.{i}.weight"] = np.zeros((1, ch, 1, 1), dtype)
     tensors[f"views.weigh.{i}.bias"] = np.zeros((1,), dtype)
     cfg["pool"]["weigh"] = [{"kernel": 1, "channels": args.hidden}] if args.hidden > 0 else []
-    cfg["name"] = args.name or cfg["name"] + "-weigh"
-    out_dir = os.path.dirname(os.path.abspath(args.output))
-    model_file.save(args.output, os.path.join(out_dir, "config.json"), meta, tensors, cfg)
-    print(f"wrote {args.output} ({cfg['name']}: views weighed by their cue, hidden layer {args.hidden})")
-    return 0
+    return save(args, (meta, tensors, cfg), "-weigh", f"views weighed by their cue, hidden layer {args.hidden}")
 
 
 def add_disagree(args: argparse.Namespace, meta: dict, tensors: dict, cfg: dict) -> int:
@@ -118,10 +110,17 @@ def add_disagree(args: argparse.Namespace, meta: dict, tensors: dict, cfg: dict)
         tensors["views.weigh.1.weight"] = np.ascontiguousarray(np.concatenate([out_w, np.full((1, 1, 1, 1), -args.prior, w.dtype)], axis=1))
         pool["weigh"][0]["channels"] += 1
     pool["disagree"] = {"near": args.disagree}
-    cfg["name"] = args.name or cfg["name"] + "-disagree"
+    return save(args, (meta, tensors, cfg), "-disagree", f"the views' weights read {CUE_CHANNELS + 1} cue channels, near {args.disagree}")
+
+
+def save(args: argparse.Namespace, model: tuple, suffix: str, what: str) -> int:
+    """Names the new config (`--name`, else the input's name + `suffix`), writes OUT and
+    its config as `config.json` beside it, and says `what` changed."""
+    meta, tensors, cfg = model
+    cfg["name"] = args.name or cfg["name"] + suffix
     out_dir = os.path.dirname(os.path.abspath(args.output))
     model_file.save(args.output, os.path.join(out_dir, "config.json"), meta, tensors, cfg)
-    print(f"wrote {args.output} ({cfg['name']}: the views' weights read {CUE_CHANNELS + 1} cue channels, near {args.disagree})")
+    print(f"wrote {args.output} ({cfg['name']}: {what})")
     return 0
 
 
