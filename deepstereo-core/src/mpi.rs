@@ -37,7 +37,7 @@ pub mod warp;
 use texture::{run, BLOCK_SHIFT};
 use texture::{RowRuns, Texture};
 pub(crate) use tiles::tile_layers;
-pub use tiles::{bake, layers, layers_of_tiles, TileGrid};
+pub use tiles::{layers, layers_of_tiles, TileGrid};
 
 /// A multiplane image: straight-alpha RGBA planes in a pinhole reference camera.
 #[derive(Clone, Debug)]

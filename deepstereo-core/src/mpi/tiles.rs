@@ -1,27 +1,10 @@
-//! The network's layers at a reference camera, run tile by tile, and the MPI baked from
-//! them.
+//! The network's layers at a reference camera, run tile by tile (an MPI's planes:
+//! [`Mpi::from_layers`](super::Mpi::from_layers)).
 
-use super::{reference_camera, Mpi};
 use crate::camera::Camera;
 use crate::error::{Error, Result};
 use crate::inputs::{tile_inputs, PyramidSource};
 use crate::render::Backend;
-
-/// Bakes the MPI of `camera` (made a pinhole, [`reference_camera`]) from `sources` at
-/// `inv_depths` (near to far), tile by tile (`tile` rounded up to the model's
-/// alignment); `progress(done, total)` after each tile.
-pub fn bake(
-    backend: &dyn Backend,
-    camera: &Camera,
-    sources: &[&PyramidSource],
-    inv_depths: &[f64],
-    tile: usize,
-    progress: &dyn Fn(usize, usize),
-) -> Result<Mpi> {
-    let camera = reference_camera(camera);
-    let (colours, selection) = layers(backend, &camera, sources, inv_depths, tile, progress)?;
-    Mpi::from_layers(camera, inv_depths.to_vec(), &colours, &selection)
-}
 
 /// The tiles of a `width` x `height` view at side `tile` (rounded up to the model's
 /// alignment, as [`layers`] runs them), row-major: tile `i` covers the pixels
@@ -73,7 +56,7 @@ impl TileGrid {
 }
 
 /// The network's layers at `camera` (a pinhole: [`reference_camera`]) from `sources` at
-/// `inv_depths`, tile by tile as [`bake`] runs them: colours `[D, 3, H, W]` and the
+/// `inv_depths`, tile by tile: colours `[D, 3, H, W]` and the
 /// selection `[D, H, W]`, row-major (finite, or an error), the selection reweighed by
 /// the backend's scene prior when it has one.
 pub fn layers(

@@ -12,7 +12,7 @@ use deepstereo_core::config::Config;
 use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::metrics::{psnr, ssim};
 use deepstereo_core::mpi::planned::layers_planned;
-use deepstereo_core::mpi::{bake, io, reference_camera, render_blend, viewer, with_margin, Mpi};
+use deepstereo_core::mpi::{io, layers, reference_camera, render_blend, viewer, with_margin, Mpi};
 use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
 use deepstereo_core::sweep::Source;
@@ -85,9 +85,9 @@ fn network_mpi(
     // The margin is added to the pinhole at the mid-readout pose (its height decides it).
     let camera = with_margin(&reference_camera(camera), margin);
     let inv = spanned_planes(scene, &camera, sources, inv, settings.span);
-    let mut mpi = if settings.prune.is_on() {
+    let (inv, (colours, selection)) = if settings.prune.is_on() {
         let (inv, pruner) = plan_pruning(backend, scene, &camera, &srcs, sources, &inv, settings)?;
-        let (colours, selection) = layers_planned(
+        let planned = layers_planned(
             backend,
             &camera,
             network,
@@ -96,10 +96,12 @@ fn network_mpi(
             &pruner,
             progress,
         )?;
-        Mpi::from_layers(camera, inv, &colours, &selection)?
+        (inv, planned)
     } else {
-        bake(backend, &camera, network, &inv, settings.tile, progress)?
+        let whole = layers(backend, &camera, network, &inv, settings.tile, progress)?;
+        (inv, whole)
     };
+    let mut mpi = Mpi::from_layers(camera, inv, &colours, &selection)?;
     mpi.margin = margin;
     Ok(mpi)
 }
