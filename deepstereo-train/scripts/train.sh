@@ -97,6 +97,12 @@ experiment() {
   COPY_CONFIG=$PROX_CONFIG
 }
 
+# From scratch on a corpus (CORPUS, default the first argument, else all): default's
+# schedule (cosine:6000-8600) with 2-12 views.
+corpus_scratch() {
+  : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=${1:-all}}"
+}
+
 # Fine-tunes (`--init`): Adam 2e-4, seed 2, a cosine down to a tenth, validation every
 # 250 steps (the former finetune.sh); from scratch: Adam 1e-3, seed 1, a cosine down to
 # 5e-5 (a twentieth), validation every 200 steps.
@@ -147,12 +153,12 @@ case "$RECIPE" in
     ;;
   cue-scratch)
     OUT="${2:-$RUNS/nviews-cue-scratch}"
-    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
+    corpus_scratch
     COPY_CONFIG=$RUNS/nviews-cue/config.json
     ;;
   corpus)
     OUT="${2:-$RUNS/nviews-corpus}"
-    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
+    corpus_scratch
     COPY_CONFIG=$PROX_CONFIG
     ;;
   weigh)
@@ -163,7 +169,7 @@ case "$RECIPE" in
     ;;
   weigh-scratch)
     OUT="${2:-$RUNS/nviews-weigh-scratch}"
-    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
+    corpus_scratch
     COPY_CONFIG=$RUNS/nviews-weigh/config.json
     ;;
   agree)
@@ -187,12 +193,12 @@ case "$RECIPE" in
   disagree-scratch)
     OUT="${2:-$RUNS/nviews-disagree-scratch}"
     CONFIG=nviews-disagree
-    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=all}"
+    corpus_scratch
     ;;
   forward-scratch)
     OUT="${2:-$RUNS/nviews-forward}"
     CONFIG=nviews-disagree
-    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=forward}"
+    corpus_scratch forward
     : "${SCENE_WEIGHTS:=desk=3,flower=3,fortress=3,canclip=3,ollie=3}"
     ;;
   cue)
