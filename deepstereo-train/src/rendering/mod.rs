@@ -29,12 +29,12 @@ use deepstereo_core::sweep::Source;
 use serde::Serialize;
 use std::time::Instant;
 
+pub use crate::rendering::models::{
+    candle_backend, make_backend, model_name, BackendKind, EMBEDDED_MODEL, EMBEDDED_NAME,
+};
 pub use eval::{
     evaluate, holdout_list, mean_over, render_held_out, Baselines, EvalReport, HeldOut, Mean,
     Score, Scores, ViewImages, ViewResult,
-};
-pub use crate::rendering::models::{
-    candle_backend, make_backend, model_name, BackendKind, EMBEDDED_MODEL, EMBEDDED_NAME,
 };
 
 /// How to render: shared by `render`, `eval`, `report` and `demo`.
