@@ -93,11 +93,13 @@ pub fn sweep_into(
     if hw == 0 || v == 0 {
         return;
     }
-    let rolling = target.moving_shutter().is_some()
-        || sources.iter().any(|s| s.camera.moving_shutter().is_some());
-    if rolling {
-        return rolling::sweep_rolling_into(target, region, sources, inv_depths, out);
-    }
+    let target_moves = target.moving_shutter().is_some();
+    let moves = |s: &Source<'_>| target_moves || s.camera.moving_shutter().is_some();
+    // The world rays of the pixels, only when some slice projects per pixel.
+    let world = match sources.iter().any(moves) {
+        true => rolling::target_world_rays(target, region),
+        false => Vec::new(),
+    };
     let rays = target_rays(&target.intrinsics, region);
     let rels: Vec<WorldToCamera> = sources
         .iter()
@@ -107,8 +109,12 @@ pub fn sweep_into(
         .enumerate()
         .for_each(|(slice, chunk)| {
             let (d, k) = (slice / v, slice % v);
-            let h = plane_homography(&rels[k], inv_depths[d]);
-            warp_slice(&h, &rays, &sources[k], chunk);
+            if moves(&sources[k]) {
+                rolling::rolling_slice(&world, inv_depths[d], &sources[k], chunk);
+            } else {
+                let h = plane_homography(&rels[k], inv_depths[d]);
+                warp_slice(&h, &rays, &sources[k], chunk);
+            }
         });
 }
 

@@ -8,12 +8,10 @@
 //! [`RollingProjector::solve`] (or with the source's single pose). No projection gives
 //! RGBA = 0, as a point behind a camera does.
 
-use super::{sample_bilinear, target_rays, warp_slice, Region, Source, CHANNELS, IN_FRONT_EPS};
+use super::{sample_bilinear, target_rays, Region, Source, IN_FRONT_EPS};
 use crate::camera::rolling::RollingProjector;
-use crate::camera::{Camera, WorldToCamera};
-use crate::geometry::plane_homography;
+use crate::camera::Camera;
 use glam::{DVec2, DVec3};
-use rayon::prelude::*;
 
 /// World rays of the region's pixel centres: `(origin, direction)`, the direction being
 /// `R^T (x, y, 1)` in the pose of the pixel's time, so the point at camera depth `z` is
@@ -42,39 +40,8 @@ pub fn target_world_rays(target: &Camera, region: Region) -> Vec<(DVec3, DVec3)>
         .collect()
 }
 
-/// [`super::sweep_into`] when the target or some source has a moving rolling shutter.
-pub(super) fn sweep_rolling_into(
-    target: &Camera,
-    region: Region,
-    sources: &[Source<'_>],
-    inv_depths: &[f64],
-    out: &mut [f32],
-) {
-    let hw = region.len();
-    let v = sources.len();
-    let target_moves = target.moving_shutter().is_some();
-    let plain = |s: &Source<'_>| !target_moves && s.camera.moving_shutter().is_none();
-    let rays = target_rays(&target.intrinsics, region);
-    let world = target_world_rays(target, region);
-    let rels: Vec<WorldToCamera> = sources
-        .iter()
-        .map(|s| target.pose.relative_to(&s.camera.pose))
-        .collect();
-    out.par_chunks_mut(CHANNELS * hw)
-        .enumerate()
-        .for_each(|(slice, chunk)| {
-            let (d, k) = (slice / v, slice % v);
-            if plain(&sources[k]) {
-                let h = plane_homography(&rels[k], inv_depths[d]);
-                warp_slice(&h, &rays, &sources[k], chunk);
-            } else {
-                rolling_slice(&world, inv_depths[d], &sources[k], chunk);
-            }
-        });
-}
-
 /// Warps one source at one plane into `out` (`[4, h, w]`) through per-pixel projection.
-fn rolling_slice(world: &[(DVec3, DVec3)], rho: f64, src: &Source<'_>, out: &mut [f32]) {
+pub(super) fn rolling_slice(world: &[(DVec3, DVec3)], rho: f64, src: &Source<'_>, out: &mut [f32]) {
     let hw = world.len();
     project_rolling(world, rho, src.camera, |i, uv| {
         let rgba = uv.map_or([0.0; 4], |uv| sample_bilinear(src.image, uv.x, uv.y));
