@@ -16,12 +16,9 @@ if [ $# -gt 0 ]; then VIEWS=("$@"); else VIEWS=(4 8); fi
 source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
 TINY=deepstereo-train/assets/tiny.safetensors
-mkdir -p "$OUT"
-all_eval_scenes "$OUT"
-for entry in "${ALL_SCENES[@]}"; do
-  dir="${entry%%|*}"; flags="${entry#*|}"
-  name="$(scene_name "$dir")"
-  if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
+# One scene: `tiny` at 4 views, then the model at each of VIEWS.
+eval_scene() {
+  local dir="$1" flags="$2" name="$3"
   # shellcheck disable=SC2086
   nice "$BIN" eval --scene "$dir" $flags --llffhold 8 --views 4 --model "$TINY" \
     --json "$OUT/$name.embedded.json" > /dev/null
@@ -30,8 +27,8 @@ for entry in "${ALL_SCENES[@]}"; do
     nice "$BIN" eval --scene "$dir" $flags --llffhold 8 --model "$MODEL" --views "$v" \
       --json "$OUT/$name.model.v$v.json" > /dev/null
   done
-  echo "done: $name"
-done
+}
+each_eval_scene eval_scene "$OUT"
 python3 - "$OUT" "${VIEWS[@]}" <<'PY'
 import json, sys, pathlib
 out = pathlib.Path(sys.argv[1]); views = sys.argv[2:]

@@ -30,6 +30,21 @@ all_eval_scenes() {
   ALL_SCENES=("${EVAL_SCENES[@]}" "$1/procedural/scene_0000|" "$1/procedural/scene_0001|")
 }
 
+# Calls `$1 DIR FLAGS NAME` on each of the scenes all_eval_scenes lists for OUT (`$2`,
+# made first), skipping those whose directory is missing (and saying so), and says
+# "done: NAME" after each.
+each_eval_scene() {
+  local run="$1" entry dir
+  mkdir -p "$2"
+  all_eval_scenes "$2"
+  for entry in "${ALL_SCENES[@]}"; do
+    dir="${entry%%|*}"
+    if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
+    "$run" "$dir" "${entry#*|}" "$(scene_name "$dir")"
+    echo "done: $(scene_name "$dir")"
+  done
+}
+
 # The name results are filed under: a scene directory's base name, procedural-000K for
 # the procedural scenes.
 scene_name() {

@@ -18,18 +18,15 @@ VIEWS=(2 4 8 10)
 # shellcheck source=eval_scenes.sh
 source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
-mkdir -p "$OUT"
-all_eval_scenes "$OUT"
 TAGS=()
 case "${ONLY:-}" in
   base) TAGS=(base) ;;
   model) TAGS=(model) ;;
   *) TAGS=(model base) ;;
 esac
-for entry in "${ALL_SCENES[@]}"; do
-  dir="${entry%%|*}"; flags="${entry#*|}"
-  name="$(scene_name "$dir")"
-  if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
+# One scene: each of TAGS' models at each of its view counts (runs in OUT kept).
+eval_scene() {
+  local dir="$1" flags="$2" name="$3"
   for tag in "${TAGS[@]}"; do
     m="$MODEL"; [ "$tag" = base ] && m="$BASE"
     counts=("${VIEWS[@]}")
@@ -43,8 +40,9 @@ for entry in "${ALL_SCENES[@]}"; do
         ${EXTRA:-} --json "$json.tmp" > /dev/null && mv "$json.tmp" "$json"
     done
   done
-  echo "done: $name"
-done
+  return 0 # a run that failed above (kept out of OUT) does not stop the others
+}
+each_eval_scene eval_scene "$OUT"
 python3 - "$OUT" "${VIEWS[@]}" <<'PY'
 import json, sys, pathlib
 out = pathlib.Path(sys.argv[1]); views = sys.argv[2:]

@@ -16,12 +16,9 @@ PLANES=(${PLANES:-32 64 96})
 # shellcheck source=eval_scenes.sh
 source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
-mkdir -p "$OUT"
-all_eval_scenes "$OUT"
-for entry in "${ALL_SCENES[@]}"; do
-  dir="${entry%%|*}"; flags="${entry#*|}"
-  name="$(scene_name "$dir")"
-  if [ ! -d "$dir" ]; then echo "skipped: $dir not found"; continue; fi
+# One scene: each plane count with --prune off, then auto (runs in OUT kept).
+eval_scene() {
+  local dir="$1" flags="$2" name="$3"
   for p in "${PLANES[@]}"; do
     for mode in off auto; do
       json="$OUT/$name.p$p.$mode.json"
@@ -32,8 +29,9 @@ for entry in "${ALL_SCENES[@]}"; do
         --prune "$mode" $extra --json "$json.tmp" > /dev/null && mv "$json.tmp" "$json"
     done
   done
-  echo "done: $name"
-done
+  return 0 # a run that failed above (kept out of OUT) does not stop the others
+}
+each_eval_scene eval_scene "$OUT"
 python3 - "$OUT" "${PLANES[@]}" <<'PY'
 import json, sys, pathlib
 out = pathlib.Path(sys.argv[1]); planes = sys.argv[2:]
