@@ -225,7 +225,7 @@ impl FeatureWarp {
         (img_w, img_h): (usize, usize),
         window: Window,
     ) -> Result<Self> {
-        if planes == 0 || coords.len() % (2 * planes) != 0 {
+        if planes == 0 || !coords.len().is_multiple_of(2 * planes) {
             bail!(
                 "feature warp: {} coordinates for {planes} planes",
                 coords.len()
