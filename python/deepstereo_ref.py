@@ -545,6 +545,33 @@ class DeepStereo(nn.Module):
                     self.features.append(nn.Conv2d(ch, c.channels, c.kernel))
                     ch = c.channels
 
+    def warped_features(self, levels: list[torch.Tensor], warps: list[dict]) -> list[torch.Tensor]:
+        """Training's inputs of the features family (`inputs/features.rs`,
+        `with_warped_features`): `levels[l]` `[B, D, V, C_b, H, W]` (without the features)
+        with every sample's warped maps appended, `[B, D, V, C_b + F, H, W]`. `warps[b]`
+        maps `(l, v)` to sample `b`'s `(crop [3, h + 2R, w + 2R], index [D*P, 4] int64,
+        weight [D*P, 4])` (`deepstereo samples`' `warp.*` tensors); a view it lacks gets
+        zeros. Differentiable in the CNN's weights."""
+        f = self.cfg.pool.feature_channels()
+        out = []
+        for l, x in enumerate(levels):
+            b, d, v, _, h, w = x.shape
+            samples = []
+            for k in range(b):
+                views = []
+                for j in range(v):
+                    if (l, j) in warps[k]:
+                        crop, index, weight = warps[k][(l, j)]
+                        fm = self.features_forward(crop[None])[0].reshape(f, -1)  # [F, h_f * w_f]
+                        g = (fm[:, index] * weight).sum(-1)  # [F, D*P]
+                        views.append(g.reshape(f, d, h * w).transpose(0, 1))  # [D, F, P]
+                    else:
+                        views.append(x.new_zeros(d, f, h * w))
+                samples.append(torch.stack(views, 1))  # [D, V, F, P]
+            feats = torch.stack(samples, 0).reshape(b, d, v, f, h, w)
+            out.append(torch.cat([x, feats], 3))
+        return out
+
     def features_forward(self, image: torch.Tensor) -> torch.Tensor:
         """`FeatureNet::forward`: source images zero-padded by `R`, `[N, 3, H + 2R, W + 2R]`
         -> `[N, F, H, W]` (valid convolutions, ReLU after all but the last)."""
@@ -566,8 +593,13 @@ class DeepStereo(nn.Module):
             out.append(x[:, :, :, off : h - off, off : w - off].reshape(b * d, c, h - 2 * off, w - 2 * off))
         return out
 
-    def forward(self, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, inputs: list[torch.Tensor], warps: list[dict] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """`inputs[l]`: the sweep levels; for the features family either with the warped
+        maps among each view's channels, or without them and with training's `warps`
+        ([`warped_features`])."""
         cfg = self.cfg
+        if warps is not None:
+            inputs = self.warped_features(inputs, warps)
         if len(inputs) != cfg.levels:
             raise ValueError(f"expected {cfg.levels} input levels, got {len(inputs)}")
         if cfg.pool is not None and cfg.pool.weigh is not None:
