@@ -259,9 +259,9 @@ impl FeatureWarp {
         (h, w): (usize, usize),
     ) -> Result<Self> {
         if idx.len() != wts.len()
-            || idx.len() % 4 != 0
+            || !idx.len().is_multiple_of(4)
             || planes == 0
-            || (idx.len() / 4) % planes != 0
+            || !(idx.len() / 4).is_multiple_of(planes)
         {
             bail!(
                 "feature warp: {} indices and {} weights for {planes} planes",
