@@ -11,7 +11,7 @@
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use deepstereo_core::features::FeatureWarp;
-use deepstereo_core::inputs::features::{with_warped_features, TileWarps, ViewWarp};
+use deepstereo_core::inputs::features::{warped_features, TileWarps, ViewWarp};
 use deepstereo_core::model::l1_loss;
 use deepstereo_core::tensorio::{write_safetensors, NamedArray};
 use deepstereo_core::weights::{self, named_vars, tensor_f32};
@@ -99,15 +99,19 @@ fn main() -> Result<()> {
     for (s, shard) in args[4..].iter().enumerate() {
         let bytes = std::fs::read(shard).with_context(|| format!("cannot read {shard}"))?;
         let st = safetensors::SafeTensors::deserialize(&bytes)?;
-        let mut x = (0..cfg.levels)
+        let x = (0..cfg.levels)
             .map(|l| read(&st, &format!("level{l}")))
             .collect::<Result<Vec<_>>>()?;
-        if let Some(net) = t.model.feature_net() {
-            let tiles = shard_warps(&st, &x, net.radius())?;
-            x = with_warped_features(net, &x, &tiles)?;
-        }
+        let feats = match t.model.feature_net() {
+            Some(net) => Some(warped_features(
+                net,
+                &x,
+                &shard_warps(&st, &x, net.radius())?,
+            )?),
+            None => None,
+        };
         let y = read(&st, "target")?;
-        let loss = l1_loss(&t.model.forward(&x)?.image, &y)?;
+        let loss = l1_loss(&t.model.forward_parts(&x, feats.as_deref())?.image, &y)?;
         let grads = loss.backward()?;
         let mut arrays = Vec::new();
         for (name, v) in &vars {

@@ -48,7 +48,7 @@ fn main() -> Result<()> {
         let mut opt = Optimizer::new(OptimizerKind::Adam, 1e-4, named_vars(&t.varmap))?;
         for _ in 0..iters {
             let t0 = Instant::now();
-            let loss = l1_loss(&t.model.forward(&x)?.image, &y)?;
+            let loss = l1_loss(&x.forward(&t.model)?.image, &y)?;
             opt.step(&loss.backward()?)?;
             times.push(t0.elapsed().as_secs_f64() * 1e3);
         }
