@@ -116,6 +116,10 @@ class ViewPool:
     # the nearest views, computed by whoever builds the inputs
     # (deepstereo-core/src/view_weights.rs, disagreement) and read by `views.weigh.*`.
     disagree: dict[str, int] | None = None
+    # `pool.features` ({"convs"}): the per-source CNN (`features.*`, deepstereo-core/src/features.rs),
+    # whose maps, warped by whoever builds the inputs, follow each view's RGBA and cue and
+    # are read by the encoder.
+    source_features: list[Conv] | None = None
 
     @staticmethod
     def from_json(d: dict[str, Any]) -> "ViewPool":
@@ -128,6 +132,7 @@ class ViewPool:
             weigh=None if d.get("weigh") is None else [Conv(int(c["kernel"]), int(c["channels"])) for c in d["weigh"]],
             agree=None if d.get("agree") is None else {"near": int(d["agree"]["near"]), "sigma": float(d["agree"]["sigma"])},
             disagree=None if d.get("disagree") is None else {"near": int(d["disagree"]["near"])},
+            source_features=None if d.get("features") is None else [Conv(int(c["kernel"]), int(c["channels"])) for c in d["features"]["convs"]],
         )
 
     def to_json(self) -> dict[str, Any]:
@@ -142,16 +147,30 @@ class ViewPool:
             d["agree"] = dict(self.agree)
         if self.disagree is not None:
             d["disagree"] = dict(self.disagree)
+        if self.source_features is not None:
+            d["features"] = {"convs": [c.__dict__ for c in self.source_features]}
         return d
 
     def cue_channels(self) -> int:
         return CUE_CHANNELS + (1 if self.disagree is not None else 0)
 
+    def feature_channels(self) -> int:
+        """`F`: channels of each view's warped source features (0 without them)."""
+        return self.source_features[-1].channels if self.source_features else 0
+
+    def feature_radius(self) -> int:
+        """`R`: the border each side the feature CNN's valid convolutions consume."""
+        return sum(c.kernel // 2 for c in self.source_features or [])
+
     def encoder_in(self) -> int:
-        return ENCODER_IN + (CUE_CHANNELS if self.cue else 0)
+        return ENCODER_IN + (CUE_CHANNELS if self.cue else 0) + self.feature_channels()
+
+    def encoder_view_channels(self) -> int:
+        """Channels of a view the encoder reads: RGBA, the cue with `cue`, the features."""
+        return 4 + (CUE_CHANNELS if self.cue else 0) + self.feature_channels()
 
     def view_channels(self) -> int:
-        return 4 + (self.cue_channels() if self.cue or self.weigh is not None else 0)
+        return 4 + (self.cue_channels() if self.cue or self.weigh is not None else 0) + self.feature_channels()
 
     def features(self) -> int:
         return self.encoder[-1].channels if self.encoder else self.encoder_in()
@@ -232,6 +251,9 @@ class Config:
                 raise ValueError("pool: cue and weigh are exclusive")
             if self.pool.disagree is not None and self.pool.weigh is None:
                 raise ValueError("pool.disagree needs pool.weigh (the view weights read it)")
+            for c in self.pool.source_features or []:
+                if c.kernel % 2 == 0 or c.channels <= 0:
+                    raise ValueError(f"pool.features: kernels must be odd and channels positive, got {c}")
             if self.colour_skip:
                 raise ValueError("pool: colour_skip must be false")
 
@@ -323,6 +345,15 @@ class Config:
         return c
 
     @staticmethod
+    def nviews_features() -> "Config":
+        c = Config.nviews_disagree()
+        c.name = "nviews-features"
+        assert c.pool is not None
+        c.pool.source_features = [Conv(3, 12), Conv(3, 12), Conv(3, 8)]
+        c.pool.encoder = [Conv(1, 8), Conv(1, 6)]
+        return c
+
+    @staticmethod
     def preset(name: str) -> "Config | None":
         """A preset by name (`PRESETS`), or None."""
         presets = {
@@ -332,11 +363,12 @@ class Config:
             "nviews-cue": Config.nviews_cue,
             "nviews-weigh": Config.nviews_weigh,
             "nviews-disagree": Config.nviews_disagree,
+            "nviews-features": Config.nviews_features,
         }
         return presets.get(name, lambda: None)()
 
 
-PRESETS = ("tiny", "paper", "nviews", "nviews-cue", "nviews-weigh", "nviews-disagree")
+PRESETS = ("tiny", "paper", "nviews", "nviews-cue", "nviews-weigh", "nviews-disagree", "nviews-features")
 
 
 # --- the network (mirrors model.rs) ----------------------------------------------------
@@ -440,6 +472,8 @@ class Views(nn.Module):
         super().__init__()
         self.cue = pool.cue
         self.cue_channels = pool.cue_channels()
+        self.feature_channels = pool.feature_channels()
+        self.encoder_view_channels = pool.encoder_view_channels()
         self.encode = nn.ModuleList()
         ch = pool.encoder_in()
         for c in pool.encoder:
@@ -457,22 +491,23 @@ class Views(nn.Module):
         with `pool.disagree`), each view's RGB and its alpha times `1 + tanh(WEIGH_SCALE g(cue))`."""
         b, d, v, cv, h, w = x.shape
         k = self.cue_channels
-        if cv != 4 + k:
-            raise ValueError(f"expected [B, D, V, {4 + k}, H, W], got {tuple(x.shape)}")
-        g = x[:, :, :, 4:].reshape(b * d * v, k, h, w)
+        f = self.feature_channels
+        if cv != 4 + k + f:
+            raise ValueError(f"expected [B, D, V, {4 + k + f}, H, W], got {tuple(x.shape)}")
+        g = x[:, :, :, 4 : 4 + k].reshape(b * d * v, k, h, w)
         last = len(self.weigh) - 1
         for i, conv in enumerate(self.weigh):
             g = conv(g)
             if i < last:
                 g = F.relu(g)
         k = (2.0 * torch.sigmoid(g * (2.0 * WEIGH_SCALE))).reshape(b, d, v, 1, h, w)  # = 1 + tanh(S g), accurate where small
-        return torch.cat([x[:, :, :, :3], x[:, :, :, 3:4] * k], 3)
+        return torch.cat([x[:, :, :, :3], x[:, :, :, 3:4] * k, x[:, :, :, 4 + self.cue_channels :]], 3)
 
     def pool_forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """`ViewEncoder::forward`: `[B, D, V, C_v, H, W]` (`C_v` 4, or 4 + 5 with the cue)
         -> (stats `[B, D, 4 + 2 C_f, H, W]`, features `[B*D, V, C_f, H, W]`)."""
         b, d, v, cv, h, w = x.shape
-        want = 4 + (CUE_CHANNELS if self.cue else 0)
+        want = self.encoder_view_channels
         if cv != want:
             raise ValueError(f"expected [B, D, V, {want}, H, W], got {tuple(x.shape)}")
         x = x.reshape(b * d, v, cv, h, w)
@@ -502,6 +537,51 @@ class DeepStereo(nn.Module):
         self.colour = ColourTower(cfg)
         if cfg.pool is not None:
             self.views = Views(cfg.pool)
+            if cfg.pool.source_features:
+                # `features.*`: the per-source CNN (`FeatureNet`, deepstereo-core/src/features.rs).
+                self.features = nn.ModuleList()
+                ch = 3
+                for c in cfg.pool.source_features:
+                    self.features.append(nn.Conv2d(ch, c.channels, c.kernel))
+                    ch = c.channels
+
+    def warped_features(self, levels: list[torch.Tensor], warps: list[dict]) -> list[torch.Tensor]:
+        """Training's inputs of the features family (`inputs/features.rs`,
+        `with_warped_features`): `levels[l]` `[B, D, V, C_b, H, W]` (without the features)
+        with every sample's warped maps appended, `[B, D, V, C_b + F, H, W]`. `warps[b]`
+        maps `(l, v)` to sample `b`'s `(crop [3, h + 2R, w + 2R], index [D*P, 4] int64,
+        weight [D*P, 4])` (`deepstereo samples`' `warp.*` tensors); a view it lacks gets
+        zeros. Differentiable in the CNN's weights."""
+        f = self.cfg.pool.feature_channels()
+        out = []
+        for l, x in enumerate(levels):
+            b, d, v, _, h, w = x.shape
+            samples = []
+            for k in range(b):
+                views = []
+                for j in range(v):
+                    if (l, j) in warps[k]:
+                        crop, index, weight = warps[k][(l, j)]
+                        fm = self.features_forward(crop[None])[0].reshape(f, -1)  # [F, h_f * w_f]
+                        g = (fm[:, index] * weight).sum(-1)  # [F, D*P]
+                        views.append(g.reshape(f, d, h * w).transpose(0, 1))  # [D, F, P]
+                    else:
+                        views.append(x.new_zeros(d, f, h * w))
+                samples.append(torch.stack(views, 1))  # [D, V, F, P]
+            feats = torch.stack(samples, 0).reshape(b, d, v, f, h, w)
+            out.append(torch.cat([x, feats], 3))
+        return out
+
+    def features_forward(self, image: torch.Tensor) -> torch.Tensor:
+        """`FeatureNet::forward`: source images zero-padded by `R`, `[N, 3, H + 2R, W + 2R]`
+        -> `[N, F, H, W]` (valid convolutions, ReLU after all but the last)."""
+        x = image
+        last = len(self.features) - 1
+        for i, conv in enumerate(self.features):
+            x = conv(x)
+            if i < last:
+                x = F.relu(x)
+        return x
 
     def _folded(self, inputs: list[torch.Tensor], t: TowerConfig) -> list[torch.Tensor]:
         cfg = self.cfg
@@ -513,8 +593,13 @@ class DeepStereo(nn.Module):
             out.append(x[:, :, :, off : h - off, off : w - off].reshape(b * d, c, h - 2 * off, w - 2 * off))
         return out
 
-    def forward(self, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, inputs: list[torch.Tensor], warps: list[dict] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """`inputs[l]`: the sweep levels; for the features family either with the warped
+        maps among each view's channels, or without them and with training's `warps`
+        ([`warped_features`])."""
         cfg = self.cfg
+        if warps is not None:
+            inputs = self.warped_features(inputs, warps)
         if len(inputs) != cfg.levels:
             raise ValueError(f"expected {cfg.levels} input levels, got {len(inputs)}")
         if cfg.pool is not None and cfg.pool.weigh is not None:

@@ -155,15 +155,38 @@ class Parity:
         if got_outputs != list(OUTPUTS):
             self.fail(f"{name}: graph outputs {got_outputs}, expected {list(OUTPUTS)}")
         init = sorted(t.name for t in m.graph.initializer)
-        names = sorted(load_file(str(weights)).keys())
+        all_names = load_file(str(weights)).keys()
+        names = sorted(k for k in all_names if not k.startswith("features."))
         if init != names:
             self.fail(f"{name}: initializers {init} differ from the safetensors names {names}")
+        self.check_features_graph(name, out, sorted(k for k in all_names if k.startswith("features.")))
         ops = sorted({n.op_type for n in m.graph.node})
         domains = {n.domain for n in m.graph.node} - {""}
         if domains:
             self.fail(f"{name}: non-standard domains {domains}")
         print(f"  {out.name}: checker (full) and strict shape inference pass; ops {', '.join(ops)}", flush=True)
         return out
+
+    def check_features_graph(self, name: str, onnx_path: Path, names: list[str]) -> None:
+        """The features family's second graph (`NAME.features.onnx`): there exactly when the
+        model has `features.*` weights, valid, holding them."""
+        path = features_onnx(onnx_path)
+        if not names:
+            if path.exists():
+                self.fail(f"{name}: {path.name} written for a model without source features")
+            return
+        if not path.is_file():
+            self.fail(f"{name}: no {path.name} beside {onnx_path.name}")
+            return
+        m = onnx.load(str(path))
+        onnx.checker.check_model(m, full_check=True)
+        onnx.shape_inference.infer_shapes(m, check_type=True, strict_mode=True, data_prop=True)
+        if [i.name for i in m.graph.input] != ["image"] or [o.name for o in m.graph.output] != ["features"]:
+            self.fail(f"{name}: {path.name} must map 'image' to 'features'")
+        init = sorted(t.name for t in m.graph.initializer)
+        if init != names:
+            self.fail(f"{name}: {path.name} initializers {init}, expected {names}")
+        print(f"  {path.name}: checker (full) and strict shape inference pass", flush=True)
 
     def load_model(self, name: str, weights: Path) -> Model:
         print(f"== model {name}: {weights}", flush=True)
@@ -231,6 +254,45 @@ class Parity:
                 f"| {r.case:<36} | {r.pair:<26} | {im:9.2e} | {imn:10.2e} | {sm:9.2e} | {smn:9.2e} | {'ok' if r.ok else 'NO'} |"
             )
         return "\n".join(lines)
+
+
+def features_onnx(onnx_path: Path) -> Path:
+    """Where `deepstereo export` writes the feature graph of `NAME.onnx`."""
+    return onnx_path.with_name(onnx_path.stem + ".features.onnx")
+
+
+def features_check(p: Parity, model: Model, rng: np.random.Generator) -> None:
+    """The per-source feature CNN in the four runtimes: `deepstereo forward` with a
+    `source_image` (candle, and ort on the exported feature graph), PyTorch on the image
+    zero-padded by R, onnxruntime on the feature graph. Images of odd sizes, one with
+    values far outside [0, 1]."""
+    pool = model.cfg.pool
+    assert pool is not None and pool.source_features
+    r = pool.feature_radius()
+    sess = ort.InferenceSession(str(features_onnx(model.onnx)), providers=["CPUExecutionProvider"])
+    for case, (h, w), scale in (("features-23x31", (23, 31), 1.0), ("features-1x2", (1, 2), 1.0), ("features-large", (9, 7), 1e3)):
+        img = (rng.random((3, h, w)) * scale).astype(np.float32)
+        inputs = make_inputs(model.cfg, 1, 2, 2 * model.cfg.tile_align(), 2 * model.cfg.tile_align(), lambda s, r: r.random(s), rng)
+        inputs["source_image"] = img
+        p.count += 1
+        path = p.work / f"in{p.count}.safetensors"
+        save_file({k: np.ascontiguousarray(v, dtype=np.float32) for k, v in inputs.items()}, str(path))
+        res = {}
+        for backend, extra in (("candle", []), ("ort", ["--backend", "ort", "--onnx", model.onnx])):
+            out = p.work / f"{backend}{p.count}.safetensors"
+            run([p.bin, "forward", "--model", model.weights, "--inputs", path, "--out", out, *extra], f"{case}: {backend} forward")
+            res[backend] = load_file(str(out))["source_features"]
+        padded = np.pad(img, ((0, 0), (r, r), (r, r)))[None]
+        with torch.no_grad():
+            res["torch"] = model.torch_model.features_forward(torch.from_numpy(padded)).numpy()[0]
+        res["onnxruntime"] = sess.run(["features"], {"image": padded})[0][0]
+        tol = TOL * max(1.0, float(np.abs(res["candle"]).max()))
+        for a, b in (("torch", "candle"), ("onnxruntime", "candle"), ("ort", "candle")):
+            d = float(np.abs(np.asarray(res[a], np.float64) - res[b]).max())
+            status = "ok" if d <= tol and res[a].shape == res[b].shape else "NO"
+            print(f"  {model.name}/{case}: {a} vs {b}: max |diff| {d:.2e} (tolerance {tol:.1e}) {status}", flush=True)
+            if status != "ok":
+                p.fail(f"{model.name}/{case}: source features {a} vs {b} differ by {d:.3g} (shapes {res[a].shape}, {res[b].shape})")
 
 
 # --- inputs ----------------------------------------------------------------------------
@@ -596,6 +658,18 @@ def main() -> int:
         ref.init_weights(weigh_cfg, str(w), seed=11)
         models.append(p.load_model("py-pooled-disagree", w))
         disagree_model = models[-1]
+        # The features family: a per-source CNN whose warped maps follow each view's
+        # RGBA and cue (Python-initialised variant, and Rust-initialised `nviews-features`).
+        weigh_cfg.name, weigh_cfg.pool.source_features = "pooled-variant-features", [ref.Conv(3, 4), ref.Conv(5, 3)]
+        w = work / "pooled_variant_features.safetensors"
+        ref.init_weights(weigh_cfg, str(w), seed=13)
+        models.append(p.load_model("py-pooled-features", w))
+        feature_models = [models[-1]]
+        if example.is_file():
+            w = work / "rust_nviews_features.safetensors"
+            run([example, "nviews-features", w], "init_weights nviews-features")
+            models.append(p.load_model("rust-nviews-features", w))
+            feature_models.append(models[-1])
         for extra in args.weights:
             models.append(p.load_model(extra.stem, extra))
         reference_loader_checks(p, models[0].weights)
@@ -617,6 +691,8 @@ def main() -> int:
                 print(f"  {name}: done", flush=True)
             if m.cfg.pool is not None:
                 pooled_cases(p, m, rng)
+        for m in feature_models:
+            features_check(p, m, np.random.default_rng(14))
         newest_opset(p, models[0])
 
         # Real plane sweeps, through `deepstereo sweep --model`.

@@ -182,6 +182,23 @@ def list_shards(d: Path) -> tuple[list[Shard], str]:
     return shards, cfg_json
 
 
+def shard_warps(cfg: ref.Config, t: dict[str, torch.Tensor], samples, views: int, device) -> list[dict] | None:
+    """The features family's warps (`DeepStereo.warped_features`) of `samples` of a shard
+    `t` (its `warp.K.L.V.*` tensors); None for other models."""
+    if cfg.pool is None or not cfg.pool.source_features:
+        return None
+    warps = []
+    for k in samples:
+        w = {}
+        for l in range(cfg.levels):
+            for v in range(views):
+                stem = f"warp.{k}.{l}.{v}"
+                if f"{stem}.crop" in t:
+                    w[(l, v)] = tuple(t[f"{stem}.{part}"].to(device) for part in ("crop", "index", "weight"))
+        warps.append(w)
+    return warps
+
+
 class Shards:
     """Loads shards on demand, keeping the last few in memory."""
 
@@ -200,10 +217,12 @@ class Shards:
             self.cache[s.path] = t
         return self.cache[s.path]
 
-    def batch(self, s: Shard, start: int, n: int, device) -> tuple[list[torch.Tensor], torch.Tensor]:
+    def batch(self, s: Shard, start: int, n: int, device) -> tuple[list[torch.Tensor], torch.Tensor, list[dict] | None]:
+        """Samples `[start, start + n)`: the inputs per level, the targets, and for the
+        features family each sample's warps (`DeepStereo.warped_features`)."""
         t = self.get(s)
         xs = [t[f"level{l}"][start : start + n].to(device) for l in range(self.cfg.levels)]
-        return xs, t[TARGET][start : start + n].to(device)
+        return xs, t[TARGET][start : start + n].to(device), shard_warps(self.cfg, t, range(start, start + n), xs[0].shape[2], device)
 
 
 # --- the run --------------------------------------------------------------------------
@@ -282,8 +301,8 @@ def psnr(model: ref.DeepStereo, shards: Shards, val: list[Shard], batch: int, de
     with torch.no_grad():
         for s in val:
             for start in range(0, s.samples, batch):
-                xs, y = shards.batch(s, start, min(batch, s.samples - start), device)
-                d = model(xs)[0].clamp(0, 1) - y
+                xs, y, warps = shards.batch(s, start, min(batch, s.samples - start), device)
+                d = model(xs, warps)[0].clamp(0, 1) - y
                 se += float(d.double().square().sum())
                 n += d.numel()
     if n == 0:
@@ -338,9 +357,9 @@ def main(argv=None) -> int:
     window_t, window_n, bad, step = time.time(), 0, 0, start
     while step < a.steps:
         shard, base = chunks[step % len(chunks)]
-        xs, y = shards.batch(shard, base + rank * a.batch, a.batch, device)
+        xs, y, warps = shards.batch(shard, base + rank * a.batch, a.batch, device)
         opt.zero_grad()
-        diff = net(xs)[0] - y
+        diff = net(xs, warps)[0] - y
         loss = diff.abs().mean() if a.loss == "l1" else diff.square().mean()
         loss.backward()
         loss_v = loss.detach().double()

@@ -4,7 +4,8 @@
 
 use crate::config::Config;
 use crate::error::{Error, Result};
-use crate::features::FeatureNet;
+use crate::features::FeatureMap;
+use crate::imageio::RgbImage;
 use crate::inputs::{PyramidSource, TileInputs};
 use crate::model::DeepStereo;
 use crate::prior::PriorGrid;
@@ -35,10 +36,13 @@ pub trait Backend: Sync {
     fn prior(&self) -> Option<&PriorGrid> {
         None
     }
-    /// The `features` family's per-source CNN, run on each source image before the
-    /// network ([`PyramidSource::with_features`]); `None` for other models.
-    fn feature_net(&self) -> Option<&FeatureNet> {
-        None
+    /// The `features` family's map of one source image `[F, H, W]` (the per-source CNN,
+    /// run once on each source image before the network); other models have none.
+    fn source_features(&self, _image: &RgbImage) -> Result<FeatureMap> {
+        Err(Error::Invalid(format!(
+            "the {} backend cannot compute the model's source features",
+            self.name()
+        )))
     }
 }
 
@@ -57,17 +61,13 @@ pub fn missing_features(
     if !wanted || sources.iter().all(|s| s.features.len() >= levels) {
         return Ok(None);
     }
-    let Some(net) = backend.feature_net() else {
-        return Err(Error::Invalid(format!(
-            "the {} backend cannot compute the model's source features",
-            backend.name()
-        )));
-    };
     let with = sources
         .iter()
         .map(|&s| match s.features.len() >= levels {
             true => Ok(s.clone()),
-            false => s.clone().with_features(net),
+            false => s
+                .clone()
+                .with_features_from(|img| backend.source_features(img)),
         })
         .collect::<Result<Vec<_>>>()?;
     Ok(Some(with))
@@ -98,8 +98,14 @@ impl Backend for CandleBackend {
     fn prior(&self) -> Option<&PriorGrid> {
         self.model.prior()
     }
-    fn feature_net(&self) -> Option<&FeatureNet> {
-        self.model.feature_net()
+    fn source_features(&self, image: &RgbImage) -> Result<FeatureMap> {
+        match self.model.feature_net() {
+            Some(net) => Ok(net.image_features(image, &self.device)?),
+            None => Err(Error::Invalid(format!(
+                "the model '{}' reads no source features",
+                self.config().name
+            ))),
+        }
     }
 }
 

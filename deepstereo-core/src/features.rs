@@ -225,7 +225,7 @@ impl FeatureWarp {
         (img_w, img_h): (usize, usize),
         window: Window,
     ) -> Result<Self> {
-        if planes == 0 || coords.len() % (2 * planes) != 0 {
+        if planes == 0 || !coords.len().is_multiple_of(2 * planes) {
             bail!(
                 "feature warp: {} coordinates for {planes} planes",
                 coords.len()
@@ -248,6 +248,63 @@ impl FeatureWarp {
             planes,
             window,
         })
+    }
+
+    /// The warp of [`Self::taps`]' arrays (`idx`, `wts`: `[D * P, 4]`) for a feature map of
+    /// `h x w` pixels; indices outside the map are an error.
+    pub fn from_taps(
+        idx: &[i64],
+        wts: &[f32],
+        planes: usize,
+        (h, w): (usize, usize),
+    ) -> Result<Self> {
+        if idx.len() != wts.len()
+            || !idx.len().is_multiple_of(4)
+            || planes == 0
+            || !(idx.len() / 4).is_multiple_of(planes)
+        {
+            bail!(
+                "feature warp: {} indices and {} weights for {planes} planes",
+                idx.len(),
+                wts.len()
+            );
+        }
+        if let Some(i) = idx.iter().find(|&&i| i < 0 || i as usize >= h * w) {
+            bail!("feature warp: tap index {i} outside a {h}x{w} map");
+        }
+        let taps = idx
+            .chunks_exact(4)
+            .zip(wts.chunks_exact(4))
+            .map(|(i, wt)| std::array::from_fn(|k| (i[k] as u32, wt[k])))
+            .collect();
+        Ok(Self {
+            taps: Arc::new(taps),
+            planes,
+            window: Window {
+                x0: 0,
+                y0: 0,
+                width: w,
+                height: h,
+            },
+        })
+    }
+
+    /// The taps as two `[D * P, 4]` arrays: indices into a plane of the feature map
+    /// (row-major over its window) and weights (0 for an unused tap), so another runtime
+    /// warps the map as `sum_k w[:, k] F[:, i[:, k]]` (`python/train_ddp.py`).
+    pub fn taps(&self) -> (Vec<i64>, Vec<f32>) {
+        let idx = self
+            .taps
+            .iter()
+            .flat_map(|t| t.map(|(i, _)| i as i64))
+            .collect();
+        let wts = self.taps.iter().flat_map(|t| t.map(|(_, w)| w)).collect();
+        (idx, wts)
+    }
+
+    /// Planes `D` of the warp.
+    pub fn planes(&self) -> usize {
+        self.planes
     }
 
     /// Target pixels per plane.

@@ -50,11 +50,19 @@ impl PyramidSource {
 
     /// This source with the feature map of every level from `net`: the CNN runs once
     /// per level image (the `features` family's "read each source once").
-    pub fn with_features(mut self, net: &FeatureNet) -> Result<Self> {
-        self.features = (self.images.iter())
-            .map(|img| net.image_features(img, &candle_core::Device::Cpu))
-            .collect::<candle_core::Result<_>>()
-            .map_err(|e| Error::Invalid(format!("source features: {e}")))?;
+    pub fn with_features(self, net: &FeatureNet) -> Result<Self> {
+        self.with_features_from(|img| {
+            net.image_features(img, &candle_core::Device::Cpu)
+                .map_err(|e| Error::Invalid(format!("source features: {e}")))
+        })
+    }
+
+    /// This source with the map `features(image)` of every level image.
+    pub fn with_features_from(
+        mut self,
+        features: impl Fn(&RgbImage) -> Result<FeatureMap>,
+    ) -> Result<Self> {
+        self.features = self.images.iter().map(features).collect::<Result<_>>()?;
         Ok(self)
     }
 

@@ -269,23 +269,64 @@ impl DeepStereo {
         })
     }
 
+    /// [`Self::forward`] with the features family's warped maps apart: `inputs[l]`
+    /// `[B, D, V, C_v - F, H_l, W_l]` and `feats[l]` `[B, D, V, F, H_l, W_l]` (training's
+    /// graph, where slicing them out of one tensor would cost a copy of it per slice in
+    /// the backward pass).
+    pub fn forward_parts(&self, inputs: &[Tensor], feats: Option<&[Tensor]>) -> Result<Output> {
+        self.run_parts(inputs, feats, false)
+    }
+
+    /// [`Self::infer`] with the features family's maps apart ([`Self::forward_parts`]).
+    pub fn infer_parts(&self, inputs: &[Tensor], feats: Option<&[Tensor]>) -> Result<Output> {
+        let out = self.run_parts(inputs, feats, true)?;
+        Ok(Output {
+            image: out.image.detach(),
+            selection: out.selection.detach(),
+            colours: out.colours.detach(),
+        })
+    }
+
     fn run(&self, inputs: &[Tensor], fuse: bool) -> Result<Output> {
+        let f = self.cfg.pool.as_ref().map_or(0, |p| p.feature_channels());
+        if f == 0 {
+            return self.run_parts(inputs, None, fuse);
+        }
+        let mut base = Vec::with_capacity(inputs.len());
+        let mut feats = Vec::with_capacity(inputs.len());
+        for x in inputs {
+            let c = x.dim(3)?;
+            if c < f {
+                candle_core::bail!(
+                    "an input level of {c} channels per view, expected {}",
+                    self.cfg.view_channels()
+                );
+            }
+            base.push(x.narrow(3, 0, c - f)?);
+            feats.push(x.narrow(3, c - f, f)?);
+        }
+        self.run_parts(&base, Some(&feats), fuse)
+    }
+
+    fn run_parts(&self, inputs: &[Tensor], feats: Option<&[Tensor]>, fuse: bool) -> Result<Output> {
         let cfg = &self.cfg;
-        if inputs.len() != cfg.levels {
+        if inputs.len() != cfg.levels || feats.is_some_and(|f| f.len() != cfg.levels) {
             candle_core::bail!("expected {} input levels, got {}", cfg.levels, inputs.len());
         }
-        // With the cue's view weights, every level's alpha weighed first: [B, D, V, 4, H_l, W_l]
-        // (then the warped source features, [B, D, V, 4 + F, H_l, W_l]).
+        // With the cue's view weights, every level's alpha weighed first: [B, D, V, 4, H_l, W_l].
         let weighed = match &self.weigh {
             Some(weigh) => Some(
                 (inputs.iter())
-                    .map(|x| self.weigh_level(weigh, x, fuse))
+                    .map(|x| match fuse {
+                        true => weigh.infer(x),
+                        false => weigh.forward(x),
+                    })
                     .collect::<Result<Vec<_>>>()?,
             ),
             None => None,
         };
         let inputs = weighed.as_deref().unwrap_or(inputs);
-        let (towers_in, features) = self.towers_input(inputs, fuse)?;
+        let (towers_in, features) = self.towers_input(inputs, feats, fuse)?;
         let (b, d, cin, h0, w0) = towers_in[0].dims5()?;
         let (th, tw) = (h0 - 2 * cfg.pad(0), w0 - 2 * cfg.pad(0));
         let folded = |t: &TowerConfig, from: usize| -> Result<Vec<Tensor>> {
@@ -319,27 +360,14 @@ impl DeepStereo {
         })
     }
 
-    /// One input level `x` `[B, D, V, 4 + K (+ F), H, W]` with each view's alpha weighed by
-    /// its cue: `[B, D, V, 4 (+ F), H, W]`, the source features `F` (after the cue) kept.
-    fn weigh_level(&self, weigh: &ViewWeigh, x: &Tensor, fuse: bool) -> Result<Tensor> {
-        let f = self.cfg.pool.as_ref().map_or(0, |p| p.feature_channels());
-        let base = match f {
-            0 => x.clone(),
-            _ => x.narrow(3, 0, x.dim(3)? - f)?.contiguous()?,
-        };
-        let w = match fuse {
-            true => weigh.infer(&base)?,
-            false => weigh.forward(&base)?,
-        }; // [B, D, V, 4, H, W]
-        match f {
-            0 => Ok(w),
-            _ => Tensor::cat(&[&w, &x.narrow(3, x.dim(3)? - f, f)?], 3),
-        }
-    }
-
     /// The towers' input per level, `[B, D, C, H_l, W_l]`: the sweep itself (paper
     /// family) or the pooled statistics; and, pooled, level 0's view features.
-    fn towers_input(&self, inputs: &[Tensor], fuse: bool) -> Result<(Vec<Tensor>, Option<Tensor>)> {
+    fn towers_input(
+        &self,
+        inputs: &[Tensor],
+        feats: Option<&[Tensor]>,
+        fuse: bool,
+    ) -> Result<(Vec<Tensor>, Option<Tensor>)> {
         let cfg = &self.cfg;
         let Some((encoder, _)) = &self.pool else {
             let cin = inputs[0].dims5()?.2;
@@ -352,7 +380,8 @@ impl DeepStereo {
             }
             return Ok((inputs.to_vec(), None));
         };
-        let c = encoder.view_channels();
+        let c = encoder.view_channels()
+            - feats.map_or(0, |_| cfg.pool.as_ref().map_or(0, |p| p.feature_channels()));
         let v = view_dims(&inputs[0], c)?.1;
         let mut stats = Vec::with_capacity(inputs.len());
         let mut features = None;
@@ -361,14 +390,14 @@ impl DeepStereo {
                 candle_core::bail!("input level {l} has a different number of views");
             }
             // Rendering: one fused pass where it runs (view features at level 0 only).
-            let fused = match fuse {
+            let fused = match fuse && feats.is_none() {
                 true => encoder.infer(x, l == 0)?,
                 false => None,
             };
             let (s, e) = match fused {
                 Some(pooled) => pooled,
                 None => {
-                    let pooled = encoder.forward(x, fuse)?;
+                    let pooled = encoder.forward_parts(x, feats.map(|f| &f[l]), fuse)?;
                     (pooled.stats, Some(pooled.features))
                 }
             };

@@ -61,8 +61,11 @@ pub use crate::config::{BLEND_EPS, BLEND_LOGIT_BOUND, POOL_EPS};
 pub struct ViewEncoder {
     convs: Vec<Conv2d>,
     /// Channels of one view in an input level ([`ViewPool::view_channels`]): 4, or with
-    /// the cue after the RGBA 4 + `K` ([`ViewPool::cue_channels`]).
+    /// the cue after the RGBA 4 + `K` ([`ViewPool::cue_channels`]); then the features
+    /// family's `F` warped source features.
     view_channels: usize,
+    /// `F` ([`ViewPool::feature_channels`]; 0 for other models).
+    feature_channels: usize,
 }
 
 /// One level's pooled tower input and, for the colour blend, the views' features.
@@ -111,6 +114,7 @@ impl ViewEncoder {
         Ok(Self {
             convs,
             view_channels: pool.encoder_view_channels(),
+            feature_channels: pool.feature_channels(),
         })
     }
 
@@ -119,16 +123,38 @@ impl ViewEncoder {
         self.view_channels
     }
 
-    /// The cue of every view of an input level `[B, D, V, 4 + K, H, W]` as
-    /// `[B * D * V, K, H, W]` (`None` without the cue).
-    fn cue_of(&self, x: &Tensor) -> Result<Option<Tensor>> {
-        if self.view_channels == 4 {
-            return Ok(None);
+    /// What the encoder reads of every view besides its colours, `[B * D * V, K + F, H, W]`:
+    /// the cue of `x` `[B, D, V, 4 + K, H, W]` (`K` 0 without it), then the source
+    /// features `feats` `[B, D, V, F, H, W]`; `None` when there is neither.
+    fn extra_of(&self, x: &Tensor, feats: Option<&Tensor>) -> Result<Option<Tensor>> {
+        let (n, v, h, w, _) = view_dims(x, self.view_channels - self.feature_channels)?;
+        let k = x.dim(3)? - 4;
+        let cue = match k {
+            0 => None,
+            _ => Some(x.narrow(3, 4, k)?.contiguous()?.reshape((n * v, k, h, w))?), // [N*V, K, H, W]
+        };
+        let feats = match feats {
+            Some(f) => Some(
+                f.contiguous()?
+                    .reshape((n * v, self.feature_channels, h, w))?,
+            ), // [N*V, F, H, W]
+            None => None,
+        };
+        match (cue, feats) {
+            (Some(c), Some(f)) => Ok(Some(Tensor::cat(&[&c, &f], 1)?)),
+            (c, f) => Ok(c.or(f)),
         }
-        let (n, v, h, w, _) = view_dims(x, self.view_channels())?;
-        let k = self.view_channels - 4;
-        let c = x.narrow(3, 4, k)?.contiguous()?; // [B, D, V, K, H, W]
-        Ok(Some(c.reshape((n * v, k, h, w))?))
+    }
+
+    /// An input level `[B, D, V, C_v, H, W]` split into the part before the source
+    /// features and the features (`None` for other models).
+    fn split(&self, x: &Tensor) -> Result<(Tensor, Option<Tensor>)> {
+        let f = self.feature_channels;
+        if f == 0 {
+            return Ok((x.clone(), None));
+        }
+        let c = x.dim(3)?;
+        Ok((x.narrow(3, 0, c - f)?, Some(x.narrow(3, c - f, f)?)))
     }
 
     /// Steps 1-3 of the module doc for one level `x` `[B, D, V, C_v, H, W]`: fused passes
@@ -138,19 +164,28 @@ impl ViewEncoder {
     /// Where `x` carries a gradient (its alpha weighed by [`ViewWeigh`] in training), the
     /// passes return it ([`fused::pool_front`], [`fused::view_stats`]), and no `fuse`.
     pub fn forward(&self, x: &Tensor, fuse: bool) -> Result<Pooled> {
-        let (n, v, h, w, b) = view_dims(x, self.view_channels())?;
-        let tracked = x.track_op();
-        if tracked && self.view_channels != 4 {
-            return self.forward_reference(x);
-        }
+        view_dims(x, self.view_channels())?;
+        let (base, feats) = self.split(x)?;
+        self.forward_parts(&base, feats.as_ref(), fuse)
+    }
+
+    /// [`Self::forward`] with the features family's maps `feats` `[B, D, V, F, H, W]`
+    /// apart from the rest of the level `x` `[B, D, V, C_v - F, H, W]`: training keeps
+    /// them apart, since a slice of a tensor that carries a gradient costs a copy of the
+    /// whole tensor in the backward pass.
+    pub fn forward_parts(&self, x: &Tensor, feats: Option<&Tensor>, fuse: bool) -> Result<Pooled> {
+        let (n, v, h, w, b) = view_dims(x, self.view_channels - self.feature_channels)?;
+        // Where `x` carries a gradient (weighed alphas), the fused passes return it to the
+        // RGBA; the cue and the features reach the encoder through candle's ops.
+        let tracked = x.track_op() || feats.is_some_and(|f| f.track_op());
         let fuse = fuse && !tracked;
         let xp = rgba(x)?.reshape((n, v, 4, h * w))?; // [N, V, 4, P]
         let Some((enc, front)) = fused::pool_front(&xp)? else {
-            return self.forward_reference(x);
+            return self.forward_reference_parts(x, feats);
         };
         let enc = enc.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
-        let enc = match self.cue_of(x)? {
-            Some(cue) => Tensor::cat(&[&enc, &cue], 1)?, // [N*V, 7 + K, H, W]
+        let enc = match self.extra_of(x, feats)? {
+            Some(extra) => Tensor::cat(&[&enc, &extra], 1)?, // [N*V, 7 + K + F, H, W]
             None => enc,
         };
         let chained = match fuse {
@@ -173,7 +208,7 @@ impl ViewEncoder {
             },
         };
         let Some(stats) = stats else {
-            return self.forward_reference(x);
+            return self.forward_reference_parts(x, feats);
         }; // [N, 4 + 2 C_f, P]
         let stats = stats.reshape((b, n / b.max(1), 4 + 2 * cf, h, w))?; // [B, D, 4 + 2 C_f, H, W]
         let features = e.reshape((n, v, cf, h, w))?; // [N, V, C_f, H, W]
@@ -217,8 +252,15 @@ impl ViewEncoder {
     }
 
     /// [`Self::forward`] as candle ops (the fused passes' reference and fallback).
-    pub fn forward_reference(&self, x_in: &Tensor) -> Result<Pooled> {
-        let (n, v, h, w, b) = view_dims(x_in, self.view_channels())?;
+    pub fn forward_reference(&self, x: &Tensor) -> Result<Pooled> {
+        view_dims(x, self.view_channels())?;
+        let (base, feats) = self.split(x)?;
+        self.forward_reference_parts(&base, feats.as_ref())
+    }
+
+    /// [`Self::forward_reference`] with the source features apart ([`Self::forward_parts`]).
+    pub fn forward_reference_parts(&self, x_in: &Tensor, feats: Option<&Tensor>) -> Result<Pooled> {
+        let (n, v, h, w, b) = view_dims(x_in, self.view_channels - self.feature_channels)?;
         let x = rgba(x_in)?.reshape((n, v, 4, h, w))?; // [N, V, 4, H, W]
         let rgb = x.narrow(2, 0, 3)?; // [N, V, 3, H, W]
         let a = x.narrow(2, 3, 1)?; // [N, V, 1, H, W]
@@ -227,8 +269,8 @@ impl ViewEncoder {
         let mean_rgb = weighted_mean(&rgb, &a, &den)?; // [N, 1, 3, H, W]
         let diff = rgb.broadcast_sub(&mean_rgb)?; // [N, V, 3, H, W]
         let e_in = Tensor::cat(&[&x, &diff], 2)?.reshape((n * v, ENCODER_IN, h, w))?; // [N*V, 7, H, W]
-        let e_in = match self.cue_of(x_in)? {
-            Some(cue) => Tensor::cat(&[&e_in, &cue], 1)?, // [N*V, 7 + K, H, W]
+        let e_in = match self.extra_of(x_in, feats)? {
+            Some(extra) => Tensor::cat(&[&e_in, &extra], 1)?, // [N*V, 7 + K + F, H, W]
             None => e_in,
         };
         let e = self.encode(e_in)?;

@@ -7,7 +7,7 @@ use candle_core::{Device, Tensor};
 use deepstereo_core::backend::{inputs_to_tensors, CandleBackend};
 use deepstereo_core::config::Config;
 use deepstereo_core::geometry::inverse_depths;
-use deepstereo_core::inputs::features::{tile_warps, with_warped_features};
+use deepstereo_core::inputs::features::{tile_warps, warped_features, with_warped_features};
 use deepstereo_core::inputs::{tile_inputs, tile_inputs_without_features, PyramidSource};
 use deepstereo_core::render::render_view;
 use deepstereo_core::synth::{generate, SynthOptions, SynthScene};
@@ -68,14 +68,19 @@ fn training_inputs_equal_rendering_inputs_and_train_the_cnn() -> Result<()> {
             )
         })
         .collect::<Result<Vec<_>, _>>()?;
-    let train_in = with_warped_features(net, &base_t, &[warps])?;
+    let train_in = with_warped_features(net, &base_t, std::slice::from_ref(&warps))?;
     for (l, (r, tr)) in render_in.iter().zip(&train_in).enumerate() {
         assert_eq!(r.dims(), tr.dims(), "level {l}");
         let d = max_diff(r, tr)?;
         assert!(d < 1e-5, "level {l}: inputs differ by {d}");
     }
+    // The model given the maps apart (training's path) renders as given them inside.
+    let feats = warped_features(net, &base_t, &[warps])?;
+    let whole = t.model.forward(&train_in)?;
+    let out = t.model.forward_parts(&base_t, Some(&feats))?;
+    let d = max_diff(&whole.image, &out.image)?;
+    assert!(d < 1e-6, "forward_parts differs from forward by {d}");
     // The loss reaches the CNN's first layer through the warp.
-    let out = t.model.forward(&train_in)?;
     let grads = out.image.sqr()?.sum_all()?.backward()?;
     let vars = named_vars(&t.varmap);
     let (_, w0) = vars

@@ -18,7 +18,10 @@ use deepstereo_core::weights::{self, Trainable, CONFIG_KEY};
 use prost::Message;
 use std::collections::{BTreeMap, BTreeSet};
 
+mod features;
 mod pool;
+
+pub use features::{build_features_model, export_features, features_path};
 
 /// The opset written by default.
 pub const DEFAULT_OPSET: i64 = 17;
@@ -110,7 +113,12 @@ pub fn build_model(cfg: &Config, weights: &[Weight], opset: i64) -> Result<Model
         });
     }
     cfg.validate().map_err(Error::Config)?;
-    let mut g = Graph::new(cfg, weights)?;
+    // The features family's CNN is a graph of its own ([`features::build_features_model`]).
+    let network: Vec<Weight> = (weights.iter())
+        .filter(|w| !features::is_feature_weight(&w.0))
+        .cloned()
+        .collect();
+    let mut g = Graph::new(cfg, &network)?;
     let (image, selection) = g.forward(cfg)?;
     g.rename_output(&image, "image")?;
     g.rename_output(&selection, "selection")?;
@@ -202,12 +210,16 @@ fn graph_inputs(cfg: &Config) -> Vec<ValueInfoProto> {
                                 d.near
                             ),
                             None => String::new(),
-                        }
+                        } + &features::input_doc(p)
                     ),
                 ),
-                Some(_) => (
-                    vec![dim("batch"), dim("planes"), dim("views"), fixed(4), h, w],
-                    "[B, D, V, 4, H, W] (RGBA of each source per plane, any V >= 1)".into(),
+                Some(p) => (
+                    vec![dim("batch"), dim("planes"), dim("views"), fixed(p.view_channels()), h, w],
+                    format!(
+                        "[B, D, V, {}, H, W] (RGBA of each source per plane{}, any V >= 1)",
+                        p.view_channels(),
+                        features::input_doc(p)
+                    ),
                 ),
                 None => (
                     vec![dim("batch"), dim("planes"), fixed(cin), h, w],
@@ -371,6 +383,30 @@ struct Graph<'w> {
 
 impl<'w> Graph<'w> {
     fn new(cfg: &Config, weights: &'w [Weight]) -> Result<Self> {
+        let mut g = Self::bare(cfg, weights)?;
+        // (B, D) and (th, tw) = (H_0 - 2 pad_0, W_0 - 2 pad_0), read from level 0.
+        let level0 = input_name(0);
+        g.bd = g.op(
+            "Shape",
+            &[&level0],
+            vec![attr_int("start", 0), attr_int("end", 2)],
+            "batch_planes",
+        );
+        let hw_axis = if cfg.pool.is_some() { 4 } else { 3 };
+        let hw0 = g.op(
+            "Shape",
+            &[&level0],
+            vec![attr_int("start", hw_axis), attr_int("end", hw_axis + 2)],
+            "level0_size",
+        );
+        let p0 = 2 * cfg.pad(0) as i64;
+        let border = g.const_i64(&[p0, p0], "level0_border");
+        g.tile = g.op("Sub", &[&hw0, &border], vec![], "tile_size");
+        Ok(g)
+    }
+
+    /// A graph with `weights` to draw on and no nodes.
+    fn bare(cfg: &Config, weights: &'w [Weight]) -> Result<Self> {
         let mut map = BTreeMap::new();
         for (name, shape, values) in weights {
             if shape.iter().product::<usize>() != values.len() {
@@ -398,7 +434,7 @@ impl<'w> Graph<'w> {
                 });
             }
         }
-        let mut g = Self {
+        Ok(Self {
             nodes: Vec::new(),
             initializers: Vec::new(),
             weights: map,
@@ -408,26 +444,7 @@ impl<'w> Graph<'w> {
             bd: String::new(),
             tile: String::new(),
             view_levels: Vec::new(),
-        };
-        // (B, D) and (th, tw) = (H_0 - 2 pad_0, W_0 - 2 pad_0), read from level 0.
-        let level0 = input_name(0);
-        g.bd = g.op(
-            "Shape",
-            &[&level0],
-            vec![attr_int("start", 0), attr_int("end", 2)],
-            "batch_planes",
-        );
-        let hw_axis = if cfg.pool.is_some() { 4 } else { 3 };
-        let hw0 = g.op(
-            "Shape",
-            &[&level0],
-            vec![attr_int("start", hw_axis), attr_int("end", hw_axis + 2)],
-            "level0_size",
-        );
-        let p0 = 2 * cfg.pad(0) as i64;
-        let border = g.const_i64(&[p0, p0], "level0_border");
-        g.tile = g.op("Sub", &[&hw0, &border], vec![], "tile_size");
-        Ok(g)
+        })
     }
 
     fn fresh(&mut self, hint: &str) -> String {

@@ -6,9 +6,14 @@
 //! the running executable (so `target/release/deepstereo` finds the repository's `.venv`).
 
 use crate::error::{Error, Result};
-use crate::export::{config_of, export_trainable, input_name, DEFAULT_OPSET};
+use crate::export::{
+    config_of, export_features, export_trainable, features_path, input_name, model_weights,
+    DEFAULT_OPSET,
+};
 use crate::onnx_proto::ModelProto;
 use deepstereo_core::config::Config;
+use deepstereo_core::features::{padded_crop, FeatureMap, Window};
+use deepstereo_core::imageio::RgbImage;
 use deepstereo_core::inputs::TileInputs;
 use deepstereo_core::render::Backend;
 use deepstereo_core::weights::Trainable;
@@ -34,6 +39,8 @@ pub struct Forward {
 pub struct OrtBackend {
     cfg: Config,
     session: Mutex<Session>,
+    /// The `features` family's feature graph ([`crate::export::build_features_model`]).
+    features: Option<Mutex<Session>>,
     /// Where libonnxruntime was loaded from.
     library: PathBuf,
 }
@@ -140,22 +147,20 @@ impl OrtBackend {
             msg: format!("cannot decode: {e}"),
         })?;
         let cfg = config_of(&model)?;
-        let (env, lib) = environment()?;
-        // No spinning: the threads of onnxruntime's pool would otherwise busy-wait after
-        // each call, taking the cores from the renderer's own threads (warping, candle).
-        let session = Session::builder(env)
-            .map_err(Error::ort)?
-            .with_intra_op_spinning(false)
-            .map_err(Error::ort)?
-            .with_inter_op_spinning(false)
-            .map_err(Error::ort)?
-            .commit_from_memory(onnx)
-            .map_err(Error::ort)?;
+        let (session, lib) = session_of(onnx)?;
         Ok(Self {
             cfg,
             session: Mutex::new(session),
-            library: lib.clone(),
+            features: None,
+            library: lib,
         })
+    }
+
+    /// This backend with the feature graph `onnx` (`deepstereo export` writes it beside
+    /// the network's for the `features` family).
+    pub fn with_features_graph(mut self, onnx: &[u8]) -> Result<Self> {
+        self.features = Some(Mutex::new(session_of(onnx)?.0));
+        Ok(self)
     }
 
     /// Loads an ONNX file written by `deepstereo export`.
@@ -164,18 +169,75 @@ impl OrtBackend {
             path: path.to_path_buf(),
             source,
         })?;
-        Self::from_bytes(&bytes).map_err(|e| match e {
+        let backend = Self::from_bytes(&bytes).map_err(|e| match e {
             Error::Onnx { msg, .. } => Error::Onnx {
                 what: path.display().to_string(),
                 msg,
             },
             other => other,
-        })
+        })?;
+        if backend
+            .cfg
+            .pool
+            .as_ref()
+            .is_none_or(|p| p.features.is_none())
+        {
+            return Ok(backend);
+        }
+        let fpath = features_path(path);
+        let bytes = std::fs::read(&fpath).map_err(|source| Error::Io {
+            path: fpath.clone(),
+            source,
+        })?;
+        backend.with_features_graph(&bytes)
     }
 
     /// Exports `model` in memory (opset [`DEFAULT_OPSET`]) and loads it.
     pub fn from_model(model: &Trainable) -> Result<Self> {
-        Self::from_bytes(&export_trainable(model, DEFAULT_OPSET)?)
+        let backend = Self::from_bytes(&export_trainable(model, DEFAULT_OPSET)?)?;
+        let weights = model_weights(model)?;
+        match export_features(model.model.config(), &weights, DEFAULT_OPSET)? {
+            Some(bytes) => backend.with_features_graph(&bytes),
+            None => Ok(backend),
+        }
+    }
+
+    /// The feature graph on one source image: `[F, H, W]`.
+    fn image_features(&self, img: &RgbImage) -> Result<FeatureMap> {
+        let (Some(session), Some(sf)) = (
+            self.features.as_ref(),
+            self.cfg.pool.as_ref().and_then(|p| p.features.as_ref()),
+        ) else {
+            return Err(Error::Input(format!(
+                "the model '{}' reads no source features, or its feature graph is not loaded",
+                self.cfg.name
+            )));
+        };
+        let r = sf.radius();
+        let (w, h) = (img.width as usize, img.height as usize);
+        let window = Window {
+            x0: -(r as i64),
+            y0: -(r as i64),
+            width: w + 2 * r,
+            height: h + 2 * r,
+        };
+        let data = padded_crop(img, window);
+        let shape = vec![1, 3, window.height, window.width];
+        let t = TensorRef::from_array_view((shape, data.as_slice())).map_err(Error::ort)?;
+        let mut session = session.lock().map_err(|_| {
+            Error::Ort("the session's lock is poisoned (an earlier run panicked)".into())
+        })?;
+        let outputs = session.run(vec![("image", t)]).map_err(Error::ort)?;
+        let v = outputs
+            .get("features")
+            .ok_or_else(|| Error::Ort("the feature graph has no output 'features'".into()))?;
+        let (_, data) = v.try_extract_tensor::<f32>().map_err(Error::ort)?;
+        Ok(FeatureMap {
+            channels: sf.channels(),
+            width: w,
+            height: h,
+            data: data.to_vec(),
+        })
     }
 
     pub fn library(&self) -> &Path {
@@ -271,4 +333,24 @@ impl Backend for OrtBackend {
         let out = self.forward(&levels)?;
         Ok((out.image, out.selection))
     }
+    fn source_features(&self, image: &RgbImage) -> deepstereo_core::Result<FeatureMap> {
+        self.image_features(image)
+            .map_err(|e| deepstereo_core::Error::Invalid(e.to_string()))
+    }
+}
+
+/// An onnxruntime session of `onnx` (no spinning: the threads of onnxruntime's pool would
+/// otherwise busy-wait after each call, taking the cores from the renderer's own threads,
+/// warping and candle) and where the library was loaded from.
+fn session_of(onnx: &[u8]) -> Result<(Session, PathBuf)> {
+    let (env, lib) = environment()?;
+    let session = Session::builder(env)
+        .map_err(Error::ort)?
+        .with_intra_op_spinning(false)
+        .map_err(Error::ort)?
+        .with_inter_op_spinning(false)
+        .map_err(Error::ort)?
+        .commit_from_memory(onnx)
+        .map_err(Error::ort)?;
+    Ok((session, lib.clone()))
 }

@@ -241,7 +241,7 @@ fn bench(name: &str, mm: f64, threads: usize) -> Result<()> {
     });
     let mut ort_fwd = seconds(|| Ok(ort.forward(&views).map(drop)?));
     let mut candle_step = seconds(|| {
-        let loss = l1_loss(&t.model.forward(&x)?.image, &y)?;
+        let loss = l1_loss(&x.forward(&t.model)?.image, &y)?;
         let grads = loss.backward()?;
         opt.step(&grads)
     });

@@ -40,7 +40,7 @@ fn bench(cfg: &Config, batch: usize, reps: usize) -> Result<()> {
         let batch_data = make_batch(cfg, &Sampling::fixed(cfg), &scenes, 9, b, batch)?;
         let (x, y) = batch_tensors(&t.model, &batch_data, &Device::Cpu)?;
         let t0 = Instant::now();
-        let out = t.model.forward(&x)?;
+        let out = x.forward(&t.model)?;
         let loss = l1_loss(&out.image, &y)?;
         loss.to_scalar::<f32>()?;
         fwd_t.push(t0.elapsed().as_secs_f64());

@@ -54,7 +54,7 @@ fn time_steps(t: &Trainable, cfg: &Config, name: &str, iters: usize) -> Result<V
     let mut times = Vec::with_capacity(iters);
     for _ in 0..iters {
         let t0 = Instant::now();
-        let loss = l1_loss(&t.model.forward(&x)?.image, &y)?;
+        let loss = l1_loss(&x.forward(&t.model)?.image, &y)?;
         opt.step(&loss.backward()?)?;
         times.push(t0.elapsed().as_secs_f64() * 1e3);
     }

@@ -70,6 +70,7 @@ RECIPES=(
   "disagree-prior|runs/nviews-disagree-prior: as disagree, with the weights starting as a colour gate (add_cue.py --disagree 4 --prior 1: one more hidden unit relu(q), output weight -1), 8-12 views, Adam 3e-4, cosine:0-600 to a tenth"
   "disagree-scratch|runs/nviews-disagree-scratch: the nviews-disagree preset (weigh-scratch's architecture with the disagreement channel) from scratch on the whole corpus, 2-12 views, as weigh-scratch: Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1"
   "forward-scratch|runs/nviews-forward: disagree-scratch's preset and schedule (nviews-disagree, Adam 1e-3, cosine:6000-8600 to 5e-5, seed 1, 2-12 views) from scratch on the corpus plus the forward-facing captures (CORPUS=forward: 21 scenes, the five forward-facing ones drawn x3), validated on val/room too: what the data alone gives"
+  "features-scratch|runs/nviews-features: the nviews-features preset (a CNN run once on each source image, its maps warped into the sweep beside the RGBA) from scratch on forward-scratch's data and schedule: the new family against the data alone"
   "cue|runs/nviews-cue: nviews-prox's weights given the per-view cue (python/add_cue.py: zero columns, so step 0 renders as nviews-prox), fine-tuned on the whole corpus (17 scenes) with 2-12 views, Adam 3e-4 to step 1600, then a cosine to a tenth at step 4500"
 )
 
@@ -199,6 +200,12 @@ case "$RECIPE" in
     OUT="${2:-$RUNS/nviews-forward}"
     CONFIG=nviews-disagree
     corpus_scratch forward
+    : "${SCENE_WEIGHTS:=desk=3,flower=3,fortress=3,canclip=3,ollie=3}"
+    ;;
+  features-scratch)
+    OUT="${2:-$RUNS/nviews-features}"
+    CONFIG=nviews-features
+    : "${STEPS:=8600}" "${LR_SCHEDULE:=cosine:6000-8600}" "${VIEW_RANGE:=2-12}" "${CORPUS:=forward}"
     : "${SCENE_WEIGHTS:=desk=3,flower=3,fortress=3,canclip=3,ollie=3}"
     ;;
   cue)

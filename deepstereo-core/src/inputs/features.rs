@@ -186,11 +186,12 @@ pub fn tile_warps(
     })
 }
 
-/// Training's input levels with the features computed in the graph: `base[l]`
-/// `[B, D, V, C_b, h_l, w_l]` (from [`super::tile_inputs_without_features`]) with every
-/// sample's warped maps `[B, D, V, F, h_l, w_l]` appended on dim 3, differentiable in the
-/// CNN's weights. `tiles[b]`: sample `b`'s warps.
-pub fn with_warped_features(
+/// Training's warped maps, computed in the graph: `[B, D, V, F, h_l, w_l]` per level for
+/// inputs `base[l]` `[B, D, V, C_v - F, h_l, w_l]` (from
+/// [`super::tile_inputs_without_features`]), differentiable in the CNN's weights.
+/// `tiles[b]`: sample `b`'s warps. The model takes them apart from `base`
+/// ([`crate::model::DeepStereo::forward_parts`]).
+pub fn warped_features(
     net: &FeatureNet,
     base: &[Tensor],
     tiles: &[TileWarps],
@@ -219,8 +220,19 @@ pub fn with_warped_features(
             }
             samples.push(Tensor::stack(&views, 1)?); // [D, V, F, P]
         }
-        let feats = Tensor::stack(&samples, 0)?.reshape((b, d, v, f, h, w))?;
-        out.push(Tensor::cat(&[x, &feats], 3)?); // [B, D, V, C_b + F, h, w]
+        out.push(Tensor::stack(&samples, 0)?.reshape((b, d, v, f, h, w))?);
     }
     Ok(out)
+}
+
+/// [`warped_features`] appended to `base` on dim 3: `[B, D, V, C_v, h_l, w_l]`, the
+/// inputs rendering builds (for tests and checks; training keeps them apart).
+pub fn with_warped_features(
+    net: &FeatureNet,
+    base: &[Tensor],
+    tiles: &[TileWarps],
+) -> candle_core::Result<Vec<Tensor>> {
+    (base.iter().zip(warped_features(net, base, tiles)?))
+        .map(|(x, f)| Tensor::cat(&[x, &f], 3))
+        .collect()
 }

@@ -76,11 +76,11 @@ pub fn network_guide(
         return Ok(None);
     };
     // The features family's maps of the guide's images (small: computed again here).
-    let pyr = match (backend.feature_net(), cfg.pool.as_ref()) {
-        (Some(net), Some(p)) if p.features.is_some() => (pyr.into_iter())
-            .map(|s| s.with_features(net))
+    let pyr = match cfg.pool.as_ref().is_some_and(|p| p.features.is_some()) {
+        true => (pyr.into_iter())
+            .map(|s| s.with_features_from(|img| backend.source_features(img)))
             .collect::<Result<Vec<_>>>()?,
-        _ => pyr,
+        false => pyr,
     };
     let srcs: Vec<&PyramidSource> = pyr.iter().collect();
     let (planes, k) = guide_plane_list(range, inv_depths.len(), max_planes)?;

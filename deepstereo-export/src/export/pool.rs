@@ -96,7 +96,16 @@ impl Graph<'_> {
             let shape = self.concat(&[&bdv, &one, &hw], 0, "unfold_shape");
             let wk = self.op("Reshape", &[&wk, &shape], vec![], &format!("{p}.weights")); // [B, D, V, 1, H, W]
             let a = self.op("Mul", &[&a, &wk], vec![], &format!("{p}.weighed_alpha"));
-            out.push(self.concat(&[&rgb, &a], 3, &format!("{p}.rgba"))); // [B, D, V, 4, H, W]
+            // The features family's warped maps follow the cue, and stay beside the RGBA.
+            let f = cfg.pool.as_ref().map_or(0, ViewPool::feature_channels) as i64;
+            let feats =
+                (f > 0).then(|| self.slice_axis(&level, 3, k, k + f, &format!("{p}.features")));
+            let parts: Vec<&str> = [&rgb, &a]
+                .into_iter()
+                .chain(feats.as_ref())
+                .map(String::as_str)
+                .collect();
+            out.push(self.concat(&parts, 3, &format!("{p}.rgba"))); // [B, D, V, 4 (+ F), H, W]
         }
         Ok(out)
     }
@@ -113,17 +122,13 @@ impl Graph<'_> {
         for l in 0..cfg.levels {
             let p = format!("views.level{l}");
             let level = self.view_level(l); // [B, D, V, C_v, H, W]
-                                            // With the cue: RGBA and cue apart ([B, D, V, 4, H, W], [B, D, V, K, H, W]).
-            let (x, cue) = match pool.cue {
+                                            // With the cue or the source features: RGBA and the rest apart
+                                            // ([B, D, V, 4, H, W], [B, D, V, K (+ F), H, W]).
+            let extra = pool.encoder_view_channels() as i64;
+            let (x, cue) = match extra > 4 {
                 true => (
                     self.slice_axis(&level, 3, 0, 4, &format!("{p}.rgba")),
-                    Some(self.slice_axis(
-                        &level,
-                        3,
-                        4,
-                        (4 + pool.cue_channels()) as i64,
-                        &format!("{p}.cue"),
-                    )),
+                    Some(self.slice_axis(&level, 3, 4, extra, &format!("{p}.cue"))),
                 ),
                 false => (level, None),
             };

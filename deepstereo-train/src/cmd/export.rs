@@ -13,7 +13,8 @@ pub struct Args {
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Output ONNX file. Inputs `level0..` [B, D, 4V, H_l, W_l] (batch, planes and size
-    /// dynamic); outputs `image` [B, 3, th, tw] and `selection` [B, D, th, tw].
+    /// dynamic); outputs `image` [B, 3, th, tw] and `selection` [B, D, th, tw]. A model
+    /// of the features family also gets NAME.features.onnx, its per-source CNN.
     #[arg(long)]
     pub out: PathBuf,
     /// ONNX opset (17 or newer).
@@ -30,6 +31,17 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     let t = load_model(a.model.as_deref())?;
     let bytes = deepstereo_export::export_trainable(&t, a.opset)?;
+    let weights = deepstereo_export::model_weights(&t)?;
+    let features = deepstereo_export::export_features(t.model.config(), &weights, a.opset)?;
+    if let Some(fb) = &features {
+        let path = deepstereo_export::features_path(&a.out);
+        write_atomic(&path, fb).with_context(|| format!("cannot write {}", path.display()))?;
+        eprintln!(
+            "exported the per-source feature graph to {} ({} bytes): run it once on each source image and level, and warp its output into the network's inputs",
+            path.display(),
+            fb.len()
+        );
+    }
     write_atomic(&a.out, &bytes).with_context(|| format!("cannot write {}", a.out.display()))?;
     eprintln!(
         "exported {} ('{}', opset {}) to {} ({} bytes)",

@@ -42,10 +42,14 @@ pub const TARGET_NAME: &str = "target";
     after_help = "Shard b holds batch b of `deepstereo train` with the same scenes, \
 --seed, --views, --augment, --synthetic-percent, --view-stride, --skip-flat and --batch = \
 --shard-size: tensors `level0..level{L-1}` ([K, D, 4V, H_l, W_l], or [K, D, V, C_v, H_l, W_l] (C_v 4, or 9 with the per-view cue) for the \
-any-number-of-views family) and `target` ([K, 3, t, t]), f32; metadata `deepstereo.config` \
+any-number-of-views family; for the features family without the F feature channels) and \
+`target` ([K, 3, t, t]), f32; for the features family also, per sample k, level l and view \
+v its sweep sees, `warp.k.l.v.crop` ([3, h, w], the source crop padded by the CNN's radius), \
+`warp.k.l.v.index` ([D*P, 4] i64) and `warp.k.l.v.weight` ([D*P, 4] f32), the bilinear \
+taps into the crop's features; metadata `deepstereo.config` \
 (the model config JSON), `views` (V, the same for every sample of a shard), `shard`, \
 `samples`, `format` = deepstereo-samples-v1 and `deepstereo.samples` (the options). A shard \
-is also a valid `deepstereo forward --inputs` file. Shards are written in parallel and \
+is also a valid `deepstereo forward --inputs` file (not for the features family). Shards are written in parallel and \
 atomically; rerunning the same command keeps complete shards and writes the missing ones \
 (a shard made with other options is an error: choose another --out)."
 )]
@@ -310,5 +314,28 @@ fn shard_arrays(b: &Batch) -> Vec<NamedArray> {
         .map(|(l, (d, s))| NamedArray::f32(&deepstereo_export::input_name(l), s, d))
         .collect();
     arrays.push(NamedArray::f32(TARGET_NAME, &b.target_shape, &b.target));
+    // The features family: each sample's crops and taps (`warp.K.L.V.*`; none for a view
+    // its sweep never sees), from which the graph computes and warps the source features.
+    for (k, tile) in b.warps.iter().flatten().enumerate() {
+        for (l, views) in tile.levels.iter().enumerate() {
+            for (v, vw) in views.iter().enumerate() {
+                let Some(vw) = vw else { continue };
+                let stem = format!("{WARP_PREFIX}{k}.{l}.{v}");
+                let (c, h, w) = vw.input_shape;
+                arrays.push(NamedArray::f32(
+                    &format!("{stem}.crop"),
+                    &[c, h, w],
+                    &vw.input,
+                ));
+                let (idx, wts) = vw.op.taps();
+                let n = idx.len() / 4;
+                arrays.push(NamedArray::i64(&format!("{stem}.index"), &[n, 4], &idx));
+                arrays.push(NamedArray::f32(&format!("{stem}.weight"), &[n, 4], &wts));
+            }
+        }
+    }
     arrays
 }
+
+/// Prefix of the features family's per-sample warp tensors in a shard.
+const WARP_PREFIX: &str = "warp.";

@@ -32,7 +32,7 @@ use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use deepstereo_core::config::Config;
 use deepstereo_core::imageio::write_atomic;
-use deepstereo_core::inputs::features::with_warped_features;
+use deepstereo_core::inputs::features::warped_features;
 use deepstereo_core::model::{l1_loss, l2_loss};
 use deepstereo_core::scene::scene_dirs;
 use deepstereo_core::synth::SynthOptions;
@@ -167,27 +167,50 @@ pub struct LogLine {
 
 /// Batch tensors on `device`: inputs per level and the target.
 ///
-/// For the `features` family, the inputs get the sources' feature maps computed by the
-/// model's CNN from the batch's crops and warped in the graph
-/// ([`with_warped_features`]), so the loss trains the CNN too.
+/// For the `features` family, the sources' feature maps are computed by the model's CNN
+/// from the batch's crops and warped in the graph ([`warped_features`]), so the loss trains
+/// the CNN too; they stay apart from the levels ([`BatchInputs`]).
 pub fn batch_tensors(
     model: &deepstereo_core::model::DeepStereo,
     b: &Batch,
     device: &Device,
-) -> Result<(Vec<Tensor>, Tensor)> {
-    let mut inputs = b
+) -> Result<(BatchInputs, Tensor)> {
+    let levels = b
         .levels
         .iter()
         .zip(&b.level_shapes)
         .map(|(d, s)| Tensor::from_slice(d, s.as_slice(), device))
         .collect::<candle_core::Result<Vec<_>>>()?;
-    match (model.feature_net(), &b.warps) {
-        (Some(net), Some(warps)) => inputs = with_warped_features(net, &inputs, warps)?,
-        (None, None) => {}
+    let features = match (model.feature_net(), &b.warps) {
+        (Some(net), Some(warps)) => Some(warped_features(net, &levels, warps)?),
+        (None, None) => None,
         _ => anyhow::bail!("a batch drawn for another model (source features differ)"),
-    }
+    };
     let target = Tensor::from_slice(&b.target, b.target_shape.as_slice(), device)?;
-    Ok((inputs, target))
+    Ok((BatchInputs { levels, features }, target))
+}
+
+/// A batch's network inputs: the levels, and the features family's warped maps apart.
+pub struct BatchInputs {
+    pub levels: Vec<Tensor>,
+    pub features: Option<Vec<Tensor>>,
+}
+
+impl BatchInputs {
+    /// The model's training forward on these inputs.
+    pub fn forward(
+        &self,
+        model: &deepstereo_core::model::DeepStereo,
+    ) -> Result<deepstereo_core::model::Output> {
+        Ok(model.forward_parts(&self.levels, self.features.as_deref())?)
+    }
+    /// The model's rendering forward (no gradients) on these inputs.
+    pub fn infer(
+        &self,
+        model: &deepstereo_core::model::DeepStereo,
+    ) -> Result<deepstereo_core::model::Output> {
+        Ok(model.infer_parts(&self.levels, self.features.as_deref())?)
+    }
 }
 
 /// Mean PSNR (dB, colours in [0, 1]) of the model over validation batches.
@@ -199,7 +222,7 @@ pub fn validate(
     let (mut se, mut n) = (0f64, 0usize);
     for b in batches {
         let (x, y) = batch_tensors(model, b, device)?;
-        let out = model.infer(&x)?;
+        let out = x.infer(model)?;
         let d = out.image.clamp(0f32, 1f32)?.sub(&y)?;
         se += d.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
         n += d.elem_count();
@@ -536,7 +559,7 @@ fn optimize(
     step: u64,
 ) -> Result<(f64, Option<f64>, f64, bool)> {
     let (x, y) = batch_tensors(&t.model, batch, device)?;
-    let pred = t.model.forward(&x)?;
+    let pred = x.forward(&t.model)?;
     let mut loss = run.loss.of(&pred.image, &y)?;
     let mut mpi_v = None;
     if let (Some(pairs), Some(p)) = (&run.mpi_loss, &batch.mpi) {

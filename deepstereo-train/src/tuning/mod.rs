@@ -260,7 +260,7 @@ fn train_step(
     lr: f64,
 ) -> Result<f64> {
     let (x, y) = batch_tensors(&t.model, batch, device)?;
-    let pred = t.model.forward(&x)?;
+    let pred = x.forward(&t.model)?;
     let loss = Loss::L1.of(&pred.image, &y)?;
     let loss_v = loss.to_scalar::<f32>()? as f64;
     let grads = loss.backward()?;
