@@ -1,6 +1,7 @@
 //! The sampler's unit tests.
 
 use super::*;
+use deepstereo_core::imageio::RgbImage;
 
 fn scenes(cfg: &Config) -> Vec<SceneData> {
     let opts = SynthOptions {
