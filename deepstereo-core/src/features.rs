@@ -205,6 +205,37 @@ pub fn tap_window(coords: &[f64], pixels: usize, (img_w, img_h): (usize, usize))
     })
 }
 
+/// The whole map `map` sampled at `coords` (`[D, 2, P]`, one view's sweep positions):
+/// `[D, F, P]`, what [`FeatureWarp::apply`] gives with the whole image as its window,
+/// without building the taps (rendering).
+pub fn sample_map(map: &FeatureMap, coords: &[f64], planes: usize) -> Vec<f32> {
+    let (f, plane) = (map.channels, map.width * map.height);
+    let p = coords.len() / (2 * planes.max(1));
+    let size = (map.width as i64, map.height as i64);
+    let whole = Window {
+        x0: 0,
+        y0: 0,
+        width: map.width,
+        height: map.height,
+    };
+    let mut out = vec![0.0f32; planes * f * p];
+    out.par_chunks_mut(f * p)
+        .zip(coords.par_chunks(2 * p))
+        .for_each(|(dst, xy)| {
+            let (us, vs) = xy.split_at(p);
+            for (i, (&u, &v)) in us.iter().zip(vs).enumerate() {
+                let Some(taps) = taps_of(u, v, size, whole) else {
+                    continue;
+                };
+                for (c, o) in dst.iter_mut().skip(i).step_by(p).enumerate() {
+                    let src = &map.data[c * plane..(c + 1) * plane];
+                    *o = taps.iter().map(|&(j, w)| w * src[j as usize]).sum();
+                }
+            }
+        });
+    out
+}
+
 /// The warp of one source's feature map into the sweep, as a candle op on the map
 /// `[C, h_f, w_f]` (covering `window` of the image): `[D, C, P]` for `D` planes of `P`
 /// target pixels. Differentiable in the map.

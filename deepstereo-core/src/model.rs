@@ -390,9 +390,12 @@ impl DeepStereo {
                 candle_core::bail!("input level {l} has a different number of views");
             }
             // Rendering: one fused pass where it runs (view features at level 0 only).
-            let fused = match fuse && feats.is_none() {
-                true => encoder.infer(x, l == 0)?,
-                false => None,
+            // Rendering: one fused pass where it runs (view features at level 0 only), the
+            // source features beside the rest of each view's channels.
+            let fused = match (fuse, feats) {
+                (true, None) => encoder.infer(x, l == 0)?,
+                (true, Some(f)) => encoder.infer(&Tensor::cat(&[x, &f[l]], 3)?, l == 0)?,
+                (false, _) => None,
             };
             let (s, e) = match fused {
                 Some(pooled) => pooled,

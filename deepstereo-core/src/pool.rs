@@ -224,10 +224,6 @@ impl ViewEncoder {
     /// not run (the caller then runs [`Self::forward`]).
     pub fn infer(&self, x: &Tensor, features: bool) -> Result<Option<(Tensor, Option<Tensor>)>> {
         let (n, v, h, w, b) = view_dims(x, self.view_channels())?;
-        // The fused pass reads RGBA, or RGBA and the cue (not warped source features).
-        if ![4, 4 + crate::config::CUE_CHANNELS].contains(&self.view_channels) {
-            return Ok(None);
-        }
         let Some(layers) = dense_layers(&self.convs)? else {
             return Ok(None);
         };

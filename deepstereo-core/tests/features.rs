@@ -80,6 +80,13 @@ fn training_inputs_equal_rendering_inputs_and_train_the_cnn() -> Result<()> {
     let out = t.model.forward_parts(&base_t, Some(&feats))?;
     let d = max_diff(&whole.image, &out.image)?;
     assert!(d < 1e-6, "forward_parts differs from forward by {d}");
+    // Rendering's fused passes give the training forward's image.
+    let fused = t.model.infer(&render_in)?;
+    let d = max_diff(&whole.image, &fused.image)?;
+    assert!(
+        d < 1e-5,
+        "the fused render differs from the training forward by {d}"
+    );
     // The loss reaches the CNN's first layer through the warp.
     let grads = out.image.sqr()?.sum_all()?.backward()?;
     let vars = named_vars(&t.varmap);

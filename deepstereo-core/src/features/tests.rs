@@ -74,6 +74,16 @@ fn warping_the_image_as_a_map_gives_the_sweep() -> Result<()> {
         let map = padded_crop(&img, window);
         let op = FeatureWarp::new(&coords, planes.len(), (w as usize, h as usize), window)?;
         let out = op.apply(&map, 3); // [D, 3, P]
+        if window == whole {
+            let fm = FeatureMap {
+                channels: 3,
+                width: w as usize,
+                height: h as usize,
+                data: map.clone(),
+            };
+            let direct = sample_map(&fm, &coords, planes.len());
+            assert_eq!(direct, out, "sample_map against the taps");
+        }
         for d in 0..planes.len() {
             for c in 0..3 {
                 for i in 0..p {

@@ -17,7 +17,7 @@
 use super::blend_infer::Dense;
 use super::data;
 use super::pool::{cast, wide};
-use crate::config::{CUE_CHANNELS, ENCODER_IN, POOL_EPS};
+use crate::config::{ENCODER_IN, POOL_EPS};
 use candle_core::{bail, DType, Result, Tensor};
 use rayon::prelude::*;
 
@@ -27,9 +27,10 @@ const CHUNK: usize = 64;
 const LANES: usize = 8;
 
 /// `(stats [N, 4 + 2 C, P], features [N, V, C, P] when `features`)` from the sources `x`
-/// `[N, V, C_v, P]` (RGBA, then with `C_v` = 4 + [`CUE_CHANNELS`] each view's cue) and the
-/// encoder's 1x1 layers (each followed by ReLU; the first takes 7 channels, or 7 + the
-/// cue's, in the order RGBA, colour minus mean, cue). `None` where it does not apply (not
+/// `[N, V, C_v, P]` (RGBA, then each view's other channels the encoder reads: with
+/// `C_v` = 4 + [`crate::config::CUE_CHANNELS`] its cue, with the features family its warped source
+/// features) and the encoder's 1x1 layers (each followed by ReLU; the first takes
+/// `7 + C_v - 4` channels, in the order RGBA, colour minus mean, the other channels). `None` where it does not apply (not
 /// f32, not on the CPU, no AVX2 + FMA, layers that do not chain): the caller runs the
 /// three passes.
 pub fn encode_pool(
@@ -38,10 +39,9 @@ pub fn encode_pool(
     features: bool,
 ) -> Result<Option<(Tensor, Option<Tensor>)>> {
     let (n, v, cv, p) = x.dims4()?;
-    if cv != 4 && cv != 4 + CUE_CHANNELS {
+    if cv < 4 {
         bail!(
-            "encode_pool: expected [N, V, 4 or {}, P], got {:?}",
-            4 + CUE_CHANNELS,
+            "encode_pool: expected [N, V, C_v >= 4, P], got {:?}",
             x.dims()
         );
     }

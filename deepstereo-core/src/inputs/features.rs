@@ -11,7 +11,7 @@ use super::{level_camera, PyramidSource, TileInputs};
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::error::{Error, Result};
-use crate::features::{padded_crop, tap_window, warp, FeatureNet, FeatureWarp, Window};
+use crate::features::{padded_crop, sample_map, tap_window, warp, FeatureNet, FeatureWarp, Window};
 use crate::sweep::coords::sweep_coords;
 use crate::sweep::Region;
 use candle_core::Tensor;
@@ -83,15 +83,7 @@ pub fn append_warped(
                     )))
                 }
             };
-            let whole = Window {
-                x0: 0,
-                y0: 0,
-                width: w,
-                height: h,
-            };
-            let op = FeatureWarp::new(&view_coords(&coords, k, v, hw), d, (w, h), whole)
-                .map_err(warp_error)?;
-            warped.push(op.apply(&map.data, f)); // [D, F, P]
+            warped.push(sample_map(map, &view_coords(&coords, k, v, hw), d)); // [D, F, P]
         }
         let mut out = crate::sweep::try_zeroed(&[d, v, cb + f, hw], "a feature sweep")?;
         for (slice, dst) in out.chunks_exact_mut((cb + f) * hw).enumerate() {
