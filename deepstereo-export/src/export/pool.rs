@@ -233,23 +233,8 @@ impl Graph<'_> {
         let ye = self.op("Reshape", &[&ye, &shape], vec![], "colour.blend.0.e5"); // [B*D, V, C_0, th, tw]
         let axis1 = self.const_i64(&[1], "axis1");
         let yf = self.op("Unsqueeze", &[&yf, &axis1], vec![], "colour.blend.0.f5"); // [B*D, 1, C_0, th, tw]
-        let mut y = self.op("Add", &[&ye, &yf], vec![], "colour.blend.0");
-        let last = pool.blend.len();
-        if last > 0 {
-            y = self.relu(&y);
-            let lead = self.const_i64(&[-1, c0 as i64], "fold_lead");
-            let shape = self.concat(&[&lead, &tile], 0, "fold_shape");
-            y = self.op("Reshape", &[&y, &shape], vec![], "colour.blend.folded"); // [B*D*V, C_0, th, tw]
-            let mut ch = c0;
-            for i in 1..=last {
-                let cout = self.blend_width(pool, i);
-                y = self.conv(&y, &format!("colour.blend.{i}"), (ch, cout), (1, 1), [0; 4])?;
-                if i < last {
-                    y = self.relu(&y);
-                }
-                ch = cout;
-            }
-        }
+        let y = self.op("Add", &[&ye, &yf], vec![], "colour.blend.0");
+        let y = self.blend_rest(pool, y, c0, &tile)?;
         let one = self.const_i64(&[1], "one");
         let shape = self.concat(&[&lead, &v, &one, &tile], 0, "logit_shape");
         let logits = self.op("Reshape", &[&y, &shape], vec![], "colour.blend.logits"); // [B*D, V, 1, th, tw]
@@ -272,6 +257,35 @@ impl Graph<'_> {
         let wts = self.op("Div", &[&ex, &den], vec![], "colour.blend.weights");
         let wrgb = self.op("Mul", &[&rgb, &wts], vec![], "colour.blend.weighted");
         Ok(self.sum_axis(&wrgb, 1, false, "colour.blend.colour")) // [B*D, 3, th, tw]
+    }
+
+    /// The blend's layers after the first on its output `y` `[B*D, V, C_0, th, tw]`:
+    /// `[B*D*V, 1, th, tw]` (`y` itself when the first layer is the logit).
+    fn blend_rest(
+        &mut self,
+        pool: &ViewPool,
+        mut y: String,
+        c0: usize,
+        tile: &str,
+    ) -> Result<String> {
+        let last = pool.blend.len();
+        if last == 0 {
+            return Ok(y);
+        }
+        y = self.relu(&y);
+        let lead = self.const_i64(&[-1, c0 as i64], "fold_lead");
+        let shape = self.concat(&[&lead, tile], 0, "fold_shape");
+        y = self.op("Reshape", &[&y, &shape], vec![], "colour.blend.folded"); // [B*D*V, C_0, th, tw]
+        let mut ch = c0;
+        for i in 1..=last {
+            let cout = self.blend_width(pool, i);
+            y = self.conv(&y, &format!("colour.blend.{i}"), (ch, cout), (1, 1), [0; 4])?;
+            if i < last {
+                y = self.relu(&y);
+            }
+            ch = cout;
+        }
+        Ok(y)
     }
 
     /// Output channels of blend layer `i` (the last is the 1-channel logit).
