@@ -251,26 +251,22 @@ impl<'w> Graph<'w> {
     }
 
     fn const_i64(&mut self, values: &[i64], hint: &str) -> String {
-        let out = self.fresh(hint);
-        self.nodes.push(NodeProto {
-            input: vec![],
-            output: vec![out.clone()],
-            name: Some(format!("Constant/{out}")),
-            op_type: Some("Constant".into()),
-            attribute: vec![attr_tensor("value", i64_tensor(&out, values))],
-            ..Default::default()
-        });
-        out
+        self.constant(hint, |out| i64_tensor(out, values))
     }
 
     fn const_f32(&mut self, dims: &[usize], values: &[f32], hint: &str) -> String {
+        self.constant(hint, |out| f32_tensor(out, dims, values))
+    }
+
+    /// A `Constant` node holding `tensor(name)`; returns its output's name.
+    fn constant(&mut self, hint: &str, tensor: impl FnOnce(&str) -> TensorProto) -> String {
         let out = self.fresh(hint);
         self.nodes.push(NodeProto {
             input: vec![],
             output: vec![out.clone()],
             name: Some(format!("Constant/{out}")),
             op_type: Some("Constant".into()),
-            attribute: vec![attr_tensor("value", f32_tensor(&out, dims, values))],
+            attribute: vec![attr_tensor("value", tensor(&out))],
             ..Default::default()
         });
         out

@@ -3,9 +3,33 @@
 
 use super::{attr_int, attr_ints, attr_str, input_name, Graph};
 use crate::error::Result;
-use deepstereo_core::config::{Config, TowerConfig};
+use deepstereo_core::config::{Config, Conv, TowerConfig};
 
 impl Graph<'_> {
+    /// Valid `k x k` convolutions `prefix.{i}`, each followed by ReLU, on `x` of `cin`
+    /// channels.
+    pub(super) fn conv_relu_chain(
+        &mut self,
+        x: &str,
+        prefix: &str,
+        cin: usize,
+        convs: &[Conv],
+    ) -> Result<String> {
+        let (mut x, mut ch) = (x.to_string(), cin);
+        for (i, c) in convs.iter().enumerate() {
+            x = self.conv(
+                &x,
+                &format!("{prefix}.{i}"),
+                (ch, c.channels),
+                (c.kernel, c.kernel),
+                [0; 4],
+            )?;
+            x = self.relu(&x);
+            ch = c.channels;
+        }
+        Ok(x)
+    }
+
     /// `x[..., starts[i] .. starts[i] + tile[i] + extra, ...]` on `axes` (two of them), the
     /// tile size read from the graph: `narrow(axes[0], s0, th + extra).narrow(axes[1], s1, tw + extra)`.
     pub(super) fn crop_to_tile(
@@ -35,19 +59,8 @@ impl Graph<'_> {
         let rf = t.merge_reduction();
         let mut feats = Vec::with_capacity(t.levels);
         for (l, input) in inputs.iter().enumerate().take(t.levels) {
-            let mut x = input.clone();
-            let mut ch = cin;
-            for (i, c) in t.level_convs.iter().enumerate() {
-                x = self.conv(
-                    &x,
-                    &format!("{prefix}.levels.{l}.{i}"),
-                    (ch, c.channels),
-                    (c.kernel, c.kernel),
-                    [0; 4],
-                )?;
-                x = self.relu(&x);
-                ch = c.channels;
-            }
+            let mut x =
+                self.conv_relu_chain(input, &format!("{prefix}.levels.{l}"), cin, &t.level_convs)?;
             if l > 0 {
                 // upsample_nearest(x, 2^l): exact nearest with integer factors.
                 let s = (1u32 << l) as f32;
@@ -86,18 +99,12 @@ impl Graph<'_> {
                 &format!("{prefix}.concat"),
             )
         };
-        let mut ch = t.level_channels(cin) * t.levels;
-        for (i, c) in t.merge_convs.iter().enumerate() {
-            x = self.conv(
-                &x,
-                &format!("{prefix}.merge.{i}"),
-                (ch, c.channels),
-                (c.kernel, c.kernel),
-                [0; 4],
-            )?;
-            x = self.relu(&x);
-            ch = c.channels;
-        }
+        x = self.conv_relu_chain(
+            &x,
+            &format!("{prefix}.merge"),
+            t.level_channels(cin) * t.levels,
+            &t.merge_convs,
+        )?;
         Ok(x)
     }
 
