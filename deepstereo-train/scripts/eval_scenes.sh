@@ -1,4 +1,5 @@
-# The real evaluation scenes (never trained on) and the flags each is read with, as
+# The real evaluation scenes (never trained on; the six object and outdoor captures of
+# the README's table, then the forward-facing val/room) and the flags each is read with, as
 # "DIR|FLAGS", and the procedural evaluation scenes: sourced by eval_default.sh,
 # eval_views.sh, prune_eval.sh, bench_render.sh, tune_curves.sh and mpi_eval.sh after
 # they cd to the repository root (../shared/data beside it).
@@ -10,6 +11,7 @@ EVAL_SCENES=(
   "$DATA/fox|--downscale 4"
   "$DATA/templeRing|--downscale 2"
   "$DATA/ethiopianHead|--downscale 4"
+  "$DATA/val/room|"
 )
 
 # The first N (default 2) procedural evaluation scenes, of a seed no run trains on

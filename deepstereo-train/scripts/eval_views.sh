@@ -6,15 +6,16 @@
 # per run into OUT and prints a markdown table and the checks of "more views help"
 # (python3, stdlib only). Runs already in OUT are kept (rerun to continue).
 # Usage: bash deepstereo-train/scripts/eval_views.sh MODEL [OUT] [BASE]
-#        ONLY=base|model restricts the runs to one of the two models; BASE_VIEWS (default
-#        "2 4 8 10") the base's view counts; EXTRA flags for every run (e.g. "--planes
+#        ONLY=base|model restricts the runs to one of the two models; MODEL_VIEWS and
+#        BASE_VIEWS (default "2 4 8 10") the model's and the base's view counts; EXTRA flags for every run (e.g. "--planes
 #        64"; give each EXTRA its own OUT).
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 MODEL="${1:?usage: eval_views.sh MODEL [OUT] [BASE]}"
 OUT="${2:-/tmp/deepstereo-views}"
 BASE="${3:-embedded}"
-VIEWS=(2 4 8 10)
+# shellcheck disable=SC2206
+VIEWS=(${MODEL_VIEWS:-2 4 8 10})
 # shellcheck source=eval_scenes.sh
 source deepstereo-train/scripts/eval_scenes.sh
 BIN=target/release/deepstereo
