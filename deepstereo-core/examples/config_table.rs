@@ -4,7 +4,13 @@
 use deepstereo_core::config::Config;
 
 fn main() {
-    for cfg in [Config::tiny(), Config::nviews(), Config::paper()] {
+    for cfg in [
+        Config::tiny(),
+        Config::nviews(),
+        Config::nviews_disagree(),
+        Config::nviews_features(),
+        Config::paper(),
+    ] {
         println!(
             "\n**{}**: {} views, {} planes, {} levels, {}x{} output tile from {}x{} level-0 input; \
              receptive field {} px; {} parameters; {:.2} M multiply-adds per output pixel\n",

@@ -68,7 +68,7 @@ fn every_seed_is_valid() {
 #[test]
 fn parameter_count_is_exact() {
     use deepstereo_core::config::Config;
-    for cfg in [Config::tiny(), Config::paper()] {
+    for cfg in Config::PRESETS.iter().filter_map(|n| Config::preset(n)) {
         let t = deepstereo_core::weights::init(&cfg, &candle_core::Device::Cpu).expect("init");
         let n: usize = deepstereo_core::weights::named_vars(&t.varmap)
             .iter()

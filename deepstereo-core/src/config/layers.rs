@@ -70,6 +70,9 @@ impl Config {
     pub fn layers(&self) -> Vec<LayerInfo> {
         let mut out = Vec::new();
         if let Some(pool) = &self.pool {
+            if let Some(f) = &pool.features {
+                self.feature_layers(f, &mut out);
+            }
             self.encoder_layers(pool, &mut out);
         }
         for (name, tower) in [("select", &self.select), ("colour", &self.colour)] {
@@ -83,12 +86,52 @@ impl Config {
         out
     }
 
+    /// The features family's per-source CNN: run once on each source image at every level,
+    /// so per output pixel it costs the default `views` times `sum_l 4^-l` of its
+    /// multiply-adds per source pixel, whatever the planes.
+    fn feature_layers(&self, f: &SourceFeatures, out: &mut Vec<LayerInfo>) {
+        let share: f64 = (0..self.levels).map(|l| 0.25f64.powi(l as i32)).sum();
+        let mut ch = 3;
+        for (i, conv) in f.convs.iter().enumerate() {
+            let macs = (conv.kernel * conv.kernel * ch * conv.channels) as f64;
+            let name = format!("features.{i}");
+            out.push(LayerInfo::new(
+                name,
+                *conv,
+                ch,
+                self.tile,
+                macs * share * self.views as f64,
+            ));
+            ch = conv.channels;
+        }
+    }
+
     /// The pool's per-view encoder, on every level's whole input, each of the default
     /// `views` views.
     fn encoder_layers(&self, pool: &ViewPool, out: &mut Vec<LayerInfo>) {
         let t = self.tile;
         let (d, area) = (self.planes as f64, (t * t) as f64);
         let pixels: usize = (0..self.levels).map(|l| self.input_size(l, t).pow(2)).sum();
+        // The cue's view weights (`views.weigh.*`): hidden layers, then one channel.
+        let weigh = pool.weigh.iter().flatten().copied();
+        let mut ch = pool.cue_channels();
+        for (i, conv) in weigh
+            .chain(pool.weigh.as_ref().map(|_| Conv {
+                kernel: 1,
+                channels: 1,
+            }))
+            .enumerate()
+        {
+            let macs = (pixels * ch * conv.channels * self.views) as f64;
+            out.push(LayerInfo::new(
+                format!("views.weigh.{i}"),
+                conv,
+                ch,
+                t,
+                macs * d / area,
+            ));
+            ch = conv.channels;
+        }
         let mut ch = pool.encoder_in();
         for (i, conv) in pool.encoder.iter().enumerate() {
             let macs = (pixels * ch * conv.channels * self.views) as f64;
