@@ -219,6 +219,9 @@ pub fn sample_map(map: &FeatureMap, coords: &[f64], planes: usize) -> Vec<f32> {
         height: map.height,
     };
     let mut out = vec![0.0f32; planes * f * p];
+    if out.is_empty() || plane == 0 {
+        return out;
+    }
     out.par_chunks_mut(f * p)
         .zip(coords.par_chunks(2 * p))
         .for_each(|(dst, xy)| {
@@ -265,7 +268,7 @@ impl FeatureWarp {
         let p = coords.len() / (2 * planes);
         let size = (img_w as i64, img_h as i64);
         let mut taps = Vec::with_capacity(planes * p);
-        for plane in coords.chunks_exact(2 * p) {
+        for plane in coords.chunks_exact(2 * p.max(1)) {
             let (us, vs) = plane.split_at(p);
             for (&u, &v) in us.iter().zip(vs) {
                 match taps_of(u, v, size, window) {
@@ -347,6 +350,9 @@ impl FeatureWarp {
     pub fn apply(&self, f: &[f32], channels: usize) -> Vec<f32> {
         let (p, plane) = (self.pixels(), self.window.width * self.window.height);
         let mut out = vec![0.0f32; self.planes * channels * p];
+        if out.is_empty() || plane == 0 {
+            return out;
+        }
         out.par_chunks_mut(p).enumerate().for_each(|(dc, dst)| {
             let (d, c) = (dc / channels, dc % channels);
             let src = &f[c * plane..(c + 1) * plane];
@@ -362,6 +368,9 @@ impl FeatureWarp {
     fn transpose(&self, dy: &[f32], channels: usize) -> Vec<f32> {
         let (p, plane) = (self.pixels(), self.window.width * self.window.height);
         let mut dx = vec![0.0f32; channels * plane];
+        if dx.is_empty() || p == 0 {
+            return dx;
+        }
         dx.par_chunks_mut(plane).enumerate().for_each(|(c, dst)| {
             for d in 0..self.planes {
                 let g = &dy[(d * channels + c) * p..][..p];

@@ -213,3 +213,27 @@ fn warp_gradient_matches_finite_differences() -> Result<()> {
     }
     Ok(())
 }
+
+/// Empty regions and empty maps give empty or zero outputs, not a panic.
+#[test]
+fn empty_regions_and_maps_are_not_a_panic() -> Result<()> {
+    let none = Window {
+        x0: 0,
+        y0: 0,
+        width: 0,
+        height: 0,
+    };
+    let op = FeatureWarp::new(&[], 2, (4, 4), none)?;
+    assert!(op.apply(&[], 3).is_empty());
+    let op = FeatureWarp::new(&[0.5, 0.5], 1, (0, 0), none)?; // one pixel, an empty image
+    assert_eq!(op.apply(&[], 2), vec![0.0; 2]);
+    let map = FeatureMap {
+        channels: 2,
+        width: 0,
+        height: 0,
+        data: vec![],
+    };
+    assert!(sample_map(&map, &[], 3).is_empty());
+    assert_eq!(sample_map(&map, &[1.0, 1.0], 1), vec![0.0; 2]);
+    Ok(())
+}

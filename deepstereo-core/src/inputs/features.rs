@@ -28,6 +28,9 @@ fn level_region(cfg: &Config, l: usize, (x0, y0): (i64, i64), (h, w): (usize, us
 
 /// View `k`'s coordinates `[D, 2, P]` out of the sweep's `[D, V, 2, P]`.
 fn view_coords(coords: &[f64], k: usize, views: usize, pixels: usize) -> Vec<f64> {
+    if pixels == 0 || views == 0 {
+        return Vec::new();
+    }
     coords
         .chunks_exact(2 * pixels)
         .skip(k)
