@@ -106,42 +106,36 @@ impl Config {
         }
     }
 
-    /// The pool's per-view encoder, on every level's whole input, each of the default
-    /// `views` views.
+    /// The pool's per-view layers, on every level's whole input, each of the default
+    /// `views` views: the cue's view weights (`views.weigh.*`: hidden layers, then one
+    /// channel), then the encoder.
     fn encoder_layers(&self, pool: &ViewPool, out: &mut Vec<LayerInfo>) {
+        let weigh = pool.weigh.iter().flatten().copied();
+        let one = pool.weigh.as_ref().map(|_| Conv {
+            kernel: 1,
+            channels: 1,
+        });
+        self.view_rows("views.weigh", weigh.chain(one), pool.cue_channels(), out);
+        let encoder = pool.encoder.iter().copied();
+        self.view_rows("views.encode", encoder, pool.encoder_in(), out);
+    }
+
+    /// The rows `{prefix}.{i}` of 1x1 layers `convs` on `ch` channels run per view and
+    /// plane on every level's whole input.
+    fn view_rows(
+        &self,
+        prefix: &str,
+        convs: impl Iterator<Item = Conv>,
+        mut ch: usize,
+        out: &mut Vec<LayerInfo>,
+    ) {
         let t = self.tile;
         let (d, area) = (self.planes as f64, (t * t) as f64);
         let pixels: usize = (0..self.levels).map(|l| self.input_size(l, t).pow(2)).sum();
-        // The cue's view weights (`views.weigh.*`): hidden layers, then one channel.
-        let weigh = pool.weigh.iter().flatten().copied();
-        let mut ch = pool.cue_channels();
-        for (i, conv) in weigh
-            .chain(pool.weigh.as_ref().map(|_| Conv {
-                kernel: 1,
-                channels: 1,
-            }))
-            .enumerate()
-        {
+        for (i, conv) in convs.enumerate() {
             let macs = (pixels * ch * conv.channels * self.views) as f64;
-            out.push(LayerInfo::new(
-                format!("views.weigh.{i}"),
-                conv,
-                ch,
-                t,
-                macs * d / area,
-            ));
-            ch = conv.channels;
-        }
-        let mut ch = pool.encoder_in();
-        for (i, conv) in pool.encoder.iter().enumerate() {
-            let macs = (pixels * ch * conv.channels * self.views) as f64;
-            out.push(LayerInfo::new(
-                format!("views.encode.{i}"),
-                *conv,
-                ch,
-                t,
-                macs * d / area,
-            ));
+            let name = format!("{prefix}.{i}");
+            out.push(LayerInfo::new(name, conv, ch, t, macs * d / area));
             ch = conv.channels;
         }
     }

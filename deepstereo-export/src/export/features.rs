@@ -56,21 +56,21 @@ pub fn build_features_model(
         .cloned()
         .collect();
     let mut g = Graph::bare(cfg, &own)?;
-    let mut x = "image".to_string();
-    let mut ch = 3;
-    for (i, c) in sf.convs.iter().enumerate() {
-        x = g.conv(
-            &x,
-            &format!("features.{i}"),
-            (ch, c.channels),
-            (c.kernel, c.kernel),
-            [0; 4],
-        )?;
-        if i + 1 < sf.convs.len() {
-            x = g.relu(&x);
-        }
-        ch = c.channels;
-    }
+    // ReLU after every layer but the last.
+    let (last, hidden) = sf
+        .convs
+        .split_last()
+        .ok_or_else(|| Error::Config("pool.features has no layer".into()))?;
+    let x = g.conv_relu_chain("image", "features", 3, hidden)?;
+    let ch = hidden.last().map_or(3, |c| c.channels);
+    let name = format!("features.{}", hidden.len());
+    let x = g.conv(
+        &x,
+        &name,
+        (ch, last.channels),
+        (last.kernel, last.kernel),
+        [0; 4],
+    )?;
     g.rename_output(&x, "features")?;
     g.check_all_weights_used()?;
     let graph = GraphProto {
