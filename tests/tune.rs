@@ -46,7 +46,14 @@ fn tune(scene: &Path, out: &Path, extra: &[&str]) -> CmdOutput {
 }
 
 fn tuned(scene: &Path, out: &Path) -> Vec<u8> {
-    let res = tune(scene, out, &["--llffhold", "4", "--steps", "4"]);
+    tuned_with(scene, out, &[])
+}
+
+/// A 4-step tune holding out every 4th view, with `extra` options.
+fn tuned_with(scene: &Path, out: &Path, extra: &[&str]) -> Vec<u8> {
+    let mut args = vec!["--llffhold", "4", "--steps", "4"];
+    args.extend_from_slice(extra);
+    let res = tune(scene, out, &args);
     assert_eq!(res.code, Some(0), "tune failed:\n{}", res.stderr);
     std::fs::read(out).expect("the tuned model")
 }
@@ -62,9 +69,11 @@ fn read_safetensors_metadata(path: &Path) -> serde_json::Map<String, serde_json:
         .clone()
 }
 
+/// Both phases run: the prior's steps, then the network's through it.
 fn held_out_noise_changes_nothing(auto_bounds: bool) {
     let dir = tempfile::tempdir().expect("tempdir");
     let s = scene(dir.path(), auto_bounds);
+    let tuned = |s: &Path, out: &Path| tuned_with(s, out, &["--network-share", "0.5"]);
     let a = tuned(&s, &dir.path().join("a.safetensors"));
     assert!(
         a == tuned(&s, &dir.path().join("again.safetensors")),
@@ -186,7 +195,8 @@ fn the_tuned_model_renders_and_names_its_tune() {
 }
 
 /// `--network-share`: 1 fine-tunes the network alone (no prior in the file), 0.5 both
-/// (the network's steps first), and each moves what it says.
+/// (the prior's steps first, then the network's through it), and each moves what it
+/// says.
 #[test]
 fn network_share_splits_the_steps() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -215,6 +225,10 @@ fn network_share_splits_the_steps() {
             if share == "1" { 4 } else { 2 },
             "share {share}"
         );
+        assert_eq!(t["network_through_prior"], prior, "share {share}: {t}");
+        if prior {
+            assert_eq!(t["prior_steps"], 2, "share {share}: {t}");
+        }
         // Without a prior the model renders at the planes it started with; with one, at
         // the planes chosen.
         let cfg: serde_json::Value =
@@ -271,14 +285,16 @@ fn render_planes_and_the_split_of_a_time_budget() {
         .expect("the prior's estimated time");
     assert!((0.0..=1.0).contains(&share) && need > 0.0, "{t}");
     assert_eq!(t["network_share_given"], false);
-    // The network runs when it has a share, after which the prior still runs.
-    assert_eq!(t["network_steps"].is_null(), share == 0.0, "{t}");
+    // The prior runs first; the network, when it runs, is tuned through its grid.
     assert!(t["prior_views"].as_u64().is_some_and(|v| v > 0), "{t}");
-    // The prior reads part of each view only when it runs alone and whole views do not
-    // fit in its time.
+    let through = !t["prior_sharpness"].is_null();
+    assert!(
+        t["network_steps"].is_null() || t["network_through_prior"] == through,
+        "{t}"
+    );
+    // The prior reads part of each view when whole views do not fit in its time.
     let view_share = t["prior_view_share"].as_f64().expect("a view share");
     assert!((0.25..=1.0).contains(&view_share), "{t}");
-    assert!(share == 0.0 || view_share == 1.0, "{t}");
 }
 
 #[test]

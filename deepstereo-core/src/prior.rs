@@ -20,6 +20,7 @@ use crate::error::{Error, Result};
 use glam::{DVec2, DVec3};
 use rayon::prelude::*;
 
+pub mod graph;
 pub mod io;
 
 /// The largest log-weight a cell may hold: `exp(12)` against `exp(-12)` is a ratio of

@@ -90,12 +90,12 @@ pub struct Args {
     /// Times of the curve, in minutes (those within the budget are drawn).
     #[arg(long, default_value = "0,1,2,5,10,20")]
     pub curve_minutes: String,
-    /// Share of the budget (time, or steps) spent first fine-tuning the network's
-    /// weights; the rest fits the scene prior (a world-space grid that reweighs the
-    /// network's selection, leaving the network as it is). 0: the prior alone; 1: the
-    /// network alone, without a prior. Default with --minutes: what the prior will not
-    /// need (one view rendered and a few fit steps timed first), nothing when that is
-    /// under 70% of the budget; with --steps: 0.
+    /// Share of the budget (time, or steps) for fine-tuning the network's weights, after
+    /// the scene prior (a world-space grid that reweighs the network's selection) is
+    /// fitted with the rest; the network is tuned through the fitted prior. 0: the prior
+    /// alone; 1: the network alone, without a prior. Default with --minutes: the prior
+    /// gets what it needs (one view rendered and a few fit steps timed first), at most
+    /// half, and the network the rest; with --steps: 0.
     #[arg(long, help_heading = super::args::EXPERT)]
     pub network_share: Option<f64>,
     /// Cells along the longest side of the scene prior's grid.
@@ -124,7 +124,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let (setup, data) = Setup::new(&a)?;
+    let setup = Setup::new(&a)?;
     let Setup {
         settings,
         budget,
@@ -137,11 +137,11 @@ pub fn run(a: Args) -> Result<()> {
     } = &setup;
     let shared = (scene, &validation[..], settings);
     let plan = plan(&a, *budget, start, shared)?;
-    let opts = setup.options(&a, &plan, &data)?;
+    let mut opts = setup.options(&a, &plan)?;
     eprintln!(
         "tuning {} on {} views ({} held out, {} set aside for validation), {} per tile; {}",
         a.input.model.name(),
-        data.cameras.len(),
+        scene.views.len(),
         holdout.len(),
         validation.len(),
         opts.views,
@@ -150,25 +150,33 @@ pub fn run(a: Args) -> Result<()> {
     let stop = crate::cmd::support::interrupt::graceful();
     let bar = progress_bar(!a.no_progress);
     let original = copy_weights(start)?;
-    let network = match plan.network {
-        Some(_) => Some(tune_network(start, data, validation, &opts, &stop, &bar)?),
-        None => None,
-    };
-    let interrupted = network.as_ref().is_some_and(|r| r.interrupted);
-    let prior = match plan.prior && !interrupted {
-        true => Some(run_prior(
-            &a,
-            &setup,
-            &plan,
-            (&opts, network.as_ref()),
-            (&stop, &bar),
-        )?),
+    let times = opts.snapshots.clone();
+    let prior = match plan.prior {
+        true => Some(run_prior(&a, &setup, &plan, &times, (&stop, &bar))?),
         false => None,
     };
-    bar.finish_and_clear();
-    // A grid no step improved on is the model as given: no prior is written.
+    // A grid no step improved on is the model as given: no prior is written, and the
+    // network is tuned without one.
     let improved = |p: &&SceneFit| p.fit.as_ref().is_some_and(|f| f.best_step > 0);
     let grid = prior.as_ref().filter(improved).and_then(|p| p.grid.clone());
+    let interrupted = prior.as_ref().is_some_and(|p| p.interrupted);
+    let from = plan.clock.elapsed().as_secs_f64();
+    let network = match plan.network_budget() {
+        Some(nb) if !interrupted => {
+            opts.budget = nb;
+            opts.snapshots = (times.iter())
+                .filter(|&&t| t > from)
+                .map(|t| t - from)
+                .collect();
+            let data = SceneData::from_scene(scene, cfg.levels)?;
+            let g = grid.as_ref();
+            Some(tune_network(
+                start, data, validation, &opts, g, &stop, &bar,
+            )?)
+        }
+        _ => None,
+    };
+    bar.finish_and_clear();
     let (tuned_cfg, choice) = tuned_config(&a, &setup, &plan, grid.as_ref(), &original)?;
     let outcome = Outcome {
         network: network.as_ref(),
@@ -191,8 +199,13 @@ pub fn run(a: Args) -> Result<()> {
         plan.clock.elapsed().as_secs_f64()
     );
     if let Some(dir) = &a.curve {
-        let (net, pri) = (network.as_ref(), prior.as_ref());
-        let snaps = curve_snapshots(&opts, *budget, start, net, pri, grid.as_ref())?;
+        let phases = Phases {
+            original: &original,
+            prior: prior.as_ref(),
+            network: network.as_ref().map(|r| (r, from)),
+            written: grid.as_ref(),
+        };
+        let snaps = curve_snapshots(&times, *budget, start, &phases)?;
         write_curve(dir, &a, (cfg, &tuned_cfg), &snaps, holdout, settings)?;
     }
     Ok(())
@@ -234,7 +247,7 @@ struct Setup {
 
 impl Setup {
     /// The setup, and the scene's images for the network's tune.
-    fn new(a: &Args) -> Result<(Self, SceneData)> {
+    fn new(a: &Args) -> Result<Self> {
         let settings = a.input.model.settings()?;
         let budget = match (a.minutes, a.steps) {
             (Some(m), None) if m.is_finite() && m > 0.0 => Budget::Seconds(m * 60.0),
@@ -263,13 +276,12 @@ impl Setup {
         if a.curve.is_some() && holdout.is_empty() {
             bail!("--curve scores held-out views: pass --llffhold N or --holdout I,J,...");
         }
-        let data = SceneData::from_scene(&scene, cfg.levels)?;
-        let validation = validation_views(data.cameras.len());
+        let validation = validation_views(scene.views.len());
         // The config a model with a prior is written with, checked before anything runs.
         if let Some(p) = a.render_planes {
             with_render_planes(&cfg, p)?;
         }
-        let setup = Self {
+        Ok(Self {
             settings,
             budget,
             curve_minutes,
@@ -278,14 +290,17 @@ impl Setup {
             scene,
             holdout,
             validation,
-        };
-        Ok((setup, data))
+        })
     }
 
-    /// The network's tuning options under `plan`, checked; `--curve`'s directory made.
-    fn options(&self, a: &Args, plan: &Plan, data: &SceneData) -> Result<TuneOptions> {
+    /// The network's tuning options under `plan` (its budget set when it starts),
+    /// checked; `--curve`'s directory made.
+    fn options(&self, a: &Args, plan: &Plan) -> Result<TuneOptions> {
         let opts = TuneOptions {
-            budget: plan.network.unwrap_or(Budget::Steps(1)),
+            budget: match plan.network {
+                NetworkPlan::Steps(n) => Budget::Steps(n),
+                _ => Budget::Steps(1),
+            },
             seed: a.seed,
             lr: a.lr,
             lr_final: a.lr_final,
@@ -296,7 +311,8 @@ impl Setup {
             val_batches: a.val_batches,
             snapshots: self.curve_minutes.iter().map(|m| m * 60.0).collect(),
         };
-        crate::tuning::check(&opts, data)?;
+        let name = self.scene.root.display().to_string();
+        crate::tuning::check(&opts, &name, self.scene.views.len())?;
         if let Some(dir) = &a.curve {
             std::fs::create_dir_all(dir).with_context(|| {
                 format!("--curve {}: cannot create the directory", dir.display())
@@ -306,33 +322,32 @@ impl Setup {
     }
 }
 
-/// The scene prior's fit for what is left of the budget after the network's tune.
+/// The scene prior's fit, first: all views and its share of the steps, or until the
+/// plan's time for it; curve snapshots at `times` (seconds on the plan's clock).
 fn run_prior(
     a: &Args,
     setup: &Setup,
     plan: &Plan,
-    (opts, network): (&TuneOptions, Option<&TuneResult>),
+    times: &[f64],
     (stop, bar): (&AtomicBool, &indicatif::ProgressBar),
 ) -> Result<SceneFit> {
     let mut po = prior_options(a);
     po.view_share = plan.view_share;
-    let pb = match setup.budget {
-        Budget::Steps(s) => {
-            po.steps = (s - plan.network.map_or(0, steps_of)) as usize;
+    let now = plan.clock.elapsed().as_secs_f64();
+    let pb = match (setup.budget, plan.prior_until) {
+        (Budget::Steps(_), _) | (_, None) => {
+            po.steps = plan.prior_steps;
             PriorBudget::AllViews
         }
-        Budget::Seconds(b) => {
-            PriorBudget::Seconds(b - plan.clock.elapsed().as_secs_f64() - plan.reserve)
-        }
+        (Budget::Seconds(_), Some(until)) => PriorBudget::Seconds(until - now),
     };
-    let offset = network.map_or(0.0, |r| r.seconds);
     let phase = PriorPhase {
         scene: &setup.scene,
         validation: &setup.validation,
         settings: &setup.settings,
         opts: po,
         budget: pb,
-        snapshots: (&opts.snapshots, offset),
+        snapshots: (times, now),
     };
     phase.run(&setup.start, stop, bar)
 }
@@ -367,6 +382,7 @@ fn provenance(
         "prior_view_share": plan.view_share,
         "network_steps": o.network.map(|r| r.steps),
         "network_best_step": o.network.map(|r| r.best_step),
+        "network_through_prior": o.network.map(|_| o.grid.is_some()),
         "prior_views": o.prior.map(|p| p.views),
         "prior_steps": fit.map(|f| f.steps),
         "prior_best_step": fit.map(|f| f.best_step),
@@ -436,17 +452,30 @@ impl PriorPhase<'_> {
     }
 }
 
-/// How the budget is spent.
+/// The network's fine-tune, after the prior.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum NetworkPlan {
+    None,
+    /// Exactly this many steps.
+    Steps(u64),
+    /// Until this many seconds on the plan's clock, less the planes choice's reserve.
+    Until(f64),
+}
+
+/// How the budget is spent: the prior first, then the network through it.
 struct Plan {
-    /// The network's fine-tune (`None`: it does not run).
-    network: Option<Budget>,
-    /// Whether the prior is fitted after it.
+    /// Whether the prior is fitted.
     prior: bool,
-    /// The network's share of the budget.
+    /// With a time budget, the second on the clock by which the prior ends.
+    prior_until: Option<f64>,
+    /// With a budget of steps, the prior's fit steps.
+    prior_steps: usize,
+    network: NetworkPlan,
+    /// The network's share of the budget (planned; with a time budget, estimated).
     share: f64,
     /// The prior's estimated time (measured with a time budget).
     need: Option<PriorNeed>,
-    /// Seconds kept for choosing the render planes after the prior.
+    /// Seconds kept for choosing the render planes after both.
     reserve: f64,
     /// The share of each view's tiles the prior reads ([`plan::view_share`]).
     view_share: f64,
@@ -455,12 +484,38 @@ struct Plan {
 }
 
 impl Plan {
+    /// The network's budget when it starts now (`None`: it does not run).
+    fn network_budget(&self) -> Option<Budget> {
+        match self.network {
+            NetworkPlan::None => None,
+            NetworkPlan::Steps(n) => Some(Budget::Steps(n)),
+            NetworkPlan::Until(end) => {
+                let left = end - self.clock.elapsed().as_secs_f64();
+                let t = plan::network_seconds(left, self.reserve);
+                (t > 0.0).then_some(Budget::Seconds(t))
+            }
+        }
+    }
+
     /// A line for people: what runs, for how long.
     fn describe(&self) -> String {
+        let prior = match (self.prior, self.prior_until) {
+            (false, _) => None,
+            (true, Some(until)) => Some(format!("the scene prior for about {until:.0} s")),
+            (true, None) => Some(format!("the scene prior ({} fit steps)", self.prior_steps)),
+        };
         let net = match self.network {
-            None => "the scene prior alone".to_string(),
-            Some(Budget::Seconds(t)) => format!("the network for {t:.0} s"),
-            Some(Budget::Steps(n)) => format!("the network for {n} steps"),
+            NetworkPlan::None => None,
+            NetworkPlan::Steps(n) => Some(format!("the network for {n} steps")),
+            NetworkPlan::Until(end) => {
+                Some(format!("the network until {:.0} s", end - self.reserve))
+            }
+        };
+        let what = match (prior, net) {
+            (Some(p), Some(n)) => format!("{p}, then {n} through it"),
+            (Some(p), None) => format!("{p} alone"),
+            (None, Some(n)) => format!("{n} alone"),
+            (None, None) => "nothing".to_string(),
         };
         let need = self.need.map_or(String::new(), |n| {
             let share = match self.view_share < 1.0 {
@@ -474,10 +529,7 @@ impl Plan {
                 n.per_view
             )
         });
-        match (self.network.is_some(), self.prior) {
-            (true, true) => format!("{net}, then the scene prior{need}"),
-            _ => format!("{net}{need}"),
-        }
+        format!("{what}{need}")
     }
 }
 
@@ -492,8 +544,9 @@ fn check_split(a: &Args) -> Result<()> {
     prior_options(a).check()
 }
 
-/// Splits the budget: `--network-share` as given, or (with a time budget) what the
-/// prior will not need, measured on the scene ([`crate::tuning::plan`]).
+/// Splits the budget between the prior, first, and the network through it:
+/// `--network-share` as given, or (with a time budget) what the prior needs, measured
+/// on the scene, up to [`plan::MAX_PRIOR_SHARE`] ([`crate::tuning::plan`]).
 fn plan(
     a: &Args,
     budget: Budget,
@@ -527,34 +580,48 @@ fn plan(
         }
         _ => 0.0,
     };
-    // The network's share, and the share of each view the prior reads when it runs alone.
-    let (share, view_share) = match (a.network_share, budget, need) {
-        (Some(f), _, _) => (f, 1.0),
-        (None, Budget::Seconds(b), Some(n)) => {
-            let left = b - clock.elapsed().as_secs_f64();
-            let t = plan::network_seconds(left, n.seconds(), reserve);
-            if t > 0.0 {
-                (t / b, 1.0)
-            } else {
-                (0.0, plan::view_share(&n, left - reserve))
-            }
-        }
-        _ => (0.0, 1.0),
-    };
-    let network = match budget {
-        Budget::Steps(s) => Some(Budget::Steps((s as f64 * share).round() as u64)),
-        Budget::Seconds(t) => Some(Budget::Seconds(t * share)),
-    }
-    .filter(|b| !matches!(b, Budget::Steps(0)) && *b != Budget::Seconds(0.0));
-    Ok(Plan {
-        network,
+    let mut p = Plan {
         prior,
-        share,
+        prior_until: None,
+        prior_steps: 0,
+        network: NetworkPlan::None,
+        share: a.network_share.unwrap_or(0.0),
         need,
         reserve,
-        view_share,
+        view_share: 1.0,
         clock,
-    })
+    };
+    match (budget, need) {
+        (Budget::Steps(s), _) => {
+            let n = (s as f64 * p.share).round() as u64;
+            p.prior_steps = (s - n) as usize;
+            p.prior &= p.prior_steps > 0;
+            p.network = if n > 0 {
+                NetworkPlan::Steps(n)
+            } else {
+                NetworkPlan::None
+            };
+        }
+        (Budget::Seconds(b), need) => {
+            let now = clock.elapsed().as_secs_f64();
+            let left = b - now;
+            let secs = match (a.network_share, need) {
+                (Some(f), _) => (1.0 - f) * (left - reserve).max(0.0),
+                (None, Some(n)) => plan::prior_seconds(left, n.seconds(), reserve),
+                (None, None) => 0.0,
+            };
+            if let Some(n) = need {
+                p.view_share = plan::view_share(&n, secs);
+            }
+            p.prior_until = Some(now + secs);
+            p.share = ((left - reserve - secs) / b).max(0.0);
+            p.network = match a.network_share {
+                Some(0.0) => NetworkPlan::None,
+                _ => NetworkPlan::Until(b),
+            };
+        }
+    }
+    Ok(p)
 }
 
 fn prior_options(a: &Args) -> PriorOptions {

@@ -23,6 +23,7 @@ pub mod pairs;
 mod sample;
 pub use pairs::MpiPairs;
 use pairs::{sample_pair, PairSample};
+pub use sample::TileRef;
 use sample::{aligned_offset, patch, pick_scene, sample, Sample};
 #[cfg(test)]
 use sample::{augment_planes, luminance_std};
@@ -186,6 +187,8 @@ pub struct Batch {
     /// warps; `levels` then leave the features out (`C_v - F` channels), and the training
     /// graph appends them ([`crate::training::batch_tensors`]).
     pub warps: Option<Vec<TileWarps>>,
+    /// Where each sample's tile is (empty for MPI pair batches), for a scene prior.
+    pub tiles: Vec<TileRef>,
 }
 
 /// The MPI part of a batch ([`pairs`]).
@@ -366,6 +369,7 @@ pub fn make_batch(
         .iter()
         .flat_map(|s| s.target.iter().copied())
         .collect();
+    let tiles = samples.iter().map(|s| s.tile.clone()).collect();
     let warps = samples
         .into_iter()
         .map(|s| s.warps)
@@ -379,6 +383,7 @@ pub fn make_batch(
         target_shape: [batch, 3, t, t],
         mpi: None,
         warps,
+        tiles,
     })
 }
 
@@ -419,6 +424,7 @@ fn pair_batch(
             pixels: th * tw,
         }),
         warps: None,
+        tiles: Vec::new(),
     })
 }
 

@@ -16,18 +16,21 @@
 
 pub mod plan;
 pub mod prior;
+pub mod through;
 
 use crate::training::data::{
     make_batch, spawn_loader, Batch, Sampling, SceneData, VALIDATION_SALT,
 };
 use crate::training::optim::{Optimizer, OptimizerKind};
-use crate::training::{batch_tensors, validate, Loss};
+use crate::training::Loss;
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor, Var};
+use deepstereo_core::prior::PriorGrid;
 use deepstereo_core::weights::{named_vars, Trainable};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
+use through::{render_batch, validate_through};
 
 /// The fewest views a scene must keep for tuning (two to train on, one to validate).
 pub const MIN_TUNE_VIEWS: usize = 3;
@@ -116,8 +119,9 @@ pub fn lr_at(opts: &TuneOptions, p: f64) -> f64 {
     opts.lr * (f + (1.0 - f) * 0.5 * (1.0 + (std::f64::consts::PI * p).cos()))
 }
 
-/// Checks the options and the scene before anything runs.
-pub fn check(opts: &TuneOptions, scene: &SceneData) -> Result<()> {
+/// Checks the options and the scene (named `name`, of `views` views) before anything
+/// runs.
+pub fn check(opts: &TuneOptions, name: &str, views: usize) -> Result<()> {
     match opts.budget {
         Budget::Steps(0) => bail!("--steps must be at least 1"),
         Budget::Seconds(s) if !(s.is_finite() && s > 0.0) => {
@@ -134,27 +138,27 @@ pub fn check(opts: &TuneOptions, scene: &SceneData) -> Result<()> {
     if !(opts.lr_final.is_finite() && opts.lr_final > 0.0 && opts.lr_final <= 1.0) {
         bail!("--lr-final must be in (0, 1]");
     }
-    if scene.cameras.len() < MIN_TUNE_VIEWS {
+    if views < MIN_TUNE_VIEWS {
         bail!(
-            "{}: {} views are left for tuning; tuning needs at least {MIN_TUNE_VIEWS} (hold out fewer)",
-            scene.name,
-            scene.cameras.len()
+            "{name}: {views} views are left for tuning; tuning needs at least {MIN_TUNE_VIEWS} (hold out fewer)"
         );
     }
     Ok(())
 }
 
 /// Tunes `t`'s weights on `scene` in place (they end as the best weights found).
-/// `validation` are the scene's views set aside (never targets, still sources).
+/// `validation` are the scene's views set aside (never targets, still sources). With
+/// `prior`, every tile is rendered through it ([`through`]), the prior fixed.
 pub fn tune(
     t: &Trainable,
     mut scene: SceneData,
     validation: &[usize],
     opts: &TuneOptions,
+    prior: Option<&PriorGrid>,
     stop: Arc<AtomicBool>,
     mut progress: impl FnMut(&Progress),
 ) -> Result<TuneResult> {
-    check(opts, &scene)?;
+    check(opts, &scene.name, scene.cameras.len())?;
     let cfg = t.model.config();
     let (val, train_sampling) = split_scene(cfg, &mut scene, validation, opts)?;
     let device = Device::Cpu;
@@ -170,7 +174,7 @@ pub fn tune(
         2,
     );
     let t0 = Instant::now();
-    let first = validate(&t.model, &val, &device)?;
+    let first = validate_through(&t.model, &val, prior, &device)?;
     let mut run = Run {
         best: copy(&vars)?,
         best_step: 0,
@@ -196,12 +200,12 @@ pub fn tune(
             break;
         }
         let batch = rx.recv().context("the sample loader stopped")??;
-        let loss_v = train_step(t, &mut opt, &batch, &device, lr_at(opts, share))?;
+        let loss_v = train_step(t, &mut opt, (&batch, prior), &device, lr_at(opts, share))?;
         step += 1;
         let last = opts.budget.spent(step, t0.elapsed().as_secs_f64());
         let mut val_psnr = None;
         if step.is_multiple_of(opts.validate_every) || last {
-            let psnr = validate(&t.model, &val, &device)?;
+            let psnr = validate_through(&t.model, &val, prior, &device)?;
             run.record(&vars, step, t0.elapsed().as_secs_f64(), psnr)?;
             val_psnr = Some(psnr);
         }
@@ -250,18 +254,17 @@ fn split_scene(
     Ok((val, train_sampling))
 }
 
-/// One Adam step on `batch` at rate `lr` (none where the loss or the gradient norm is not
-/// finite); the L1 loss.
+/// One Adam step on `batch` (through `prior`) at rate `lr` (none where the loss or the
+/// gradient norm is not finite); the L1 loss.
 fn train_step(
     t: &Trainable,
     opt: &mut Optimizer,
-    batch: &Batch,
+    (batch, prior): (&Batch, Option<&PriorGrid>),
     device: &Device,
     lr: f64,
 ) -> Result<f64> {
-    let (x, y) = batch_tensors(&t.model, batch, device)?;
-    let pred = x.forward(&t.model)?;
-    let loss = Loss::L1.of(&pred.image, &y)?;
+    let (image, y) = render_batch(&t.model, batch, prior, device, false)?;
+    let loss = Loss::L1.of(&image, &y)?;
     let loss_v = loss.to_scalar::<f32>()? as f64;
     let grads = loss.backward()?;
     let gnorm = opt.grad_norm(&grads)?;

@@ -2,17 +2,17 @@
 //! fine-tuning the network and fitting the scene prior, and how many depth planes the
 //! tuned model renders at.
 //!
-//! - **The split.** The prior reads every tuning view once (one render of its layers
-//!   each) and then fits; on a scene with few views that ends long before the budget.
-//!   The network gets what the prior will not need: `budget - need - reserve`, where
-//!   `need` is [`PriorNeed::seconds`] (one view rendered and a few fit steps timed) and
-//!   `reserve` the time the planes choice below takes; nothing when that is under
-//!   [`MIN_NETWORK_SHARE`] of the budget. A short fine-tune before the prior lost to the
-//!   prior alone on the scenes whose views take most of the budget to read (stitch,
-//!   fox; docs/results.md), and gained on the rings, whose few views leave it 75-80%.
-//! - **The reading.** When the prior runs alone and reading its views whole would not
-//!   end within the budget, it reads [`view_share`] of each view's tiles, so that every
-//!   view is read, each less densely.
+//! - **The split.** The prior runs first: it reads every tuning view once (one render of
+//!   its layers each) and then fits; its held-out gain flattens well before 10 minutes
+//!   (297-524 s of 600 on the evaluation scenes; docs/results.md). It gets what it needs,
+//!   `need` ([`PriorNeed::seconds`]: one view rendered and a few fit steps timed), at
+//!   most [`MAX_PRIOR_SHARE`] of the budget less `reserve` (the time the planes choice
+//!   below takes). The network then fine-tunes through the fitted prior, fixed, for the
+//!   rest ([`crate::tuning::through`]); nothing when that is under
+//!   [`MIN_NETWORK_SECONDS`].
+//! - **The reading.** When reading its views whole would not end within the prior's
+//!   time, it reads [`view_share`] of each view's tiles, so that every view is read,
+//!   each less densely.
 //! - **The planes.** A prior sharpens the selection, so pruning runs fewer planes and a
 //!   tuned model can afford more of them at the cost of the model it started from. The
 //!   work of a render is the planes times the pixels the network ran on and a fixed
@@ -29,11 +29,29 @@ use deepstereo_core::render::Backend;
 use deepstereo_core::scene::Scene;
 use std::time::Instant;
 
-/// The smallest share of a time budget worth giving the network (below it, the prior
-/// alone runs): with 26-54% of 10 minutes the network's fine-tune before the prior
-/// scored 0.0-0.6 dB below the prior alone on three scenes; with 75-80% it gained on
-/// the rings (docs/results.md).
-pub const MIN_NETWORK_SHARE: f64 = 0.7;
+/// The largest share of a time budget (less the planes choice's reserve) the prior
+/// gets before the network's fine-tune through it.
+pub const MAX_PRIOR_SHARE: f64 = 0.5;
+
+/// The fewest seconds worth a network fine-tune after the prior (a few validations).
+pub const MIN_NETWORK_SECONDS: f64 = 30.0;
+
+/// Seconds the prior gets of `left` seconds when it needs `need` and `reserve` is kept
+/// for the planes choice: `min(need, MAX_PRIOR_SHARE * (left - reserve))`, at least 0.
+pub fn prior_seconds(left: f64, need: f64, reserve: f64) -> f64 {
+    need.min(MAX_PRIOR_SHARE * (left - reserve)).max(0.0)
+}
+
+/// Seconds the network fine-tunes with `left` seconds of the budget when `reserve` is
+/// kept: the rest, or 0 when that is under [`MIN_NETWORK_SECONDS`].
+pub fn network_seconds(left: f64, reserve: f64) -> f64 {
+    let rest = left - reserve;
+    if rest >= MIN_NETWORK_SECONDS {
+        rest
+    } else {
+        0.0
+    }
+}
 
 /// The network's fixed cost per block run, in plane-pixels. On the 2-core VM the
 /// network's seconds over the 24 renders of the side-by-side table in docs/results.md
@@ -49,23 +67,11 @@ pub const CALL_COST: f64 = 5000.0;
 /// time reserve.
 const CHOICE_RENDERS: f64 = 4.0;
 
-/// Seconds the network fine-tunes within a budget of `budget` seconds when the prior
-/// needs `need` and `reserve` is kept for what follows it: the rest, or 0 when the rest
-/// is under [`MIN_NETWORK_SHARE`] of the budget.
-pub fn network_seconds(budget: f64, need: f64, reserve: f64) -> f64 {
-    let rest = budget - need - reserve;
-    if rest >= MIN_NETWORK_SHARE * budget {
-        rest
-    } else {
-        0.0
-    }
-}
-
 /// The least share of each view's tiles [`view_share`] reads.
 pub const MIN_VIEW_SHARE: f64 = 0.25;
 
-/// The share of each view's tiles the prior reads when it runs alone in `seconds`: 1
-/// when reading every view whole and fitting fit in them, else the share at which they
+/// The share of each view's tiles the prior reads in `seconds`: 1 when reading every
+/// view whole and fitting fit in them, else the share at which they
 /// do (at least [`MIN_VIEW_SHARE`]). The prior keeps a few thousand rays of a view of
 /// hundreds of thousands of pixels, so a part of each view serves it: on moldgoldcape
 /// (99 views at 7.5 s for 10 minutes) it read all 96 of its views at 44% instead of 55
@@ -192,12 +198,14 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_network_gets_what_the_prior_leaves() {
-        assert_eq!(network_seconds(600.0, 100.0, 20.0), 480.0);
-        // Under 70% of the budget left: the prior alone.
-        assert_eq!(network_seconds(600.0, 250.0, 0.0), 0.0);
-        assert_eq!(network_seconds(600.0, 900.0, 10.0), 0.0);
-        assert_eq!(network_seconds(600.0, 170.0, 10.0), 420.0);
+    fn the_prior_gets_its_need_up_to_half_and_the_network_the_rest() {
+        assert_eq!(prior_seconds(600.0, 100.0, 20.0), 100.0);
+        assert_eq!(prior_seconds(600.0, 900.0, 20.0), 290.0);
+        assert_eq!(prior_seconds(10.0, 100.0, 20.0), 0.0);
+        assert_eq!(network_seconds(480.0, 20.0), 460.0);
+        // Under MIN_NETWORK_SECONDS left: no fine-tune.
+        assert_eq!(network_seconds(45.0, 20.0), 0.0);
+        assert_eq!(network_seconds(10.0, 20.0), 0.0);
     }
 
     #[test]

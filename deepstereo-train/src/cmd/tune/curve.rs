@@ -6,45 +6,59 @@ use super::*;
 /// A curve time, the network's weights (in `named_vars` order) and the prior.
 pub(super) type Snapshot = (f64, Vec<Tensor>, Option<PriorGrid>);
 
-/// Per curve time: the network's weights and the prior that a tune stopped then would
-/// have written (`written`: the prior this one wrote).
+/// What the tune's phases left, for its curve.
+pub(super) struct Phases<'a> {
+    /// The network's weights before tuning (in `named_vars` order).
+    pub original: &'a [Tensor],
+    pub prior: Option<&'a SceneFit>,
+    /// The network's fine-tune and when it began (seconds on the tune's clock; its
+    /// snapshots' times are counted from there).
+    pub network: Option<(&'a TuneResult, f64)>,
+    /// The prior the model was written with (and the network tuned through).
+    pub written: Option<&'a PriorGrid>,
+}
+
+/// Per curve time of `times` (seconds on the tune's clock): the network's weights and the
+/// prior that a tune stopped then would have written.
 pub(super) fn curve_snapshots(
-    opts: &TuneOptions,
+    times: &[f64],
     budget: Budget,
     start: &deepstereo_core::weights::Trainable,
-    network: Option<&TuneResult>,
-    prior: Option<&SceneFit>,
-    written: Option<&PriorGrid>,
+    p: &Phases<'_>,
 ) -> Result<Vec<Snapshot>> {
     let now = copy_weights(start)?;
-    let net_end = network.map_or(0.0, |r| r.seconds);
-    let end = net_end + prior.map_or(0.0, |p| p.seconds);
+    let end = match (p.network, p.prior) {
+        (Some((r, from)), _) => from + r.seconds,
+        (None, Some(f)) => f.seconds,
+        (None, None) => 0.0,
+    };
     // A tune that read every view before its time was up ends with the model a longer
     // one would also write: the curve holds it up to the budget.
     let interrupted =
-        network.is_some_and(|r| r.interrupted) || prior.is_some_and(|p| p.interrupted);
+        p.network.is_some_and(|(r, _)| r.interrupted) || p.prior.is_some_and(|f| f.interrupted);
     let limit = match budget {
         Budget::Seconds(b) if !interrupted => b.max(end),
         _ => end,
     };
+    let original = p.original.to_vec();
     let mut out = Vec::new();
-    for &t in &opts.snapshots {
+    for &t in times {
         if t > limit + 1e-9 && t > 0.0 {
             continue;
         }
-        let from_prior = prior.and_then(|p| p.snapshots.iter().find(|(s, _)| *s == t));
-        let from_net = network.and_then(|r| r.snapshots.iter().find(|(s, _)| *s == t));
-        out.push(match (t, from_prior, from_net) {
-            (t, _, _) if t == 0.0 => (
-                t,
-                network
-                    .and_then(|r| r.snapshots.first())
-                    .map_or(now.clone(), |s| s.1.clone()),
-                None,
-            ),
-            (t, _, Some((_, w))) if t <= net_end => (t, w.clone(), None),
-            (t, Some((_, g)), _) => (t, now.clone(), Some(g.clone())),
-            (t, _, _) => (t, now.clone(), written.cloned()),
+        let from_prior = (p.prior.iter())
+            .flat_map(|f| f.snapshots.iter())
+            .find(|(s, _)| *s == t);
+        let from_net = p.network.filter(|(_, from)| t > *from).map(|(r, from)| {
+            (r.snapshots.iter())
+                .find(|(s, _)| (s - (t - from)).abs() < 1e-6)
+                .map_or(now.clone(), |s| s.1.clone())
+        });
+        out.push(match (t, from_net, from_prior) {
+            (t, _, _) if t == 0.0 => (t, original.clone(), None),
+            (t, Some(w), _) => (t, w, p.written.cloned()),
+            (t, None, Some((_, g))) => (t, original.clone(), Some(g.clone())),
+            (t, None, None) => (t, original.clone(), p.written.cloned()),
         });
     }
     Ok(out)

@@ -2,22 +2,25 @@
 
 use super::*;
 
-/// Fine-tunes the network's weights in place (they end as the best found).
+/// Fine-tunes the network's weights in place (they end as the best found), through
+/// `prior` when there is one.
 pub(super) fn tune_network(
     start: &deepstereo_core::weights::Trainable,
     data: SceneData,
     validation: &[usize],
     opts: &TuneOptions,
+    prior: Option<&PriorGrid>,
     stop: &Arc<AtomicBool>,
     bar: &indicatif::ProgressBar,
 ) -> Result<TuneResult> {
-    let r = tune(start, data, validation, opts, stop.clone(), |p| {
+    let r = tune(start, data, validation, opts, prior, stop.clone(), |p| {
         report(bar, p)
     })?;
     let first = r.validation.first().map_or(f64::NAN, |v| v.psnr);
     eprintln!(
-        "{}network: {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (the weights of step {})",
+        "{}network{}: {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (the weights of step {})",
         if r.interrupted { "interrupted: " } else { "" },
+        if prior.is_some() { " through the prior" } else { "" },
         r.steps,
         r.seconds,
         r.best_psnr(),
@@ -89,13 +92,6 @@ pub(super) fn pick_planes(
 /// Detached copies of a model's weights (in `named_vars` order).
 pub(super) fn copy_weights(t: &deepstereo_core::weights::Trainable) -> Result<Vec<Tensor>> {
     crate::tuning::copy(&named_vars(&t.varmap))
-}
-
-pub(super) fn steps_of(b: Budget) -> u64 {
-    match b {
-        Budget::Steps(s) => s,
-        Budget::Seconds(_) => 0,
-    }
 }
 
 /// A time budget's seconds; a budget of steps has no time limit.

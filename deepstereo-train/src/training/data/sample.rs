@@ -58,13 +58,19 @@ pub(super) fn sample(
         (x0 as u32, y0 as u32),
         (t, t),
     );
-    if sampling.augment {
-        augment(&mut inputs, warps.as_mut(), (&mut patch, t), &mut next);
-    }
+    let flipped =
+        sampling.augment && augment(&mut inputs, warps.as_mut(), (&mut patch, t), &mut next);
     Ok(Sample {
         levels: inputs.levels,
         target: patch,
         warps,
+        tile: TileRef {
+            camera: *cam,
+            inv_depths: inv,
+            origin: (x0 as usize, y0 as usize),
+            side: t,
+            flipped,
+        },
     })
 }
 
@@ -129,13 +135,14 @@ fn tile_parts(
 }
 
 /// Random exposure and white-balance gains on the inputs, the warps' colours and the
-/// target patch (of side `t`), and a horizontal flip (none with source features).
+/// target patch (of side `t`), and a horizontal flip (none with source features);
+/// whether it flipped.
 fn augment(
     inputs: &mut TileInputs,
     warps: Option<&mut TileWarps>,
     (patch, t): (&mut [f32], usize),
     next: &mut impl FnMut() -> u64,
-) {
+) -> bool {
     let unit = |r: u64| (r >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0;
     let exposure = (AUGMENT_EXPOSURE * unit(next())).exp();
     let gains: Vec<f32> = (0..3)
@@ -153,13 +160,30 @@ fn augment(
         augment_planes(data, (h * w, w, cycle), &gains, flip);
     }
     augment_planes(patch, (t * t, t, 3), &gains, flip);
+    flip
 }
 
-/// One sample: its input levels, target patch and, for the features family, warps.
+/// One sample: its input levels, target patch, where its tile is and, for the features
+/// family, warps.
 pub(super) struct Sample {
     pub(super) levels: Vec<Vec<f32>>,
     pub(super) target: Vec<f32>,
     pub(super) warps: Option<TileWarps>,
+    pub(super) tile: TileRef,
+}
+
+/// Where a sample's tile is: its target camera and planes, the tile's offset and side
+/// in the target view (level 0), and whether augmentation mirrored it (its inputs and
+/// target patch left-right). What a scene prior needs to reweigh the tile's selection.
+#[derive(Clone, Debug)]
+pub struct TileRef {
+    pub camera: Camera,
+    /// The planes' inverse depths, near to far.
+    pub inv_depths: Vec<f64>,
+    /// `(x0, y0)`, the tile's first pixel.
+    pub origin: (usize, usize),
+    pub side: usize,
+    pub flipped: bool,
 }
 
 /// A tile's offset along a side of `size` pixels from the random `r`: a multiple of `a`
