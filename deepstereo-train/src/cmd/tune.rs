@@ -170,8 +170,15 @@ pub fn run(a: Args) -> Result<()> {
                 .collect();
             let data = SceneData::from_scene(scene, cfg.levels)?;
             let g = grid.as_ref();
+            let span = Span(plan.share_at(*budget, from), 1.0);
             Some(tune_network(
-                start, data, validation, &opts, g, &stop, &bar,
+                start,
+                data,
+                validation,
+                &opts,
+                g,
+                &stop,
+                (&bar, span),
             )?)
         }
         _ => None,
@@ -348,6 +355,7 @@ fn run_prior(
         opts: po,
         budget: pb,
         snapshots: (times, now),
+        span: Span(0.0, plan.prior_end(setup.budget)),
     };
     phase.run(&setup.start, stop, bar)
 }
@@ -409,6 +417,8 @@ struct PriorPhase<'a> {
     budget: PriorBudget,
     /// Curve times (seconds of the whole tune) and the seconds already spent.
     snapshots: (&'a [f64], f64),
+    /// The part of the progress bar it fills.
+    span: Span,
 }
 
 impl PriorPhase<'_> {
@@ -432,7 +442,7 @@ impl PriorPhase<'_> {
             self.budget,
             self.snapshots,
             stop,
-            |p| report_prior(bar, p),
+            |p| report_prior(bar, p, self.span),
         )?;
         if let Some(f) = &r.fit {
             let first = f.validation.first().map_or(f64::NAN, |v| v.1);
@@ -484,6 +494,25 @@ struct Plan {
 }
 
 impl Plan {
+    /// The share of the whole tune (its progress bar) where the prior's phase ends.
+    fn prior_end(&self, budget: Budget) -> f64 {
+        match (budget, self.prior_until) {
+            _ if self.network == NetworkPlan::None => 1.0,
+            (Budget::Seconds(b), Some(until)) => until / b,
+            (Budget::Steps(s), _) => self.prior_steps as f64 / s as f64,
+            _ => 0.0,
+        }
+    }
+
+    /// The share of the whole tune at `seconds` on the clock (with a budget of steps,
+    /// where the prior's steps end).
+    fn share_at(&self, budget: Budget, seconds: f64) -> f64 {
+        match budget {
+            Budget::Seconds(b) => seconds / b,
+            Budget::Steps(_) => self.prior_end(budget),
+        }
+    }
+
     /// The network's budget when it starts now (`None`: it does not run).
     fn network_budget(&self) -> Option<Budget> {
         match self.network {

@@ -11,10 +11,10 @@ pub(super) fn tune_network(
     opts: &TuneOptions,
     prior: Option<&PriorGrid>,
     stop: &Arc<AtomicBool>,
-    bar: &indicatif::ProgressBar,
+    (bar, span): (&indicatif::ProgressBar, Span),
 ) -> Result<TuneResult> {
     let r = tune(start, data, validation, opts, prior, stop.clone(), |p| {
-        report(bar, p)
+        report(bar, p, span)
     })?;
     let first = r.validation.first().map_or(f64::NAN, |v| v.psnr);
     eprintln!(

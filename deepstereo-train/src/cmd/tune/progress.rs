@@ -15,8 +15,25 @@ pub(super) fn progress_bar(wanted: bool) -> indicatif::ProgressBar {
     bar
 }
 
-pub(super) fn report(bar: &indicatif::ProgressBar, p: &Progress) {
-    bar.set_position((p.share * 1000.0).round().clamp(0.0, 1000.0) as u64);
+/// The part of the progress bar a phase fills, from `.0` to `.1` (shares of the whole
+/// tune).
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Span(pub f64, pub f64);
+
+impl Span {
+    /// The share of the whole tune at a share `share` of the phase.
+    fn at(self, share: f64) -> f64 {
+        (self.0 + share.clamp(0.0, 1.0) * (self.1 - self.0)).clamp(0.0, 1.0)
+    }
+}
+
+fn set_share(bar: &indicatif::ProgressBar, share: f64) {
+    bar.set_position((share * 1000.0).round() as u64);
+}
+
+pub(super) fn report(bar: &indicatif::ProgressBar, p: &Progress, span: Span) {
+    let share = span.at(p.share);
+    set_share(bar, share);
     let val = p
         .val_psnr
         .map(|v| format!("  validation {v:.2} dB"))
@@ -32,14 +49,14 @@ pub(super) fn report(bar: &indicatif::ProgressBar, p: &Progress) {
                 p.step,
                 p.loss,
                 p.best_psnr,
-                p.share * 100.0
+                share * 100.0
             );
         }
     }
 }
 
-pub(super) fn report_prior(bar: &indicatif::ProgressBar, p: &PriorProgress) {
-    bar.set_position((p.share * 1000.0).round().clamp(0.0, 1000.0) as u64);
+pub(super) fn report_prior(bar: &indicatif::ProgressBar, p: &PriorProgress, span: Span) {
+    set_share(bar, span.at(p.share));
     let (read, total) = p.views;
     let msg = match p.val_psnr {
         Some(v) => format!("scene prior: fitting on {read} views, validation {v:.2} dB"),
