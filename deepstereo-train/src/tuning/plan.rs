@@ -78,7 +78,10 @@ pub const MIN_VIEW_SHARE: f64 = 0.25;
 /// whole, and its held-out views scored the same (docs/results.md), the scene covered by
 /// every view.
 pub fn view_share(need: &PriorNeed, seconds: f64) -> f64 {
-    need.share_within(seconds, MIN_VIEW_SHARE)
+    match seconds >= need.seconds() {
+        true => 1.0,
+        false => need.share_within(seconds, MIN_VIEW_SHARE),
+    }
 }
 
 /// Tuning views the planes choice renders besides the views set aside, each from the
