@@ -431,3 +431,70 @@ fn a_short_budget_reads_a_large_scene_at_a_lower_resolution() {
         res.stderr
     );
 }
+
+/// Ctrl-C while the network is tuned through the prior writes the best model so far:
+/// the fitted prior and the network's best weights, exit 0, nothing else in the folder.
+#[test]
+fn ctrl_c_in_the_networks_phase_writes_the_best_model() {
+    use std::io::{BufRead, BufReader};
+    use std::process::{Command, Stdio};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = scene(dir.path(), false);
+    let outdir = dir.path().join("out");
+    std::fs::create_dir(&outdir).expect("mkdir");
+    let out = outdir.join("tuned.safetensors");
+    let mut child = Command::new(deepstereo_bin())
+        .args(["tune", "--scene"])
+        .arg(&s)
+        .args(["--llffhold", "4", "--minutes", "5", "--network-share", "0.9"])
+        .args(["--batch", "2", "--val-batches", "1", "--validate-every", "2"])
+        .args(["--no-progress", "--out"])
+        .arg(&out)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn");
+    let mut lines = BufReader::new(child.stderr.take().expect("stderr")).lines();
+    let mut seen = String::new();
+    // The network's phase validates every 2 steps: interrupt at its second validation.
+    let mut steps = 0;
+    for line in lines.by_ref() {
+        let line = line.expect("a line");
+        seen += &line;
+        seen.push('\n');
+        if line.starts_with("step ") {
+            steps += 1;
+            if steps == 2 {
+                break;
+            }
+        }
+    }
+    assert_eq!(steps, 2, "the network's phase never validated:\n{seen}");
+    let ok = Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .is_ok_and(|st| st.success());
+    assert!(ok, "kill -INT");
+    for line in lines {
+        seen += &line.expect("a line");
+        seen.push('\n');
+    }
+    let status = child.wait().expect("wait");
+    assert_eq!(status.code(), Some(0), "{seen}");
+    assert!(
+        seen.contains("interrupted: network through the prior"),
+        "{seen}"
+    );
+    let meta = read_safetensors_metadata(&out);
+    assert!(meta.contains_key("deepstereo.prior"), "no prior written");
+    let t: serde_json::Value =
+        serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
+    assert_eq!(t["network_through_prior"], true, "{t}");
+    let left: Vec<_> = std::fs::read_dir(&outdir)
+        .expect("ls")
+        .flatten()
+        .map(|e| e.file_name())
+        .collect();
+    assert_eq!(left.len(), 1, "{left:?}");
+}
