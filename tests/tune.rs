@@ -446,8 +446,22 @@ fn ctrl_c_in_the_networks_phase_writes_the_best_model() {
     let mut child = Command::new(deepstereo_bin())
         .args(["tune", "--scene"])
         .arg(&s)
-        .args(["--llffhold", "4", "--minutes", "5", "--network-share", "0.9"])
-        .args(["--batch", "2", "--val-batches", "1", "--validate-every", "2"])
+        .args([
+            "--llffhold",
+            "4",
+            "--minutes",
+            "5",
+            "--network-share",
+            "0.9",
+        ])
+        .args([
+            "--batch",
+            "2",
+            "--val-batches",
+            "1",
+            "--validate-every",
+            "2",
+        ])
         .args(["--no-progress", "--out"])
         .arg(&out)
         .stdin(Stdio::null())
@@ -497,4 +511,22 @@ fn ctrl_c_in_the_networks_phase_writes_the_best_model() {
         .map(|e| e.file_name())
         .collect();
     assert_eq!(left.len(), 1, "{left:?}");
+}
+
+/// `--refit` reads the views again after the network's phase and refits the prior from
+/// the one fitted before: the file says so, and it differs from the tune without it.
+#[test]
+fn refit_refits_the_prior_on_the_tuned_network() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let s = scene(dir.path(), false);
+    let both = &["--network-share", "0.5"];
+    let without = tuned_with(&s, &dir.path().join("a.safetensors"), both);
+    let out = dir.path().join("refit.safetensors");
+    let with = tuned_with(&s, &out, &["--network-share", "0.5", "--refit"]);
+    let meta = read_safetensors_metadata(&out);
+    let t: serde_json::Value =
+        serde_json::from_str(meta["deepstereo.tune"].as_str().expect("a string")).expect("json");
+    assert!(t["refit_views"].as_u64().is_some_and(|v| v > 0), "{t}");
+    assert!(meta.contains_key("deepstereo.prior"), "{t}");
+    assert_ne!(with, without);
 }

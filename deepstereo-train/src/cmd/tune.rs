@@ -98,6 +98,11 @@ pub struct Args {
     /// half, and the network the rest; with --steps: 0.
     #[arg(long, help_heading = super::args::EXPERT)]
     pub network_share: Option<f64>,
+    /// After the network's fine-tune through the prior, read the views again with the
+    /// tuned network and refit the prior from the one fitted before (the network's time
+    /// shortened by the prior's; with --steps, the prior's steps again).
+    #[arg(long, help_heading = super::args::EXPERT)]
+    pub refit: bool,
     /// Cells along the longest side of the scene prior's grid.
     #[arg(long, default_value_t = PriorOptions::default().cells, help_heading = super::args::EXPERT)]
     pub prior_cells: usize,
@@ -152,7 +157,7 @@ pub fn run(a: Args) -> Result<()> {
     let original = copy_weights(start)?;
     let times = opts.snapshots.clone();
     let prior = match plan.prior {
-        true => Some(run_prior(&a, &setup, &plan, &times, (&stop, &bar))?),
+        true => Some(run_prior(&a, &setup, &plan, (&times, None), (&stop, &bar))?),
         false => None,
     };
     // A grid no step improved on is the model as given: no prior is written, and the
@@ -183,11 +188,25 @@ pub fn run(a: Args) -> Result<()> {
         }
         _ => None,
     };
+    let refit_from = plan.clock.elapsed().as_secs_f64();
+    let refit = match (&grid, &network) {
+        (Some(g), Some(r)) if plan.refit.is_some() && !r.interrupted => {
+            let init = Some(g.clone());
+            Some(run_prior(&a, &setup, &plan, (&times, init), (&stop, &bar))?)
+        }
+        _ => None,
+    };
+    // The refit starts from the grid, so its best is never worse on the views set aside.
+    let grid = match refit.as_ref().and_then(|r| r.grid.clone()) {
+        Some(g) => Some(g),
+        None => grid,
+    };
     bar.finish_and_clear();
     let (tuned_cfg, choice) = tuned_config(&a, &setup, &plan, grid.as_ref(), &original)?;
     let outcome = Outcome {
         network: network.as_ref(),
         prior: prior.as_ref(),
+        refit: refit.as_ref(),
         grid: grid.as_ref(),
         tuned: &tuned_cfg,
         choice: choice.as_ref(),
@@ -210,6 +229,7 @@ pub fn run(a: Args) -> Result<()> {
             original: &original,
             prior: prior.as_ref(),
             network: network.as_ref().map(|r| (r, from)),
+            refit: refit.as_ref().map(|r| (r, refit_from)),
             written: grid.as_ref(),
         };
         let snaps = curve_snapshots(&times, *budget, start, &phases)?;
@@ -329,24 +349,33 @@ impl Setup {
     }
 }
 
-/// The scene prior's fit, first: all views and its share of the steps, or until the
-/// plan's time for it; curve snapshots at `times` (seconds on the plan's clock).
+/// The scene prior's fit: first (`init` `None`), all views and its share of the steps,
+/// or until the plan's time for it; or its refit from `init` on the tuned network, the
+/// prior's steps again or what is left before the planes choice. Curve snapshots at
+/// `times` (seconds on the plan's clock).
 fn run_prior(
     a: &Args,
     setup: &Setup,
     plan: &Plan,
-    times: &[f64],
+    (times, init): (&[f64], Option<PriorGrid>),
     (stop, bar): (&AtomicBool, &indicatif::ProgressBar),
 ) -> Result<SceneFit> {
     let mut po = prior_options(a);
     po.view_share = plan.view_share;
     let now = plan.clock.elapsed().as_secs_f64();
+    let refit = init.is_some();
+    po.init = init;
     let pb = match (setup.budget, plan.prior_until) {
+        (Budget::Seconds(b), Some(_)) if refit => PriorBudget::Seconds(b - now - plan.reserve),
+        (Budget::Seconds(_), Some(until)) => PriorBudget::Seconds(until - now),
         (Budget::Steps(_), _) | (_, None) => {
             po.steps = plan.prior_steps;
             PriorBudget::AllViews
         }
-        (Budget::Seconds(_), Some(until)) => PriorBudget::Seconds(until - now),
+    };
+    let span = match refit {
+        true => Span(plan.share_at(setup.budget, now), 1.0),
+        false => Span(0.0, plan.prior_end(setup.budget)),
     };
     let phase = PriorPhase {
         scene: &setup.scene,
@@ -355,7 +384,7 @@ fn run_prior(
         opts: po,
         budget: pb,
         snapshots: (times, now),
-        span: Span(0.0, plan.prior_end(setup.budget)),
+        span,
     };
     phase.run(&setup.start, stop, bar)
 }
@@ -364,6 +393,7 @@ fn run_prior(
 struct Outcome<'a> {
     network: Option<&'a TuneResult>,
     prior: Option<&'a SceneFit>,
+    refit: Option<&'a SceneFit>,
     grid: Option<&'a PriorGrid>,
     tuned: &'a Config,
     choice: Option<&'a plan::PlanesChoice>,
@@ -395,6 +425,8 @@ fn provenance(
         "prior_steps": fit.map(|f| f.steps),
         "prior_best_step": fit.map(|f| f.best_step),
         "prior_sharpness": o.grid.map(|g| g.sharpness),
+        "refit_views": o.refit.map(|p| p.views),
+        "refit_best_step": o.refit.and_then(|p| p.fit.as_ref()).map(|f| f.best_step),
         "lr": a.lr,
         "lr_final": a.lr_final,
         "batch": a.batch,
@@ -447,8 +479,9 @@ impl PriorPhase<'_> {
         if let Some(f) = &r.fit {
             let first = f.validation.first().map_or(f64::NAN, |v| v.1);
             eprintln!(
-                "{}scene prior: {} views, {} rays, {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (step {}), sharpness {:.3}",
+                "{}scene prior{}: {} views, {} rays, {} steps in {:.0} s; validation PSNR {first:.2} -> {:.2} dB (step {}), sharpness {:.3}",
                 if r.interrupted { "interrupted: " } else { "" },
+                if self.opts.init.is_some() { ", refitted on the tuned network" } else { "" },
                 r.views,
                 r.rays,
                 f.steps,
@@ -481,6 +514,9 @@ struct Plan {
     /// With a budget of steps, the prior's fit steps.
     prior_steps: usize,
     network: NetworkPlan,
+    /// With `--refit`, the seconds kept for the prior's refit after the network (0 with a
+    /// budget of steps); `None`: no refit.
+    refit: Option<f64>,
     /// The network's share of the budget (planned; with a time budget, estimated).
     share: f64,
     /// The prior's estimated time (measured with a time budget).
@@ -520,7 +556,7 @@ impl Plan {
             NetworkPlan::Steps(n) => Some(Budget::Steps(n)),
             NetworkPlan::Until(end) => {
                 let left = end - self.clock.elapsed().as_secs_f64();
-                let t = plan::network_seconds(left, self.reserve);
+                let t = plan::network_seconds(left, self.reserve + self.refit.unwrap_or(0.0));
                 (t > 0.0).then_some(Budget::Seconds(t))
             }
         }
@@ -540,8 +576,12 @@ impl Plan {
                 Some(format!("the network until {:.0} s", end - self.reserve))
             }
         };
+        let refit = match self.refit {
+            Some(_) => ", then the prior refitted",
+            None => "",
+        };
         let what = match (prior, net) {
-            (Some(p), Some(n)) => format!("{p}, then {n} through it"),
+            (Some(p), Some(n)) => format!("{p}, then {n} through it{refit}"),
             (Some(p), None) => format!("{p} alone"),
             (None, Some(n)) => format!("{n} alone"),
             (None, None) => "nothing".to_string(),
@@ -614,6 +654,7 @@ fn plan(
         prior_until: None,
         prior_steps: 0,
         network: NetworkPlan::None,
+        refit: None,
         share: a.network_share.unwrap_or(0.0),
         need,
         reserve,
@@ -650,6 +691,14 @@ fn plan(
             };
         }
     }
+    // The refit reads the views as the first fit did: it keeps that fit's time.
+    let networked = p.network != NetworkPlan::None;
+    p.refit = match (budget, need) {
+        _ if !(a.refit && p.prior && networked) => None,
+        (Budget::Steps(_), _) => Some(0.0),
+        (Budget::Seconds(_), Some(n)) => Some(n.seconds_at(p.view_share)),
+        (Budget::Seconds(_), None) => None,
+    };
     Ok(p)
 }
 

@@ -53,6 +53,10 @@ pub struct PriorOptions {
     /// Validation (on the views set aside) every this many steps.
     pub validate_every: usize,
     pub seed: u64,
+    /// A grid to start the fit from, its box and log-weights and sharpness, instead of
+    /// zeros over the rays' box (`tune --refit`: the prior fitted before the network's
+    /// fine-tune, refitted on the tuned network).
+    pub init: Option<PriorGrid>,
 }
 
 impl Default for PriorOptions {
@@ -70,6 +74,7 @@ impl Default for PriorOptions {
             sharpen: true,
             validate_every: 100,
             seed: 0,
+            init: None,
         }
     }
 }

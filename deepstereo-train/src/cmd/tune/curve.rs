@@ -14,6 +14,8 @@ pub(super) struct Phases<'a> {
     /// The network's fine-tune and when it began (seconds on the tune's clock; its
     /// snapshots' times are counted from there).
     pub network: Option<(&'a TuneResult, f64)>,
+    /// The prior's refit on the tuned network and when it began.
+    pub refit: Option<(&'a SceneFit, f64)>,
     /// The prior the model was written with (and the network tuned through).
     pub written: Option<&'a PriorGrid>,
 }
@@ -27,15 +29,17 @@ pub(super) fn curve_snapshots(
     p: &Phases<'_>,
 ) -> Result<Vec<Snapshot>> {
     let now = copy_weights(start)?;
-    let end = match (p.network, p.prior) {
-        (Some((r, from)), _) => from + r.seconds,
-        (None, Some(f)) => f.seconds,
-        (None, None) => 0.0,
+    let end = match (p.refit, p.network, p.prior) {
+        (Some((f, from)), _, _) => from + f.seconds,
+        (None, Some((r, from)), _) => from + r.seconds,
+        (None, None, Some(f)) => f.seconds,
+        (None, None, None) => 0.0,
     };
     // A tune that read every view before its time was up ends with the model a longer
     // one would also write: the curve holds it up to the budget.
-    let interrupted =
-        p.network.is_some_and(|(r, _)| r.interrupted) || p.prior.is_some_and(|f| f.interrupted);
+    let interrupted = p.network.is_some_and(|(r, _)| r.interrupted)
+        || p.prior.is_some_and(|f| f.interrupted)
+        || p.refit.is_some_and(|(f, _)| f.interrupted);
     let limit = match budget {
         Budget::Seconds(b) if !interrupted => b.max(end),
         _ => end,
@@ -54,6 +58,14 @@ pub(super) fn curve_snapshots(
                 .find(|(s, _)| (s - (t - from)).abs() < 1e-6)
                 .map_or(now.clone(), |s| s.1.clone())
         });
+        let from_refit = p.refit.filter(|(_, from)| t > *from).map(|(f, _)| {
+            let snap = f.snapshots.iter().find(|(s, _)| *s == t);
+            snap.map_or(p.written.cloned(), |(_, g)| Some(g.clone()))
+        });
+        if let Some(g) = from_refit {
+            out.push((t, now.clone(), g));
+            continue;
+        }
         out.push(match (t, from_net, from_prior) {
             (t, _, _) if t == 0.0 => (t, original.clone(), None),
             (t, Some(w), _) => (t, w, p.written.cloned()),

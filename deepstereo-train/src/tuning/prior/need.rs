@@ -82,7 +82,7 @@ impl PriorNeed {
     }
 }
 
-/// A grid over `rays`, fitted to them.
+/// A grid over `rays` (or [`PriorOptions::init`]), fitted to them.
 pub(super) fn fit_rays(
     rays: &mut Rays,
     val: &mut Rays,
@@ -90,7 +90,10 @@ pub(super) fn fit_rays(
     stop: &AtomicBool,
     on_validate: impl FnMut(usize, f64),
 ) -> Result<(PriorGrid, Fit)> {
-    let mut grid = rays.grid(opts.cells)?;
+    let mut grid = match &opts.init {
+        Some(g) => g.clone(),
+        None => rays.grid(opts.cells)?,
+    };
     rays.locate(&grid);
     val.locate(&grid);
     let fit = fit(&mut grid, rays, val, opts, stop, on_validate);
@@ -119,7 +122,10 @@ impl FitTime {
     /// validation rays.
     pub(super) fn measure(rays: &mut Rays, val_rays: usize, opts: &PriorOptions) -> Result<Self> {
         let t0 = Instant::now();
-        let mut grid = rays.grid(opts.cells)?;
+        let mut grid = match &opts.init {
+            Some(g) => g.clone(),
+            None => rays.grid(opts.cells)?,
+        };
         rays.locate(&grid);
         let per_view = t0.elapsed().as_secs_f64() / rays.views().max(1) as f64;
         let steps = 5;
