@@ -296,7 +296,6 @@ impl DeepStereo {
             if view_dims(x, c)?.1 != v {
                 candle_core::bail!("input level {l} has a different number of views");
             }
-            // Rendering: one fused pass where it runs (view features at level 0 only).
             // Rendering: one fused pass where it runs (view features at level 0 only), the
             // source features beside the rest of each view's channels.
             let fused = match (fuse, feats) {

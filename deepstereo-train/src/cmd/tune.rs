@@ -573,7 +573,8 @@ impl Plan {
             NetworkPlan::None => None,
             NetworkPlan::Steps(n) => Some(format!("the network for {n} steps")),
             NetworkPlan::Until(end) => {
-                Some(format!("the network until {:.0} s", end - self.reserve))
+                let until = end - self.reserve - self.refit.unwrap_or(0.0);
+                Some(format!("the network until {until:.0} s"))
             }
         };
         let refit = match self.refit {
