@@ -168,6 +168,20 @@ impl PriorGrid {
         out
     }
 
+    /// [`Self::locate_rays`] of every pixel of the `th` x `tw` tile at `(x0, y0)`, row by
+    /// row: `[th * tw, D]`.
+    pub fn locate_tile(
+        &self,
+        camera: &Camera,
+        inv_depths: &[f64],
+        (x0, y0): (usize, usize),
+        (th, tw): (usize, usize),
+    ) -> Vec<Cell> {
+        let pixels: Vec<(usize, usize)> =
+            (0..th * tw).map(|q| (x0 + q % tw, y0 + q / tw)).collect();
+        self.locate_rays(camera, inv_depths, &pixels)
+    }
+
     /// Reweighs the selection `[D, th, tw]` (row-major, as a backend returns it) of the
     /// `th` x `tw` tile at `(x0, y0)` of `camera` on the planes `inv_depths`, in place.
     pub fn reweigh_tile(
@@ -179,8 +193,7 @@ impl PriorGrid {
         selection: &mut [f32],
     ) {
         let (d, n) = (inv_depths.len(), th * tw);
-        let pixels: Vec<(usize, usize)> = (0..n).map(|q| (x0 + q % tw, y0 + q / tw)).collect();
-        let cells = self.locate_rays(camera, inv_depths, &pixels);
+        let cells = self.locate_tile(camera, inv_depths, (x0, y0), (th, tw));
         let columns: Vec<Vec<f32>> = (0..n)
             .into_par_iter()
             .map(|q| {

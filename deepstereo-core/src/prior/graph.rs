@@ -24,12 +24,11 @@ impl PriorGrid {
         &self,
         camera: &Camera,
         inv_depths: &[f64],
-        (x0, y0): (usize, usize),
+        origin: (usize, usize),
         (th, tw): (usize, usize),
     ) -> Vec<f32> {
         let (d, n) = (inv_depths.len(), th * tw);
-        let pixels: Vec<(usize, usize)> = (0..n).map(|q| (x0 + q % tw, y0 + q / tw)).collect();
-        let cells = self.locate_rays(camera, inv_depths, &pixels);
+        let cells = self.locate_tile(camera, inv_depths, origin, (th, tw));
         let mut out = vec![0f32; d * n];
         for (q, row) in cells.chunks_exact(d.max(1)).enumerate() {
             for (z, &c) in row.iter().enumerate() {

@@ -197,10 +197,7 @@ pub fn run(a: Args) -> Result<()> {
         _ => None,
     };
     // The refit starts from the grid, so its best is never worse on the views set aside.
-    let grid = match refit.as_ref().and_then(|r| r.grid.clone()) {
-        Some(g) => Some(g),
-        None => grid,
-    };
+    let grid = refit.as_ref().and_then(|r| r.grid.clone()).or(grid);
     bar.finish_and_clear();
     let (tuned_cfg, choice) = tuned_config(&a, &setup, &plan, grid.as_ref(), &original)?;
     let outcome = Outcome {

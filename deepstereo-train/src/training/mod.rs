@@ -217,11 +217,22 @@ pub fn validate(
     batches: &[Batch],
     device: &Device,
 ) -> Result<f64> {
+    psnr_of(batches, |b| {
+        let (x, y) = batch_tensors(model, b, device)?;
+        Ok((x.infer(model)?.image, y))
+    })
+}
+
+/// The PSNR over `batches` of the images `render` gives (clamped to [0, 1]) against its
+/// targets: `render(batch) = (image, target)`, both `[B, 3, t, t]`.
+pub fn psnr_of(
+    batches: &[Batch],
+    mut render: impl FnMut(&Batch) -> Result<(Tensor, Tensor)>,
+) -> Result<f64> {
     let (mut se, mut n) = (0f64, 0usize);
     for b in batches {
-        let (x, y) = batch_tensors(model, b, device)?;
-        let out = x.infer(model)?;
-        let d = out.image.clamp(0f32, 1f32)?.sub(&y)?;
+        let (image, y) = render(b)?;
+        let d = image.clamp(0f32, 1f32)?.sub(&y)?;
         se += d.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
         n += d.elem_count();
     }

@@ -4,7 +4,7 @@
 //! it, and its validation scores what the tuned model renders.
 
 use crate::training::data::{Batch, TileRef};
-use crate::training::{batch_tensors, psnr_from_mse};
+use crate::training::{batch_tensors, psnr_of};
 use anyhow::{bail, Result};
 use candle_core::{Device, Tensor};
 use deepstereo_core::model::DeepStereo;
@@ -67,14 +67,7 @@ pub fn validate_through(
     prior: Option<&PriorGrid>,
     device: &Device,
 ) -> Result<f64> {
-    let (mut se, mut n) = (0f64, 0usize);
-    for b in batches {
-        let (image, y) = render_batch(model, b, prior, device, true)?;
-        let d = image.clamp(0f32, 1f32)?.sub(&y)?;
-        se += d.sqr()?.sum_all()?.to_scalar::<f32>()? as f64;
-        n += d.elem_count();
-    }
-    Ok(psnr_from_mse(se / n.max(1) as f64))
+    psnr_of(batches, |b| render_batch(model, b, prior, device, true))
 }
 
 #[cfg(test)]
